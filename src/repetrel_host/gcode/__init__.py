@@ -1,0 +1,5 @@
+"""Pure G-code knowledge: command classes (later: T addressing, headers, lint)."""
+
+from repetrel_host.gcode.commands import UNBUFFERED, command_word, is_unbuffered
+
+__all__ = ["UNBUFFERED", "command_word", "is_unbuffered"]

@@ -1,0 +1,44 @@
+"""What kind of command a G-code line is, as far as flow control cares."""
+
+from __future__ import annotations
+
+import re
+
+_WORD = re.compile(r"([A-Za-z])\s*0*(\d+)(\.\d+)?")
+
+# Commands a controller acknowledges only after its motion queue drained and
+# the command finished (reprap-gcode-protocol.txt; PROTOCOL-NOTES.md section 1).
+# Their long waits are not communication failures.
+UNBUFFERED = frozenset(
+    {
+        "G4",  # dwell
+        "G28",  # home
+        "G29",  # bed probing
+        "G30",  # single probe
+        "G32",  # probe and level
+        "M0",  # stop / wait for user
+        "M1",  # sleep / wait for user
+        "M109",  # set hotend temperature and wait
+        "M116",  # wait for temperatures
+        "M190",  # set bed temperature and wait
+        "M191",  # set chamber temperature and wait
+        "M226",  # wait for pin state
+        "M303",  # PID autotune
+        "M400",  # wait for moves to finish
+        "M600",  # filament change
+    }
+)
+
+
+def command_word(command: str) -> str:
+    """The normalised first word: ``g01 x5`` and ``G1X5`` give ``G1``, ``T0`` gives ``T0``."""
+    match = _WORD.match(command)
+    if match is None:
+        return command.split(" ", 1)[0].upper()
+    letter, number, fraction = match.groups()
+    return letter.upper() + (number.lstrip("0") or "0") + (fraction or "")
+
+
+def is_unbuffered(command: str) -> bool:
+    """True when the controller acknowledges ``command`` only after it has finished."""
+    return command_word(command) in UNBUFFERED

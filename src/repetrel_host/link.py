@@ -1,0 +1,131 @@
+"""The only module that touches pyserial: open a port by name or URL, or start the fake.
+
+``fake`` as a port name starts the built-in fake controller in a subprocess on
+a fresh pty and opens that, so the whole path (process, pty, termios, pyserial)
+is the real one.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import errno
+import os
+import select
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import serial
+import serial_asyncio_fast
+
+from repetrel_host.errors import LinkError
+
+FAKE_PORT = "fake"
+# Starting Python and the fake takes well under a second; leave room for a slow CI.
+FAKE_START_TIMEOUT = 15.0
+
+
+async def open_link(
+    port: str, baudrate: int, protocol_factory: Callable[[], asyncio.Protocol]
+) -> tuple[asyncio.Transport, asyncio.Protocol]:
+    """Open ``port`` (a device path or a pyserial URL) and connect ``protocol_factory`` to it."""
+    loop = asyncio.get_running_loop()
+    try:
+        transport, protocol = await serial_asyncio_fast.create_serial_connection(
+            loop, protocol_factory, port, baudrate=baudrate, exclusive=True
+        )
+    except (serial.SerialException, OSError, ValueError) as exc:
+        raise LinkError(describe_open_error(port, exc)) from None
+    return transport, protocol
+
+
+def describe_open_error(port: str, exc: BaseException) -> str:
+    """One sentence for a port that would not open."""
+    code = getattr(exc, "errno", None)
+    text = str(exc)
+    if code == errno.ENOENT or "No such file" in text:
+        return f"cannot open {port}: no such port (is the printer plugged in and on?)"
+    if code == errno.EACCES or "Permission denied" in text:
+        return (
+            f"cannot open {port}: permission denied "
+            "(on Linux, add yourself to the 'dialout' group)"
+        )
+    if code == errno.EBUSY or "Resource temporarily unavailable" in text or "busy" in text:
+        return f"cannot open {port}: the port is busy (another program has it open)"
+    return f"cannot open {port}: {text}"
+
+
+class BuiltInFake:
+    """The fake controller in a subprocess, on its own pty, for demos and tests."""
+
+    def __init__(self, log_path: Path | None = None, extra_args: Sequence[str] = ()) -> None:
+        if log_path is None:
+            # Kept after the run: it is the proof of what the fake executed.
+            fd, name = tempfile.mkstemp(prefix="hyrel-fake-", suffix=".log")
+            os.close(fd)
+            log_path = Path(name)
+        self.log_path = log_path
+        self.extra_args = list(extra_args)
+        self.port = ""
+        self._process: subprocess.Popen[bytes] | None = None
+
+    def start(self) -> str:
+        """Start the fake and return the path of its pty."""
+        command = [
+            sys.executable,
+            "-m",
+            "repetrel_host.testing.fake_controller",
+            "--log",
+            str(self.log_path),
+            *self.extra_args,
+        ]
+        self._process = subprocess.Popen(
+            command, stdout=subprocess.PIPE, stdin=subprocess.DEVNULL, start_new_session=True
+        )
+        assert self._process.stdout is not None
+        line = _read_line(self._process.stdout.fileno(), FAKE_START_TIMEOUT)
+        if not line.startswith("ready "):
+            self.stop()
+            raise LinkError("the built-in fake controller did not start")
+        self.port = line.split(" ", 1)[1]
+        return self.port
+
+    def stop(self) -> None:
+        """Stop the fake; its log is complete once this returns."""
+        if self._process is not None and self._process.poll() is None:
+            self._process.terminate()
+            try:
+                self._process.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                self._process.kill()
+                self._process.wait()
+        if self._process is not None and self._process.stdout is not None:
+            self._process.stdout.close()
+        self._process = None
+
+    def __enter__(self) -> BuiltInFake:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+def _read_line(fd: int, timeout: float) -> str:
+    deadline = time.monotonic() + timeout
+    data = b""
+    while not data.endswith(b"\n"):
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            break
+        readable, _, _ = select.select([fd], [], [], remaining)
+        if not readable:
+            break
+        chunk = os.read(fd, 256)
+        if not chunk:
+            break
+        data += chunk
+    return data.decode("ascii", errors="replace").strip()

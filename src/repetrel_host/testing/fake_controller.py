@@ -1,0 +1,201 @@
+"""The fake controller: a :class:`ControllerSimulator` behind a real pseudo-terminal.
+
+Run ``hyrel-fake-controller --link /tmp/hyrel0`` and open ``/tmp/hyrel0`` like a
+serial port. Once the pty is ready the process prints ``ready <path>`` on
+stdout. ``--log FILE`` writes every executed command, one a line, in order.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import pty
+import selectors
+import signal
+import sys
+import time
+import tty
+from pathlib import Path
+from typing import TextIO
+
+from repetrel_host.testing.simulator import ControllerSettings, ControllerSimulator, Overflow
+
+READ_SIZE = 4096
+
+
+class PtyController:
+    """Owns the pty pair and pumps bytes between it and the simulator in real time."""
+
+    def __init__(
+        self,
+        settings: ControllerSettings,
+        link: Path | None = None,
+        log: TextIO | None = None,
+    ) -> None:
+        self._master, self._slave = pty.openpty()
+        # Raw mode: no echo, no line editing, bytes pass unchanged. We keep the
+        # slave open ourselves so that the pty survives the host closing it.
+        tty.setraw(self._slave)
+        os.set_blocking(self._master, False)
+        self.path = os.ttyname(self._slave)
+        self.link = link
+        if link is not None:
+            with contextlib.suppress(FileNotFoundError):
+                link.unlink()
+            link.symlink_to(self.path)
+        self._log = log
+        self._unflushed = False
+        self.simulator = ControllerSimulator(settings, now=time.monotonic(), on_execute=self._execute)
+        self._to_write = bytearray()
+        self._stopping = False
+
+    def _execute(self, command: str) -> None:
+        if self._log is not None:
+            self._log.write(command + "\n")
+            self._unflushed = True
+
+    def stop(self) -> None:
+        self._stopping = True
+
+    def run(self) -> None:
+        selector = selectors.DefaultSelector()
+        selector.register(self._master, selectors.EVENT_READ)
+        blocked = self.simulator.settings.overflow is Overflow.BLOCK
+        try:
+            while not self._stopping:
+                now = time.monotonic()
+                wants_read = not blocked or self.simulator.room() > 0
+                events = selectors.EVENT_READ if wants_read else 0
+                if self._to_write:
+                    events |= selectors.EVENT_WRITE
+                if events:
+                    selector.modify(self._master, events)
+                    timeout = self._timeout(now)
+                    ready = selector.select(timeout)
+                else:
+                    time.sleep(max(0.0, min(self._timeout(now) or 0.05, 0.05)))
+                    ready = []
+                now = time.monotonic()
+                for _key, mask in ready:
+                    if mask & selectors.EVENT_READ:
+                        self._read(now, blocked)
+                    if mask & selectors.EVENT_WRITE:
+                        self._flush_writes()
+                self.simulator.advance(now)
+                self._to_write += self.simulator.take_output(now)
+                self._flush_writes()
+                if self._unflushed and self._log is not None:
+                    self._log.flush()
+                    self._unflushed = False
+        finally:
+            selector.close()
+
+    def _timeout(self, now: float) -> float | None:
+        wakeup = self.simulator.next_wakeup()
+        if wakeup is None:
+            return 0.5  # wake now and then to notice stop()
+        return min(0.5, max(0.0, wakeup - now))
+
+    def _read(self, now: float, blocked: bool) -> None:
+        size = min(READ_SIZE, self.simulator.room()) if blocked else READ_SIZE
+        if size <= 0:
+            return
+        try:
+            data = os.read(self._master, size)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError:
+            # EIO: no process has the slave open right now. Ours is open, so
+            # this is rare; wait a moment rather than spin.
+            time.sleep(0.01)
+            return
+        self.simulator.receive(data, now)
+
+    def _flush_writes(self) -> None:
+        if not self._to_write:
+            return
+        try:
+            written = os.write(self._master, self._to_write)
+        except (BlockingIOError, InterruptedError):
+            return
+        del self._to_write[:written]
+
+    def close(self) -> None:
+        if self._log is not None:
+            self._log.flush()
+        if self.link is not None:
+            with contextlib.suppress(FileNotFoundError):
+                self.link.unlink()
+        for fd in (self._master, self._slave):
+            with contextlib.suppress(OSError):
+                os.close(fd)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="hyrel-fake-controller",
+        description="A Marlin-style fake motion controller on a pseudo-terminal.",
+    )
+    parser.add_argument("--link", type=Path, help="create a symlink to the pty at this path")
+    parser.add_argument("--log", type=Path, help="write every executed command to this file")
+    parser.add_argument(
+        "--bandwidth", type=float, default=None, help="link bytes/s each way (default: unlimited)"
+    )
+    parser.add_argument("--latency", type=float, default=0.0, help="one-way link delay in seconds")
+    parser.add_argument("--rx-buffer", type=int, default=128, help="receive buffer in bytes")
+    parser.add_argument(
+        "--overflow",
+        choices=[o.value for o in Overflow],
+        default=Overflow.DROP.value,
+        help="drop bytes that do not fit (UART) or hold the sender back (USB)",
+    )
+    parser.add_argument("--slots", type=int, default=4, help="command slots (Marlin BUFSIZE)")
+    parser.add_argument("--planner", type=int, default=16, help="planner blocks")
+    parser.add_argument("--move-time", type=float, default=0.0, help="seconds per move")
+    parser.add_argument(
+        "--command-time", type=float, default=0.0, help="seconds per other command"
+    )
+    parser.add_argument("--no-banner", action="store_true", help="do not say 'start' at boot")
+    return parser
+
+
+def settings_from_args(args: argparse.Namespace) -> ControllerSettings:
+    if args.rx_buffer < 2 or args.slots < 1 or args.planner < 1:
+        raise SystemExit("hyrel-fake-controller: --rx-buffer, --slots and --planner must be positive")
+    return ControllerSettings(
+        bandwidth=args.bandwidth,
+        latency=args.latency,
+        rx_buffer=args.rx_buffer,
+        overflow=Overflow(args.overflow),
+        slots=args.slots,
+        planner=args.planner,
+        move_time=args.move_time,
+        command_time=args.command_time,
+        banner=not args.no_banner,
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    settings = settings_from_args(args)
+    log = args.log.open("w", encoding="ascii", errors="replace") if args.log else None
+    try:
+        controller = PtyController(settings, link=args.link, log=log)
+    except OSError as exc:
+        print(f"hyrel-fake-controller: cannot create the pty: {exc.strerror}", file=sys.stderr)
+        return 3
+    for signum in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
+        signal.signal(signum, lambda *_: controller.stop())
+    print(f"ready {controller.link or controller.path}", flush=True)
+    try:
+        controller.run()
+    finally:
+        controller.close()
+        if log is not None:
+            log.close()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

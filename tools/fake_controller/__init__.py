@@ -1,0 +1,5 @@
+"""Command-line entry to the fake controller: ``python -m tools.fake_controller --link /tmp/hyrel0``.
+
+The controller itself lives in :mod:`repetrel_host.testing.fake_controller` so that it
+ships in the wheel with the pytest plugin.
+"""
