@@ -90,18 +90,18 @@ def send(
     ] = None,
 ) -> None:
     """Stream JOB to a Hyrel (or Marlin-style) controller and show progress."""
-    console = Console(highlight=False)
-    errors = Console(stderr=True, highlight=False)
+    console = Console(highlight=False, soft_wrap=True)
+    errors = Console(stderr=True, highlight=False, soft_wrap=True)
     try:
         code = _send(console, job, port, baud, flow, rx_buffer, max_lines, fake_log)
     except JobError as exc:
-        errors.print(f"error: {exc}")
+        errors.print(f"error: {exc}", markup=False)
         code = EXIT_BAD_INPUT
     except LinkError as exc:
-        errors.print(f"link failure: {exc}")
+        errors.print(f"link failure: {exc}", markup=False)
         code = EXIT_LINK_FAILURE
     except (ControllerError, ProtocolError) as exc:
-        errors.print(f"controller error: {exc}")
+        errors.print(f"controller error: {exc}", markup=False)
         code = EXIT_CONTROLLER_ERROR
     raise typer.Exit(code)
 
@@ -199,10 +199,12 @@ def main() -> None:
     try:
         app()
     except KeyboardInterrupt:
-        Console(stderr=True).print("interrupted before streaming began; nothing was sent.")
+        Console(stderr=True, soft_wrap=True).print(
+            "interrupted before streaming began; nothing was sent."
+        )
         raise SystemExit(EXIT_INTERRUPTED) from None
     except HostError as exc:  # a last guard: one sentence, never a traceback
-        Console(stderr=True).print(f"error: {exc}")
+        Console(stderr=True, soft_wrap=True).print(f"error: {exc}")
         raise SystemExit(EXIT_BAD_INPUT) from None
 
 

@@ -50,8 +50,7 @@ def describe_open_error(port: str, exc: BaseException) -> str:
         return f"cannot open {port}: no such port (is the printer plugged in and on?)"
     if code == errno.EACCES or "Permission denied" in text:
         return (
-            f"cannot open {port}: permission denied "
-            "(on Linux, add yourself to the 'dialout' group)"
+            f"cannot open {port}: permission denied (on Linux, add yourself to the 'dialout' group)"
         )
     if code == errno.EBUSY or "Resource temporarily unavailable" in text or "busy" in text:
         return f"cannot open {port}: the port is busy (another program has it open)"

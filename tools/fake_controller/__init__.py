@@ -1,4 +1,4 @@
-"""Command-line entry to the fake controller: ``python -m tools.fake_controller --link /tmp/hyrel0``.
+"""Command-line entry: ``python -m tools.fake_controller --link /tmp/hyrel0``.
 
 The controller itself lives in :mod:`repetrel_host.testing.fake_controller` so that it
 ships in the wheel with the pytest plugin.

@@ -215,7 +215,7 @@ class HostProtocol:
         self._begin_reset()
 
     def send(self, command: str, tag: object = None) -> None:
-        """Queue one clean command (see :func:`framing.clean_line`); ``tag`` comes back in events."""
+        """Queue one clean command (see :func:`clean_line`); ``tag`` comes back in events."""
         if is_reset_command(command):
             raise ProtocolError("M110 sets line numbers, which the host owns; it cannot be queued")
         self._pending.append((command, tag))

@@ -46,7 +46,9 @@ class PtyController:
             link.symlink_to(self.path)
         self._log = log
         self._unflushed = False
-        self.simulator = ControllerSimulator(settings, now=time.monotonic(), on_execute=self._execute)
+        self.simulator = ControllerSimulator(
+            settings, now=time.monotonic(), on_execute=self._execute
+        )
         self._to_write = bytearray()
         self._stopping = False
 
@@ -153,16 +155,16 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--slots", type=int, default=4, help="command slots (Marlin BUFSIZE)")
     parser.add_argument("--planner", type=int, default=16, help="planner blocks")
     parser.add_argument("--move-time", type=float, default=0.0, help="seconds per move")
-    parser.add_argument(
-        "--command-time", type=float, default=0.0, help="seconds per other command"
-    )
+    parser.add_argument("--command-time", type=float, default=0.0, help="seconds per other command")
     parser.add_argument("--no-banner", action="store_true", help="do not say 'start' at boot")
     return parser
 
 
 def settings_from_args(args: argparse.Namespace) -> ControllerSettings:
     if args.rx_buffer < 2 or args.slots < 1 or args.planner < 1:
-        raise SystemExit("hyrel-fake-controller: --rx-buffer, --slots and --planner must be positive")
+        raise SystemExit(
+            "hyrel-fake-controller: --rx-buffer, --slots and --planner must be positive"
+        )
     return ControllerSettings(
         bandwidth=args.bandwidth,
         latency=args.latency,

@@ -53,7 +53,7 @@ class _Command:
 
 
 class ControllerSimulator:
-    """Feed bytes with :meth:`receive`, run with :meth:`advance`, read replies with :meth:`take_output`."""
+    """Feed bytes with :meth:`receive`, run with :meth:`advance`, read :meth:`take_output`."""
 
     def __init__(
         self,
@@ -90,13 +90,21 @@ class ControllerSimulator:
         return max(0, capacity - len(self._rx) - self._inbound_bytes)
 
     def receive(self, data: bytes, now: float) -> None:
-        """Bytes the host wrote at ``now``; they reach the receive buffer after the wire's delay."""
-        if not data:
-            return
+        """Bytes the host wrote at ``now``; they reach the receive buffer after the wire's delay.
+
+        Each line arrives on its own, so the firmware can take a line out of the
+        buffer before the next one lands, as it does on a real wire.
+        """
         start = max(now, self._in_wire_free)
-        self._in_wire_free = start + self._wire_time(len(data))
-        self._inbound.append((self._in_wire_free + self.settings.latency, data))
-        self._inbound_bytes += len(data)
+        begin = 0
+        while begin < len(data):
+            end = data.find(b"\n", begin) + 1 or len(data)
+            piece = data[begin:end]
+            start += self._wire_time(len(piece))
+            self._inbound.append((start + self.settings.latency, piece))
+            self._inbound_bytes += len(piece)
+            begin = end
+        self._in_wire_free = start
 
     def take_output(self, now: float) -> bytes:
         """Replies that have reached the host by ``now``."""
@@ -140,23 +148,23 @@ class ControllerSimulator:
 
     def _step(self, now: float) -> None:
         self._last_step = now
-        self._deliver_arrivals(now)
         while True:
             self._fill_slots(now)
-            if not self._process_head(now):
-                break
+            if self._process_head(now):
+                continue
+            if self._inbound and self._inbound[0][0] <= now:
+                self._deliver(self._inbound.popleft()[1])
+                continue
+            break
 
-    def _deliver_arrivals(self, now: float) -> None:
-        capacity = self.settings.rx_buffer - 1
-        while self._inbound and self._inbound[0][0] <= now:
-            data = self._inbound.popleft()[1]
-            self._inbound_bytes -= len(data)
-            free = capacity - len(self._rx)
-            if len(data) > free and self.settings.overflow is Overflow.DROP:
-                self.bytes_dropped += len(data) - free
-                data = data[:free]
-            # With back-pressure the host was only let to send what fits (room()).
-            self._rx += data
+    def _deliver(self, data: bytes) -> None:
+        self._inbound_bytes -= len(data)
+        free = self.settings.rx_buffer - 1 - len(self._rx)
+        if len(data) > free and self.settings.overflow is Overflow.DROP:
+            self.bytes_dropped += len(data) - free
+            data = data[:free]
+        # With back-pressure the host was only let to send what fits (room()).
+        self._rx += data
 
     def _fill_slots(self, now: float) -> None:
         while len(self._queue) < self.settings.slots:

@@ -1,0 +1,39 @@
+"""Shared helpers: the sample files, the job's commands, running hyrel-send for real."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from repetrel_host.job import Job
+
+DATA = Path(__file__).parent / "data"
+CONE = DATA / "cone-prusaslicer.gcode"
+EXAMPLE = Path(__file__).parent.parent / "examples" / "square-tube.gcode"
+
+
+def job_commands(path: Path) -> list[str]:
+    return [line.command for line in Job(path).lines()]
+
+
+def executed(log: Path) -> list[str]:
+    """The fake controller's log without the host's own M110 lines."""
+    return [c for c in log.read_text().splitlines() if not c.startswith("M110")]
+
+
+def hyrel_send(
+    *args: str, env: dict[str, str] | None = None, timeout: float = 90
+) -> subprocess.CompletedProcess[str]:
+    """Run hyrel-send as a real process, without a HYREL_PORT unless ``env`` gives one."""
+    environment = {k: v for k, v in os.environ.items() if k != "HYREL_PORT"}
+    environment.update(env or {})
+    return subprocess.run(
+        [sys.executable, "-m", "repetrel_host.cli", *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env=environment,
+        stdin=subprocess.DEVNULL,
+    )

@@ -1,0 +1,109 @@
+"""Real processes over a real pty: hyrel-send against the fake controller."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from repetrel_host.link import BuiltInFake
+from tests.helpers import CONE, EXAMPLE, executed, hyrel_send, job_commands
+
+pytestmark = pytest.mark.timeout(120)
+
+
+@pytest.fixture
+def fake(tmp_path: Path) -> Iterator[BuiltInFake]:
+    controller = BuiltInFake(tmp_path / "executed.log")
+    controller.start()
+    yield controller
+    controller.stop()
+
+
+def test_readme_command_streams_the_example_to_the_built_in_fake(tmp_path: Path) -> None:
+    log = tmp_path / "fake.log"
+    result = hyrel_send(str(EXAMPLE), "--fake-log", str(log))
+    assert result.returncode == 0, result.stderr
+    assert "built-in fake controller" in result.stdout
+    assert "done" in result.stdout
+    assert executed(log) == job_commands(EXAMPLE)
+
+
+@pytest.mark.parametrize("flow", ["buffered", "unbuffered"])
+def test_slicer_job_over_a_pty_executes_every_line_once(flow: str, fake: BuiltInFake) -> None:
+    result = hyrel_send(str(CONE), "--port", fake.port, "--flow", flow)
+    assert result.returncode == 0, result.stderr
+    fake.stop()
+    commands = job_commands(CONE)
+    assert len(commands) > 20_000
+    assert executed(fake.log_path) == commands
+    assert f"{len(commands)} lines" in result.stdout
+
+
+def test_port_comes_from_the_environment(fake: BuiltInFake) -> None:
+    result = hyrel_send(str(EXAMPLE), env={"HYREL_PORT": fake.port})
+    assert result.returncode == 0, result.stderr
+    assert "built-in fake" not in result.stdout
+    fake.stop()
+    assert executed(fake.log_path) == job_commands(EXAMPLE)
+
+
+def test_slow_uart_with_a_small_dropping_buffer_needs_no_resend(tmp_path: Path) -> None:
+    log = tmp_path / "uart.log"
+    args = ["--bandwidth", "11520", "--latency", "0.002", "--rx-buffer", "128"]
+    with BuiltInFake(log, args) as uart:
+        result = hyrel_send(str(EXAMPLE), "--port", uart.port)
+    assert result.returncode == 0, result.stderr
+    assert "0 resend requests" in result.stdout
+    assert executed(log) == job_commands(EXAMPLE)
+
+
+def test_ctrl_c_stops_cleanly_without_losing_or_repeating(tmp_path: Path) -> None:
+    log = tmp_path / "slow.log"
+    # 2 ms a move and a 16-block planner: the cone would take about 40 s.
+    with BuiltInFake(log, ["--move-time", "0.002"]) as slow:
+        process = subprocess.Popen(
+            [sys.executable, "-m", "repetrel_host.cli", str(CONE), "--port", slow.port],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            stdin=subprocess.DEVNULL,
+            text=True,
+        )
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and (not log.exists() or log.stat().st_size < 2000):
+            time.sleep(0.05)
+        process.send_signal(signal.SIGINT)
+        stdout, stderr = process.communicate(timeout=30)
+        time.sleep(0.2)
+    assert process.returncode == 130, stderr
+    assert "Traceback" not in stderr
+    assert "interrupted" in stdout
+    done = executed(log)
+    commands = job_commands(CONE)
+    assert 0 < len(done) < len(commands)
+    assert done == commands[: len(done)]
+
+
+def test_fake_controller_entry_point_makes_a_link(tmp_path: Path) -> None:
+    link = tmp_path / "hyrel0"
+    process = subprocess.Popen(
+        [sys.executable, "-m", "tools.fake_controller", "--link", str(link)],
+        stdout=subprocess.PIPE,
+        text=True,
+        cwd=Path(__file__).parent.parent,
+    )
+    try:
+        assert process.stdout is not None
+        assert process.stdout.readline().strip() == f"ready {link}"
+        assert link.is_symlink()
+        result = hyrel_send(str(EXAMPLE), "--port", str(link))
+        assert result.returncode == 0, result.stderr
+    finally:
+        process.terminate()
+        process.wait(timeout=10)
+    assert not link.exists()
