@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import pytest
 
 from repetrel_host.link import BuiltInFake
-from tests.helpers import executed, hyrel_send
+from tests.helpers import CONE, executed, hyrel_send, job_commands
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -38,6 +41,40 @@ def test_missing_port(tmp_path: Path) -> None:
     result = hyrel_send(str(job), "--port", str(tmp_path / "ttyUSB9"))
     assert result.returncode == 3
     assert_one_clear_line(result.stderr, "no such port")
+
+
+def test_not_a_serial_port(tmp_path: Path) -> None:
+    job = tmp_path / "job.gcode"
+    job.write_text("G28\n")
+    result = hyrel_send(str(job), "--port", "/dev/null")
+    assert result.returncode == 3
+    assert_one_clear_line(result.stderr, "not a serial port")
+
+
+def test_link_lost_mid_job_reports_the_last_acknowledged_line(tmp_path: Path) -> None:
+    log = tmp_path / "lost.log"
+    fake = BuiltInFake(log, ["--move-time", "0.002"])
+    fake.start()
+    process = subprocess.Popen(
+        [sys.executable, "-m", "repetrel_host.cli", str(CONE), "--port", fake.port],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        stdin=subprocess.DEVNULL,
+        text=True,
+    )
+    try:
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and (not log.exists() or log.stat().st_size < 2000):
+            time.sleep(0.05)
+        assert fake.process is not None
+        fake.process.kill()  # the controller vanishes, as when a cable is pulled
+        _, stderr = process.communicate(timeout=30)
+    finally:
+        fake.stop()
+    assert process.returncode == 3
+    assert_one_clear_line(stderr, "lost", f"acknowledged is {CONE.name}:")
+    done = executed(log)
+    assert done == job_commands(CONE)[: len(done)]
 
 
 def test_bad_flow_mode(tmp_path: Path) -> None:

@@ -48,10 +48,12 @@ class ProgressObserver(Observer):
         self.lines = 0
         self.offset = 0
         self.resends = 0
+        self.last: JobLine | None = None
 
     def on_acknowledged(self, line: JobLine) -> None:
         self.lines = line.index
         self.offset = line.end_offset
+        self.last = line
 
     def on_resend(self, line: JobLine) -> None:
         self.resends += 1
@@ -156,25 +158,45 @@ async def _stream_with_progress(
     task = progress.add_task(job.name, total=max(job.size, 1), lines=0, rate=0.0)
     started = time.monotonic()
 
-    def on_open(sender: Sender) -> None:
-        loop.add_signal_handler(signal.SIGINT, sender.cancel)
-
     async def refresh() -> None:
         while True:
             _update(progress, task, observer, started)
             await asyncio.sleep(PROGRESS_REFRESH)
 
-    with progress:
+    refresher: asyncio.Task[None] | None = None
+
+    def on_open(sender: Sender) -> None:
+        # The bar appears only once the port is open: a port that fails shows no bar.
+        nonlocal refresher
+        loop.add_signal_handler(signal.SIGINT, sender.cancel)
+        progress.start()
         refresher = asyncio.create_task(refresh())
-        try:
-            summary = await stream(port, baud, core, job.lines(), observer, on_open)
-        finally:
-            refresher.cancel()
-            loop.remove_signal_handler(signal.SIGINT)
+
+    try:
+        summary = await stream(port, baud, core, job.lines(), observer, on_open)
         if summary.outcome is Outcome.COMPLETED:
             observer.offset = job.size  # trailing comments count as sent
-        _update(progress, task, observer, started)
-        return summary
+    except (LinkError, ControllerError, ProtocolError) as exc:
+        if refresher is None:
+            raise  # the port never opened: nothing was sent
+        raise type(exc)(f"{exc}; {_last_acknowledged(job, observer)}") from None
+    finally:
+        if refresher is not None:
+            refresher.cancel()
+            loop.remove_signal_handler(signal.SIGINT)
+            _update(progress, task, observer, started)
+            progress.stop()
+    return summary
+
+
+def _last_acknowledged(job: Job, observer: ProgressObserver) -> str:
+    if observer.last is None:
+        return "no line of the job was acknowledged"
+    line = observer.last
+    return (
+        f"the last line the controller acknowledged is {job.name}:{line.source_line} "
+        f"(command {line.index} of the job, {line.command})"
+    )
 
 
 def _update(progress: Progress, task: TaskID, observer: ProgressObserver, started: float) -> None:

@@ -52,6 +52,8 @@ def describe_open_error(port: str, exc: BaseException) -> str:
         return (
             f"cannot open {port}: permission denied (on Linux, add yourself to the 'dialout' group)"
         )
+    if code == errno.ENOTTY or "Inappropriate ioctl" in text:
+        return f"cannot open {port}: it is not a serial port"
     if code == errno.EBUSY or "Resource temporarily unavailable" in text or "busy" in text:
         return f"cannot open {port}: the port is busy (another program has it open)"
     return f"cannot open {port}: {text}"
@@ -69,7 +71,7 @@ class BuiltInFake:
         self.log_path = log_path
         self.extra_args = list(extra_args)
         self.port = ""
-        self._process: subprocess.Popen[bytes] | None = None
+        self.process: subprocess.Popen[bytes] | None = None
 
     def start(self) -> str:
         """Start the fake and return the path of its pty."""
@@ -81,11 +83,11 @@ class BuiltInFake:
             str(self.log_path),
             *self.extra_args,
         ]
-        self._process = subprocess.Popen(
+        self.process = subprocess.Popen(
             command, stdout=subprocess.PIPE, stdin=subprocess.DEVNULL, start_new_session=True
         )
-        assert self._process.stdout is not None
-        line = _read_line(self._process.stdout.fileno(), FAKE_START_TIMEOUT)
+        assert self.process.stdout is not None
+        line = _read_line(self.process.stdout.fileno(), FAKE_START_TIMEOUT)
         if not line.startswith("ready "):
             self.stop()
             raise LinkError("the built-in fake controller did not start")
@@ -94,16 +96,16 @@ class BuiltInFake:
 
     def stop(self) -> None:
         """Stop the fake; its log is complete once this returns."""
-        if self._process is not None and self._process.poll() is None:
-            self._process.terminate()
+        if self.process is not None and self.process.poll() is None:
+            self.process.terminate()
             try:
-                self._process.wait(timeout=5)
+                self.process.wait(timeout=5)
             except subprocess.TimeoutExpired:
-                self._process.kill()
-                self._process.wait()
-        if self._process is not None and self._process.stdout is not None:
-            self._process.stdout.close()
-        self._process = None
+                self.process.kill()
+                self.process.wait()
+        if self.process is not None and self.process.stdout is not None:
+            self.process.stdout.close()
+        self.process = None
 
     def __enter__(self) -> BuiltInFake:
         self.start()

@@ -94,8 +94,8 @@ class Sender(asyncio.Protocol):
         self._pump()
 
     def connection_lost(self, exc: Exception | None) -> None:
-        reason = f": {exc}" if exc else ""
-        self._finish(LinkError(f"the serial link closed during the job{reason}"))
+        log.debug("connection lost: %s", exc)
+        self._finish(LinkError("the serial link was lost (printer unplugged, or its port closed)"))
 
     # --- control ------------------------------------------------------------
 
