@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 import pytest
+import serial
 
 from repetrel_host.link import BuiltInFake
 from tests.helpers import CONE, executed, hyrel_send, job_commands
@@ -49,6 +50,19 @@ def test_not_a_serial_port(tmp_path: Path) -> None:
     result = hyrel_send(str(job), "--port", "/dev/null")
     assert result.returncode == 3
     assert_one_clear_line(result.stderr, "not a serial port")
+
+
+def test_busy_port(tmp_path: Path) -> None:
+    job = tmp_path / "job.gcode"
+    job.write_text("G28\n")
+    with BuiltInFake(tmp_path / "fake.log") as fake:
+        holder = serial.Serial(fake.port, 115200, exclusive=True)
+        try:
+            result = hyrel_send(str(job), "--port", fake.port)
+        finally:
+            holder.close()
+    assert result.returncode == 3
+    assert_one_clear_line(result.stderr, "busy")
 
 
 def test_link_lost_mid_job_reports_the_last_acknowledged_line(tmp_path: Path) -> None:

@@ -53,6 +53,14 @@ def test_port_comes_from_the_environment(fake: BuiltInFake) -> None:
     assert executed(fake.log_path) == job_commands(EXAMPLE)
 
 
+def test_controller_messages_are_shown(tmp_path: Path, fake: BuiltInFake) -> None:
+    job = tmp_path / "hello.gcode"
+    job.write_text("M115 ; report firmware\nG28\n")
+    result = hyrel_send(str(job), "--port", fake.port)
+    assert result.returncode == 0, result.stderr
+    assert "controller: FIRMWARE_NAME:repetrel-host fake controller" in result.stdout
+
+
 def test_slow_uart_with_a_small_dropping_buffer_needs_no_resend(tmp_path: Path) -> None:
     log = tmp_path / "uart.log"
     args = ["--bandwidth", "11520", "--latency", "0.002", "--rx-buffer", "128"]
@@ -107,3 +115,17 @@ def test_fake_controller_entry_point_makes_a_link(tmp_path: Path) -> None:
         process.terminate()
         process.wait(timeout=10)
     assert not link.exists()
+
+
+def test_fake_controller_refuses_to_replace_a_file(tmp_path: Path) -> None:
+    precious = tmp_path / "notes.txt"
+    precious.write_text("keep me")
+    result = subprocess.run(
+        [sys.executable, "-m", "repetrel_host.testing.fake_controller", "--link", str(precious)],
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
+    assert result.returncode == 2
+    assert "exists and is not a link" in result.stderr
+    assert precious.read_text() == "keep me"

@@ -47,16 +47,12 @@ class ProgressObserver(Observer):
         self.console = console
         self.lines = 0
         self.offset = 0
-        self.resends = 0
         self.last: JobLine | None = None
 
     def on_acknowledged(self, line: JobLine) -> None:
         self.lines = line.index
         self.offset = line.end_offset
         self.last = line
-
-    def on_resend(self, line: JobLine) -> None:
-        self.resends += 1
 
     def on_message(self, text: str, reply: replies.Reply) -> None:
         if isinstance(reply, replies.Busy | replies.Wait | replies.Start):

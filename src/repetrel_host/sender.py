@@ -70,8 +70,7 @@ class Sender(asyncio.Protocol):
         self._lines_exhausted = False
         self._job_error: JobError | None = None
         self._cancelled = False
-        self._acknowledged = 0
-        self._highest_index = 0
+        self._acknowledged = 0  # job lines acknowledged: the highest index seen
         self._loop = asyncio.get_running_loop()
         self._done: asyncio.Future[Summary] = self._loop.create_future()
         self._transport: asyncio.Transport | None = None
@@ -112,10 +111,6 @@ class Sender(asyncio.Protocol):
         self._loop.call_later(CANCEL_DRAIN_TIMEOUT, self._finish_cancel)
         self._pump()
 
-    @property
-    def acknowledged_lines(self) -> int:
-        return self._acknowledged
-
     # --- pump ---------------------------------------------------------------
 
     def _pump(self) -> None:
@@ -155,9 +150,9 @@ class Sender(asyncio.Protocol):
         while (event := self.core.next_event()) is not None:
             if isinstance(event, LineAcknowledged):
                 line = event.tag
-                if isinstance(line, JobLine) and line.index > self._highest_index:
-                    self._highest_index = line.index
-                    self._acknowledged += 1
+                # After a resend the controller may acknowledge a line again; count it once.
+                if isinstance(line, JobLine) and line.index > self._acknowledged:
+                    self._acknowledged = line.index
                     observer.on_acknowledged(line)
             elif isinstance(event, ResendRequested):
                 if isinstance(event.tag, JobLine):

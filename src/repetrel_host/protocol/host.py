@@ -227,19 +227,9 @@ class HostProtocol:
         return dropped
 
     @property
-    def pending_count(self) -> int:
-        """Lines queued with :meth:`send` and not yet transmitted once."""
-        return len(self._pending)
-
-    @property
     def wants_lines(self) -> bool:
         """True when the queue is short enough that a new line could go out soon."""
         return self._phase is not _Phase.FAILED and len(self._pending) < self.flow.line_limit
-
-    @property
-    def in_flight(self) -> int:
-        """Transmissions not yet answered by the controller."""
-        return len(self._in_flight)
 
     @property
     def is_done(self) -> bool:
@@ -288,11 +278,12 @@ class HostProtocol:
             return
         if self._phase is _Phase.RESETTING and self._hello_attempts < HELLO_ATTEMPTS:
             # Assume the M110 was lost (a board still booting); repeating it is harmless.
+            # Were its ok only late, one ok would be left over: issue 4's fault model.
             self._forget_in_flight()
             self._reset_due = True
             return
         if self._phase is _Phase.RESETTING:
-            self._fail("timeout", "the controller did not answer the opening M110")
+            self._fail("timeout", "the controller did not answer M110 (line numbering reset)")
         else:
             line = self._in_flight[0].line
             self._fail(

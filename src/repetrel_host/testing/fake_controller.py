@@ -41,8 +41,8 @@ class PtyController:
         self.path = os.ttyname(self._slave)
         self.link = link
         if link is not None:
-            with contextlib.suppress(FileNotFoundError):
-                link.unlink()
+            if link.is_symlink():
+                link.unlink()  # left behind by an earlier run
             link.symlink_to(self.path)
         self._log = log
         self._unflushed = False
@@ -181,9 +181,16 @@ def settings_from_args(args: argparse.Namespace) -> ControllerSettings:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     settings = settings_from_args(args)
-    log = args.log.open("w", encoding="ascii", errors="replace") if args.log else None
+    try:
+        log = args.log.open("w", encoding="ascii", errors="replace") if args.log else None
+    except OSError as exc:
+        print(f"hyrel-fake-controller: cannot write {args.log}: {exc.strerror}", file=sys.stderr)
+        return 2
     try:
         controller = PtyController(settings, link=args.link, log=log)
+    except FileExistsError:
+        print(f"hyrel-fake-controller: {args.link} exists and is not a link", file=sys.stderr)
+        return 2
     except OSError as exc:
         print(f"hyrel-fake-controller: cannot create the pty: {exc.strerror}", file=sys.stderr)
         return 3
