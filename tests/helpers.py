@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 from repetrel_host.job import Job
@@ -37,3 +38,18 @@ def hyrel_send(
         env=environment,
         stdin=subprocess.DEVNULL,
     )
+
+
+def start_streaming(job: Path, port: str, log: Path) -> subprocess.Popen[str]:
+    """Start hyrel-send in the background; return once the fake ``log`` shows progress."""
+    process = subprocess.Popen(
+        [sys.executable, "-m", "repetrel_host.cli", str(job), "--port", port],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        stdin=subprocess.DEVNULL,
+        text=True,
+    )
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline and (not log.exists() or log.stat().st_size < 2000):
+        time.sleep(0.05)
+    return process

@@ -2,16 +2,13 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import pytest
 import serial
 
 from repetrel_host.link import BuiltInFake
-from tests.helpers import CONE, executed, hyrel_send, job_commands
+from tests.helpers import CONE, executed, hyrel_send, job_commands, start_streaming
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -69,17 +66,8 @@ def test_link_lost_mid_job_reports_the_last_acknowledged_line(tmp_path: Path) ->
     log = tmp_path / "lost.log"
     fake = BuiltInFake(log, ["--move-time", "0.002"])
     fake.start()
-    process = subprocess.Popen(
-        [sys.executable, "-m", "repetrel_host.cli", str(CONE), "--port", fake.port],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        stdin=subprocess.DEVNULL,
-        text=True,
-    )
+    process = start_streaming(CONE, fake.port, log)
     try:
-        deadline = time.monotonic() + 30
-        while time.monotonic() < deadline and (not log.exists() or log.stat().st_size < 2000):
-            time.sleep(0.05)
         assert fake.process is not None
         fake.process.kill()  # the controller vanishes, as when a cable is pulled
         _, stderr = process.communicate(timeout=30)

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from repetrel_host.link import BuiltInFake
-from tests.helpers import CONE, EXAMPLE, executed, hyrel_send, job_commands
+from tests.helpers import CONE, EXAMPLE, executed, hyrel_send, job_commands, start_streaming
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -75,16 +75,7 @@ def test_ctrl_c_stops_cleanly_without_losing_or_repeating(tmp_path: Path) -> Non
     log = tmp_path / "slow.log"
     # 2 ms a move and a 16-block planner: the cone would take about 40 s.
     with BuiltInFake(log, ["--move-time", "0.002"]) as slow:
-        process = subprocess.Popen(
-            [sys.executable, "-m", "repetrel_host.cli", str(CONE), "--port", slow.port],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            stdin=subprocess.DEVNULL,
-            text=True,
-        )
-        deadline = time.monotonic() + 30
-        while time.monotonic() < deadline and (not log.exists() or log.stat().st_size < 2000):
-            time.sleep(0.05)
+        process = start_streaming(CONE, slow.port, log)
         process.send_signal(signal.SIGINT)
         stdout, stderr = process.communicate(timeout=30)
         time.sleep(0.2)
