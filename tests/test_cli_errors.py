@@ -87,7 +87,7 @@ def test_bad_flow_mode(tmp_path: Path) -> None:
     assert "Traceback" not in result.stderr
 
 
-def test_non_ascii_line_stops_after_what_was_accepted(tmp_path: Path) -> None:
+def test_non_ascii_line_is_refused_before_anything_moves(tmp_path: Path) -> None:
     job = tmp_path / "job.gcode"
     job.write_bytes(b"G28\nG1 X1\nG1 X2\nM117 caf\xe9\nG1 X3\n")
     log = tmp_path / "fake.log"
@@ -95,4 +95,4 @@ def test_non_ascii_line_stops_after_what_was_accepted(tmp_path: Path) -> None:
         result = hyrel_send(str(job), "--port", fake.port)
     assert result.returncode == 2
     assert_one_clear_line(result.stderr, "job.gcode:4", "not ASCII")
-    assert executed(log) == ["G28", "G1 X1", "G1 X2"]
+    assert executed(log) == []  # the whole file is checked before the first line goes

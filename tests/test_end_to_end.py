@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+from repetrel_host.gcode.header import safe_stop_commands
 from repetrel_host.link import BuiltInFake
 from tests.helpers import CONE, EXAMPLE, executed, hyrel_send, job_commands, start_streaming
 
@@ -82,10 +83,15 @@ def test_ctrl_c_stops_cleanly_without_losing_or_repeating(tmp_path: Path) -> Non
     assert process.returncode == 130, stderr
     assert "Traceback" not in stderr
     assert "interrupted" in stdout
+    # What was sent ran once, in order, then the safe-stop sequence (no machine given:
+    # the standard footer with v5 group addresses).
     done = executed(log)
+    safe_stop = safe_stop_commands("v5")
+    assert done[-len(safe_stop) :] == safe_stop
+    sent = done[: -len(safe_stop)]
     commands = job_commands(CONE)
-    assert 0 < len(done) < len(commands)
-    assert done == commands[: len(done)]
+    assert 0 < len(sent) < len(commands)
+    assert sent == commands[: len(sent)]
 
 
 def test_fake_controller_entry_point_makes_a_link(tmp_path: Path) -> None:

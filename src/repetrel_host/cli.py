@@ -5,9 +5,15 @@ from __future__ import annotations
 import asyncio
 import os
 import signal
+import sys
 import time
+from collections.abc import Iterator
+from contextlib import ExitStack
+from dataclasses import dataclass
+from datetime import datetime
+from itertools import chain
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, BinaryIO
 
 import typer
 from rich.console import Console
@@ -20,12 +26,32 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
-from repetrel_host.errors import ControllerError, HostError, JobError, LinkError, ProtocolError
-from repetrel_host.job import Job, JobLine
+from repetrel_host.config import (
+    Library,
+    Loadout,
+    Machine,
+    UserConfig,
+    load_library,
+    load_loadout,
+    load_user_config,
+)
+from repetrel_host.console import ConsoleObserver
+from repetrel_host.errors import (
+    ConfigError,
+    ControllerError,
+    HostError,
+    JobError,
+    LinkError,
+    ProtocolError,
+)
+from repetrel_host.gcode import addressing
+from repetrel_host.gcode.header import header_commands, safe_stop_commands
+from repetrel_host.gcode.lint import Finding, lint
+from repetrel_host.job import HostAction, Job, JobItem, JobLine
 from repetrel_host.link import FAKE_PORT, BuiltInFake
-from repetrel_host.protocol import replies
+from repetrel_host.protocol.framing import clean_line
 from repetrel_host.protocol.host import FlowControl, FlowMode, HostProtocol
-from repetrel_host.sender import Observer, Outcome, Sender, Summary, stream
+from repetrel_host.sender import Outcome, Sender, Summary, stream
 
 # Exit codes: distinct per kind of failure so scripts can tell them apart.
 EXIT_OK = 0
@@ -40,26 +66,18 @@ PROGRESS_REFRESH = 0.1  # seconds between progress bar updates
 app = typer.Typer(add_completion=False, pretty_exceptions_enable=False)
 
 
-class ProgressObserver(Observer):
-    """Counts acknowledgements; the bar reads them on a timer, not per line."""
+@dataclass(frozen=True)
+class Plan:
+    """Everything decided before the port opens."""
 
-    def __init__(self, console: Console) -> None:
-        self.console = console
-        self.lines = 0
-        self.offset = 0
-        self.last: JobLine | None = None
+    job: Job
+    machine: Machine | None
+    loadout: Loadout | None
+    header: list[JobLine]
+    safe_stop: list[str]
 
-    def on_acknowledged(self, line: JobLine) -> None:
-        self.lines = line.index
-        self.offset = line.end_offset
-        self.last = line
-
-    def on_message(self, text: str, reply: replies.Reply) -> None:
-        if isinstance(reply, replies.Busy | replies.Wait | replies.Start):
-            return
-        if isinstance(reply, replies.Error):
-            return  # line errors: the resend that follows is counted instead
-        self.console.print(f"[dim]controller:[/] {text}", highlight=False, markup=True)
+    def items(self) -> Iterator[JobItem]:
+        return chain(self.header, self.job.items())
 
 
 @app.command()
@@ -69,19 +87,51 @@ def send(
         str | None,
         typer.Option(
             help=f"Serial port or pyserial URL; 'fake' for the built-in fake controller. "
-            f"Default: ${PORT_ENV}, else the fake."
+            f"Default: ${PORT_ENV}, then [printer] port in the configuration, else the fake."
         ),
     ] = None,
-    baud: Annotated[int, typer.Option(help="Baud rate.", min=1)] = 115200,
+    baud: Annotated[int | None, typer.Option(help="Baud rate (default 115200).", min=1)] = None,
     flow: Annotated[
-        FlowMode, typer.Option(help="buffered: several lines in flight; unbuffered: one.")
-    ] = FlowMode.BUFFERED,
+        FlowMode | None,
+        typer.Option(help="buffered (default): several lines in flight; unbuffered: one."),
+    ] = None,
     rx_buffer: Annotated[
-        int, typer.Option(help="Controller receive buffer in bytes (buffered mode).", min=2)
-    ] = 128,
+        int | None,
+        typer.Option(help="Controller receive buffer in bytes (default 128).", min=2),
+    ] = None,
     max_lines: Annotated[
-        int, typer.Option(help="Most lines in flight at once (buffered mode).", min=1)
-    ] = 8,
+        int | None, typer.Option(help="Most lines in flight at once (default 8).", min=1)
+    ] = None,
+    loadout: Annotated[
+        Path | None, typer.Option(help="Loadout TOML: which head is in which slot.")
+    ] = None,
+    machine: Annotated[
+        str | None, typer.Option(help="Machine profile, when there is no loadout.")
+    ] = None,
+    config: Annotated[
+        Path | None,
+        typer.Option(help="Configuration file (default ~/.config/repetrel-host/config.toml)."),
+    ] = None,
+    no_header: Annotated[
+        bool, typer.Option("--no-header", help="Do not send the heads' settings first.")
+    ] = False,
+    dry_run: Annotated[
+        bool, typer.Option("--dry-run", help="Print the commands that would be sent; send none.")
+    ] = False,
+    framed: Annotated[
+        bool, typer.Option("--framed", help="With --dry-run: with line numbers and checksums.")
+    ] = False,
+    check: Annotated[
+        bool, typer.Option("--check", help="Only check the job; send nothing.")
+    ] = False,
+    force: Annotated[bool, typer.Option("--force", help="Send despite errors found.")] = False,
+    history: Annotated[
+        Path | None,
+        typer.Option(help="Folder for the print history (default ~/.local/share/repetrel-host)."),
+    ] = None,
+    no_history: Annotated[
+        bool, typer.Option("--no-history", help="Do not keep the transmitted stream.")
+    ] = False,
     fake_log: Annotated[
         Path | None,
         typer.Option(help="Where the built-in fake writes the commands it executed."),
@@ -91,8 +141,25 @@ def send(
     console = Console(highlight=False, soft_wrap=True)
     errors = Console(stderr=True, highlight=False, soft_wrap=True)
     try:
-        code = _send(console, job, port, baud, flow, rx_buffer, max_lines, fake_log)
-    except JobError as exc:
+        user = load_user_config(config)
+        library = load_library(user)
+        plan = _plan(job, loadout, machine, user, library, no_header)
+        findings = _lint(plan)
+        for finding in findings:
+            errors.print(finding.format(plan.job.name), markup=False)
+        refused = [f for f in findings if f.severity == "error"]
+        if check:
+            verdict = "refused" if refused else "ok"
+            console.print(f"{plan.job.name}: {verdict} ({len(findings)} findings)")
+            raise typer.Exit(EXIT_BAD_INPUT if refused else EXIT_OK)
+        if dry_run:  # a preview: shown even when the findings would refuse the job
+            _dry_run(plan, framed)
+            raise typer.Exit(EXIT_OK)
+        if refused and not force:
+            raise JobError(f"{plan.job.name}: not sent ({len(refused)} errors; --force sends)")
+        code = _send(console, plan, user, port, baud, flow, rx_buffer, max_lines, history,
+                     no_history, fake_log)  # fmt: skip
+    except (JobError, ConfigError) as exc:
         errors.print(f"error: {exc}", markup=False)
         code = EXIT_BAD_INPUT
     except LinkError as exc:
@@ -104,43 +171,159 @@ def send(
     raise typer.Exit(code)
 
 
+def _plan(
+    job_path: Path,
+    loadout_path: Path | None,
+    machine_name: str | None,
+    user: UserConfig,
+    library: Library,
+    no_header: bool,
+) -> Plan:
+    loadout_path = loadout_path or user.printer.loadout
+    loadout = load_loadout(loadout_path, library) if loadout_path else None
+    machine = loadout.machine if loadout else None
+    machine_name = machine_name or (None if loadout else user.printer.machine)
+    if machine_name is not None:
+        if loadout is not None and machine_name != loadout.machine_name:
+            raise ConfigError(
+                f"--machine {machine_name} is not the loadout's machine, {loadout.machine_name}"
+            )
+        machine = library.machines.get(machine_name)
+        if machine is None:
+            known = ", ".join(sorted(library.machines))
+            raise ConfigError(f"unknown machine '{machine_name}' (known: {known})")
+    job = Job(job_path, pause_sync=machine.pause_sync if machine else "M400")
+    header = [
+        JobLine(0, 0, command, 0, origin)
+        for command, origin in (header_commands(loadout) if loadout and not no_header else [])
+    ]
+    if machine is None:
+        safe_stop = safe_stop_commands("v5")
+    else:
+        safe_stop = machine.safe_stop or safe_stop_commands(machine.firmware)
+    if user.host.safe_stop is not None:
+        safe_stop = user.host.safe_stop
+    return Plan(job, machine, loadout, header, [clean_line(c) for c in safe_stop])
+
+
+def _lint(plan: Plan) -> list[Finding]:
+    """Check the whole file first: a bad line is found before anything moves."""
+    machine = plan.machine
+    return lint(
+        _numbered_commands(plan.job),
+        firmware=machine.firmware if machine else None,
+        positions=machine.yokes * addressing.ADDRESSES_PER_YOKE if machine else None,
+        loaded_tools=plan.loadout.loaded_tools if plan.loadout else None,
+    )
+
+
+def _numbered_commands(job: Job) -> Iterator[tuple[int, str]]:
+    try:
+        handle = job.path.open("rb")
+    except OSError as exc:
+        raise JobError(f"{job.path}: cannot be read ({exc.strerror})") from None
+    with handle:
+        for number, raw in enumerate(handle, start=1):
+            command = clean_line(raw.rstrip(b"\r\n"), f"{job.name}:{number}")
+            if command:
+                yield number, command
+
+
+def _dry_run(plan: Plan, framed: bool) -> None:
+    """The commands on stdout, exactly as they would go; host actions noted on stderr."""
+    out = sys.stdout
+    core = HostProtocol(FlowControl(FlowMode.UNBUFFERED)) if framed else None
+    if core is not None:
+        core.start(0.0)
+        out.write(core.data_to_send(0.0).decode("ascii"))
+        core.receive_data(b"ok\n", 0.0)
+    for item in plan.items():
+        if isinstance(item, HostAction):
+            sys.stderr.write(f"{item.position}: host {item.kind}: {item.message}\n")
+            continue
+        if core is None:
+            out.write(item.command + "\n")
+            continue
+        core.send(item.command, item)
+        while data := core.data_to_send(0.0):  # a renumbering M110 may come first
+            out.write(data.decode("ascii"))
+            core.receive_data(b"ok\n", 0.0)
+    out.flush()
+
+
 def _send(
     console: Console,
-    job_path: Path,
+    plan: Plan,
+    user: UserConfig,
     port: str | None,
-    baud: int,
-    flow: FlowMode,
-    rx_buffer: int,
-    max_lines: int,
+    baud: int | None,
+    flow: FlowMode | None,
+    rx_buffer: int | None,
+    max_lines: int | None,
+    history: Path | None,
+    no_history: bool,
     fake_log: Path | None,
 ) -> int:
-    job = Job(job_path)
-    port = port or os.environ.get(PORT_ENV) or FAKE_PORT
-    fake: BuiltInFake | None = None
-    if port == FAKE_PORT:
-        # The fake's link runs at the chosen baud rate: 10 bits on the wire per byte.
-        fake = BuiltInFake(fake_log, ["--bandwidth", str(baud / 10), "--latency", "0.001"])
-        port = fake.start()
-        console.print(
-            f"No printer port given: streaming to the built-in fake controller on {port}."
+    link = plan.machine.link if plan.machine else None
+    baud = baud or (link.baud if link else 115200)
+    flow_control = FlowControl(
+        flow or FlowMode(link.flow if link else "buffered"),
+        rx_buffer=rx_buffer or (link.rx_buffer if link else 128),
+        max_lines=max_lines or (link.max_lines if link else 8),
+    )
+    port = port or os.environ.get(PORT_ENV) or user.printer.port or FAKE_PORT
+    stem = f"{datetime.now():%Y%m%d-%H%M%S}-{plan.job.path.stem}"
+    history_dir = history or user.host.history_dir or _default_history_dir()
+    observer = ConsoleObserver(console, user.host, history_dir / f"{stem}-reports.log")
+    with ExitStack() as stack:
+        wire_log: BinaryIO | None = None
+        if not no_history:
+            history_file = history_dir / f"{stem}.gcode"
+            try:
+                history_dir.mkdir(parents=True, exist_ok=True)
+                wire_log = stack.enter_context(history_file.open("wb"))
+            except OSError as exc:
+                raise ConfigError(
+                    f"cannot write the print history {history_file}: {exc.strerror}"
+                ) from None
+        fake: BuiltInFake | None = None
+        if port == FAKE_PORT:
+            # The fake's link runs at the chosen baud rate: 10 bits on the wire per byte.
+            fake = BuiltInFake(fake_log, ["--bandwidth", str(baud / 10), "--latency", "0.001"])
+            port = fake.start()
+            stack.callback(fake.stop)
+            console.print(
+                f"No printer port given: streaming to the built-in fake controller on {port}."
+            )
+        stack.callback(observer.close)
+        core = HostProtocol(flow_control)
+        summary = asyncio.run(
+            _stream_with_progress(console, plan, port, baud, core, observer, wire_log)
         )
-    try:
-        core = HostProtocol(FlowControl(flow, rx_buffer=rx_buffer, max_lines=max_lines))
-        observer = ProgressObserver(console)
-        summary = asyncio.run(_stream_with_progress(console, job, port, baud, core, observer))
-    finally:
-        if fake is not None:
-            fake.stop()
-    _print_summary(console, summary, job)
+    _print_summary(console, summary, plan.job)
+    if wire_log is not None:
+        console.print(f"Print history (the stream as transmitted): {wire_log.name}")
     if fake is not None:
         console.print(f"The fake controller's log of executed commands: {fake.log_path}")
     return EXIT_INTERRUPTED if summary.outcome is Outcome.CANCELLED else EXIT_OK
 
 
+def _default_history_dir() -> Path:
+    base = os.environ.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
+    return Path(base) / "repetrel-host" / "history"
+
+
 async def _stream_with_progress(
-    console: Console, job: Job, port: str, baud: int, core: HostProtocol, observer: ProgressObserver
+    console: Console,
+    plan: Plan,
+    port: str,
+    baud: int,
+    core: HostProtocol,
+    observer: ConsoleObserver,
+    wire_log: BinaryIO | None,
 ) -> Summary:
     loop = asyncio.get_running_loop()
+    job = plan.job
     progress = Progress(
         TextColumn("[bold]{task.description}"),
         BarColumn(),
@@ -169,10 +352,19 @@ async def _stream_with_progress(
         refresher = asyncio.create_task(refresh())
 
     try:
-        summary = await stream(port, baud, core, job.lines(), observer, on_open)
+        summary = await stream(
+            port,
+            baud,
+            core,
+            plan.items(),
+            observer,
+            on_open,
+            safe_stop=plan.safe_stop,
+            wire_log=wire_log,
+        )
         if summary.outcome is Outcome.COMPLETED:
             observer.offset = job.size  # trailing comments count as sent
-    except (LinkError, ControllerError, ProtocolError) as exc:
+    except (LinkError, ControllerError, ProtocolError, JobError) as exc:
         if refresher is None:
             raise  # the port never opened: nothing was sent
         raise type(exc)(f"{exc}; {_last_acknowledged(job, observer)}") from None
@@ -185,17 +377,17 @@ async def _stream_with_progress(
     return summary
 
 
-def _last_acknowledged(job: Job, observer: ProgressObserver) -> str:
+def _last_acknowledged(job: Job, observer: ConsoleObserver) -> str:
     if observer.last is None:
         return "no line of the job was acknowledged"
     line = observer.last
     return (
-        f"the last line the controller acknowledged is {job.name}:{line.source_line} "
+        f"the last line the controller acknowledged is {line.position} "
         f"(command {line.index} of the job, {line.command})"
     )
 
 
-def _update(progress: Progress, task: TaskID, observer: ProgressObserver, started: float) -> None:
+def _update(progress: Progress, task: TaskID, observer: ConsoleObserver, started: float) -> None:
     elapsed = max(time.monotonic() - started, 1e-6)
     progress.update(
         task, completed=observer.offset, lines=observer.lines, rate=observer.lines / elapsed
@@ -217,12 +409,10 @@ def main() -> None:
     try:
         app()
     except KeyboardInterrupt:
-        Console(stderr=True, soft_wrap=True).print(
-            "interrupted before streaming began; nothing was sent."
-        )
+        Console(stderr=True, soft_wrap=True).print("interrupted before streaming began.")
         raise SystemExit(EXIT_INTERRUPTED) from None
     except HostError as exc:  # a last guard: one sentence, never a traceback
-        Console(stderr=True, soft_wrap=True).print(f"error: {exc}")
+        Console(stderr=True, soft_wrap=True).print(f"error: {exc}", markup=False)
         raise SystemExit(EXIT_BAD_INPUT) from None
 
 

@@ -1,4 +1,18 @@
-"""A job: the commands of a G-code file, read lazily, with their source positions."""
+"""A job: the commands of a G-code file, read lazily, with their source positions.
+
+Some codes are the host's, not the controller's (as in Repetrel):
+
+- ``M0`` / ``M1``: pause. On the wire it becomes the machine's ``pause_sync`` command
+  (``M400``: its ok means every move before it has finished); once that is
+  acknowledged the host shows the text after the semicolon and waits to resume.
+  ``M0 ; SAY Hello`` also performs the actions ``M792`` knows.
+- ``M792 ; SAY text ; PIC file ; VID file ; SEND text ; BEEP ; SHELL program``: actions
+  on the host, in stream order. Not forwarded.
+- ``M719``: forwarded (it tells the controller what to report), and the host starts
+  logging the controller's reports to a file. ``M718``: the host stops logging; not
+  forwarded.
+- ``M110``: not forwarded; the host owns line numbers. A bare ``N14`` line sends nothing.
+"""
 
 from __future__ import annotations
 
@@ -8,26 +22,72 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from repetrel_host.errors import JobError
-from repetrel_host.protocol.framing import clean_line, is_reset_command
+from repetrel_host.gcode.commands import command_word
+from repetrel_host.protocol.framing import clean_line
+
+ACTION_VERBS = ("SAY", "PIC", "VID", "SEND", "BEEP", "SHELL")
 
 
 @dataclass(frozen=True, slots=True)
 class JobLine:
-    """One command to send: ``index`` counts sent commands from 1; ``end_offset`` is the
-    byte offset in the file just past this line, for progress by bytes."""
+    """One command to send. ``index`` counts the job's commands from 1 (0 outside the job);
+    ``end_offset`` is the byte offset just past the line, for progress by bytes."""
 
     index: int
-    source_line: int
+    source_line: int  # 0 for lines the host adds (header, safe stop)
     command: str
     end_offset: int
+    source: str  # the job's file name, or "header: head T1 (MK1-250)", "safe stop"
+
+    @property
+    def position(self) -> str:
+        """Where the line comes from: ``job.gcode:1234`` or ``header: head T1 (MK1-250)``."""
+        return f"{self.source}:{self.source_line}" if self.source_line else self.source
+
+
+@dataclass(frozen=True, slots=True)
+class HostAction:
+    """Something the host does itself once every line before it is acknowledged.
+
+    ``kind``: ``pause`` (M0/M1), ``actions`` (M792), ``log_start`` (M719), ``log_stop`` (M718).
+    """
+
+    kind: str
+    message: str
+    actions: tuple[tuple[str, str], ...]  # (verb, argument), e.g. ("SAY", "Hello")
+    source_line: int
+    source: str
+
+    @property
+    def position(self) -> str:
+        return f"{self.source}:{self.source_line}"
+
+
+JobItem = JobLine | HostAction
+
+
+def parse_actions(text: str) -> tuple[str, tuple[tuple[str, str], ...]]:
+    """Split M0/M792 text at semicolons into a message and (verb, argument) actions."""
+    message: list[str] = []
+    actions: list[tuple[str, str]] = []
+    for part in (p.strip() for p in text.split(";")):
+        if not part:
+            continue
+        verb, _, argument = part.partition(" ")
+        if verb.upper() in ACTION_VERBS:
+            actions.append((verb.upper(), argument.strip()))
+        else:
+            message.append(part)
+    return "; ".join(message), tuple(actions)
 
 
 class Job:
     """A G-code file to stream. Opening checks it is a readable file; reading is lazy."""
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, pause_sync: str = "M400") -> None:
         self.path = path
         self.name = path.name
+        self.pause_sync = pause_sync
         if not path.exists():
             raise JobError(f"{path}: no such file")
         if path.is_dir():
@@ -35,12 +95,12 @@ class Job:
         if not os.access(path, os.R_OK):
             raise JobError(f"{path}: permission denied (the file is not readable)")
         self.size = path.stat().st_size
-        self.host_consumed = 0  # lines the host keeps to itself (M110)
 
-    def lines(self) -> Iterator[JobLine]:
-        """Yield the commands to send; raise :class:`JobError` at a line that cannot be sent."""
+    def items(self) -> Iterator[JobItem]:
+        """Lines to send and host actions, in order; :class:`JobError` at a line that cannot go."""
         index = 0
         offset = 0
+        name = self.name
         try:
             handle = self.path.open("rb")
         except OSError as exc:
@@ -48,12 +108,48 @@ class Job:
         with handle:
             for number, raw in enumerate(handle, start=1):
                 offset += len(raw)
-                command = clean_line(raw.rstrip(b"\r\n"), f"{self.name}:{number}")
+                command = clean_line(raw.rstrip(b"\r\n"), f"{name}:{number}")
                 if not command:
                     continue
-                if is_reset_command(command):
-                    # The host owns line numbering; forwarding M110 would desynchronise it.
-                    self.host_consumed += 1
+                word = command_word(command)
+                if word in _HOST_WORDS:
+                    host_items = self._host_code(word, command, raw, number, offset)
+                    for item in host_items:
+                        if isinstance(item, JobLine):
+                            index += 1
+                            item = JobLine(index, number, item.command, offset, name)
+                        yield item
                     continue
                 index += 1
-                yield JobLine(index, number, command, offset)
+                yield JobLine(index, number, command, offset, name)
+
+    def lines(self) -> Iterator[JobLine]:
+        """Only the lines that go on the wire."""
+        return (item for item in self.items() if isinstance(item, JobLine))
+
+    def _host_code(
+        self, word: str, command: str, raw: bytes, number: int, offset: int
+    ) -> list[JobItem]:
+        name = self.name
+        if word == "M110":
+            return []  # forwarding it would desynchronise the host's line numbers
+        if word == "M718":
+            return [HostAction("log_stop", "", (), number, name)]
+        if word == "M719":
+            return [
+                JobLine(0, number, command, offset, name),
+                HostAction("log_start", command, (), number, name),
+            ]
+        # M0, M1 and M792 carry their text after the command and after semicolons.
+        text = raw.rstrip(b"\r\n").decode("utf-8", errors="replace")
+        text = text.strip()[len(text.strip().split(None, 1)[0]) :]
+        message, actions = parse_actions(text)
+        if word == "M792":
+            return [HostAction("actions", message, actions, number, name)]
+        return [
+            JobLine(0, number, self.pause_sync, offset, name),
+            HostAction("pause", message, actions, number, name),
+        ]
+
+
+_HOST_WORDS = frozenset({"M0", "M1", "M110", "M718", "M719", "M792"})

@@ -1,20 +1,23 @@
 """The asyncio pump between a serial link and :class:`HostProtocol`.
 
 It holds no protocol logic: it feeds job lines into the core, writes what the
-core wants written, hands received bytes to the core, maps the core's
-deadline onto a timer, and reports events to an observer.
+core wants written (and copies it to the print history), hands received bytes
+to the core, maps the core's deadline onto a timer, runs host actions (M0,
+M792...) once everything before them is acknowledged, and reports events to an
+observer.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from enum import Enum
+from typing import BinaryIO
 
 from repetrel_host.errors import ControllerError, HostError, JobError, LinkError, ProtocolError
-from repetrel_host.job import JobLine
+from repetrel_host.job import HostAction, JobItem, JobLine
 from repetrel_host.link import open_link
 from repetrel_host.protocol import replies
 from repetrel_host.protocol.host import (
@@ -28,8 +31,10 @@ from repetrel_host.protocol.host import (
 
 log = logging.getLogger(__name__)
 
-# After Ctrl-C, how long to wait for the lines already sent to be acknowledged.
-CANCEL_DRAIN_TIMEOUT = 5.0
+# After a cancel, how long the safe-stop lines (and those already sent) may take to be
+# acknowledged: a heater's M109 ahead of them can hold the queue.
+CANCEL_DRAIN_TIMEOUT = 30.0
+SAFE_STOP_SOURCE = "safe stop"
 
 
 class Outcome(Enum):
@@ -48,6 +53,10 @@ class Observer:
 
     def on_message(self, text: str, reply: replies.Reply) -> None: ...
 
+    async def perform(self, action: HostAction) -> bool:
+        """Carry out a host action; return False to stop the job (with the safe stop)."""
+        return True
+
 
 @dataclass(frozen=True, slots=True)
 class Summary:
@@ -59,17 +68,28 @@ class Summary:
 
 
 class Sender(asyncio.Protocol):
-    """Streams ``lines`` through ``core`` over one asyncio transport."""
+    """Streams job ``items`` through ``core`` over one asyncio transport."""
 
     def __init__(
-        self, core: HostProtocol, lines: Iterable[JobLine], observer: Observer | None = None
+        self,
+        core: HostProtocol,
+        items: Iterable[JobItem],
+        observer: Observer | None = None,
+        *,
+        safe_stop: Sequence[str] = (),
+        wire_log: BinaryIO | None = None,
     ) -> None:
         self.core = core
         self.observer = observer or Observer()
-        self._lines: Iterator[JobLine] = iter(lines)
-        self._lines_exhausted = False
-        self._job_error: JobError | None = None
+        self.safe_stop = list(safe_stop)
+        self._wire_log = wire_log
+        self._items: Iterator[JobItem] = iter(items)
+        self._items_exhausted = False
+        self._error: HostError | None = None  # reported once the safe stop is acknowledged
+        self._stopping = False  # no more job lines: cancelled, refused or failed
         self._cancelled = False
+        self._barrier: HostAction | None = None  # waiting for every earlier line's ok
+        self._action_task: asyncio.Task[bool] | None = None
         self._acknowledged = 0  # job lines acknowledged: the highest index seen
         self._loop = asyncio.get_running_loop()
         self._done: asyncio.Future[Summary] = self._loop.create_future()
@@ -103,12 +123,18 @@ class Sender(asyncio.Protocol):
         return await self._done
 
     def cancel(self) -> None:
-        """Stop feeding the job; finish once what is already on the wire is answered."""
-        if self._cancelled or self._done.done():
+        """Stop the job: send the safe-stop sequence ahead of anything not yet sent.
+
+        A second call stops at once, without waiting for acknowledgements.
+        """
+        if self._done.done():
+            return
+        if self._cancelled:
+            self._finish(Outcome.CANCELLED)
             return
         self._cancelled = True
-        self.core.cancel_pending()
-        self._loop.call_later(CANCEL_DRAIN_TIMEOUT, self._finish_cancel)
+        self._stop_feeding()
+        self._loop.call_later(CANCEL_DRAIN_TIMEOUT, self._finish, Outcome.CANCELLED)
         self._pump()
 
     # --- pump ---------------------------------------------------------------
@@ -117,42 +143,78 @@ class Sender(asyncio.Protocol):
         if self._done.done():
             return
         core = self.core
-        while core.wants_lines and not self._lines_exhausted and not self._cancelled:
+        while core.wants_lines and not self._stopping and self._barrier is None:
             try:
-                line = next(self._lines)
+                item = next(self._items)
             except StopIteration:
-                self._lines_exhausted = True
+                self._items_exhausted = True
                 break
             except JobError as exc:
-                # Send no more, but let what is on the wire be acknowledged first.
-                self._job_error = exc
-                self._lines_exhausted = True
+                # Send no more of the job, but leave the machine safe first.
+                self._error = exc
+                self._stop_feeding()
                 break
-            core.send(line.command, line)
-        now = self._loop.time()
-        data = core.data_to_send(now)
+            if isinstance(item, HostAction):
+                self._barrier = item
+            else:
+                core.send(item.command, item)
+        data = core.data_to_send(self._loop.time())
         if data and self._transport is not None:
             log.debug("sending %r", data)
             self._transport.write(data)
+            if self._wire_log is not None:
+                self._wire_log.write(data)
         self._dispatch_events()
-        if self._done.done():
+        if self._done.done() or not core.is_done:
+            self._arm_timer(core.next_deadline())
             return
-        if core.is_done and (self._lines_exhausted or self._cancelled):
-            if self._job_error is not None:
-                self._finish(self._job_error)
-            else:
-                self._finish(Outcome.CANCELLED if self._cancelled else Outcome.COMPLETED)
-            return
+        if self._barrier is not None and self._action_task is None:
+            self._action_task = self._loop.create_task(self.observer.perform(self._barrier))
+            self._action_task.add_done_callback(self._action_done)
+        elif self._stopping:
+            self._finish(self._error or Outcome.CANCELLED)
+        elif self._items_exhausted:
+            self._finish(Outcome.COMPLETED)
         self._arm_timer(core.next_deadline())
+
+    def _action_done(self, task: asyncio.Task[bool]) -> None:
+        self._action_task = None
+        self._barrier = None
+        if task.cancelled():
+            return
+        error = task.exception()
+        if isinstance(error, HostError):
+            self._error = error
+            self._stop_feeding()
+        elif error is not None:  # a bug: surface it rather than hang
+            self._done.set_exception(error)
+            return
+        elif not task.result():
+            self._cancelled = True
+            self._stop_feeding()
+        self._pump()
+
+    def _stop_feeding(self) -> None:
+        """No more job lines: drop what is queued, cancel a host action, queue the safe stop."""
+        if self._stopping:
+            return
+        self._stopping = True
+        self._barrier = None
+        if self._action_task is not None:
+            self._action_task.cancel()
+            self._action_task = None
+        self.core.cancel_pending()
+        for command in self.safe_stop:
+            self.core.send(command, JobLine(0, 0, command, 0, SAFE_STOP_SOURCE))
 
     def _dispatch_events(self) -> None:
         observer = self.observer
         while (event := self.core.next_event()) is not None:
             if isinstance(event, LineAcknowledged):
                 line = event.tag
-                # After a resend the controller may acknowledge a line again; count it once.
-                if isinstance(line, JobLine) and line.index > self._acknowledged:
-                    self._acknowledged = line.index
+                if isinstance(line, JobLine):
+                    if line.index > self._acknowledged:
+                        self._acknowledged = line.index
                     observer.on_acknowledged(line)
             elif isinstance(event, ResendRequested):
                 if isinstance(event.tag, JobLine):
@@ -181,14 +243,13 @@ class Sender(asyncio.Protocol):
         self.core.handle_timeout(self._loop.time())
         self._pump()
 
-    def _finish_cancel(self) -> None:
-        self._finish(Outcome.CANCELLED)
-
     def _finish(self, result: Outcome | HostError) -> None:
         if self._done.done():
             return
         if self._timer is not None:
             self._timer.cancel()
+        if self._action_task is not None:
+            self._action_task.cancel()
         if isinstance(result, HostError):
             self._done.set_exception(result)
             return
@@ -205,26 +266,35 @@ class Sender(asyncio.Protocol):
 
 
 def _failure_error(event: Failed) -> HostError:
+    where = f" (at {event.tag.position})" if isinstance(event.tag, JobLine) else ""
+    reason = event.reason + where
     if event.kind == "controller":
-        return ControllerError(event.reason)
+        return ControllerError(reason)
     if event.kind == "timeout":
-        return LinkError(event.reason)
-    return ProtocolError(event.reason)
+        return LinkError(reason)
+    return ProtocolError(reason)
 
 
 async def stream(
     port: str,
     baudrate: int,
     core: HostProtocol,
-    lines: Iterable[JobLine],
+    items: Iterable[JobItem],
     observer: Observer | None = None,
     on_open: Callable[[Sender], None] | None = None,
+    *,
+    safe_stop: Sequence[str] = (),
+    wire_log: BinaryIO | None = None,
 ) -> Summary:
-    """Open ``port``, stream ``lines``, close the port; the one call most users need.
+    """Open ``port``, stream ``items``, close the port; the one call most users need.
 
     ``on_open`` receives the :class:`Sender` once the port is open (to cancel it).
     """
-    transport, protocol = await open_link(port, baudrate, lambda: Sender(core, lines, observer))
+
+    def factory() -> Sender:
+        return Sender(core, items, observer, safe_stop=safe_stop, wire_log=wire_log)
+
+    transport, protocol = await open_link(port, baudrate, factory)
     assert isinstance(protocol, Sender)
     if on_open is not None:
         on_open(protocol)

@@ -87,7 +87,7 @@ class ControllerReady:
 
 @dataclass(frozen=True, slots=True)
 class LineAcknowledged:
-    """The controller acknowledged a line sent with :meth:`HostProtocol.send`."""
+    """The controller acknowledged a line sent with :meth:`HostProtocol.send` (once per line)."""
 
     number: int
     command: str
@@ -122,6 +122,7 @@ class Failed:
 
     kind: str
     reason: str
+    tag: object = None  # the oldest unacknowledged line's tag, where the trouble most likely is
 
 
 Event = ControllerReady | LineAcknowledged | ResendRequested | ControllerMessage | Failed
@@ -146,6 +147,7 @@ class _Line:
     unbuffered: bool
     is_reset: bool = False
     transmitted: bool = False
+    acknowledged: bool = False
 
 
 @dataclass(slots=True)
@@ -345,7 +347,9 @@ class HostProtocol:
             return
         if line.number > self._acked_through:
             self._acked_through = line.number
-        self._events.append(LineAcknowledged(line.number, line.command, line.tag, reply.data))
+        if not line.acknowledged:  # after a resend the controller may acknowledge it again
+            line.acknowledged = True
+            self._events.append(LineAcknowledged(line.number, line.command, line.tag, reply.data))
         self._prune_history()
 
     def _handle_resend(self, number: int) -> None:
@@ -461,6 +465,7 @@ class HostProtocol:
 
     def _fail(self, kind: str, reason: str) -> None:
         self._phase = _Phase.FAILED
-        self._failure = Failed(kind, reason)
+        oldest = self._history.get(self._acked_through + 1)
+        self._failure = Failed(kind, reason, oldest.tag if oldest is not None else None)
         self._pending.clear()
         self._events.append(self._failure)

@@ -17,7 +17,7 @@ import sys
 import time
 import tty
 from pathlib import Path
-from typing import TextIO
+from typing import BinaryIO, TextIO
 
 from repetrel_host.testing.simulator import ControllerSettings, ControllerSimulator, Overflow
 
@@ -32,6 +32,7 @@ class PtyController:
         settings: ControllerSettings,
         link: Path | None = None,
         log: TextIO | None = None,
+        received: BinaryIO | None = None,
     ) -> None:
         self._master, self._slave = pty.openpty()
         # Raw mode: no echo, no line editing, bytes pass unchanged. We keep the
@@ -45,6 +46,7 @@ class PtyController:
                 link.unlink()  # left behind by an earlier run
             link.symlink_to(self.path)
         self._log = log
+        self._received = received
         self._unflushed = False
         self.simulator = ControllerSimulator(
             settings, now=time.monotonic(), on_execute=self._execute
@@ -87,9 +89,8 @@ class PtyController:
                 self.simulator.advance(now)
                 self._to_write += self.simulator.take_output(now)
                 self._flush_writes()
-                if self._unflushed and self._log is not None:
-                    self._log.flush()
-                    self._unflushed = False
+                if self._unflushed:
+                    self._flush_logs()
         finally:
             selector.close()
 
@@ -113,6 +114,9 @@ class PtyController:
             time.sleep(0.01)
             return
         self.simulator.receive(data, now)
+        if self._received is not None:
+            self._received.write(data)
+            self._unflushed = True
 
     def _flush_writes(self) -> None:
         if not self._to_write:
@@ -123,9 +127,14 @@ class PtyController:
             return
         del self._to_write[:written]
 
+    def _flush_logs(self) -> None:
+        for stream in (self._log, self._received):
+            if stream is not None:
+                stream.flush()
+        self._unflushed = False
+
     def close(self) -> None:
-        if self._log is not None:
-            self._log.flush()
+        self._flush_logs()
         if self.link is not None:
             with contextlib.suppress(FileNotFoundError):
                 self.link.unlink()
@@ -141,6 +150,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--link", type=Path, help="create a symlink to the pty at this path")
     parser.add_argument("--log", type=Path, help="write every executed command to this file")
+    parser.add_argument("--received", type=Path, help="write every byte received to this file")
     parser.add_argument(
         "--bandwidth", type=float, default=None, help="link bytes/s each way (default: unlimited)"
     )
@@ -183,11 +193,14 @@ def main(argv: list[str] | None = None) -> int:
     settings = settings_from_args(args)
     try:
         log = args.log.open("w", encoding="ascii", errors="replace") if args.log else None
+        received = args.received.open("wb") if args.received else None
     except OSError as exc:
-        print(f"hyrel-fake-controller: cannot write {args.log}: {exc.strerror}", file=sys.stderr)
+        print(
+            f"hyrel-fake-controller: cannot write {exc.filename}: {exc.strerror}", file=sys.stderr
+        )
         return 2
     try:
-        controller = PtyController(settings, link=args.link, log=log)
+        controller = PtyController(settings, link=args.link, log=log, received=received)
     except FileExistsError:
         print(f"hyrel-fake-controller: {args.link} exists and is not a link", file=sys.stderr)
         return 2
@@ -201,8 +214,9 @@ def main(argv: list[str] | None = None) -> int:
         controller.run()
     finally:
         controller.close()
-        if log is not None:
-            log.close()
+        for stream in (log, received):
+            if stream is not None:
+                stream.close()
     return 0
 
 

@@ -1,0 +1,297 @@
+"""Configuration: machine profiles, the head library, loadouts and user settings (TOML).
+
+Shipped files live in ``config/`` (``machines.toml``, ``heads.toml``, ``loadouts/``).
+A user's ``config.toml`` (``--config FILE``, else ``$XDG_CONFIG_HOME/repetrel-host/``)
+may add or replace machines and heads under ``[machines.NAME]`` and ``[heads.NAME]``,
+and holds ``[printer]`` and ``[host]`` settings. Every error names the file, the
+field and what is allowed.
+"""
+
+from __future__ import annotations
+
+import os
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal, TypeVar
+
+from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt, ValidationError
+
+from repetrel_host.errors import ConfigError
+from repetrel_host.gcode import addressing
+
+# Numbers keep the type they were written with, so 1.0 prints "1.0" and 77 prints "77",
+# the way the Hyrel reference writes them.
+Number = StrictInt | StrictFloat
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class LinkDefaults(_Model):
+    baud: int = Field(default=115200, gt=0)
+    flow: Literal["buffered", "unbuffered"] = "buffered"
+    rx_buffer: int = Field(default=128, ge=2)
+    max_lines: int = Field(default=8, ge=1)
+
+
+class Machine(_Model):
+    description: str = ""
+    yokes: int = Field(ge=1, le=addressing.MAX_YOKES)
+    slots_per_yoke: int = Field(ge=1, le=addressing.ADDRESSES_PER_YOKE)
+    firmware: addressing.Firmware
+    pause_sync: str = "M400"
+    safe_stop: list[str] | None = None  # default: the standard footer's safe part
+    link: LinkDefaults = LinkDefaults()
+
+
+class Unprime(_Model):
+    speed: Number  # pulses per second
+    pulses: Number
+    time: Number  # ms; negative: before the end of the printing move
+
+
+class Prime(_Model):
+    speed: Number  # pulses per second
+    pulses: Number
+    time: Number  # ms of dwell at the start of the next printing move
+
+
+class Flow(_Model):
+    multiplier: Number
+    pulses_per_ul: Number
+    width: Number  # mm
+    layer: Number  # mm
+
+
+class Head(_Model):
+    description: str = ""
+    unprime: Unprime
+    prime: Prime
+    flow: Flow
+    current_boost: Number = 0
+
+
+class Offset(_Model):
+    x: Number = 0
+    y: Number = 0
+    z: Number = 0
+    a: Number | None = None
+    b: Number | None = None
+
+
+class LoadedHead(_Model):
+    """One ``[[heads]]`` entry of a loadout; unprime/prime/flow/current_boost override the head."""
+
+    yoke: int = Field(default=1, ge=1, le=addressing.MAX_YOKES)
+    slot: int = Field(ge=1, le=addressing.ADDRESSES_PER_YOKE)
+    head: str
+    offset: Offset = Offset()
+    offset_register: int | None = Field(default=None, ge=0)  # M6 O; default: the T number + 1
+    unprime: dict[str, Any] | None = None
+    prime: dict[str, Any] | None = None
+    flow: dict[str, Any] | None = None
+    current_boost: Number | None = None
+
+
+class LoadoutFile(_Model):
+    machine: str
+    heads: list[LoadedHead] = []
+
+
+class PrinterSettings(_Model):
+    port: str | None = None
+    machine: str | None = None
+    loadout: Path | None = None
+
+
+class HostSettings(_Model):
+    history_dir: Path | None = None
+    allow_shell: bool = False  # M792 SHELL runs a program: off unless asked for
+    speech_program: str | None = None  # M792 SAY; default: the first of espeak-ng, espeak, say
+    safe_stop: list[str] | None = None  # default: the standard footer's safe part
+
+
+class UserConfig(_Model):
+    printer: PrinterSettings = PrinterSettings()
+    host: HostSettings = HostSettings()
+    machines: dict[str, dict[str, Any]] = {}
+    heads: dict[str, dict[str, Any]] = {}
+
+
+@dataclass(frozen=True, slots=True)
+class ResolvedHead:
+    """A head in a position, with its values after the loadout's overrides."""
+
+    yoke: int
+    slot: int
+    tool: int  # tool-change number: T<tool>
+    variable: int  # T value inside M-codes
+    register: int  # M6 offset register
+    name: str
+    head: Head
+    offset: Offset
+
+
+@dataclass(frozen=True, slots=True)
+class Loadout:
+    path: Path
+    machine_name: str
+    machine: Machine
+    heads: tuple[ResolvedHead, ...]
+
+    @property
+    def loaded_tools(self) -> frozenset[int]:
+        return frozenset(h.tool for h in self.heads)
+
+
+@dataclass(frozen=True, slots=True)
+class Library:
+    machines: Mapping[str, Machine]
+    heads: Mapping[str, Head]
+
+
+def shipped_config_dir() -> Path:
+    """The shipped ``config/`` folder: inside an installed wheel, or in the source tree."""
+    installed = Path(__file__).parent / "shipped_config"
+    if installed.is_dir():
+        return installed
+    return Path(__file__).resolve().parents[2] / "config"
+
+
+def user_config_path() -> Path:
+    base = os.environ.get("XDG_CONFIG_HOME") or str(Path.home() / ".config")
+    return Path(base) / "repetrel-host" / "config.toml"
+
+
+def load_user_config(path: Path | None) -> UserConfig:
+    """``path`` (which must exist), else the per-user file if there is one, else defaults."""
+    if path is None:
+        path = user_config_path()
+        if not path.exists():
+            return UserConfig()
+    return _validate(UserConfig, read_toml(path), path)
+
+
+def load_library(user: UserConfig) -> Library:
+    """The shipped machines and heads, with the user's additions and replacements."""
+    shipped = shipped_config_dir()
+    machines_file, heads_file = shipped / "machines.toml", shipped / "heads.toml"
+    machines = {
+        name: _validate(Machine, data, machines_file, name)
+        for name, data in read_toml(machines_file).items()
+    }
+    heads = {
+        name: _validate(Head, data, heads_file, name)
+        for name, data in read_toml(heads_file).items()
+    }
+    user_file = user_config_path()
+    machines |= {
+        n: _validate(Machine, d, user_file, f"machines.{n}") for n, d in user.machines.items()
+    }
+    heads |= {n: _validate(Head, d, user_file, f"heads.{n}") for n, d in user.heads.items()}
+    return Library(machines, heads)
+
+
+def load_loadout(path: Path, library: Library) -> Loadout:
+    """Read a loadout and resolve every head against the machine and the head library."""
+    data = _validate(LoadoutFile, read_toml(path), path)
+    machine = library.machines.get(data.machine)
+    if machine is None:
+        known = ", ".join(sorted(library.machines))
+        raise ConfigError(f"{path}: machine: unknown machine '{data.machine}' (known: {known})")
+    resolved: list[ResolvedHead] = []
+    taken: set[tuple[int, int]] = set()
+    for number, entry in enumerate(data.heads, start=1):
+        where = f"{path}: heads #{number}"
+        if entry.yoke > machine.yokes or entry.slot > machine.slots_per_yoke:
+            raise ConfigError(
+                f"{where}: yoke {entry.yoke} slot {entry.slot} is not on a {data.machine} "
+                f"({machine.yokes} yoke(s) of {machine.slots_per_yoke} slots)"
+            )
+        if (entry.yoke, entry.slot) in taken:
+            raise ConfigError(f"{where}: yoke {entry.yoke} slot {entry.slot} is loaded twice")
+        taken.add((entry.yoke, entry.slot))
+        base = library.heads.get(entry.head)
+        if base is None:
+            known = ", ".join(sorted(library.heads))
+            raise ConfigError(f"{where}: head: unknown head '{entry.head}' (known: {known})")
+        head = _override(base, entry, where)
+        try:
+            variable = addressing.head_variable(machine.firmware, entry.yoke, entry.slot)
+        except ValueError as exc:
+            raise ConfigError(f"{where}: {exc}") from None
+        tool = addressing.tool_number(entry.yoke, entry.slot)
+        register = entry.offset_register if entry.offset_register is not None else tool + 1
+        resolved.append(
+            ResolvedHead(
+                entry.yoke, entry.slot, tool, variable, register, entry.head, head, entry.offset
+            )
+        )
+    resolved.sort(key=lambda h: h.tool)  # slot order, left to right
+    return Loadout(path, data.machine, machine, tuple(resolved))
+
+
+def read_toml(path: Path) -> dict[str, Any]:
+    try:
+        with path.open("rb") as handle:
+            return tomllib.load(handle)
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such file") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{path}: is a directory, not a TOML file") from None
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot be read ({exc.strerror})") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+
+
+def _override(base: Head, entry: LoadedHead, where: str) -> Head:
+    data = base.model_dump()
+    for section in ("unprime", "prime", "flow"):
+        changes = getattr(entry, section)
+        if changes:
+            data[section] = {**data[section], **changes}
+    if entry.current_boost is not None:
+        data["current_boost"] = entry.current_boost
+    try:
+        return Head.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(f"{where}: {_describe(exc, Head)}") from None
+
+
+M = TypeVar("M", bound=BaseModel)
+
+
+def _validate(model: type[M], data: object, path: Path, prefix: str = "") -> M:
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        where = f"{path}: {prefix}." if prefix else f"{path}: "
+        raise ConfigError(where + _describe(exc, model)) from None
+
+
+def _describe(exc: ValidationError, model: type[BaseModel]) -> str:
+    """The first problem as ``field: message``, with the allowed fields for a typo."""
+    error = exc.errors()[0]
+    loc = [str(part) for part in error["loc"] if not isinstance(part, int)]
+    field = ".".join(loc) or "(top level)"
+    if error["type"] == "extra_forbidden":
+        allowed = ", ".join(_fields_at(model, loc[:-1]))
+        return f"{field}: unknown field (allowed: {allowed})"
+    if error["type"] == "missing":
+        return f"{field}: missing"
+    return f"{field}: {error['msg']}"
+
+
+def _fields_at(model: type[BaseModel], path: list[str]) -> list[str]:
+    current: type[BaseModel] = model
+    for name in path:
+        field = current.model_fields.get(name)
+        annotation = field.annotation if field is not None else None
+        if not (isinstance(annotation, type) and issubclass(annotation, BaseModel)):
+            return []
+        current = annotation
+    return list(current.model_fields)

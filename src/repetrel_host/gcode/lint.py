@@ -1,0 +1,135 @@
+"""Checks of a job before it is sent, against the machine and the loaded heads.
+
+Errors refuse the job unless forced (as Repetrel's head-mismatch warnings stop
+a print); warnings are shown and the job goes on.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+from repetrel_host.gcode import addressing
+from repetrel_host.gcode.commands import command_word
+
+# The G-code reference's code chart (every code marked Yes or v5+, and the two
+# marked No, which Hyrel knows but does not support).
+CODE_CHART = frozenset(
+    "G0 G1 G2 G2.1 G2.2 G2.3 G3 G3.1 G3.2 G3.3 G4 G10 G11 G16 G17 G18 G19 G20 G21 G28 "
+    "G53 G54 G55 G56 G57 G58 G59 G81 G90 G91 G92 G93 "
+    "M0 M3 M4 M5 M6 M7 M8 M9 M17 M18 M30 M82 M83 M84 M104 M106 M107 M109 M116 M140 "
+    "M141 M190 M191 M203 M221 M229 M253 M254 M255 M619 M620 M621 M623 M660 M670 M671 "
+    "M672 M674 M675 M676 M677 M678 M679 M684 M685 M689 M701 M703 M718 M719 M721 M722 "
+    "M723 M728 M756 M772 M773 M783 M790 M791 M792".split()
+)
+# Described in the reference's sections though missing from the chart.
+DOCUMENTED_ELSEWHERE = frozenset({"M1", "M627", "M702", "M704"})
+NOT_SUPPORTED = frozenset({"G10", "G11"})
+
+
+@dataclass(frozen=True, slots=True)
+class Finding:
+    line: int
+    severity: str  # "error" or "warning"
+    message: str
+
+    def format(self, source: str) -> str:
+        return f"{source}:{self.line}: {self.severity}: {self.message}"
+
+
+def lint(
+    commands: Iterable[tuple[int, str]],
+    firmware: addressing.Firmware | None = None,
+    positions: int | None = None,
+    loaded_tools: frozenset[int] | None = None,
+) -> list[Finding]:
+    """Check ``(source line, command)`` pairs.
+
+    ``positions``: the machine's tool positions (yokes x 5 addresses), to catch T
+    commands past them; ``loaded_tools``: the T numbers with a head, when known.
+    """
+    findings: list[Finding] = []
+    unknown: dict[str, list[int]] = {}
+    e_values_d1: int | None = None
+    manual_flow: tuple[int, str] | None = None
+    for line, command in commands:
+        word = command_word(command)
+        tool = addressing.tool_change(command)
+        if tool is not None:
+            finding = _check_tool(line, tool, positions, loaded_tools)
+            if finding is not None:
+                findings.append(finding)
+            continue
+        if word == "M229":
+            e, d = _parameter(command, "E"), _parameter(command, "D")
+            if e == "1" and d == "0":
+                findings.append(Finding(line, "error", "M229 E1 D0 is an illegal combination"))
+            elif e == "1" and d == "1" and e_values_d1 is None:
+                e_values_d1 = line
+        elif word in ("M703", "M723") and manual_flow is None:
+            manual_flow = (line, word)
+        elif word not in CODE_CHART and word not in DOCUMENTED_ELSEWHERE:
+            unknown.setdefault(word, []).append(line)
+        if word in NOT_SUPPORTED:
+            findings.append(Finding(line, "warning", f"{word} is marked unsupported by Hyrel"))
+        if firmware is not None and loaded_tools is not None and word.startswith("M"):
+            finding = _check_variable(line, command, firmware, loaded_tools)
+            if finding is not None:
+                findings.append(finding)
+    if e_values_d1 is not None and manual_flow is not None:
+        line, word = manual_flow
+        findings.append(
+            Finding(
+                max(line, e_values_d1),
+                "error",
+                f"{word} (line {line}) does not work with M229 E1 D1 (line {e_values_d1}); "
+                "use M229 E0 D0",
+            )
+        )
+    for word, lines in unknown.items():
+        more = f" (and {len(lines) - 1} more lines)" if len(lines) > 1 else ""
+        findings.append(Finding(lines[0], "warning", f"{word} is not in Hyrel's code chart{more}"))
+    findings.sort(key=lambda f: f.line)
+    return findings
+
+
+def _check_tool(
+    line: int, tool: int, positions: int | None, loaded_tools: frozenset[int] | None
+) -> Finding | None:
+    where = addressing.position_of_tool(tool)
+    if where is None or (positions is not None and tool >= positions):
+        return Finding(line, "error", f"T{tool} is not a tool position on this machine")
+    if loaded_tools is not None and tool not in loaded_tools:
+        return Finding(
+            line,
+            "error",
+            f"T{tool} selects yoke {where[0]}, slot {where[1]}, which has no head loaded",
+        )
+    return None
+
+
+def _check_variable(
+    line: int, command: str, firmware: addressing.Firmware, loaded_tools: frozenset[int]
+) -> Finding | None:
+    value = addressing.t_parameter(command)
+    if value is None:
+        return None
+    where = addressing.position_of_variable(firmware, value)
+    if where is None:
+        return None
+    if addressing.tool_number(*where) in loaded_tools:
+        return None
+    hint = " (v4 files name the second slot T12)" if firmware == "v5" and value > 9 else ""
+    return Finding(
+        line,
+        "warning",
+        f"T{value} addresses {addressing.describe_variable(firmware, value)}, "
+        f"which has no head loaded{hint}",
+    )
+
+
+def _parameter(command: str, letter: str) -> str | None:
+    for word in command.split()[1:]:
+        if word[:1].upper() == letter:
+            return word[1:]
+    return None
