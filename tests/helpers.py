@@ -40,10 +40,10 @@ def hyrel_send(
     )
 
 
-def start_streaming(job: Path, port: str, log: Path) -> subprocess.Popen[str]:
+def start_streaming(job: Path, port: str, log: Path, *args: str) -> subprocess.Popen[str]:
     """Start hyrel-send in the background; return once the fake ``log`` shows progress."""
     process = subprocess.Popen(
-        [sys.executable, "-m", "repetrel_host.cli", str(job), "--port", port],
+        [sys.executable, "-m", "repetrel_host.cli", str(job), "--port", port, *args],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         stdin=subprocess.DEVNULL,

@@ -225,3 +225,29 @@ def test_replies_split_across_reads() -> None:
 def test_m110_cannot_be_queued() -> None:
     with pytest.raises(ProtocolError):
         HostProtocol().send("M110 N5")
+
+
+def test_failure_names_the_oldest_unacknowledged_line() -> None:
+    host = greeted()
+    for tag in ("job.gcode:1", "job.gcode:2", "job.gcode:3"):
+        host.send("G28", tag)
+    host.data_to_send(0.0)
+    host.receive_data(b"ok\nError:Printer halted. kill() called!\n", 0.0)
+    assert host.failure is not None
+    assert host.failure.tag == "job.gcode:2"
+
+
+def test_a_line_acknowledged_again_after_a_resend_is_reported_once() -> None:
+    host = greeted(FlowControl(FlowMode.UNBUFFERED))
+    host.send("G28", "a")
+    host.send("G1 X1", "b")
+    host.data_to_send(0.0)
+    host.receive_data(b"ok\n", 0.0)
+    host.data_to_send(0.0)
+    # A controller that lost line 1 after acknowledging it asks for it again.
+    host.receive_data(b"Resend: 1\nok\n", 0.0)
+    assert host.data_to_send(0.0) == b"N1 G28*18\n"
+    host.receive_data(b"ok\n", 0.0)
+    host.data_to_send(0.0)
+    host.receive_data(b"ok\n", 0.0)
+    assert [e.tag for e in events(host) if isinstance(e, LineAcknowledged)] == ["a", "b"]

@@ -31,6 +31,7 @@ from repetrel_host.config import (
     Loadout,
     Machine,
     UserConfig,
+    find_loadout,
     load_library,
     load_loadout,
     load_user_config,
@@ -103,7 +104,8 @@ def send(
         int | None, typer.Option(help="Most lines in flight at once (default 8).", min=1)
     ] = None,
     loadout: Annotated[
-        Path | None, typer.Option(help="Loadout TOML: which head is in which slot.")
+        Path | None,
+        typer.Option(help="Loadout TOML (or the name of a shipped one): which head is where."),
     ] = None,
     machine: Annotated[
         str | None, typer.Option(help="Machine profile, when there is no loadout.")
@@ -180,7 +182,7 @@ def _plan(
     no_header: bool,
 ) -> Plan:
     loadout_path = loadout_path or user.printer.loadout
-    loadout = load_loadout(loadout_path, library) if loadout_path else None
+    loadout = load_loadout(find_loadout(loadout_path), library) if loadout_path else None
     machine = loadout.machine if loadout else None
     machine_name = machine_name or (None if loadout else user.printer.machine)
     if machine_name is not None:

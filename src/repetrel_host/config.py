@@ -14,7 +14,7 @@ import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal, TypeVar
+from typing import Any, Literal, TypeVar, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt, ValidationError
 
@@ -195,6 +195,17 @@ def load_library(user: UserConfig) -> Library:
     return Library(machines, heads)
 
 
+def find_loadout(value: Path) -> Path:
+    """A loadout path as given, or a bare name found in the user's or the shipped loadouts."""
+    if value.exists() or value.suffix or len(value.parts) > 1:
+        return value
+    for folder in (user_config_path().parent / "loadouts", shipped_config_dir() / "loadouts"):
+        candidate = folder / f"{value}.toml"
+        if candidate.exists():
+            return candidate
+    return value
+
+
 def load_loadout(path: Path, library: Library) -> Loadout:
     """Read a loadout and resolve every head against the machine and the head library."""
     data = _validate(LoadoutFile, read_toml(path), path)
@@ -290,8 +301,10 @@ def _fields_at(model: type[BaseModel], path: list[str]) -> list[str]:
     current: type[BaseModel] = model
     for name in path:
         field = current.model_fields.get(name)
-        annotation = field.annotation if field is not None else None
-        if not (isinstance(annotation, type) and issubclass(annotation, BaseModel)):
+        # The model itself, or the one inside list[...] / dict[...] / ... | None.
+        candidates = [field.annotation, *get_args(field.annotation)] if field else []
+        inner = [c for c in candidates if isinstance(c, type) and issubclass(c, BaseModel)]
+        if not inner:
             return []
-        current = annotation
+        current = inner[0]
     return list(current.model_fields)

@@ -1,0 +1,166 @@
+"""Hyrel jobs end to end: header, history, lint refusal, host codes, safe stop."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from repetrel_host.config import shipped_config_dir
+from repetrel_host.gcode.header import safe_stop_commands
+from repetrel_host.link import BuiltInFake
+from tests.helpers import EXAMPLE, executed, hyrel_send, job_commands, start_streaming
+
+pytestmark = pytest.mark.timeout(60)
+
+LOADOUTS = shipped_config_dir() / "loadouts"
+TWO_HEADS = LOADOUTS / "wiki-two-heads.toml"
+
+
+def dry_run(job: Path, loadout: Path) -> list[str]:
+    result = hyrel_send(str(job), "--loadout", str(loadout), "--dry-run")
+    assert result.returncode == 0, result.stderr
+    return result.stdout.splitlines()
+
+
+def test_loadout_job_runs_header_then_job_and_history_is_the_wire(tmp_path: Path) -> None:
+    log, received, history = tmp_path / "fake.log", tmp_path / "wire.bin", tmp_path / "history"
+    with BuiltInFake(log, ["--received", str(received)]) as fake:
+        result = hyrel_send(
+            str(EXAMPLE),
+            "--port",
+            fake.port,
+            "--loadout",
+            str(TWO_HEADS),
+            "--history",
+            str(history),
+        )
+    assert result.returncode == 0, result.stderr
+    assert executed(log) == dry_run(EXAMPLE, TWO_HEADS)
+    (history_file,) = history.glob("*-square-tube.gcode")
+    assert history_file.read_bytes() == received.read_bytes()
+    assert history_file.read_bytes().startswith(b"N0 M110 N0*125\nN1 M6 T1 O2 X0 Y0 Z0*119\n")
+    assert str(history_file) in result.stdout
+
+
+def test_a_tool_change_to_an_empty_slot_is_refused_unless_forced(tmp_path: Path) -> None:
+    job = tmp_path / "two-tools.gcode"
+    job.write_text("G28\nT1\nG1 X5\nT3 ; slot 4 is empty\nG1 X6\n")
+    check = hyrel_send(str(job), "--check", "--loadout", str(TWO_HEADS))
+    assert check.returncode == 2
+    assert "two-tools.gcode:4: error: T3 selects yoke 1, slot 4" in check.stderr
+    log = tmp_path / "fake.log"
+    with BuiltInFake(log) as fake:
+        refused = hyrel_send(str(job), "--port", fake.port, "--loadout", str(TWO_HEADS))
+        assert refused.returncode == 2
+        assert "two-tools.gcode:4" in refused.stderr and "--force" in refused.stderr
+        assert executed(log) == []
+        forced = hyrel_send(
+            str(job), "--port", fake.port, "--loadout", str(TWO_HEADS), "--force", "--no-header"
+        )
+    assert forced.returncode == 0, forced.stderr
+    assert executed(log) == ["G28", "T1", "G1 X5", "T3", "G1 X6"]
+    ok = hyrel_send(str(EXAMPLE), "--check", "--loadout", str(LOADOUTS / "wiki-one-head.toml"))
+    assert ok.returncode == 0
+    assert "ok (0 findings)" in ok.stdout
+
+
+def test_m0_pauses_with_its_message_and_resumes_on_enter(tmp_path: Path) -> None:
+    job = tmp_path / "pause.gcode"
+    job.write_text("G28\nG1 X1\nM0 ;Remove the part\nG1 X2\n")
+    log = tmp_path / "fake.log"
+    with BuiltInFake(log) as fake:
+        process = subprocess.Popen(
+            [sys.executable, "-m", "repetrel_host.cli", str(job), "--port", fake.port],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        assert process.stdout is not None and process.stdin is not None
+        seen = ""
+        while "Paused" not in seen:
+            line = process.stdout.readline()
+            assert line, "hyrel-send ended without pausing"
+            seen += line
+        assert "Paused at pause.gcode:3: Remove the part" in seen
+        time.sleep(0.3)
+        # Paused after the machine finished what came before, and nothing after it sent.
+        assert executed(log) == ["G28", "G1 X1", "M400"]
+        process.stdin.write("\n")
+        process.stdin.flush()
+        stdout, stderr = process.communicate(timeout=30)
+    assert process.returncode == 0, stderr
+    assert "resumed" in stdout
+    assert executed(log) == ["G28", "G1 X1", "M400", "G1 X2"]
+
+
+def test_m0_without_an_operator_stops_safely(tmp_path: Path) -> None:
+    job = tmp_path / "pause.gcode"
+    job.write_text("G1 X1\nM0 ;Remove the part\nG1 X2\n")
+    log = tmp_path / "fake.log"
+    with BuiltInFake(log) as fake:
+        result = hyrel_send(str(job), "--port", fake.port, "--machine", "hydra-16a")
+    assert result.returncode == 2
+    assert "pause.gcode:2: M0 waits for the operator, but standard input is closed" in result.stderr
+    assert executed(log) == ["G1 X1", "G4 P1", *safe_stop_commands("v5")]
+
+
+def test_m792_shell_is_refused_unless_allowed(tmp_path: Path) -> None:
+    marker = tmp_path / "ran"
+    job = tmp_path / "act.gcode"
+    job.write_text(f"G1 X1\nM792 ; SHELL touch {marker} ; BEEP ; SAY done\nG1 X2\n")
+    log = tmp_path / "fake.log"
+    with BuiltInFake(log) as fake:
+        refused = hyrel_send(str(job), "--port", fake.port)
+        assert refused.returncode == 0, refused.stderr
+        assert "refused" in refused.stdout and "allow_shell" in refused.stdout
+        assert "say (act.gcode:2): done" in refused.stdout
+        assert not marker.exists()
+        config = tmp_path / "config.toml"
+        config.write_text("[host]\nallow_shell = true\n")
+        allowed = hyrel_send(str(job), "--port", fake.port, "--config", str(config))
+    assert allowed.returncode == 0, allowed.stderr
+    assert marker.exists()
+    assert executed(log) == ["G1 X1", "G1 X2", "G1 X1", "G1 X2"]
+
+
+def test_m719_logs_the_controllers_reports_until_m718(tmp_path: Path) -> None:
+    job = tmp_path / "logged.gcode"
+    job.write_text("M115\nM719 P10 S1\nM115\nM718\nM115\n")
+    history = tmp_path / "history"
+    with BuiltInFake(tmp_path / "fake.log") as fake:
+        result = hyrel_send(str(job), "--port", fake.port, "--history", str(history))
+    assert result.returncode == 0, result.stderr
+    (reports,) = history.glob("*-logged-reports.log")
+    lines = reports.read_text().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("FIRMWARE_NAME:")
+
+
+def test_ctrl_c_sends_the_machines_safe_stop(tmp_path: Path) -> None:
+    job = tmp_path / "long.gcode"
+    job.write_text("".join(f"G1 X{i % 100} Y{i % 7}\n" for i in range(20000)))
+    log = tmp_path / "fake.log"
+    with BuiltInFake(log, ["--move-time", "0.002"]) as fake:
+        process = start_streaming(job, fake.port, log, "--machine", "hydra-16a-v4")
+        process.send_signal(signal.SIGINT)
+        _, stderr = process.communicate(timeout=30)
+    assert process.returncode == 130, stderr
+    done = executed(log)
+    safe_stop = safe_stop_commands("v4")
+    assert done[-len(safe_stop) :] == safe_stop
+    assert done[: -len(safe_stop)] == job_commands(job)[: len(done) - len(safe_stop)]
+
+
+def test_bad_config_is_one_sentence(tmp_path: Path) -> None:
+    config = tmp_path / "config.toml"
+    config.write_text("[host]\nallow_shel = true\n")
+    result = hyrel_send(str(EXAMPLE), "--config", str(config), "--dry-run")
+    assert result.returncode == 2
+    assert result.stderr.strip().count("\n") == 0
+    assert "host.allow_shel: unknown field" in result.stderr
+    assert str(config) in result.stderr

@@ -1,0 +1,67 @@
+"""Checks before sending, one finding per problem with its file line."""
+
+from repetrel_host.gcode.lint import Finding, lint
+
+
+def check(text: str, **kwargs: object) -> list[Finding]:
+    commands = [(n, line) for n, line in enumerate(text.splitlines(), start=1) if line]
+    return lint(commands, **kwargs)  # type: ignore[arg-type]
+
+
+def test_tool_change_to_an_empty_slot_is_an_error() -> None:
+    findings = check("G28\nT0\nT3\n", firmware="v5", positions=5, loaded_tools=frozenset({0, 1}))
+    assert findings == [
+        Finding(3, "error", "T3 selects yoke 1, slot 4, which has no head loaded"),
+    ]
+    assert findings[0].format("job.gcode") == (
+        "job.gcode:3: error: T3 selects yoke 1, slot 4, which has no head loaded"
+    )
+
+
+def test_tool_change_past_the_machine_is_an_error_even_without_a_loadout() -> None:
+    findings = check("T7\n", firmware="v5", positions=5)
+    assert [f.severity for f in findings] == ["error"]
+    assert "not a tool position" in findings[0].message
+    assert check("T7\n") == []  # nothing known, nothing to say
+
+
+def test_m229_e1_d0_is_illegal() -> None:
+    (finding,) = check("M229 E1 D0\n")
+    assert (finding.line, finding.severity) == (1, "error")
+    assert "illegal" in finding.message
+
+
+def test_m703_and_m723_do_not_work_with_e_values_on_the_motion_controller() -> None:
+    (finding,) = check("M229 E1 D1\nG1 X1\nM703 T13 S11\n")
+    assert finding.line == 3
+    assert finding.severity == "error"
+    assert "M703 (line 3)" in finding.message and "M229 E1 D1 (line 1)" in finding.message
+    (finding,) = check("M723 S500 E50000 T0\nM229 E1 D1\n")
+    assert finding.line == 2 and "M723" in finding.message
+    assert check("M229 E0 D0\nM723 S500 E50000 T0\n") == []
+
+
+def test_codes_outside_the_chart_are_warned_once_with_a_count() -> None:
+    findings = check("M73 P1\nG1 X1\nM73 P2\nM73 P3\nM900 K0\nG2.1 X1\n")
+    assert findings == [
+        Finding(1, "warning", "M73 is not in Hyrel's code chart (and 2 more lines)"),
+        Finding(5, "warning", "M900 is not in Hyrel's code chart"),
+    ]
+
+
+def test_unsupported_codes_are_warned() -> None:
+    (finding,) = check("G10\n")
+    assert "unsupported" in finding.message
+
+
+def test_head_variable_for_an_empty_slot_hints_at_v4_files() -> None:
+    (finding,) = check("M104 T12 S200\n", firmware="v5", positions=5, loaded_tools=frozenset({1}))
+    assert finding.severity == "warning"
+    assert "T12" in finding.message and "v4" in finding.message
+    assert check("M104 T12 S200\n", firmware="v4", positions=5, loaded_tools=frozenset({1})) == []
+    assert check("M140 T24 S60\n", firmware="v5", positions=5, loaded_tools=frozenset({1})) == []
+
+
+def test_a_clean_slicer_file_has_no_findings() -> None:
+    text = "M107\nM104 S200\nG28\nG1 Z5 F5000\nM109 S200\nG21\nG90\nM82\nG92 E0\nM106 S255\nM84\n"
+    assert check(text, firmware="v5", positions=5, loaded_tools=frozenset({0})) == []
