@@ -7,12 +7,15 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from rich.console import Console
 
-from repetrel_host.errors import JobError
+from repetrel_host.config import HostSettings
+from repetrel_host.console import ConsoleObserver
+from repetrel_host.errors import ControllerError, JobError, LinkError
 from repetrel_host.job import HostAction, JobItem, JobLine
 from repetrel_host.link import BuiltInFake
-from repetrel_host.protocol.host import HostProtocol
-from repetrel_host.sender import Observer, Outcome, stream
+from repetrel_host.protocol.host import Failed, HostProtocol
+from repetrel_host.sender import Observer, Outcome, _failure_error, stream
 from tests.helpers import executed
 
 pytestmark = pytest.mark.timeout(30)
@@ -73,3 +76,18 @@ def test_an_action_that_declines_stops_the_job_safely(tmp_path: Path) -> None:
         summary = run(fake, [line(1, "G28"), action, line(3, "G1 X1")], Recorder(answer=False))
     assert summary.outcome is Outcome.CANCELLED
     assert executed(fake.log_path) == ["G28", *SAFE]
+
+
+def test_failures_name_the_source_position() -> None:
+    where = JobLine(0, 0, "M6 T1 O2 X0 Y0 Z0", 0, "header: head T1 (MK1-250)")
+    error = _failure_error(Failed("controller", "the controller reported an error: x", where))
+    assert isinstance(error, ControllerError)
+    assert str(error).endswith("(at header: head T1 (MK1-250))")
+    assert isinstance(_failure_error(Failed("timeout", "silence", line(7, "G1"))), LinkError)
+
+
+def test_resends_are_shown_with_the_source_position() -> None:
+    console = Console(record=True, width=200)
+    observer = ConsoleObserver(console, HostSettings(), Path("unused.log"))
+    observer.on_resend(line(1234, "G1 X1"))
+    assert "resend: the controller asked again for job.gcode:1234" in console.export_text()

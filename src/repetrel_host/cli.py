@@ -28,6 +28,7 @@ from rich.progress import (
 
 from repetrel_host.config import (
     Library,
+    LinkDefaults,
     Loadout,
     Machine,
     UserConfig,
@@ -65,6 +66,17 @@ PORT_ENV = "HYREL_PORT"
 PROGRESS_REFRESH = 0.1  # seconds between progress bar updates
 
 app = typer.Typer(add_completion=False, pretty_exceptions_enable=False)
+
+
+@dataclass(frozen=True)
+class LinkOptions:
+    """The link as given on the command line (None: not given)."""
+
+    port: str | None
+    baud: int | None
+    flow: FlowMode | None
+    rx_buffer: int | None
+    max_lines: int | None
 
 
 @dataclass(frozen=True)
@@ -159,8 +171,8 @@ def send(
             raise typer.Exit(EXIT_OK)
         if refused and not force:
             raise JobError(f"{plan.job.name}: not sent ({len(refused)} errors; --force sends)")
-        code = _send(console, plan, user, port, baud, flow, rx_buffer, max_lines, history,
-                     no_history, fake_log)  # fmt: skip
+        link = LinkOptions(port, baud, flow, rx_buffer, max_lines)
+        code = _send(console, plan, user, link, history, no_history, fake_log)
     except (JobError, ConfigError) as exc:
         errors.print(f"error: {exc}", markup=False)
         code = EXIT_BAD_INPUT
@@ -212,23 +224,11 @@ def _lint(plan: Plan) -> list[Finding]:
     """Check the whole file first: a bad line is found before anything moves."""
     machine = plan.machine
     return lint(
-        _numbered_commands(plan.job),
+        ((number, command) for number, command, _, _ in plan.job.commands()),
         firmware=machine.firmware if machine else None,
         positions=machine.yokes * addressing.ADDRESSES_PER_YOKE if machine else None,
         loaded_tools=plan.loadout.loaded_tools if plan.loadout else None,
     )
-
-
-def _numbered_commands(job: Job) -> Iterator[tuple[int, str]]:
-    try:
-        handle = job.path.open("rb")
-    except OSError as exc:
-        raise JobError(f"{job.path}: cannot be read ({exc.strerror})") from None
-    with handle:
-        for number, raw in enumerate(handle, start=1):
-            command = clean_line(raw.rstrip(b"\r\n"), f"{job.name}:{number}")
-            if command:
-                yield number, command
 
 
 def _dry_run(plan: Plan, framed: bool) -> None:
@@ -257,23 +257,20 @@ def _send(
     console: Console,
     plan: Plan,
     user: UserConfig,
-    port: str | None,
-    baud: int | None,
-    flow: FlowMode | None,
-    rx_buffer: int | None,
-    max_lines: int | None,
+    options: LinkOptions,
     history: Path | None,
     no_history: bool,
     fake_log: Path | None,
 ) -> int:
-    link = plan.machine.link if plan.machine else None
-    baud = baud or (link.baud if link else 115200)
+    # Command line first, then the machine profile's link defaults.
+    defaults = plan.machine.link if plan.machine else LinkDefaults()
+    baud = options.baud or defaults.baud
     flow_control = FlowControl(
-        flow or FlowMode(link.flow if link else "buffered"),
-        rx_buffer=rx_buffer or (link.rx_buffer if link else 128),
-        max_lines=max_lines or (link.max_lines if link else 8),
+        options.flow or FlowMode(defaults.flow),
+        rx_buffer=options.rx_buffer or defaults.rx_buffer,
+        max_lines=options.max_lines or defaults.max_lines,
     )
-    port = port or os.environ.get(PORT_ENV) or user.printer.port or FAKE_PORT
+    port = options.port or os.environ.get(PORT_ENV) or user.printer.port or FAKE_PORT
     stem = f"{datetime.now():%Y%m%d-%H%M%S}-{plan.job.path.stem}"
     history_dir = history or user.host.history_dir or _default_history_dir()
     observer = ConsoleObserver(console, user.host, history_dir / f"{stem}-reports.log")

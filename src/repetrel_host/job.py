@@ -96,11 +96,9 @@ class Job:
             raise JobError(f"{path}: permission denied (the file is not readable)")
         self.size = path.stat().st_size
 
-    def items(self) -> Iterator[JobItem]:
-        """Lines to send and host actions, in order; :class:`JobError` at a line that cannot go."""
-        index = 0
+    def commands(self) -> Iterator[tuple[int, str, bytes, int]]:
+        """(line number, command, raw line, end offset) of every line with a command."""
         offset = 0
-        name = self.name
         try:
             handle = self.path.open("rb")
         except OSError as exc:
@@ -108,20 +106,25 @@ class Job:
         with handle:
             for number, raw in enumerate(handle, start=1):
                 offset += len(raw)
-                command = clean_line(raw.rstrip(b"\r\n"), f"{name}:{number}")
-                if not command:
-                    continue
-                word = command_word(command)
-                if word in _HOST_WORDS:
-                    host_items = self._host_code(word, command, raw, number, offset)
-                    for item in host_items:
-                        if isinstance(item, JobLine):
-                            index += 1
-                            item = JobLine(index, number, item.command, offset, name)
-                        yield item
-                    continue
+                command = clean_line(raw.rstrip(b"\r\n"), f"{self.name}:{number}")
+                if command:
+                    yield number, command, raw, offset
+
+    def items(self) -> Iterator[JobItem]:
+        """Lines to send and host actions, in order; :class:`JobError` at a line that cannot go."""
+        index = 0
+        name = self.name
+        for number, command, raw, offset in self.commands():
+            word = command_word(command)
+            if word not in _HOST_WORDS:
                 index += 1
                 yield JobLine(index, number, command, offset, name)
+                continue
+            for item in self._host_code(word, command, raw, number, offset):
+                if isinstance(item, JobLine):
+                    index += 1
+                    item = JobLine(index, number, item.command, offset, name)
+                yield item
 
     def lines(self) -> Iterator[JobLine]:
         """Only the lines that go on the wire."""
