@@ -1,11 +1,15 @@
 """HostProtocol, byte for byte, with replies written by hand from Marlin's strings."""
 
+from itertools import product
+
 import pytest
 
 from repetrel_host.errors import ProtocolError
+from repetrel_host.protocol.controller import Accepted, ControllerProtocol
 from repetrel_host.protocol.host import (
     HELLO_ATTEMPTS,
     HELLO_TIMEOUT,
+    MIN_RTO,
     ControllerMessage,
     ControllerReady,
     Event,
@@ -14,10 +18,23 @@ from repetrel_host.protocol.host import (
     FlowMode,
     HostProtocol,
     LineAcknowledged,
+    Notice,
     ResendRequested,
 )
 
 HELLO = b"N0 M110 N0*125\n"
+
+
+def ping(number: int) -> bytes:
+    """What the host sends to ask where the controller stands (a checksum that never fits)."""
+    body = f"N{number} M105 S0".encode()
+    return body + b"*9999\n"
+
+
+def ping_reply(number: int, trailing_ok: bool = True) -> bytes:
+    """Marlin's answer when it has every line before ``number``."""
+    ok = b"ok\n" if trailing_ok else b""
+    return f"Error:checksum mismatch, Last Line: {number - 1}\nResend: {number}\n".encode() + ok
 
 
 def events(host: HostProtocol) -> list[Event]:
@@ -30,9 +47,9 @@ def events(host: HostProtocol) -> list[Event]:
 def greeted(flow: FlowControl | None = None, **kwargs: object) -> HostProtocol:
     host = HostProtocol(flow, **kwargs)  # type: ignore[arg-type]
     host.start(0.0)
-    assert host.data_to_send(0.0) == HELLO
-    host.receive_data(b"ok\n", 0.0)
-    assert events(host) == [ControllerReady()]
+    assert host.data_to_send(0.0) == HELLO + ping(1)
+    host.receive_data(b"ok\n" + ping_reply(1), 0.0)
+    assert [e for e in events(host) if not isinstance(e, ControllerMessage)] == [ControllerReady()]
     return host
 
 
@@ -40,20 +57,48 @@ def acked(host: HostProtocol) -> list[int]:
     return [e.number for e in events(host) if isinstance(e, LineAcknowledged)]
 
 
-def test_opening_line_goes_alone_and_waits_for_its_ok() -> None:
+def test_the_ping_never_runs_whatever_single_byte_changes() -> None:
+    wire = ping(1234)[:-1]
+    for position, value in product(range(len(wire)), range(256)):
+        if value == wire[position] or value == 0x0A:
+            continue
+        corrupted = wire[:position] + bytes([value]) + wire[position + 1 :]
+        controller = ControllerProtocol()
+        controller.last_line = 1233
+        assert not isinstance(controller.handle_line(corrupted), Accepted), corrupted
+
+
+def test_greeting_waits_for_the_ping_answer() -> None:
     host = HostProtocol()
     host.send("G28", "a")
     host.start(0.0)
-    assert host.data_to_send(0.0) == HELLO
-    assert host.data_to_send(0.0) == b""
+    assert host.data_to_send(0.0) == HELLO + ping(1)
     host.receive_data(b"start\n", 0.1)  # a boot banner is not an answer
     assert host.data_to_send(0.1) == b""
-    host.receive_data(b"ok\n", 0.2)
+    host.receive_data(b"ok\n" + ping_reply(1, trailing_ok=False), 0.2)
+    assert ControllerReady() in events(host)
     assert host.data_to_send(0.2) == b"N1 G28*18\n"
 
 
+@pytest.mark.parametrize("trailing_ok", [True, False])
+def test_the_ok_that_ends_an_error_is_not_taken_for_the_next_line(trailing_ok: bool) -> None:
+    host = greeted(FlowControl(FlowMode.UNBUFFERED))
+    host.send("G28", 0)
+    host.data_to_send(1.0)
+    host.receive_data(b"ok\n", 1.010)  # measures a 10 ms round trip
+    host.send("G1 X1", 1)
+    assert host.data_to_send(1.010) == b"N2 G1 X1*99\n"
+    host.receive_data(b"Error:checksum mismatch, Last Line: 1\nResend: 2\n", 1.020)
+    assert host.data_to_send(1.020) == b"N2 G1 X1*99\n"
+    if trailing_ok:
+        host.receive_data(b"ok\n", 1.0201)  # right behind the resend request
+    assert acked(host) == [1]
+    host.receive_data(b"ok\n", 1.030)  # a round trip later: the answer to line 2
+    assert acked(host) == [2]
+
+
 def test_buffered_window_counts_bytes_against_the_receive_buffer() -> None:
-    # 40-byte buffer: 39 usable; "N1 G92 E1*xx\n" is 13 bytes, so three fit.
+    # 40-byte buffer: 39 usable; "N1 G92 E1*xx" is 13 bytes with its newline, so three fit.
     host = greeted(FlowControl(FlowMode.BUFFERED, rx_buffer=40, max_lines=8))
     for i in range(5):
         host.send(f"G92 E{i + 1}", i)
@@ -88,20 +133,55 @@ def test_a_line_longer_than_the_buffer_goes_alone() -> None:
     assert host.data_to_send(0.0).startswith(b"N1 M117 xxxx")
 
 
+def test_done_only_once_the_controller_confirms_every_line() -> None:
+    host = greeted()
+    host.send("G28", 0)
+    host.send("G1 X1", 1)
+    host.data_to_send(0.0)
+    host.request_sync()
+    host.receive_data(b"ok\nok\n", 0.0)
+    assert acked(host) == [1, 2]
+    assert not host.is_done  # two oks are not proof: they may be duplicates
+    assert host.data_to_send(0.0) == ping(3)
+    host.receive_data(ping_reply(3), 0.0)
+    assert host.is_done
+
+
+def test_a_final_line_whose_ok_was_faked_by_a_duplicate_is_not_lost() -> None:
+    host = greeted()
+    host.send("G28", 0)
+    host.send("G1 X1", 1)
+    host.data_to_send(0.0)
+    host.request_sync()
+    # Line 1's ok came twice; line 2 was corrupted and its error is still on the way.
+    host.receive_data(b"ok\nok\n", 0.0)
+    assert host.data_to_send(0.0) == ping(3)
+    host.receive_data(b"Error:checksum mismatch, Last Line: 1\nResend: 2\nok\n", 0.0)
+    assert not host.is_done
+    assert host.data_to_send(0.0) == b"N2 G1 X1*99\n"
+    host.receive_data(
+        b"Error:Line Number is not Last Line Number+1, Last Line: 1\nResend: 2\n", 0.0
+    )
+    host.receive_data(b"ok\nok\n", 0.0)  # the ping's echo's ok, then line 2's
+    assert host.data_to_send(0.0) == ping(3)
+    host.receive_data(ping_reply(3), 0.0)
+    assert host.is_done
+
+
 def test_resend_goes_back_and_absorbs_the_storm() -> None:
     host = greeted(FlowControl(FlowMode.BUFFERED, rx_buffer=40))
     for i in range(3):
         host.send(f"G92 E{i + 1}", i)
-    first = host.data_to_send(0.0)
-    lines = first.splitlines(keepends=True)
+    lines = host.data_to_send(0.0).splitlines(keepends=True)
     assert len(lines) == 3
     # Line 1 accepted, line 2 corrupted, line 3 refused as out of sequence.
     host.receive_data(b"ok\n", 0.0)
     host.receive_data(b"Error:checksum mismatch, Last Line: 1\nResend: 2\nok\n", 0.0)
-    got = events(host)
-    assert [type(e) for e in got] == [LineAcknowledged, ControllerMessage, ResendRequested]
-    assert got[2] == ResendRequested(2, "G92 E2", 1)
-    # Line 3's stale bytes still occupy the buffer: 13 + 26 = 39 fits exactly.
+    got = [e for e in events(host) if not isinstance(e, ControllerMessage)]
+    assert got == [
+        LineAcknowledged(1, "G92 E1", 0, ""),
+        ResendRequested(2, "G92 E2", 1),
+    ]
     assert host.data_to_send(0.0) == lines[1] + lines[2]
     host.receive_data(
         b"Error:Line Number is not Last Line Number+1, Last Line: 1\nResend: 2\nok\n", 0.0
@@ -110,7 +190,6 @@ def test_resend_goes_back_and_absorbs_the_storm() -> None:
     assert host.stats.ignored_resend_requests == 1
     host.receive_data(b"ok\nok\n", 0.0)
     assert acked(host) == [2, 3]
-    assert host.is_done
     assert host.stats.retransmissions == 2
 
 
@@ -126,16 +205,54 @@ def test_a_second_failure_of_the_resent_line_is_honoured() -> None:
     assert host.stats.resend_requests == 2
 
 
-def test_resend_of_a_line_not_held_stops_rather_than_guessing() -> None:
+def test_a_garbled_resend_number_is_ignored_not_obeyed() -> None:
+    host = greeted()
+    for i in range(3):
+        host.send("G28", i)
+    host.data_to_send(0.0)
+    # "Last Line: 1" but "Resend: 9": the two lines disagree, one was garbled.
+    host.receive_data(b"Error:checksum mismatch, Last Line: 1\nResend: 9\nok\n", 0.0)
+    assert host.failure is None
+    assert not [e for e in events(host) if isinstance(e, ResendRequested)]
+
+
+def test_resend_of_a_line_not_held_stops_when_it_is_repeated() -> None:
     host = greeted()
     host.send("G28", 0)
     host.data_to_send(0.0)
+    host.receive_data(b"Resend: 77\n", 0.0)
+    assert host.failure is None  # once could be a garbled number
     host.receive_data(b"Resend: 77\n", 0.0)
     failure = host.failure
     assert failure is not None and failure.kind == "protocol"
     assert "77" in failure.reason
     host.send("G28", 1)
     assert host.data_to_send(0.0) == b""
+
+
+def test_the_same_line_requested_again_and_again_is_a_loop() -> None:
+    host = greeted(FlowControl(FlowMode.UNBUFFERED))
+    host.send("G28", 0)
+    host.data_to_send(0.0)
+    for _ in range(10):
+        host.receive_data(b"Error:checksum mismatch, Last Line: 0\nResend: 1\nok\n", 0.0)
+        host.data_to_send(0.0)
+    assert host.failure is not None and "10 times" in host.failure.reason
+
+
+def test_a_high_resend_rate_is_reported_once() -> None:
+    host = greeted(FlowControl(FlowMode.UNBUFFERED))
+    notices = []
+    for i in range(1, 121):
+        host.send("G28", i)
+        host.data_to_send(0.0)
+        if i % 5 == 0:
+            reply = f"Error:checksum mismatch, Last Line: {i - 1}\nResend: {i}\nok\n"
+            host.receive_data(reply.encode(), 0.0)
+            host.data_to_send(0.0)
+        host.receive_data(b"ok\n", 0.0)
+        notices += [e for e in events(host) if isinstance(e, Notice)]
+    assert len(notices) == 1 and "noisy" in notices[0].text
 
 
 def test_reset_mid_job_stops_at_once_and_never_resends() -> None:
@@ -149,7 +266,8 @@ def test_reset_mid_job_stops_at_once_and_never_resends() -> None:
     failure = host.failure
     assert failure is not None and failure.kind == "controller"
     assert "reset" in failure.reason
-    assert host.data_to_send(0.0) == b""  # the ok after 'start' released nothing
+    assert failure.tag == 1  # the oldest line not acknowledged
+    assert host.data_to_send(0.0) == b""
 
 
 def test_controller_error_fails_the_stream() -> None:
@@ -159,38 +277,77 @@ def test_controller_error_fails_the_stream() -> None:
     assert "MINTEMP" in host.failure.reason
 
 
-def test_renumbers_with_m110_after_draining_at_the_limit() -> None:
-    host = greeted(FlowControl(FlowMode.BUFFERED, rx_buffer=1000), line_number_limit=2)
-    for i in range(3):
+def test_renumbers_with_m110_once_the_controller_confirmed_everything() -> None:
+    host = greeted(FlowControl(FlowMode.BUFFERED, rx_buffer=1000), line_number_limit=3)
+    for i in range(4):
         host.send("G28", i)
-    assert host.data_to_send(0.0) == b"N1 G28*18\nN2 G28*17\n"
-    host.receive_data(b"ok\n", 0.0)
-    assert host.data_to_send(0.0) == b""  # line 2 still in flight
-    host.receive_data(b"ok\n", 0.0)
-    assert host.data_to_send(0.0) == HELLO
-    host.receive_data(b"ok\n", 0.0)
+    assert host.data_to_send(0.0) == b"N1 G28*18\nN2 G28*17\nN3 G28*16\n"
+    host.receive_data(b"ok\nok\nok\n", 0.0)
+    assert host.data_to_send(0.0) == ping(4)  # confirm before numbers start again
+    host.receive_data(ping_reply(4), 0.0)
+    assert host.data_to_send(0.0) == HELLO + ping(1)
+    host.receive_data(b"ok\n" + ping_reply(1), 0.0)
     assert host.data_to_send(0.0) == b"N1 G28*18\n"
     host.receive_data(b"ok\n", 0.0)
-    assert acked(host) == [1, 2, 1]
-    assert host.is_done
+    assert acked(host) == [1, 2, 3, 1]
 
 
-def test_silence_on_a_buffered_line_times_out() -> None:
+def test_a_lost_ok_costs_one_retransmission_timeout_and_a_ping() -> None:
+    host = greeted(FlowControl(FlowMode.UNBUFFERED))
+    host.send("G1 X1", 0)
+    host.send("G1 X2", 1)
+    host.data_to_send(1.0)
+    host.receive_data(b"ok\n", 1.002)
+    host.data_to_send(1.002)
+    # The second ok is lost. After one timeout (from the 2 ms measured, clamped), ping.
+    assert host.retransmission_timeout == MIN_RTO
+    deadline = host.next_deadline()
+    assert deadline is not None and deadline == pytest.approx(1.002 + MIN_RTO)
+    host.handle_timeout(deadline)
+    assert host.data_to_send(deadline) == ping(3)
+    host.receive_data(ping_reply(3), deadline + 0.002)
+    assert acked(host) == [1, 2]
+    assert host.stats.stalls_recovered == 1
+
+
+def test_a_silent_controller_fails_after_the_reply_timeout() -> None:
     host = greeted(reply_timeout=3.0)
     host.send("G1 X1", 0)
-    host.data_to_send(1.0)
-    assert host.next_deadline() == 4.0
-    host.handle_timeout(3.9)
-    assert host.failure is None
-    host.handle_timeout(4.0)
+    host.data_to_send(0.0)
+    now = 0.0
+    while host.failure is None and now < 10:
+        deadline = host.next_deadline()
+        assert deadline is not None and deadline > now
+        now = deadline
+        host.handle_timeout(now)
+        host.data_to_send(now)
     assert host.failure is not None and host.failure.kind == "timeout"
+    assert 3.0 <= now < 4.0
 
 
-def test_unbuffered_command_has_no_reply_deadline() -> None:
+def test_an_unbuffered_command_is_not_a_silence_failure() -> None:
     host = greeted(reply_timeout=3.0)
     host.send("M109 S200", 0)
-    host.data_to_send(1.0)
-    assert host.next_deadline() is None
+    host.data_to_send(0.0)
+    now = 0.0
+    while (deadline := host.next_deadline()) is not None and now < 100:
+        now = deadline
+        host.handle_timeout(now)
+        host.data_to_send(now)
+    assert host.failure is None  # a few pings wait behind the heating, then it waits
+    host.receive_data(b"ok\n", 100.0)
+    assert acked(host) == [1]
+
+
+def test_busy_keepalives_hold_the_pings_back() -> None:
+    host = greeted(FlowControl(FlowMode.UNBUFFERED))
+    host.send("G28", 0)
+    host.data_to_send(0.0)
+    for second in range(1, 30, 2):
+        host.receive_data(b"echo:busy: processing\n", float(second))
+        host.handle_timeout(float(second))
+        assert host.data_to_send(float(second)) == b""
+    assert host.stats.pings == 1  # the greeting's only
 
 
 def test_opening_line_is_repeated_when_unanswered() -> None:
@@ -198,7 +355,7 @@ def test_opening_line_is_repeated_when_unanswered() -> None:
     host.start(0.0)
     now = 0.0
     for attempt in range(HELLO_ATTEMPTS):
-        assert host.data_to_send(now) == HELLO, attempt
+        assert host.data_to_send(now) == HELLO + ping(1), attempt
         now += HELLO_TIMEOUT
         host.handle_timeout(now)
     assert host.failure is not None and "M110" in host.failure.reason
@@ -225,16 +382,6 @@ def test_replies_split_across_reads() -> None:
 def test_m110_cannot_be_queued() -> None:
     with pytest.raises(ProtocolError):
         HostProtocol().send("M110 N5")
-
-
-def test_failure_names_the_oldest_unacknowledged_line() -> None:
-    host = greeted()
-    for tag in ("job.gcode:1", "job.gcode:2", "job.gcode:3"):
-        host.send("G28", tag)
-    host.data_to_send(0.0)
-    host.receive_data(b"ok\nError:Printer halted. kill() called!\n", 0.0)
-    assert host.failure is not None
-    assert host.failure.tag == "job.gcode:2"
 
 
 def test_a_line_acknowledged_again_after_a_resend_is_reported_once() -> None:

@@ -54,6 +54,7 @@ from repetrel_host.link import FAKE_PORT, BuiltInFake
 from repetrel_host.protocol.framing import clean_line
 from repetrel_host.protocol.host import FlowControl, FlowMode, HostProtocol
 from repetrel_host.sender import Outcome, Sender, Summary, stream
+from repetrel_host.testing.loopback import wire_preview
 
 # Exit codes: distinct per kind of failure so scripts can tell them apart.
 EXIT_OK = 0
@@ -233,24 +234,21 @@ def _lint(plan: Plan) -> list[Finding]:
 
 def _dry_run(plan: Plan, framed: bool) -> None:
     """The commands on stdout, exactly as they would go; host actions noted on stderr."""
-    out = sys.stdout
-    core = HostProtocol(FlowControl(FlowMode.UNBUFFERED)) if framed else None
-    if core is not None:
-        core.start(0.0)
-        out.write(core.data_to_send(0.0).decode("ascii"))
-        core.receive_data(b"ok\n", 0.0)
-    for item in plan.items():
-        if isinstance(item, HostAction):
-            sys.stderr.write(f"{item.position}: host {item.kind}: {item.message}\n")
-            continue
-        if core is None:
-            out.write(item.command + "\n")
-            continue
-        core.send(item.command, item)
-        while data := core.data_to_send(0.0):  # a renumbering M110 may come first
-            out.write(data.decode("ascii"))
-            core.receive_data(b"ok\n", 0.0)
-    out.flush()
+
+    def commands() -> Iterator[str]:
+        for item in plan.items():
+            if isinstance(item, HostAction):
+                sys.stderr.write(f"{item.position}: host {item.kind}: {item.message}\n")
+            else:
+                yield item.command
+
+    if framed:
+        for data in wire_preview(commands()):
+            sys.stdout.write(data.decode("ascii"))
+    else:
+        for command in commands():
+            sys.stdout.write(command + "\n")
+    sys.stdout.flush()
 
 
 def _send(

@@ -56,6 +56,9 @@ class ConsoleObserver(Observer):
             f"[dim]resend: the controller asked again for {escape(line.position)}[/]"
         )
 
+    def on_notice(self, text: str) -> None:
+        self.console.print(f"[yellow]warning:[/] {escape(text)}")
+
     def on_message(self, text: str, reply: replies.Reply) -> None:
         if self._reports is not None:
             self._reports.write(text + "\n")

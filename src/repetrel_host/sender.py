@@ -26,6 +26,7 @@ from repetrel_host.protocol.host import (
     Failed,
     HostProtocol,
     LineAcknowledged,
+    Notice,
     ResendRequested,
 )
 
@@ -52,6 +53,8 @@ class Observer:
     def on_resend(self, line: JobLine) -> None: ...
 
     def on_message(self, text: str, reply: replies.Reply) -> None: ...
+
+    def on_notice(self, text: str) -> None: ...
 
     async def perform(self, action: HostAction) -> bool:
         """Carry out a host action; return False to stop the job (with the safe stop)."""
@@ -158,6 +161,8 @@ class Sender(asyncio.Protocol):
                 self._barrier = item
             else:
                 core.send(item.command, item)
+        if self._barrier is not None or self._items_exhausted or self._stopping:
+            core.request_sync()  # nothing more for now: have the controller confirm it all
         data = core.data_to_send(self._loop.time())
         if data and self._transport is not None:
             log.debug("sending %r", data)
@@ -223,6 +228,8 @@ class Sender(asyncio.Protocol):
                 observer.on_message(event.text, event.reply)
             elif isinstance(event, ControllerReady):
                 observer.on_ready()
+            elif isinstance(event, Notice):
+                observer.on_notice(event.text)
             elif isinstance(event, Failed):
                 self._finish(_failure_error(event))
                 return

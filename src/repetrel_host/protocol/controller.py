@@ -41,10 +41,18 @@ LineOutcome = Accepted | Rejected | Ignored
 
 
 class ControllerProtocol:
-    """Checks received lines the way Marlin does; ``last_line`` is the last accepted number."""
+    """Checks received lines the way Marlin does; ``last_line`` is the last accepted number.
 
-    def __init__(self) -> None:
+    ``drop_duplicates``: ignore, without a reply, a line numbered ``last_line`` or one
+    less (a resent duplicate), as newer Marlin does. Unlike Marlin, a line with two
+    ``*`` is refused: it is two lines run together by a lost newline, and one checksum
+    in 256 would let it through.
+    """
+
+    def __init__(self, drop_duplicates: bool = False) -> None:
         self.last_line = 0
+        self.drop_duplicates = drop_duplicates
+        self.duplicates_dropped = 0
 
     def handle_line(self, raw: bytes) -> LineOutcome:
         """Check one received line (without its ``\\n``)."""
@@ -69,9 +77,14 @@ class ControllerProtocol:
             if second is not None:
                 number = int(second.group(1))
         elif number != self.last_line + 1:
+            if self.drop_duplicates and number in (self.last_line, self.last_line - 1):
+                self.duplicates_dropped += 1
+                return Ignored()
             return self._reject("Line Number is not Last Line Number+1")
         if star < 0:
             return self._reject("No Checksum with line number")
+        if line.count(b"*") > 1:
+            return self._reject("checksum mismatch")
         try:
             expected = int(line[star + 1 :])
         except ValueError:

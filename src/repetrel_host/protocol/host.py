@@ -5,16 +5,28 @@ Feed it commands with :meth:`HostProtocol.send`, bytes from the controller with
 bytes to write from :meth:`HostProtocol.data_to_send` and happenings from
 :meth:`HostProtocol.next_event`.
 
-How delivery stays exact: every line carries a number and a checksum, and the
-controller executes a line only when its number is the previous one plus one.
-The host keeps each sent line until it is acknowledged and, when the controller
-asks for line ``n`` again, sends ``n`` and everything after it once more
-(go-back-N). Replies come in order, one ``ok`` per received line, so each
-``ok`` answers the oldest transmission still in flight.
+Why no line is lost or run twice
+--------------------------------
+The controller executes a numbered line only when its number is the previous
+one plus one and its checksum matches, so a line can never run twice, and a
+gap is always noticed. The host keeps every line the controller may still ask
+for and answers ``Resend: n`` by sending ``n`` and what follows again (go-back-N).
+
+A plain ``ok`` does not say which line it answers, and real links drop,
+duplicate and garble replies; counting oks is therefore only used for flow
+control and progress. Where it matters (the end of a job, a renumbering, a
+host action, a stall) the host *pings*: it sends ``N<next> M105 S<k>*9999``, a
+line whose checksum is wrong on purpose and stays wrong under any one-byte
+corruption, so it never runs. The controller answers it with ``Error:checksum
+mismatch, Last Line: <next - 1>`` and ``Resend: <next>`` exactly when it has
+accepted every line before it; any other state draws a resend request for the
+first missing line. Since nothing is sent after a ping until it is answered,
+its answer also settles every reply still owed.
 """
 
 from __future__ import annotations
 
+import re
 from collections import deque
 from dataclasses import dataclass
 from enum import Enum
@@ -22,22 +34,48 @@ from enum import Enum
 from repetrel_host.errors import ProtocolError
 from repetrel_host.gcode.commands import is_unbuffered
 from repetrel_host.protocol import replies
-from repetrel_host.protocol.framing import frame, is_reset_command, reset_command
+from repetrel_host.protocol.framing import checksum, frame, is_reset_command, reset_command
 
 # Marlin and RepRap count line numbers in a C long, Repetier modulo 65536: renumber
 # before 65536 so every firmware agrees on the numbers.
 DEFAULT_LINE_NUMBER_LIMIT = 65535
-# Acknowledged lines kept for resend requests that come late. A controller only
-# asks for a line it has not accepted, which is always unacknowledged; the margin
-# covers firmwares that acknowledge on receipt (Repetier) and ask later.
-DEFAULT_HISTORY_MARGIN = 256
-# The longest an acknowledgement of a buffered command may take: the controller
-# holds it back while its planner is full, and one slow move can last seconds.
+# Lines kept behind the last acknowledged one, for resend requests after oks that were
+# counted wrongly (duplicated). Far more than any window plus the drift between pings.
+DEFAULT_HISTORY_MARGIN = 1024
+# Silence that means the controller is gone, while a buffered command waits for its ok.
 DEFAULT_REPLY_TIMEOUT = 30.0
-# Waiting for the answer to the opening M110: boards that reset when the port
-# opens need about two seconds to boot; M110 is idempotent, so we repeat it.
+# Retransmission timeout from the measured round trip (RFC 6298), clamped as
+# Klipper's serial queue does: short enough that a lost ok costs a fraction of a
+# second on a fast link, long enough not to ping during a slow USB frame.
+MIN_RTO = 0.025
+MAX_RTO = 5.0
+INITIAL_RTO = 1.0
+# A command that waits for the machine (G28, M109...) may stay silent this long
+# before the host pings to find out whether its ok was lost.
+UNBUFFERED_GRACE = 5.0
+# Pings sent in a row without an answer while a long command (G28, M109...) runs,
+# before the host stops adding to that controller's buffer and just waits.
+MAX_UNANSWERED_PINGS = 4
+# Marlin ends a line error with an ok, written right behind the resend request;
+# some 2.0.x builds leave it out. An ok arriving within half the smoothed round
+# trip is that trailing ok, not the answer to a line sent since.
+TRAILING_OK_SHARE = 0.5
+TRAILING_OK_WINDOW = 0.002  # before any round trip was measured
+# Boards that reset when the port opens need about two seconds to boot.
 HELLO_TIMEOUT = 2.0
 HELLO_ATTEMPTS = 5
+# The same line requested this many times in a row, without progress, is a loop.
+RESEND_LOOP_LIMIT = 10
+# Warn once when more than this share of lines needed resending (after enough lines).
+RESEND_WARNING_RATIO = 0.10
+RESEND_WARNING_AFTER = 100
+
+# A ping's checksum field. Valid checksums are 0..255; one changed character turns
+# "9999" into 0, 9, 99 or a number above 255, so the ping's body is chosen with a
+# checksum outside {0, 9, 99} and can never become valid.
+_PING_CHECKSUM = b"9999"
+_PING_UNSAFE = frozenset({0, 9, 99})
+_LAST_LINE = re.compile(r"last\s*line:?\s*(-?\d+)", re.IGNORECASE)
 
 
 class FlowMode(Enum):
@@ -82,7 +120,7 @@ class FlowControl:
 
 @dataclass(frozen=True, slots=True)
 class ControllerReady:
-    """The controller acknowledged the opening M110: it is there and numbering agrees."""
+    """The controller confirmed the opening M110: it is there and numbering agrees."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -113,6 +151,13 @@ class ControllerMessage:
 
 
 @dataclass(frozen=True, slots=True)
+class Notice:
+    """Something the user should know that does not stop the job (a high resend rate)."""
+
+    text: str
+
+
+@dataclass(frozen=True, slots=True)
 class Failed:
     """The stream cannot go on. Nothing more is sent; ``reason`` is one sentence.
 
@@ -125,7 +170,7 @@ class Failed:
     tag: object = None  # the oldest unacknowledged line's tag, where the trouble most likely is
 
 
-Event = ControllerReady | LineAcknowledged | ResendRequested | ControllerMessage | Failed
+Event = ControllerReady | LineAcknowledged | ResendRequested | ControllerMessage | Notice | Failed
 
 
 # --- state ----------------------------------------------------------------------
@@ -133,7 +178,7 @@ Event = ControllerReady | LineAcknowledged | ResendRequested | ControllerMessage
 
 class _Phase(Enum):
     IDLE = "idle"  # start() not called yet
-    RESETTING = "resetting"  # the M110 that sets numbering is in flight
+    GREETING = "greeting"  # M110 and a ping in flight: numbering being (re)set
     RUNNING = "running"
     FAILED = "failed"
 
@@ -152,11 +197,14 @@ class _Line:
 
 @dataclass(slots=True)
 class _Transmission:
-    line: _Line
+    line: _Line | None  # None for a ping
+    wire: bytes
     sent_at: float
-    # Stale: sent before a resend request, so the controller refuses it; its
-    # reply (an error, a resend request and an ok) acknowledges nothing.
+    number: int
+    # Stale: sent before a resend request; the controller refuses it (or has
+    # dropped it), so whatever it draws acknowledges nothing.
     stale: bool = False
+    retransmitted: bool = False
 
 
 @dataclass(slots=True)
@@ -164,13 +212,15 @@ class Statistics:
     lines_sent: int = 0  # first transmissions
     retransmissions: int = 0
     resend_requests: int = 0  # honoured requests
-    ignored_resend_requests: int = 0  # echoes of one request from lines in transit
+    ignored_resend_requests: int = 0  # echoes of one request, garbled numbers
     unexpected_oks: int = 0
+    pings: int = 0  # sync pings sent
+    stalls_recovered: int = 0  # timeouts answered by a ping
     bytes_sent: int = 0
 
 
 class HostProtocol:
-    """Numbering, history, window and go-back-N resend for one controller."""
+    """Numbering, history, window, go-back-N resend and sync pings for one controller."""
 
     def __init__(
         self,
@@ -180,28 +230,48 @@ class HostProtocol:
         history_margin: int = DEFAULT_HISTORY_MARGIN,
         reply_timeout: float = DEFAULT_REPLY_TIMEOUT,
     ) -> None:
-        if line_number_limit < 2:
-            raise ValueError("line_number_limit must be at least 2")
+        if line_number_limit < 3:
+            raise ValueError("line_number_limit must be at least 3")
         self.flow = flow or FlowControl()
         self.line_number_limit = line_number_limit
-        self.history_margin = history_margin
+        self.history_margin = max(history_margin, 4 * self.flow.line_limit)
         self.reply_timeout = reply_timeout
         self.stats = Statistics()
         self._phase = _Phase.IDLE
         self._pending: deque[tuple[str, object]] = deque()
+        self._candidate: _Line | None = None  # the next new line, framed, not yet numbered
         self._history: dict[int, _Line] = {}
         self._history_floor = 0  # lowest number still held
         self._next_number = 0  # number the next new line gets
         self._cursor = 0  # next number to transmit (< _next_number while resending)
-        self._reset_due = False  # the reset line must be (re)transmitted
         self._in_flight: deque[_Transmission] = deque()
         self._bytes_in_flight = 0
+        self._live_in_flight = 0  # transmissions neither stale nor pings
         self._stale_in_flight = 0
         self._resend_target: int | None = None
-        self._acked_through = -1
-        self._hello_attempts = 0
-        self._greeted = False  # the opening M110 was acknowledged
+        self._echoes_expected = 0
+        self._stale_bytes = 0
+        self._stale_expire_at = 0.0
+        self._acked_through = -1  # by counting oks: progress
+        self._confirmed_through = -1  # by the controller's own numbers: exact
+        self._ping: _Transmission | None = None
+        self._ping_attempt = 0  # pings sent since one was last answered
+        self._trailing_ok_until: float | None = None  # an ok by then ends an error reply
+        self._unanswered_pings = 0
+        self._sync_requested = False
+        self._greeting_attempts = 0
+        self._greeted = False
+        self._srtt: float | None = None
+        self._rttvar = 0.0
+        self._rto = INITIAL_RTO
         self._last_received_at = 0.0
+        self._last_progress_at = 0.0
+        self._previous_reply: replies.Reply | None = None
+        self._loop_number = -1
+        self._loop_count = 0
+        self._loop_retransmitted = False
+        self._warned_resends = False
+        self._unheld_requests: dict[int, int] = {}
         self._receive_buffer = bytearray()
         self._outgoing = bytearray()
         self._events: deque[Event] = deque()
@@ -213,19 +283,28 @@ class HostProtocol:
         """Begin: the first line on the wire will be ``N0 M110 N0``."""
         if self._phase is not _Phase.IDLE:
             raise ProtocolError("the protocol was already started")
-        self._last_received_at = now
-        self._begin_reset()
+        self._last_received_at = self._last_progress_at = now
+        self._begin_greeting()
 
     def send(self, command: str, tag: object = None) -> None:
         """Queue one clean command (see :func:`clean_line`); ``tag`` comes back in events."""
         if is_reset_command(command):
             raise ProtocolError("M110 sets line numbers, which the host owns; it cannot be queued")
         self._pending.append((command, tag))
+        self._sync_requested = False
+
+    def request_sync(self) -> None:
+        """No more lines for now: confirm that the controller accepted every line sent.
+
+        :attr:`is_done` becomes true once it has.
+        """
+        self._sync_requested = True
 
     def cancel_pending(self) -> int:
         """Drop queued lines not yet on the wire; return how many were dropped."""
         dropped = len(self._pending)
         self._pending.clear()
+        self._candidate = None
         return dropped
 
     @property
@@ -235,25 +314,34 @@ class HostProtocol:
 
     @property
     def is_done(self) -> bool:
-        """Every line queued so far was transmitted and acknowledged."""
+        """Every line queued so far is confirmed accepted by the controller itself."""
         return (
             self._phase is _Phase.RUNNING
             and not self._pending
             and self._cursor == self._next_number
-            and self._acked_through == self._next_number - 1
+            and self._confirmed_through == self._next_number - 1
+            and self._live_in_flight == 0
         )
 
     @property
     def failure(self) -> Failed | None:
         return self._failure
 
+    @property
+    def retransmission_timeout(self) -> float:
+        return self._rto
+
     # --- output -------------------------------------------------------------
 
     def data_to_send(self, now: float) -> bytes:
-        """Bytes to write now: every line the window has room for."""
-        while self._phase in (_Phase.RESETTING, _Phase.RUNNING):
+        """Bytes to write now: every line the window has room for, or a ping."""
+        while self._phase in (_Phase.GREETING, _Phase.RUNNING) and self._ping is None:
             line = self._next_line_to_transmit()
-            if line is None or not self._window_has_room(len(line.wire)):
+            if line is None:
+                if self._wants_sync_ping():
+                    self._send_ping(now)
+                break
+            if not self._window_has_room(len(line.wire), now):
                 break
             self._transmit(line, now)
         data = bytes(self._outgoing)
@@ -265,34 +353,55 @@ class HostProtocol:
 
     def next_deadline(self) -> float | None:
         """When :meth:`handle_timeout` wants to be called, or None."""
-        if self._phase is _Phase.FAILED or not self._in_flight:
+        if self._phase in (_Phase.FAILED, _Phase.IDLE):
             return None
-        oldest = self._in_flight[0]
-        if self._phase is _Phase.RESETTING:
-            return max(self._last_received_at, oldest.sent_at) + HELLO_TIMEOUT
-        if oldest.line.unbuffered and not oldest.stale:
-            return None  # a long wait here is the command working, not a failure
-        return max(self._last_received_at, oldest.sent_at) + self.reply_timeout
+        backoff = 2.0 ** min(self._unanswered_pings, 4)
+        if self._phase is _Phase.GREETING:
+            if not self._in_flight:
+                return None
+            return max(self._last_received_at, self._in_flight[-1].sent_at) + HELLO_TIMEOUT
+        if self._ping is not None:
+            if self._unanswered_pings >= MAX_UNANSWERED_PINGS and self._waiting_on_unbuffered():
+                return None  # a long command holds the pings back: wait for it
+            return self._ping.sent_at + min(self._rto * backoff, MAX_RTO)
+        oldest = next((t for t in self._in_flight if not t.stale), None)
+        if oldest is None:
+            if not self._in_flight:
+                return None
+            # Only stale transmissions left, whose replies may never come (flushed).
+            base = max(self._in_flight[-1].sent_at, self._last_progress_at)
+            return base + min(self._rto * backoff, MAX_RTO)
+        base = max(oldest.sent_at, self._last_progress_at)
+        wait = min(self._rto * backoff, MAX_RTO)
+        if oldest.line is not None and oldest.line.unbuffered:
+            wait = max(wait, UNBUFFERED_GRACE)
+        return base + wait
 
     def handle_timeout(self, now: float) -> None:
         deadline = self.next_deadline()
         if deadline is None or now < deadline:
             return
-        if self._phase is _Phase.RESETTING and self._hello_attempts < HELLO_ATTEMPTS:
-            # Assume the M110 was lost (a board still booting); repeating it is harmless.
-            # Were its ok only late, one ok would be left over: issue 4's fault model.
+        if self._phase is _Phase.GREETING:
+            if self._greeting_attempts >= HELLO_ATTEMPTS:
+                self._fail("timeout", "the controller did not answer M110 (line numbering reset)")
+                return
             self._forget_in_flight()
-            self._reset_due = True
+            self._queue_greeting()
             return
-        if self._phase is _Phase.RESETTING:
-            self._fail("timeout", "the controller did not answer M110 (line numbering reset)")
-        else:
-            line = self._in_flight[0].line
+        silent = now - self._last_received_at
+        if silent >= self.reply_timeout and not self._waiting_on_unbuffered():
             self._fail(
                 "timeout",
-                f"no answer from the controller for {now - self._last_received_at:.1f} s "
-                f"while line {line.number} ({line.command}) waited for its acknowledgement",
+                f"no answer from the controller for {silent:.1f} s; it stopped answering",
             )
+            return
+        # A lost ok (or a lost resend request): ask where the controller stands.
+        self.stats.stalls_recovered += 1
+        self._unanswered_pings += 1
+        if self._ping is not None:
+            self._drop_transmission(self._ping)
+            self._ping = None
+        self._send_ping(now)
 
     # --- input --------------------------------------------------------------
 
@@ -310,152 +419,362 @@ class HostProtocol:
             del self._receive_buffer[: end + 1]
             text = raw.decode("ascii", errors="replace").strip()
             if text:
-                self._handle_reply(replies.classify(text), text)
+                reply = replies.classify(text)
+                trailing = self._trailing_ok_until
+                self._trailing_ok_until = None  # it must be the very next line
+                if not (trailing is not None and now <= trailing and isinstance(reply, replies.Ok)):
+                    self._handle_reply(reply, text, now)
+                self._previous_reply = reply
 
-    # --- internals ----------------------------------------------------------
+    # --- replies ------------------------------------------------------------
 
-    def _handle_reply(self, reply: replies.Reply, text: str) -> None:
+    def _handle_reply(self, reply: replies.Reply, text: str, now: float) -> None:
         if self._phase is _Phase.FAILED:
             return
         if isinstance(reply, replies.Ok):
-            self._handle_ok(reply)
+            self._handle_ok(reply, now)
         elif isinstance(reply, replies.Resend):
-            self._handle_resend(reply.line_number)
+            self._handle_resend(reply.line_number, now)
         elif isinstance(reply, replies.Start):
             self._handle_start(text)
-        elif isinstance(reply, replies.Error) and not reply.line_error:
-            self._fail("controller", f"the controller reported an error: {reply.text}")
+        elif isinstance(reply, replies.Error):
+            if not reply.line_error:
+                self._fail("controller", f"the controller reported an error: {reply.text}")
+            # A line error is told by the resend request that follows it.
         else:
+            if isinstance(reply, replies.Busy):
+                self._last_progress_at = now  # a long command is running: not a lost ok
             self._events.append(ControllerMessage(reply, text))
 
-    def _handle_ok(self, reply: replies.Ok) -> None:
+    def _handle_ok(self, reply: replies.Ok, now: float) -> None:
+        self._last_progress_at = now
         if not self._in_flight:
             self.stats.unexpected_oks += 1
             return
-        transmission = self._in_flight.popleft()
+        transmission = self._in_flight[0]
+        if transmission is self._ping:
+            # Nothing is sent after a ping and a ping draws no plain ok: this ok is
+            # one too many (duplicated, or owed to a line already settled).
+            self.stats.unexpected_oks += 1
+            return
+        self._drop_transmission(transmission)
         line = transmission.line
-        self._bytes_in_flight -= len(line.wire)
-        if transmission.stale:
-            self._stale_in_flight -= 1
+        if transmission.stale or line is None:
             return
+        if not transmission.retransmitted:  # Karn: no samples from retransmissions
+            self._sample_rtt(now - transmission.sent_at)
         if line.is_reset:
-            self._phase = _Phase.RUNNING
-            self._acked_through = line.number
-            if not self._greeted:
-                self._greeted = True
-                self._events.append(ControllerReady())
-            return
-        if line.number > self._acked_through:
-            self._acked_through = line.number
-        if not line.acknowledged:  # after a resend the controller may acknowledge it again
-            line.acknowledged = True
-            self._events.append(LineAcknowledged(line.number, line.command, line.tag, reply.data))
-        self._prune_history()
+            return  # the ping behind it confirms the reset
+        self._acknowledge(line, reply.data)
 
-    def _handle_resend(self, number: int) -> None:
-        if self._stale_in_flight and number == self._resend_target:
-            # An echo of the request we are already serving, from a line that
-            # was in transit when the first came (the resend storm).
+    def _handle_resend(self, number: int, now: float) -> None:
+        self._last_progress_at = now
+        previous = self._previous_reply
+        stated_last = _stated_last_line(previous)
+        if stated_last is not None and stated_last + 1 != number:
+            self.stats.ignored_resend_requests += 1  # garbled: the two lines disagree
+            return
+        ping = self._ping
+        window = TRAILING_OK_WINDOW if self._srtt is None else self._srtt * TRAILING_OK_SHARE
+        self._trailing_ok_until = now + window
+        if ping is not None and number == ping.number and _is_checksum_error(previous):
+            self._ping_answered(ping)
+            return
+        # An error, its resend request and (on most firmwares) an ok answer one
+        # transmission, the oldest: the ok is part of that answer, not another one.
+        if self._in_flight and self._in_flight[0] is not ping:
+            self._drop_transmission(self._in_flight[0])
+        if stated_last is not None and self._phase is _Phase.RUNNING:
+            self._confirm_through(stated_last)  # true whatever line drew it
+        if self._echoes_expected and number == self._resend_target:
+            # An echo of the request being served, from a line that was in transit
+            # when the first came (the resend storm).
+            self._echoes_expected -= 1
             self.stats.ignored_resend_requests += 1
             return
-        if self._phase is _Phase.RESETTING:
-            self._mark_in_flight_stale(number)
-            self._reset_due = True
+        if self._phase is _Phase.GREETING:
+            # The M110 did not take (corrupted, or the board was still booting).
+            self._mark_in_flight_stale(number, now)
+            self._queue_greeting()
+            return
+        corroborated = stated_last is not None
+        if number == self._next_number:
+            # "Send me the next line": everything sent was accepted.
+            self._mark_in_flight_stale(number, now, expect_echoes=False)
+            self._cursor = number
+            self._end_ping()
             return
         line = self._history.get(number)
         if line is None or line.is_reset:
-            held = f"{self._history_floor}..{self._next_number - 1}"
-            self._fail(
-                "protocol",
-                f"the controller asked for line {number} again, but the host holds only "
-                f"lines {held}; stopping rather than guessing",
-            )
+            self._unheld_request(number, corroborated)
+            return
+        if self._resend_loop(number):
             return
         self.stats.resend_requests += 1
-        self._mark_in_flight_stale(number)
+        self._mark_in_flight_stale(number, now)
         self._cursor = number
         self._acked_through = min(self._acked_through, number - 1)
+        self._end_ping()
         self._events.append(ResendRequested(number, line.command, line.tag))
+        self._maybe_warn()
+
+    def _ping_answered(self, ping: _Transmission) -> None:
+        """The controller accepted every line before the ping and nothing after it."""
+        self._unanswered_pings = self._ping_attempt = 0
+        # Every transmission before the ping was answered (replies come in order),
+        # whether or not its ok reached us; none was sent after it.
+        while self._in_flight:
+            if self._in_flight[0] is ping:
+                self._drop_transmission(ping)
+                break
+            self._drop_transmission(self._in_flight[0])
+        self._ping = None
+        self._echoes_expected = 0
+        self._confirm_through(ping.number - 1)
+        self._cursor = ping.number
+        if self._phase is _Phase.GREETING:
+            self._phase = _Phase.RUNNING
+            if not self._greeted:
+                self._greeted = True
+                self._events.append(ControllerReady())
 
     def _handle_start(self, text: str) -> None:
-        # While greeting, 'start' is the boot banner: it came either before our
-        # M110 (whose ok follows) or after it (the M110 was lost, and the hello
-        # timeout repeats it). Guessing which would risk an extra ok.
         if self._greeted:
             # Never resend across a reset: the controller lost its queue and state.
             self._fail("controller", "the controller reset (it sent 'start') during the job")
         else:
+            # The boot banner while greeting: the ping (or its timeout) tells the rest.
             self._events.append(ControllerMessage(replies.Start(), text))
 
-    def _mark_in_flight_stale(self, number: int) -> None:
-        for transmission in self._in_flight:
-            if not transmission.stale:
-                transmission.stale = True
-                self._stale_in_flight += 1
-        self._resend_target = number
+    def _unheld_request(self, number: int, corroborated: bool) -> None:
+        # A garbled number must not stop a job; a real request for a line we no
+        # longer hold must. The controller repeats real requests.
+        seen = self._unheld_requests.get(number, 0) + 1
+        self._unheld_requests[number] = seen
+        if seen < 2 and not (corroborated and number < self._history_floor):
+            self.stats.ignored_resend_requests += 1
+            return
+        held = f"{self._history_floor}..{self._next_number - 1}"
+        self._fail(
+            "protocol",
+            f"the controller asked for line {number} again, but the host holds only "
+            f"lines {held}; stopping rather than guessing",
+        )
 
-    def _forget_in_flight(self) -> None:
-        self._in_flight.clear()
-        self._bytes_in_flight = 0
-        self._stale_in_flight = 0
+    def _resend_loop(self, number: int) -> bool:
+        # Count rounds: a request counts again only once the line went out again
+        # (more requests before that are echoes the storm rules did not catch).
+        if number == self._loop_number:
+            if not self._loop_retransmitted:
+                return False
+            self._loop_count += 1
+        else:
+            self._loop_number, self._loop_count = number, 1
+        self._loop_retransmitted = False
+        if self._loop_count < RESEND_LOOP_LIMIT:
+            return False
+        line = self._history[number]
+        self._fail(
+            "controller",
+            f"the controller asked for line {number} ({line.command}) {self._loop_count} times "
+            "in a row; the link is too noisy to go on",
+        )
+        return True
 
-    def _begin_reset(self) -> None:
-        self._phase = _Phase.RESETTING
+    def _maybe_warn(self) -> None:
+        sent = self.stats.lines_sent
+        if (
+            not self._warned_resends
+            and sent >= RESEND_WARNING_AFTER
+            and self.stats.resend_requests > RESEND_WARNING_RATIO * sent
+        ):
+            self._warned_resends = True
+            self._events.append(
+                Notice(
+                    f"{self.stats.resend_requests} resend requests for {sent} lines: "
+                    "the serial link is noisy (check the cable, or lower the baud rate)"
+                )
+            )
+
+    # --- acknowledgement and confirmation -----------------------------------
+
+    def _acknowledge(self, line: _Line, data: str = "") -> None:
+        if line.number > self._acked_through:
+            self._acked_through = line.number
+        if line.number > self._loop_number:
+            self._loop_count = 0
+        if not line.acknowledged:  # after a resend the controller may acknowledge it again
+            line.acknowledged = True
+            self._events.append(LineAcknowledged(line.number, line.command, line.tag, data))
+        self._prune_history()
+
+    def _confirm_through(self, number: int) -> None:
+        """The controller said its last accepted line is ``number``: acknowledge up to it."""
+        if number <= self._confirmed_through:
+            return
+        start = max(self._confirmed_through + 1, self._history_floor)
+        self._confirmed_through = number
+        for n in range(start, number + 1):
+            line = self._history.get(n)
+            if line is not None and not line.is_reset:
+                self._acknowledge(line)
+
+    def _sample_rtt(self, rtt: float) -> None:
+        if self._srtt is None:
+            self._srtt, self._rttvar = rtt, rtt / 2
+        else:
+            self._rttvar = 0.75 * self._rttvar + 0.25 * abs(self._srtt - rtt)
+            self._srtt = 0.875 * self._srtt + 0.125 * rtt
+        self._rto = min(max(self._srtt + 4 * self._rttvar, MIN_RTO), MAX_RTO)
+        self._unanswered_pings = 0
+
+    # --- transmission -------------------------------------------------------
+
+    def _begin_greeting(self) -> None:
+        self._phase = _Phase.GREETING
         self._history.clear()
         self._history_floor = 0
         command = reset_command(0)
         self._history[0] = _Line(0, command, None, frame(0, command), True, is_reset=True)
-        self._next_number = 1
-        self._cursor = 1
-        self._acked_through = -1
-        self._hello_attempts = 0
-        self._reset_due = True
+        self._next_number = self._cursor = 1
+        self._candidate = None
+        self._acked_through = self._confirmed_through = -1
+        self._greeting_attempts = 0
+        self._queue_greeting()
+
+    def _queue_greeting(self) -> None:
+        """(Re)send M110 and the ping behind it; the ping's answer confirms the reset."""
+        self._greeting_attempts += 1
+        self._end_ping()
+        self._cursor = 0  # the reset line first, then a ping for line 1
 
     def _next_line_to_transmit(self) -> _Line | None:
-        if self._reset_due:
-            return self._history[0]
-        if self._phase is not _Phase.RUNNING:
-            return None
+        if self._phase is _Phase.GREETING:
+            return self._history[0] if self._cursor == 0 else None
         if self._cursor < self._next_number:
             return self._history[self._cursor]
         if not self._pending:
             return None
         if self._next_number > self.line_number_limit:
-            # Renumber once everything in flight is answered, so that no resend
-            # request can ever name a number from before the reset.
-            if not self._in_flight:
-                self._begin_reset()
+            # Renumber only once the controller confirmed every line: no resend
+            # request may ever name a number from before the reset.
+            if self._confirmed_through == self._next_number - 1 and not self._live_in_flight:
+                self._begin_greeting()
                 return self._history[0]
+            self._sync_requested = True
             return None
-        command, tag = self._pending.popleft()
-        number = self._next_number
-        line = _Line(number, command, tag, frame(number, command), is_unbuffered(command))
-        self._history[number] = line
-        self._next_number += 1
-        return line
+        # Numbered only once it goes out (see _transmit), so that every number
+        # below _next_number has been on the wire and a ping can follow them.
+        if self._candidate is None:
+            command, tag = self._pending[0]
+            number = self._next_number
+            wire = frame(number, command)
+            self._candidate = _Line(number, command, tag, wire, is_unbuffered(command))
+        return self._candidate
 
-    def _window_has_room(self, size: int) -> bool:
-        if not self._in_flight:
-            return True  # a line longer than the buffer still has to go, alone
-        if len(self._in_flight) >= self.flow.line_limit:
+    def _wants_sync_ping(self) -> bool:
+        if self._phase is _Phase.GREETING:
+            return self._cursor == 1  # the reset line went out: confirm it
+        if self._confirmed_through == self._next_number - 1:
             return False
-        return self._bytes_in_flight + size <= self.flow.byte_limit
+        # After the oks of what was sent, so that an M400 before a pause has finished.
+        return self._sync_requested and not self._live_in_flight
+
+    def _window_has_room(self, size: int, now: float) -> bool:
+        if self._phase is _Phase.GREETING:
+            return True
+        if self._live_in_flight >= self.flow.line_limit:
+            return False
+        used = self._bytes_in_flight
+        if now >= self._stale_expire_at:
+            used -= self._stale_bytes
+        if used == 0:
+            return True  # a line longer than the buffer still has to go, alone
+        return used + size <= self.flow.byte_limit
 
     def _transmit(self, line: _Line, now: float) -> None:
-        if line.is_reset:
-            self._reset_due = False
-            self._hello_attempts += 1
+        if line is self._candidate:
+            self._pending.popleft()
+            self._history[line.number] = line
+            self._next_number += 1
+            self._candidate = None
+        self._cursor = line.number + 1 if not line.is_reset else 1
+        retransmitted = line.transmitted
+        if retransmitted:
+            self.stats.retransmissions += 1
+            self._loop_retransmitted |= line.number == self._loop_number
         else:
-            self._cursor = line.number + 1
-            if line.transmitted:
-                self.stats.retransmissions += 1
-            else:
-                line.transmitted = True
-                self.stats.lines_sent += 1
-        self._in_flight.append(_Transmission(line, now))
-        self._bytes_in_flight += len(line.wire)
-        self.stats.bytes_sent += len(line.wire)
-        self._outgoing += line.wire
+            line.transmitted = True
+            self.stats.lines_sent += not line.is_reset
+        self._push(_Transmission(line, line.wire, now, line.number, retransmitted=retransmitted))
+
+    def _send_ping(self, now: float) -> None:
+        # The number the controller should expect next. Pings alternate between the
+        # next new number (right when it has everything) and the first line not yet
+        # confirmed (right when lines are missing, and it settles every reply owed
+        # even then). Neither can be a duplicate that newer Marlin ignores in silence.
+        if self._phase is _Phase.GREETING:
+            number = 1
+        elif self._ping_attempt % 2 == 0:
+            number = self._next_number
+        else:
+            number = self._confirmed_through + 1
+        self._ping_attempt += 1
+        ping = _Transmission(None, _ping_wire(number), now, number)
+        self._ping = ping
+        self.stats.pings += 1
+        self._push(ping)
+
+    def _push(self, transmission: _Transmission) -> None:
+        self._in_flight.append(transmission)
+        self._bytes_in_flight += len(transmission.wire)
+        if transmission.line is not None:
+            self._live_in_flight += 1
+        self.stats.bytes_sent += len(transmission.wire)
+        self._outgoing += transmission.wire
+
+    def _drop_transmission(self, transmission: _Transmission) -> None:
+        self._in_flight.remove(transmission)
+        self._bytes_in_flight -= len(transmission.wire)
+        if transmission.stale:
+            self._stale_in_flight -= 1
+            self._stale_bytes -= len(transmission.wire)
+        elif transmission.line is not None:
+            self._live_in_flight -= 1
+
+    def _mark_in_flight_stale(self, number: int, now: float, expect_echoes: bool = True) -> None:
+        # The transmission of line ``number`` drew this request (unless its reply was
+        # counted off already); every other one in flight may draw an echo (or
+        # nothing, if the controller flushed it or dropped it as a duplicate).
+        cause = any(t.number == number and t.line is not None for t in self._in_flight)
+        self._echoes_expected = len(self._in_flight) - cause if expect_echoes else 0
+        for transmission in self._in_flight:
+            if not transmission.stale:
+                transmission.stale = True
+                self._stale_in_flight += 1
+                self._stale_bytes += len(transmission.wire)
+                if transmission.line is not None:
+                    self._live_in_flight -= 1
+        self._resend_target = number
+        # Refused lines leave the controller's buffer fast; a reply that never comes
+        # (flushed, dropped, an ok some firmwares omit) must not hold the window shut.
+        self._stale_expire_at = now + self._rto
+
+    def _end_ping(self) -> None:
+        """A resend request answers a ping too: its line is now just a stale transmission."""
+        if self._ping is not None:
+            self._ping = None
+            self._unanswered_pings = self._ping_attempt = 0
+
+    def _forget_in_flight(self) -> None:
+        self._in_flight.clear()
+        self._bytes_in_flight = self._live_in_flight = 0
+        self._stale_in_flight = self._stale_bytes = 0
+        self._ping = None
+
+    def _waiting_on_unbuffered(self) -> bool:
+        oldest = next((t for t in self._in_flight if not t.stale and t.line is not None), None)
+        return oldest is not None and oldest.line is not None and oldest.line.unbuffered
 
     def _prune_history(self) -> None:
         floor = self._acked_through - self.history_margin
@@ -467,5 +786,29 @@ class HostProtocol:
         self._phase = _Phase.FAILED
         oldest = self._history.get(self._acked_through + 1)
         self._failure = Failed(kind, reason, oldest.tag if oldest is not None else None)
-        self._pending.clear()
+        self.cancel_pending()
         self._events.append(self._failure)
+
+
+def _ping_wire(number: int) -> bytes:
+    """``N<number> M105 S<k>*9999``: refused by any controller that checks checksums."""
+    for k in range(10):
+        body = f"N{number} M105 S{k}".encode("ascii")
+        if checksum(body) not in _PING_UNSAFE:
+            return body + b"*" + _PING_CHECKSUM + b"\n"
+    raise AssertionError("unreachable: ten bodies cannot all have unsafe checksums")
+
+
+def _stated_last_line(reply: replies.Reply | None) -> int | None:
+    """The "Last Line: L" of a Marlin line error just before a resend request."""
+    if isinstance(reply, replies.Error) and reply.line_error:
+        match = _LAST_LINE.search(reply.text)
+        if match is not None:
+            return int(match.group(1))
+    return None
+
+
+def _is_checksum_error(reply: replies.Reply | None) -> bool:
+    return (
+        isinstance(reply, replies.Error) and reply.line_error and "checksum" in reply.text.lower()
+    )

@@ -19,7 +19,12 @@ import tty
 from pathlib import Path
 from typing import BinaryIO, TextIO
 
-from repetrel_host.testing.simulator import ControllerSettings, ControllerSimulator, Overflow
+from repetrel_host.testing.simulator import (
+    ControllerSettings,
+    ControllerSimulator,
+    Faults,
+    Overflow,
+)
 
 READ_SIZE = 4096
 
@@ -34,17 +39,8 @@ class PtyController:
         log: TextIO | None = None,
         received: BinaryIO | None = None,
     ) -> None:
-        self._master, self._slave = pty.openpty()
-        # Raw mode: no echo, no line editing, bytes pass unchanged. We keep the
-        # slave open ourselves so that the pty survives the host closing it.
-        tty.setraw(self._slave)
-        os.set_blocking(self._master, False)
-        self.path = os.ttyname(self._slave)
         self.link = link
-        if link is not None:
-            if link.is_symlink():
-                link.unlink()  # left behind by an earlier run
-            link.symlink_to(self.path)
+        self._open_pty()
         self._log = log
         self._received = received
         self._unflushed = False
@@ -53,6 +49,35 @@ class PtyController:
         )
         self._to_write = bytearray()
         self._stopping = False
+
+    def _open_pty(self) -> None:
+        self._master, self._slave = pty.openpty()
+        # Raw mode: no echo, no line editing, bytes pass unchanged. We keep the
+        # slave open ourselves so that the pty survives the host closing it.
+        tty.setraw(self._slave)
+        os.set_blocking(self._master, False)
+        self.path = os.ttyname(self._slave)
+        if self.link is not None:
+            if self.link.is_symlink():
+                self.link.unlink()  # left behind by an earlier run
+            self.link.symlink_to(self.path)
+
+    def _close_pty(self) -> None:
+        if self.link is not None:
+            with contextlib.suppress(FileNotFoundError):
+                self.link.unlink()
+        for fd in (self._master, self._slave):
+            with contextlib.suppress(OSError):
+                os.close(fd)
+
+    def _drop_link(self, seconds: float, selector: selectors.BaseSelector) -> None:
+        """The cable is pulled: the pty goes away, and a new one appears after ``seconds``."""
+        selector.unregister(self._master)
+        self._close_pty()
+        self._to_write.clear()
+        time.sleep(seconds)
+        self._open_pty()
+        selector.register(self._master, selectors.EVENT_READ)
 
     def _execute(self, command: str) -> None:
         if self._log is not None:
@@ -87,6 +112,11 @@ class PtyController:
                     if mask & selectors.EVENT_WRITE:
                         self._flush_writes()
                 self.simulator.advance(now)
+                if self.simulator.link_drop_requested is not None:
+                    seconds = self.simulator.link_drop_requested
+                    self.simulator.link_drop_requested = None
+                    self._drop_link(seconds, selector)
+                    continue
                 self._to_write += self.simulator.take_output(now)
                 self._flush_writes()
                 if self._unflushed:
@@ -135,12 +165,7 @@ class PtyController:
 
     def close(self) -> None:
         self._flush_logs()
-        if self.link is not None:
-            with contextlib.suppress(FileNotFoundError):
-                self.link.unlink()
-        for fd in (self._master, self._slave):
-            with contextlib.suppress(OSError):
-                os.close(fd)
+        self._close_pty()
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -167,6 +192,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--move-time", type=float, default=0.0, help="seconds per move")
     parser.add_argument("--command-time", type=float, default=0.0, help="seconds per other command")
     parser.add_argument("--no-banner", action="store_true", help="do not say 'start' at boot")
+    parser.add_argument(
+        "--faults",
+        default="",
+        help="faults to inject, e.g. 'corrupt=0.02 garble=0.01 drop_ok=0.01 duplicate_ok=0.01 "
+        "spurious_resend=0.005 resend_without_ok=1 flush_on_error=1 drop_duplicates=1 "
+        "busy_interval=2 seed=7'",
+    )
     return parser
 
 
@@ -175,6 +207,10 @@ def settings_from_args(args: argparse.Namespace) -> ControllerSettings:
         raise SystemExit(
             "hyrel-fake-controller: --rx-buffer, --slots and --planner must be positive"
         )
+    try:
+        faults = Faults.parse(args.faults)
+    except ValueError as exc:
+        raise SystemExit(f"hyrel-fake-controller: --faults: {exc}") from None
     return ControllerSettings(
         bandwidth=args.bandwidth,
         latency=args.latency,
@@ -185,6 +221,7 @@ def settings_from_args(args: argparse.Namespace) -> ControllerSettings:
         move_time=args.move_time,
         command_time=args.command_time,
         banner=not args.no_banner,
+        faults=faults,
     )
 
 

@@ -6,8 +6,7 @@ tests can try many seeds of line corruption and both flow modes.
 
 from __future__ import annotations
 
-import random
-from collections.abc import Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 
 from repetrel_host.protocol.host import (
@@ -17,7 +16,7 @@ from repetrel_host.protocol.host import (
     HostProtocol,
     LineAcknowledged,
 )
-from repetrel_host.testing.simulator import ControllerSettings, ControllerSimulator
+from repetrel_host.testing.simulator import ControllerSettings, ControllerSimulator, Overflow
 
 # The smallest step of simulated time when nothing is scheduled.
 _TICK = 0.0005
@@ -34,33 +33,15 @@ class LoopbackResult:
     controller: ControllerSimulator = field(repr=False)
 
 
-def corrupt_lines(data: bytes, rate: float, rng: random.Random) -> bytes:
-    """Change one byte (never the newline) in each line with probability ``rate``."""
-    if rate <= 0 or not data:
-        return data
-    lines = data.split(b"\n")
-    for i, line in enumerate(lines):
-        if line and rng.random() < rate:
-            position = rng.randrange(len(line))
-            replacement = (line[position] + rng.randrange(1, 255)) % 256
-            if replacement == 0x0A:
-                replacement = 0x0B
-            lines[i] = line[:position] + bytes([replacement]) + line[position + 1 :]
-    return b"\n".join(lines)
-
-
 def run_loopback(
     commands: Sequence[str],
     flow: FlowControl | None = None,
     settings: ControllerSettings | None = None,
     *,
-    corruption: float = 0.0,
-    seed: int = 0,
     line_number_limit: int | None = None,
-    time_limit: float = 3600.0,
+    time_limit: float = 36_000.0,
 ) -> LoopbackResult:
-    """Stream ``commands`` (tagged with their index) until done, failed or ``time_limit``."""
-    rng = random.Random(seed)
+    """Stream ``commands`` (tagged with their index) until confirmed, failed or ``time_limit``."""
     host = (
         HostProtocol(flow)
         if line_number_limit is None
@@ -72,21 +53,66 @@ def run_loopback(
     now = 0.0
     host.start(now)
     fed = 0
+    wire = bytearray()  # written by the host, not yet taken by a controller that pushes back
+    block = controller.settings.overflow is Overflow.BLOCK
     while now < time_limit:
+        host.handle_timeout(now)
         while host.wants_lines and fed < len(commands):
             host.send(commands[fed], fed)
             fed += 1
-        controller.receive(corrupt_lines(host.data_to_send(now), corruption, rng), now)
+        if fed == len(commands):
+            host.request_sync()
+        sent = host.data_to_send(now)
+        wire += sent
+        taken = min(len(wire), controller.room()) if block else len(wire)
+        controller.receive(bytes(wire[:taken]), now)
+        del wire[:taken]
         controller.advance(now)
-        host.receive_data(controller.take_output(now), now)
-        host.handle_timeout(now)
+        received = controller.take_output(now)
+        host.receive_data(received, now)
         while (event := host.next_event()) is not None:
             events.append(event)
             if isinstance(event, LineAcknowledged) and isinstance(event.tag, int):
                 acknowledged.append(event.tag)
         if host.failure is not None or (fed == len(commands) and host.is_done):
             break
+        if sent or received:
+            continue  # let each side answer at the same instant, as the real pump does
         upcoming = [t for t in (controller.next_wakeup(), host.next_deadline()) if t is not None]
         now = max(min(upcoming), now + 1e-9) if upcoming else now + _TICK
     executed = [c for c in controller.executed if not c.startswith("M110")]
     return LoopbackResult(executed, acknowledged, events, host.failure, now, host, controller)
+
+
+def wire_preview(commands: Iterable[str], flow: FlowControl | None = None) -> Iterator[bytes]:
+    """The bytes a clean exchange with a Marlin-style controller puts on the wire, lazily.
+
+    Used by ``hyrel-send --dry-run --framed``: the host core drives a simulated
+    controller without faults, so the greeting, pings and any renumbering show.
+    """
+    host = HostProtocol(flow)
+    controller = ControllerSimulator(ControllerSettings(banner=False))
+    clock = [0.0]
+    host.start(0.0)
+
+    def exchange() -> Iterator[bytes]:
+        while True:
+            now = clock[0]
+            sent = host.data_to_send(now)
+            if sent:
+                yield sent
+            controller.receive(sent, now)
+            controller.advance(now)
+            received = controller.take_output(now)
+            host.receive_data(received, now)
+            if not sent and not received:
+                wakeup = controller.next_wakeup()  # a dwell still running
+                if wakeup is None:
+                    return
+                clock[0] = max(wakeup, now)
+
+    for command in commands:
+        host.send(command)
+        yield from exchange()
+    host.request_sync()
+    yield from exchange()

@@ -6,14 +6,21 @@ each way), the receive buffer in bytes (dropping bytes on overflow like a UART,
 or pushing back like USB), the command slots, the planner, and how long each
 command takes. It acknowledges a buffered command once it is planned, an
 unbuffered one once the planner drained and the command finished.
+
+Faults (:class:`Faults`) are seeded and reproducible. They can also be switched
+while running by a line of the job: ``!!DEBUG:set corrupt=0.02 drop_ok=0.01``,
+``!!DEBUG:reset`` (reboot: says ``start``), ``!!DEBUG:hang`` (never answer
+again), ``!!DEBUG:link_drop 2`` (the pty disappears for 2 s), as OctoPrint's
+virtual printer does. Such lines are not logged as executed.
 """
 
 from __future__ import annotations
 
+import random
 import re
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field, fields, replace
 from enum import Enum
 
 from repetrel_host.gcode.commands import command_word, is_unbuffered
@@ -21,6 +28,8 @@ from repetrel_host.protocol.controller import Accepted, ControllerProtocol, Reje
 
 _MOVES = frozenset({"G0", "G1", "G2", "G3", "G5"})
 _DWELL = re.compile(r"\b([PS])\s*(\d+(?:\.\d*)?)", re.IGNORECASE)
+DEBUG_PREFIX = "!!DEBUG:"
+MAX_CMD_SIZE = 96  # Marlin's line buffer
 
 
 class Overflow(Enum):
@@ -28,6 +37,45 @@ class Overflow(Enum):
 
     DROP = "drop"  # a UART: the bytes are lost
     BLOCK = "block"  # USB: the sender is held back
+
+
+@dataclass(frozen=True, slots=True)
+class Faults:
+    """What goes wrong, and how often (shares between 0 and 1)."""
+
+    corrupt: float = 0.0  # received lines with one byte changed (the newline too)
+    garble: float = 0.0  # reply lines with one byte changed
+    drop_ok: float = 0.0  # oks never sent
+    duplicate_ok: float = 0.0  # oks sent twice
+    spurious_resend: float = 0.0  # accepted lines answered "Resend: <that line>" and ok
+    resend_without_ok: bool = False  # line errors end without their ok (some Marlin 2.0.x)
+    flush_on_error: bool = False  # a line error empties the receive buffer (Marlin)
+    drop_duplicates: bool = False  # a resent line already accepted gets no reply (newer Marlin)
+    busy_interval: float | None = None  # "echo:busy: processing" while a command blocks
+    seed: int = 0
+
+    @classmethod
+    def parse(cls, text: str, base: Faults | None = None) -> Faults:
+        """``corrupt=0.02 flush_on_error=1 ...`` over ``base``; ValueError on a bad name."""
+        values: dict[str, object] = {}
+        kinds = {f.name: f.type for f in fields(cls)}
+        for item in text.split():
+            name, _, raw = item.partition("=")
+            if name not in kinds:
+                raise ValueError(f"unknown fault '{name}' (known: {', '.join(kinds)})")
+            kind = str(kinds[name])
+            try:
+                if "bool" in kind:
+                    values[name] = raw.lower() in ("1", "true", "yes", "on", "")
+                elif name == "seed":
+                    values[name] = int(raw)
+                elif name == "busy_interval":
+                    values[name] = float(raw) if raw else None
+                else:
+                    values[name] = float(raw)
+            except ValueError:
+                raise ValueError(f"{name}: '{raw}' is not a number") from None
+        return replace(base or cls(), **values)  # type: ignore[arg-type]
 
 
 @dataclass(frozen=True, slots=True)
@@ -43,12 +91,24 @@ class ControllerSettings:
     move_time: float = 0.0  # how long one move takes to execute
     command_time: float = 0.0  # how long any other command takes
     banner: bool = True  # say "start" at boot
+    faults: Faults = field(default_factory=Faults)
+
+
+@dataclass(slots=True)
+class FaultCounts:
+    corrupted_lines: int = 0
+    garbled_replies: int = 0
+    dropped_oks: int = 0
+    duplicated_oks: int = 0
+    spurious_resends: int = 0
+    flushed_bytes: int = 0
 
 
 @dataclass(slots=True)
 class _Command:
     text: str
     word: str
+    number: int | None
     started: bool = False
 
 
@@ -63,18 +123,25 @@ class ControllerSimulator:
         on_execute: Callable[[str], None] | None = None,
     ) -> None:
         self.settings = settings or ControllerSettings()
-        self.protocol = ControllerProtocol()
+        self.faults = self.settings.faults
+        self._rng = random.Random(self.faults.seed)
+        self.protocol = ControllerProtocol(drop_duplicates=self.faults.drop_duplicates)
         self.executed: list[str] = []
         self._on_execute = on_execute or self.executed.append
+        self.counts = FaultCounts()
+        self.hung = False
+        self.link_drop_requested: float | None = None  # seconds, for the pty pump
         self._inbound: deque[tuple[float, bytes]] = deque()
         self._inbound_bytes = 0
         self._in_wire_free = now
         self._rx = bytearray()
+        self._line = bytearray()  # the line being read out of the receive buffer
         self._queue: deque[_Command] = deque()
         self._planner: deque[float] = deque()  # finish time of each planned move
         self._planner_end = now
         self._busy_until = now
         self._last_step = now
+        self._next_busy = now
         self._outbound: deque[tuple[float, bytes]] = deque()
         self._out_wire_free = now
         self.bytes_dropped = 0
@@ -95,11 +162,13 @@ class ControllerSimulator:
         Each line arrives on its own, so the firmware can take a line out of the
         buffer before the next one lands, as it does on a real wire.
         """
+        if self.hung:
+            return
         start = max(now, self._in_wire_free)
         begin = 0
         while begin < len(data):
             end = data.find(b"\n", begin) + 1 or len(data)
-            piece = data[begin:end]
+            piece = self._maybe_corrupt(data[begin:end])
             start += self._wire_time(len(piece))
             self._inbound.append((start + self.settings.latency, piece))
             self._inbound_bytes += len(piece)
@@ -125,6 +194,8 @@ class ControllerSimulator:
 
     def advance(self, now: float) -> None:
         """Run the firmware up to ``now``."""
+        if self.hung:
+            return
         while True:
             next_time = self._next_internal_time()
             if next_time is None or next_time > now:
@@ -133,6 +204,8 @@ class ControllerSimulator:
         self._step(max(now, self._last_step))
 
     def _next_internal_time(self) -> float | None:
+        if self.hung:
+            return None
         times: list[float] = []
         if self._inbound:
             times.append(self._inbound[0][0])
@@ -144,11 +217,22 @@ class ControllerSimulator:
                 times.append(self._planner[0])
             elif is_unbuffered(head.text) and not head.started and self._planner:
                 times.append(self._planner_end)
+            if self.faults.busy_interval and self._blocked():
+                times.append(self._next_busy)
         return min(times) if times else None
+
+    def _blocked(self) -> bool:
+        """The oldest command is waiting (for the planner or for itself to finish)."""
+        if not self._queue:
+            return False
+        head = self._queue[0]
+        return self._busy_until > self._last_step or (
+            head.word in _MOVES and len(self._planner) >= self.settings.planner
+        )
 
     def _step(self, now: float) -> None:
         self._last_step = now
-        while True:
+        while not self.hung:
             self._fill_slots(now)
             if self._process_head(now):
                 continue
@@ -156,6 +240,10 @@ class ControllerSimulator:
                 self._deliver(self._inbound.popleft()[1])
                 continue
             break
+        interval = self.faults.busy_interval
+        if interval and self._blocked() and now >= self._next_busy:
+            self._reply(b"echo:busy: processing\n", now)
+            self._next_busy = now + interval
 
     def _deliver(self, data: bytes) -> None:
         self._inbound_bytes -= len(data)
@@ -167,18 +255,31 @@ class ControllerSimulator:
         self._rx += data
 
     def _fill_slots(self, now: float) -> None:
+        # While a command slot is free the firmware reads the receive buffer into
+        # its line buffer, keeping at most MAX_CMD_SIZE bytes of a line (Marlin):
+        # a line that lost its newline cannot wedge the buffer.
         while len(self._queue) < self.settings.slots:
             end = self._rx.find(b"\n")
             if end < 0:
+                self._line += self._rx[: max(0, MAX_CMD_SIZE - len(self._line))]
+                self._rx.clear()
                 return
-            raw = bytes(self._rx[:end]).rstrip(b"\r")
+            self._line += self._rx[: max(0, min(end, MAX_CMD_SIZE - len(self._line)))]
             del self._rx[: end + 1]
+            raw = bytes(self._line).rstrip(b"\r")
+            self._line.clear()
             outcome = self.protocol.handle_line(raw)
             if isinstance(outcome, Accepted):
-                self._queue.append(_Command(outcome.command, command_word(outcome.command)))
+                command = outcome.command
+                self._queue.append(_Command(command, command_word(command), outcome.number))
             elif isinstance(outcome, Rejected):
                 self.lines_rejected += 1
-                self._reply(outcome.reply, now)
+                self._reply(outcome.reply.removesuffix(b"ok\n"), now)
+                if not self.faults.resend_without_ok:
+                    self._ok(b"ok\n", now)
+                if self.faults.flush_on_error:
+                    self.counts.flushed_bytes += len(self._rx)
+                    self._rx.clear()
 
     def _process_head(self, now: float) -> bool:
         """Work on the oldest command; True when it finished and the next may start."""
@@ -187,6 +288,17 @@ class ControllerSimulator:
         while self._planner and self._planner[0] <= now:
             self._planner.popleft()
         command = self._queue[0]
+        if command.text.startswith(DEBUG_PREFIX):
+            self._queue.popleft()
+            self._debug(command.text[len(DEBUG_PREFIX) :], now)
+            return True
+        if not command.text[:1].isalpha():
+            # What is left of a line whose '*' became a newline: its checksum digits.
+            # Marlin runs nothing and says so.
+            self._queue.popleft()
+            self._reply(f'echo:Unknown command: "{command.text}"\n'.encode(), now)
+            self._ok(b"ok\n", now)
+            return True
         if command.word in _MOVES:
             if len(self._planner) >= self.settings.planner:
                 return False
@@ -199,6 +311,7 @@ class ControllerSimulator:
             command.started = True
             self._busy_until = now + self._duration(command)
             if self._busy_until > now:
+                self._next_busy = now + (self.faults.busy_interval or 0)
                 return False
         elif not command.started and self.settings.command_time > 0:
             command.started = True
@@ -206,7 +319,7 @@ class ControllerSimulator:
             return False
         self._queue.popleft()
         self._on_execute(command.text)
-        self._reply(self._answer(command), now)
+        self._answer(command, now)
         return True
 
     def _duration(self, command: _Command) -> float:
@@ -218,20 +331,82 @@ class ControllerSimulator:
             return 0.0
         return self.settings.command_time
 
-    def _answer(self, command: _Command) -> bytes:
+    def _answer(self, command: _Command, now: float) -> None:
         if command.word == "M105":
-            return b"ok T:21.0 /0.0 B:21.0 /0.0 @:0 B@:0\n"
+            self._ok(b"ok T:21.0 /0.0 B:21.0 /0.0 @:0 B@:0\n", now)
+            return
         if command.word == "M115":
-            return (
+            self._reply(
                 b"FIRMWARE_NAME:repetrel-host fake controller (Marlin replies) "
-                b"PROTOCOL_VERSION:1.0 MACHINE_TYPE:Fake\nok\n"
+                b"PROTOCOL_VERSION:1.0 MACHINE_TYPE:Fake\n",
+                now,
             )
-        return b"ok\n"
+        if command.number is not None and self._chance(self.faults.spurious_resend):
+            self.counts.spurious_resends += 1
+            self._reply(f"Resend: {command.number}\n".encode(), now)
+        self._ok(b"ok\n", now)
+
+    def _debug(self, text: str, now: float) -> None:
+        verb, _, argument = text.strip().partition(" ")
+        if verb == "set":
+            self.faults = Faults.parse(argument, self.faults)
+            self.protocol.drop_duplicates = self.faults.drop_duplicates
+        elif verb == "reset":
+            self._reboot(now)
+            return
+        elif verb == "hang":
+            self.hung = True
+            return
+        elif verb == "link_drop":
+            self.link_drop_requested = float(argument or 1.0)
+        self._ok(b"ok\n", now)
+
+    def _reboot(self, now: float) -> None:
+        self.protocol = ControllerProtocol(drop_duplicates=self.faults.drop_duplicates)
+        self._queue.clear()
+        self._planner.clear()
+        self._rx.clear()
+        self._line.clear()
+        self._planner_end = self._busy_until = now
+        self._reply(b"start\n", now)
+
+    # --- replies ------------------------------------------------------------
+
+    def _ok(self, line: bytes, now: float) -> None:
+        if self._chance(self.faults.drop_ok):
+            self.counts.dropped_oks += 1
+            return
+        self._reply(line, now)
+        if self._chance(self.faults.duplicate_ok):
+            self.counts.duplicated_oks += 1
+            self._reply(line, now)
 
     def _reply(self, data: bytes, now: float) -> None:
+        if self.faults.garble > 0:
+            data = b"".join(self._maybe_garble(line) for line in data.splitlines(keepends=True))
         start = max(now, self._out_wire_free)
         self._out_wire_free = start + self._wire_time(len(data))
         self._outbound.append((self._out_wire_free + self.settings.latency, data))
+
+    def _maybe_corrupt(self, piece: bytes) -> bytes:
+        if not self._chance(self.faults.corrupt):
+            return piece
+        self.counts.corrupted_lines += 1
+        return self._change_one_byte(piece)
+
+    def _maybe_garble(self, line: bytes) -> bytes:
+        if not self._chance(self.faults.garble):
+            return line
+        self.counts.garbled_replies += 1
+        return self._change_one_byte(line)
+
+    def _change_one_byte(self, data: bytes) -> bytes:
+        position = self._rng.randrange(len(data))
+        value = (data[position] + self._rng.randrange(1, 256)) % 256
+        return data[:position] + bytes([value]) + data[position + 1 :]
+
+    def _chance(self, share: float) -> bool:
+        return share > 0 and self._rng.random() < share
 
     def _wire_time(self, size: int) -> float:
         bandwidth = self.settings.bandwidth
