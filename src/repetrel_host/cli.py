@@ -52,7 +52,12 @@ from repetrel_host.gcode.lint import Finding, lint
 from repetrel_host.job import HostAction, Job, JobItem, JobLine
 from repetrel_host.link import FAKE_PORT, BuiltInFake
 from repetrel_host.protocol.framing import clean_line
-from repetrel_host.protocol.host import FlowControl, FlowMode, HostProtocol
+from repetrel_host.protocol.host import (
+    DEFAULT_REPLY_TIMEOUT,
+    FlowControl,
+    FlowMode,
+    HostProtocol,
+)
 from repetrel_host.sender import Outcome, Sender, Summary, stream
 from repetrel_host.testing.loopback import wire_preview
 
@@ -78,6 +83,7 @@ class LinkOptions:
     flow: FlowMode | None
     rx_buffer: int | None
     max_lines: int | None
+    reply_timeout: float
 
 
 @dataclass(frozen=True)
@@ -116,6 +122,10 @@ def send(
     max_lines: Annotated[
         int | None, typer.Option(help="Most lines in flight at once (default 8).", min=1)
     ] = None,
+    reply_timeout: Annotated[
+        float,
+        typer.Option(help="Seconds of silence after which the controller is taken as gone.", min=0.1),
+    ] = DEFAULT_REPLY_TIMEOUT,
     loadout: Annotated[
         Path | None,
         typer.Option(help="Loadout TOML (or the name of a shipped one): which head is where."),
@@ -172,7 +182,7 @@ def send(
             raise typer.Exit(EXIT_OK)
         if refused and not force:
             raise JobError(f"{plan.job.name}: not sent ({len(refused)} errors; --force sends)")
-        link = LinkOptions(port, baud, flow, rx_buffer, max_lines)
+        link = LinkOptions(port, baud, flow, rx_buffer, max_lines, reply_timeout)
         code = _send(console, plan, user, link, history, no_history, fake_log)
     except (JobError, ConfigError) as exc:
         errors.print(f"error: {exc}", markup=False)
@@ -293,7 +303,7 @@ def _send(
                 f"No printer port given: streaming to the built-in fake controller on {port}."
             )
         stack.callback(observer.close)
-        core = HostProtocol(flow_control)
+        core = HostProtocol(flow_control, reply_timeout=options.reply_timeout)
         summary = asyncio.run(
             _stream_with_progress(console, plan, port, baud, core, observer, wire_log)
         )
