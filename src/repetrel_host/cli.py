@@ -102,7 +102,7 @@ class Plan:
 
 @app.command()
 def send(
-    job: Annotated[Path, typer.Argument(help="G-code file to stream.")],
+    job: Annotated[Path, typer.Argument(help="G-code file to stream.", readable=False)],
     port: Annotated[
         str | None,
         typer.Option(
@@ -124,7 +124,9 @@ def send(
     ] = None,
     reply_timeout: Annotated[
         float,
-        typer.Option(help="Seconds of silence after which the controller is taken as gone.", min=0.1),
+        typer.Option(
+            help="Seconds of silence after which the controller is taken as gone.", min=0.1
+        ),
     ] = DEFAULT_REPLY_TIMEOUT,
     loadout: Annotated[
         Path | None,
@@ -234,12 +236,22 @@ def _plan(
 def _lint(plan: Plan) -> list[Finding]:
     """Check the whole file first: a bad line is found before anything moves."""
     machine = plan.machine
-    return lint(
-        ((number, command) for number, command, _, _ in plan.job.commands()),
+    commands = [0]
+
+    def numbered() -> Iterator[tuple[int, str]]:
+        for number, command, _, _ in plan.job.commands():
+            commands[0] += 1
+            yield number, command
+
+    findings = lint(
+        numbered(),
         firmware=machine.firmware if machine else None,
         positions=machine.yokes * addressing.ADDRESSES_PER_YOKE if machine else None,
         loaded_tools=plan.loadout.loaded_tools if plan.loadout else None,
     )
+    if not commands[0]:
+        raise JobError(f"{plan.job.path}: holds no G-code command (nothing to send)")
+    return findings
 
 
 def _dry_run(plan: Plan, framed: bool) -> None:
@@ -420,6 +432,10 @@ def main() -> None:
         raise SystemExit(EXIT_INTERRUPTED) from None
     except HostError as exc:  # a last guard: one sentence, never a traceback
         Console(stderr=True, soft_wrap=True).print(f"error: {exc}", markup=False)
+        raise SystemExit(EXIT_BAD_INPUT) from None
+    except OSError as exc:
+        where = f"{exc.filename}: " if exc.filename else ""
+        Console(stderr=True, soft_wrap=True).print(f"error: {where}{exc.strerror}", markup=False)
         raise SystemExit(EXIT_BAD_INPUT) from None
 
 

@@ -170,8 +170,11 @@ def load_user_config(path: Path | None) -> UserConfig:
     """``path`` (which must exist), else the per-user file if there is one, else defaults."""
     if path is None:
         path = user_config_path()
-        if not path.exists():
-            return UserConfig()
+        try:
+            if not path.exists():
+                return UserConfig()
+        except OSError as exc:
+            raise ConfigError(f"{path}: cannot be read ({exc.strerror})") from None
     return _validate(UserConfig, read_toml(path), path)
 
 

@@ -17,9 +17,11 @@ Some codes are the host's, not the controller's (as in Repetrel):
 from __future__ import annotations
 
 import os
+import re
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import BinaryIO
 
 from repetrel_host.errors import JobError
 from repetrel_host.gcode.commands import command_word
@@ -98,15 +100,19 @@ class Job:
 
     def commands(self) -> Iterator[tuple[int, str, bytes, int]]:
         """(line number, command, raw line, end offset) of every line with a command."""
-        offset = 0
         try:
             handle = self.path.open("rb")
         except OSError as exc:
             raise JobError(f"{self.path}: cannot be read ({exc.strerror})") from None
         with handle:
-            for number, raw in enumerate(handle, start=1):
-                offset += len(raw)
-                command = clean_line(raw.rstrip(b"\r\n"), f"{self.name}:{number}")
+            for number, (raw, offset) in enumerate(_raw_lines(handle), start=1):
+                where = f"{self.name}:{number}"
+                command = clean_line(raw, where)
+                if len(command) > MAX_COMMAND_LENGTH:
+                    raise JobError(
+                        f"{where}: the command is {len(command)} characters long; "
+                        f"controllers take at most {MAX_COMMAND_LENGTH}"
+                    )
                 if command:
                     yield number, command, raw, offset
 
@@ -144,7 +150,7 @@ class Job:
                 HostAction("log_start", command, (), number, name),
             ]
         # M0, M1 and M792 carry their text after the command and after semicolons.
-        text = raw.rstrip(b"\r\n").decode("utf-8", errors="replace")
+        text = raw.decode("utf-8", errors="replace")
         text = text.strip()[len(text.strip().split(None, 1)[0]) :]
         message, actions = parse_actions(text)
         if word == "M792":
@@ -156,3 +162,32 @@ class Job:
 
 
 _HOST_WORDS = frozenset({"M0", "M1", "M110", "M718", "M719", "M792"})
+_LINE = re.compile(rb"([^\r\n]*)(\r\n|\r|\n)")
+# Marlin's line buffer holds 96 bytes and Repetrel cuts lines at 100 characters: a
+# longer command would arrive cut, fail its checksum and be asked for forever.
+MAX_COMMAND_LENGTH = 96
+_READ_SIZE = 1 << 16
+
+
+def _raw_lines(handle: BinaryIO) -> Iterator[tuple[bytes, int]]:
+    """Lines without their ending (LF, CRLF or a lone CR), with the offset past each."""
+    offset = 0
+    pending = b""
+    while True:
+        chunk = handle.read(_READ_SIZE)
+        data = pending + chunk
+        if chunk and data.endswith(b"\r"):
+            data, pending = data[:-1], b"\r"  # maybe the first half of a CRLF
+        else:
+            pending = b""
+        end = 0
+        for match in _LINE.finditer(data):
+            end = match.end()
+            offset += len(match.group(0))
+            yield match.group(1), offset
+        pending = data[end:] + pending
+        if not chunk:
+            if pending:
+                offset += len(pending)
+                yield pending, offset
+            return
