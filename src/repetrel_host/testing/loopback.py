@@ -40,8 +40,12 @@ def run_loopback(
     *,
     line_number_limit: int | None = None,
     time_limit: float = 36_000.0,
+    record: bool = True,
 ) -> LoopbackResult:
-    """Stream ``commands`` (tagged with their index) until confirmed, failed or ``time_limit``."""
+    """Stream ``commands`` (tagged with their index) until confirmed, failed or ``time_limit``.
+
+    ``record=False`` keeps no events and no acknowledgements (for million-line soaks).
+    """
     host = (
         HostProtocol(flow)
         if line_number_limit is None
@@ -71,6 +75,8 @@ def run_loopback(
         received = controller.take_output(now)
         host.receive_data(received, now)
         while (event := host.next_event()) is not None:
+            if not record:  # long soaks: keep only what the verdict needs
+                continue
             events.append(event)
             if isinstance(event, LineAcknowledged) and isinstance(event.tag, int):
                 acknowledged.append(event.tag)
