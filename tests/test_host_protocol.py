@@ -6,6 +6,7 @@ import pytest
 
 from repetrel_host.errors import ProtocolError
 from repetrel_host.protocol.controller import Accepted, ControllerProtocol
+from repetrel_host.protocol.framing import checksum, frame
 from repetrel_host.protocol.host import (
     HELLO_ATTEMPTS,
     HELLO_TIMEOUT,
@@ -26,9 +27,13 @@ HELLO = b"N0 M110 N0*125\n"
 
 
 def ping(number: int) -> bytes:
-    """What the host sends to ask where the controller stands (a checksum that never fits)."""
-    body = f"N{number} M105 S0".encode()
-    return body + b"*9999\n"
+    """What the host sends to ask where the controller stands (a checksum that never fits):
+    the first S<k> whose true checksum one changed character of "9999" cannot reach."""
+    for k in range(10):
+        body = f"N{number} M105 S{k}".encode()
+        if checksum(body) not in (0, 9, 99):
+            return body + b"*9999\n"
+    raise AssertionError("no safe ping body")
 
 
 def ping_reply(number: int, trailing_ok: bool = True) -> bytes:
@@ -272,9 +277,29 @@ def test_reset_mid_job_stops_at_once_and_never_resends() -> None:
 
 def test_controller_error_fails_the_stream() -> None:
     host = greeted()
-    host.receive_data(b"Error:MINTEMP triggered, system stopped!\n", 0.0)
+    host.receive_data(b"Error:MINTEMP triggered, system stopped!\n", 1.0)
+    assert host.failure is None  # a resend request might still show it was a line error
+    deadline = host.next_deadline()
+    assert deadline is not None and deadline <= 1.0 + 0.2 + 1e-9
+    host.handle_timeout(deadline)
     assert host.failure is not None
     assert "MINTEMP" in host.failure.reason
+
+
+def test_an_error_line_cut_by_a_garbled_newline_is_not_fatal() -> None:
+    host = greeted()
+    host.send("G28", 0)
+    host.data_to_send(0.0)
+    host.receive_data(b"Error:chec\nksum mismatch, Last Line: 0\nResend: 1\nok\n", 0.0)
+    host.handle_timeout(1.0)
+    assert host.failure is None
+    assert host.data_to_send(1.0) == b"N1 G28*18\n"
+
+
+def test_a_halted_printer_that_keeps_talking_fails_after_three_lines() -> None:
+    host = greeted()
+    host.receive_data(b"Error:Printer halted. kill() called!\necho:x\necho:y\necho:z\n", 0.0)
+    assert host.failure is not None and "halted" in host.failure.reason
 
 
 def test_renumbers_with_m110_once_the_controller_confirmed_everything() -> None:
@@ -355,7 +380,8 @@ def test_opening_line_is_repeated_when_unanswered() -> None:
     host.start(0.0)
     now = 0.0
     for attempt in range(HELLO_ATTEMPTS):
-        assert host.data_to_send(now) == HELLO + ping(1), attempt
+        reset = frame(attempt, f"M110 N{attempt}")
+        assert host.data_to_send(now) == reset + ping(attempt + 1), attempt
         now += HELLO_TIMEOUT
         host.handle_timeout(now)
     assert host.failure is not None and "M110" in host.failure.reason
@@ -398,3 +424,19 @@ def test_a_line_acknowledged_again_after_a_resend_is_reported_once() -> None:
     host.data_to_send(0.0)
     host.receive_data(b"ok\n", 0.0)
     assert [e.tag for e in events(host) if isinstance(e, LineAcknowledged)] == ["a", "b"]
+
+
+def test_a_late_answer_to_an_earlier_greeting_is_not_taken_for_the_last() -> None:
+    host = HostProtocol()
+    host.start(0.0)
+    host.data_to_send(0.0)
+    host.handle_timeout(HELLO_TIMEOUT)  # no answer: greet again, with other numbers
+    assert host.data_to_send(HELLO_TIMEOUT) == frame(1, "M110 N1") + ping(2)
+    # The first greeting's answers arrive late; an M110 may still be on its way.
+    host.receive_data(b"ok\n" + ping_reply(1), 2.1)
+    assert ControllerReady() not in events(host)
+    host.send("G28", 0)
+    assert host.data_to_send(2.1) == b""
+    host.receive_data(b"ok\n" + ping_reply(2), 2.2)
+    assert ControllerReady() in events(host)
+    assert host.data_to_send(2.2) == frame(2, "G28")

@@ -128,7 +128,12 @@ def test_any_job_under_any_faults_is_executed_exactly_once(
         latency=0.001, rx_buffer=rx_buffer, bandwidth=20_000, faults=faults
     )
     result = run_loopback(
-        commands, FlowControl(mode, rx_buffer=rx_buffer), settings_, line_number_limit=limit
+        commands,
+        FlowControl(mode, rx_buffer=rx_buffer),
+        settings_,
+        line_number_limit=limit,
+        time_limit=1200.0,
     )
     assert result.failure is None
     assert result.executed == commands
+    assert result.host.is_done

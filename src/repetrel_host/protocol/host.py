@@ -56,14 +56,22 @@ UNBUFFERED_GRACE = 5.0
 # Pings sent in a row without an answer while a long command (G28, M109...) runs,
 # before the host stops adding to that controller's buffer and just waits.
 MAX_UNANSWERED_PINGS = 4
+# An error that is not about a line becomes fatal after this long, or this many other
+# replies, without a resend request (Marlin halts and says little more).
+SUSPECT_ERROR_GRACE = 0.2
+SUSPECT_ERROR_LINES = 2
+SLOW_PING_INTERVAL = 20.0  # then one ping this often: a lost answer must not stall for good
 # Marlin ends a line error with an ok, written right behind the resend request;
 # some 2.0.x builds leave it out. An ok arriving within half the smoothed round
 # trip is that trailing ok, not the answer to a line sent since.
 TRAILING_OK_SHARE = 0.5
 TRAILING_OK_WINDOW = 0.002  # before any round trip was measured
+# A round trip under a quarter of the smoothed one is taken for an outlier.
+RTT_OUTLIER = 0.25
+RTT_NUDGE = 0.98
 # Boards that reset when the port opens need about two seconds to boot.
 HELLO_TIMEOUT = 2.0
-HELLO_ATTEMPTS = 5
+HELLO_ATTEMPTS = 10  # a corrupted M110 or a garbled answer costs one timeout
 # The same line requested this many times in a row, without progress, is a loop.
 RESEND_LOOP_LIMIT = 10
 # Warn once when more than this share of lines needed resending (after enough lines).
@@ -247,7 +255,6 @@ class HostProtocol:
         self._in_flight: deque[_Transmission] = deque()
         self._bytes_in_flight = 0
         self._live_in_flight = 0  # transmissions neither stale nor pings
-        self._stale_in_flight = 0
         self._resend_target: int | None = None
         self._echoes_expected = 0
         self._stale_bytes = 0
@@ -271,6 +278,8 @@ class HostProtocol:
         self._loop_count = 0
         self._loop_retransmitted = False
         self._warned_resends = False
+        self._suspect_error: tuple[str, float] | None = None  # (text, when it becomes fatal)
+        self._suspect_lines = 0
         self._unheld_requests: dict[int, int] = {}
         self._receive_buffer = bytearray()
         self._outgoing = bytearray()
@@ -355,6 +364,8 @@ class HostProtocol:
         """When :meth:`handle_timeout` wants to be called, or None."""
         if self._phase in (_Phase.FAILED, _Phase.IDLE):
             return None
+        if self._suspect_error is not None:
+            return self._suspect_error[1]
         backoff = 2.0 ** min(self._unanswered_pings, 4)
         if self._phase is _Phase.GREETING:
             if not self._in_flight:
@@ -362,7 +373,8 @@ class HostProtocol:
             return max(self._last_received_at, self._in_flight[-1].sent_at) + HELLO_TIMEOUT
         if self._ping is not None:
             if self._unanswered_pings >= MAX_UNANSWERED_PINGS and self._waiting_on_unbuffered():
-                return None  # a long command holds the pings back: wait for it
+                # A long command holds the pings back: ask again, but seldom.
+                return self._ping.sent_at + SLOW_PING_INTERVAL
             return self._ping.sent_at + min(self._rto * backoff, MAX_RTO)
         oldest = next((t for t in self._in_flight if not t.stale), None)
         if oldest is None:
@@ -380,6 +392,9 @@ class HostProtocol:
     def handle_timeout(self, now: float) -> None:
         deadline = self.next_deadline()
         if deadline is None or now < deadline:
+            return
+        if self._suspect_error is not None and now >= self._suspect_error[1]:
+            self._fail_suspect()
             return
         if self._phase is _Phase.GREETING:
             if self._greeting_attempts >= HELLO_ATTEMPTS:
@@ -431,6 +446,14 @@ class HostProtocol:
     def _handle_reply(self, reply: replies.Reply, text: str, now: float) -> None:
         if self._phase is _Phase.FAILED:
             return
+        if self._suspect_error is not None:
+            if isinstance(reply, replies.Resend):
+                self._suspect_error = None
+            else:
+                self._suspect_lines += 1
+                if self._suspect_lines > SUSPECT_ERROR_LINES:
+                    self._fail_suspect()
+                    return
         if isinstance(reply, replies.Ok):
             self._handle_ok(reply, now)
         elif isinstance(reply, replies.Resend):
@@ -439,7 +462,10 @@ class HostProtocol:
             self._handle_start(text)
         elif isinstance(reply, replies.Error):
             if not reply.line_error:
-                self._fail("controller", f"the controller reported an error: {reply.text}")
+                # Fatal, unless a resend request follows: then it was a line error whose
+                # words a garbled newline cut off ("Error:chec" / "ksum mismatch...").
+                self._suspect_error = (reply.text, now + max(SUSPECT_ERROR_GRACE, self._rto))
+                self._suspect_lines = 0
             # A line error is told by the resend request that follows it.
         else:
             if isinstance(reply, replies.Busy):
@@ -493,9 +519,9 @@ class HostProtocol:
             self.stats.ignored_resend_requests += 1
             return
         if self._phase is _Phase.GREETING:
-            # The M110 did not take (corrupted, or the board was still booting).
-            self._mark_in_flight_stale(number, now)
-            self._queue_greeting()
+            # An earlier greeting's answer, or this M110 did not take (corrupted, or
+            # the board still booting): the hello timeout greets again, with new numbers.
+            self.stats.ignored_resend_requests += 1
             return
         corroborated = stated_last is not None
         if number == self._next_number:
@@ -534,6 +560,7 @@ class HostProtocol:
         self._cursor = ping.number
         if self._phase is _Phase.GREETING:
             self._phase = _Phase.RUNNING
+            self._acked_through = ping.number - 1
             if not self._greeted:
                 self._greeted = True
                 self._events.append(ControllerReady())
@@ -603,6 +630,7 @@ class HostProtocol:
             self._acked_through = line.number
         if line.number > self._loop_number:
             self._loop_count = 0
+        self._unheld_requests.clear()  # progress: only requests repeated in a row count
         if not line.acknowledged:  # after a resend the controller may acknowledge it again
             line.acknowledged = True
             self._events.append(LineAcknowledged(line.number, line.command, line.tag, data))
@@ -620,6 +648,11 @@ class HostProtocol:
                 self._acknowledge(line)
 
     def _sample_rtt(self, rtt: float) -> None:
+        if self._srtt is not None and rtt < self._srtt * RTT_OUTLIER:
+            # Most likely a duplicated ok taken for a line just sent: let it only
+            # nudge the estimate, or the trailing-ok window would shrink to nothing.
+            self._srtt *= RTT_NUDGE
+            return
         if self._srtt is None:
             self._srtt, self._rttvar = rtt, rtt / 2
         else:
@@ -632,25 +665,30 @@ class HostProtocol:
 
     def _begin_greeting(self) -> None:
         self._phase = _Phase.GREETING
-        self._history.clear()
-        self._history_floor = 0
-        command = reset_command(0)
-        self._history[0] = _Line(0, command, None, frame(0, command), True, is_reset=True)
-        self._next_number = self._cursor = 1
         self._candidate = None
         self._acked_through = self._confirmed_through = -1
         self._greeting_attempts = 0
         self._queue_greeting()
 
     def _queue_greeting(self) -> None:
-        """(Re)send M110 and the ping behind it; the ping's answer confirms the reset."""
+        """(Re)send M110 and the ping behind it; the ping's answer confirms the reset.
+
+        Attempt ``k`` (from 0) sends ``Nk M110 Nk`` and pings for line k + 1, so that a
+        late answer to an earlier attempt's ping is never taken for this one's: lines
+        must not start while an earlier M110 could still reset the numbering.
+        """
+        base = self._greeting_attempts
         self._greeting_attempts += 1
+        command = reset_command(base)
+        self._history = {base: _Line(base, command, None, frame(base, command), True, True)}
+        self._history_floor = base
+        self._next_number = base + 1
+        self._cursor = base  # the reset line first, then the ping
         self._end_ping()
-        self._cursor = 0  # the reset line first, then a ping for line 1
 
     def _next_line_to_transmit(self) -> _Line | None:
         if self._phase is _Phase.GREETING:
-            return self._history[0] if self._cursor == 0 else None
+            return self._history[self._cursor] if self._cursor < self._next_number else None
         if self._cursor < self._next_number:
             return self._history[self._cursor]
         if not self._pending:
@@ -660,7 +698,7 @@ class HostProtocol:
             # request may ever name a number from before the reset.
             if self._confirmed_through == self._next_number - 1 and not self._live_in_flight:
                 self._begin_greeting()
-                return self._history[0]
+                return self._history[self._cursor]
             self._sync_requested = True
             return None
         # Numbered only once it goes out (see _transmit), so that every number
@@ -674,7 +712,7 @@ class HostProtocol:
 
     def _wants_sync_ping(self) -> bool:
         if self._phase is _Phase.GREETING:
-            return self._cursor == 1  # the reset line went out: confirm it
+            return self._cursor == self._next_number  # the reset line went out: confirm it
         if self._confirmed_through == self._next_number - 1:
             return False
         # After the oks of what was sent, so that an M400 before a pause has finished.
@@ -698,7 +736,7 @@ class HostProtocol:
             self._history[line.number] = line
             self._next_number += 1
             self._candidate = None
-        self._cursor = line.number + 1 if not line.is_reset else 1
+        self._cursor = line.number + 1
         retransmitted = line.transmitted
         if retransmitted:
             self.stats.retransmissions += 1
@@ -713,9 +751,7 @@ class HostProtocol:
         # next new number (right when it has everything) and the first line not yet
         # confirmed (right when lines are missing, and it settles every reply owed
         # even then). Neither can be a duplicate that newer Marlin ignores in silence.
-        if self._phase is _Phase.GREETING:
-            number = 1
-        elif self._ping_attempt % 2 == 0:
+        if self._phase is _Phase.GREETING or self._ping_attempt % 2 == 0:
             number = self._next_number
         else:
             number = self._confirmed_through + 1
@@ -737,7 +773,6 @@ class HostProtocol:
         self._in_flight.remove(transmission)
         self._bytes_in_flight -= len(transmission.wire)
         if transmission.stale:
-            self._stale_in_flight -= 1
             self._stale_bytes -= len(transmission.wire)
         elif transmission.line is not None:
             self._live_in_flight -= 1
@@ -751,7 +786,6 @@ class HostProtocol:
         for transmission in self._in_flight:
             if not transmission.stale:
                 transmission.stale = True
-                self._stale_in_flight += 1
                 self._stale_bytes += len(transmission.wire)
                 if transmission.line is not None:
                     self._live_in_flight -= 1
@@ -769,7 +803,7 @@ class HostProtocol:
     def _forget_in_flight(self) -> None:
         self._in_flight.clear()
         self._bytes_in_flight = self._live_in_flight = 0
-        self._stale_in_flight = self._stale_bytes = 0
+        self._stale_bytes = 0
         self._ping = None
 
     def _waiting_on_unbuffered(self) -> bool:
@@ -781,6 +815,10 @@ class HostProtocol:
         while self._history_floor < floor:
             self._history.pop(self._history_floor, None)
             self._history_floor += 1
+
+    def _fail_suspect(self) -> None:
+        assert self._suspect_error is not None
+        self._fail("controller", f"the controller reported an error: {self._suspect_error[0]}")
 
     def _fail(self, kind: str, reason: str) -> None:
         self._phase = _Phase.FAILED

@@ -69,7 +69,8 @@ class Message:
 
 Reply = Ok | Resend | Error | Busy | Wait | Start | HyrelReport | Message
 
-_RESEND = re.compile(r"^(?:resend|rs)\s*:?\s*N?\s*(\d+)", re.IGNORECASE)
+# The whole line must match: a garbled number ("Resend: 16?9") must not pass for another.
+_RESEND = re.compile(r"^(?:resend|rs)\s*:?\s*N?\s*(\d+)\s*$", re.IGNORECASE)
 _ADVANCED_OK = re.compile(r"^N(\d+)\s+P(\d+)\s+B(\d+)")
 _HYREL = re.compile(r"^>([A-Za-z]{2}):\s?(.*)$")
 # Marlin's errors about a line's framing: answered by a Resend, not fatal.

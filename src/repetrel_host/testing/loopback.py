@@ -20,6 +20,7 @@ from repetrel_host.testing.simulator import ControllerSettings, ControllerSimula
 
 # The smallest step of simulated time when nothing is scheduled.
 _TICK = 0.0005
+_STUCK_LIMIT = 10_000  # steps of simulated time that get nowhere
 
 
 @dataclass
@@ -57,6 +58,7 @@ def run_loopback(
     now = 0.0
     host.start(now)
     fed = 0
+    stuck = 0
     wire = bytearray()  # written by the host, not yet taken by a controller that pushes back
     block = controller.settings.overflow is Overflow.BLOCK
     while now < time_limit:
@@ -85,7 +87,10 @@ def run_loopback(
         if sent or received:
             continue  # let each side answer at the same instant, as the real pump does
         upcoming = [t for t in (controller.next_wakeup(), host.next_deadline()) if t is not None]
-        now = max(min(upcoming), now + 1e-9) if upcoming else now + _TICK
+        previous, now = now, max(min(upcoming), now + 1e-9) if upcoming else now + _TICK
+        stuck = stuck + 1 if now - previous < 1e-6 else 0
+        if stuck > _STUCK_LIMIT:
+            raise AssertionError(f"no progress at t={now}: a deadline that nothing moves")
     executed = [c for c in controller.executed if not c.startswith("M110")]
     return LoopbackResult(executed, acknowledged, events, host.failure, now, host, controller)
 

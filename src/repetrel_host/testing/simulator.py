@@ -145,7 +145,6 @@ class ControllerSimulator:
         self._outbound: deque[tuple[float, bytes]] = deque()
         self._out_wire_free = now
         self.bytes_dropped = 0
-        self.lines_rejected = 0
         if self.settings.banner:
             self._reply(b"start\n", now)
 
@@ -273,7 +272,6 @@ class ControllerSimulator:
                 command = outcome.command
                 self._queue.append(_Command(command, command_word(command), outcome.number))
             elif isinstance(outcome, Rejected):
-                self.lines_rejected += 1
                 self._reply(outcome.reply.removesuffix(b"ok\n"), now)
                 if not self.faults.resend_without_ok:
                     self._ok(b"ok\n", now)
