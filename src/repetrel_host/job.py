@@ -126,39 +126,35 @@ class Job:
                 index += 1
                 yield JobLine(index, number, command, offset, name)
                 continue
-            for item in self._host_code(word, command, raw, number, offset):
-                if isinstance(item, JobLine):
+            for item in self._host_code(word, command, raw, number):
+                if isinstance(item, str):  # a command the host still sends
                     index += 1
-                    item = JobLine(index, number, item.command, offset, name)
-                yield item
+                    yield JobLine(index, number, item, offset, name)
+                else:
+                    yield item
 
     def lines(self) -> Iterator[JobLine]:
         """Only the lines that go on the wire."""
         return (item for item in self.items() if isinstance(item, JobLine))
 
     def _host_code(
-        self, word: str, command: str, raw: bytes, number: int, offset: int
-    ) -> list[JobItem]:
+        self, word: str, command: str, raw: bytes, number: int
+    ) -> list[str | HostAction]:
+        """What a host-side code becomes: commands still sent, and actions."""
         name = self.name
         if word == "M110":
             return []  # forwarding it would desynchronise the host's line numbers
         if word == "M718":
             return [HostAction("log_stop", "", (), number, name)]
         if word == "M719":
-            return [
-                JobLine(0, number, command, offset, name),
-                HostAction("log_start", command, (), number, name),
-            ]
+            return [command, HostAction("log_start", command, (), number, name)]
         # M0, M1 and M792 carry their text after the command and after semicolons.
         text = raw.decode("utf-8", errors="replace")
         text = text.strip()[len(text.strip().split(None, 1)[0]) :]
         message, actions = parse_actions(text)
         if word == "M792":
             return [HostAction("actions", message, actions, number, name)]
-        return [
-            JobLine(0, number, self.pause_sync, offset, name),
-            HostAction("pause", message, actions, number, name),
-        ]
+        return [self.pause_sync, HostAction("pause", message, actions, number, name)]
 
 
 _HOST_WORDS = frozenset({"M0", "M1", "M110", "M718", "M719", "M792"})

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import re
 
-_WORD = re.compile(r"([A-Za-z])\s*0*(\d+)(\.\d+)?")
+_WORD = re.compile(r"([A-Za-z])\s*(\d+)(\.\d+)?")
 
 # Commands a controller acknowledges only after its motion queue drained and
 # the command finished (reprap-gcode-protocol.txt; PROTOCOL-NOTES.md section 1).
@@ -36,7 +36,7 @@ def command_word(command: str) -> str:
     if match is None:
         return command.split(" ", 1)[0].upper()
     letter, number, fraction = match.groups()
-    return letter.upper() + (number.lstrip("0") or "0") + (fraction or "")
+    return letter.upper() + str(int(number)) + (fraction or "")
 
 
 def is_unbuffered(command: str) -> bool:

@@ -9,11 +9,11 @@ from __future__ import annotations
 import re
 
 from repetrel_host.errors import JobError
+from repetrel_host.gcode.commands import command_word
 
 # A line a slicer or another host already framed: "N12 G1 X5*87". Its number and
 # checksum are the old host's, so we strip both and renumber.
 _EXISTING_FRAME = re.compile(r"^N-?\d+\s*(.*?)\s*(?:\*\d*)?$", re.IGNORECASE)
-_RESET_COMMAND = re.compile(r"^M0*110(?:\s|$)", re.IGNORECASE)
 
 
 def checksum(data: bytes) -> int:
@@ -73,4 +73,4 @@ def clean_line(raw: str | bytes, source: str = "line") -> str:
 
 def is_reset_command(command: str) -> bool:
     """True for M110, which only the host may send: it owns the line numbers."""
-    return _RESET_COMMAND.match(command) is not None
+    return command_word(command) == "M110"
