@@ -23,7 +23,7 @@ def test_slicer_job_is_executed_exactly_once(mode: FlowMode, cone_commands: list
     assert result.failure is None
     assert result.executed == cone_commands
     assert result.acknowledged == list(range(len(cone_commands)))
-    assert result.controller.bytes_dropped == 0
+    assert result.controller.link.bytes_dropped == 0
 
 
 @pytest.mark.parametrize("mode", list(FlowMode))
@@ -66,7 +66,7 @@ def test_small_buffer_with_slow_moves_never_overflows() -> None:
     commands = [f"G1 X{i} Y{i}" for i in range(500)] + ["M400", "G4 P10", "M105"]
     result = run_loopback(commands, FlowControl(FlowMode.BUFFERED, rx_buffer=64), settings_)
     assert result.executed == commands
-    assert result.controller.bytes_dropped == 0
+    assert result.controller.link.bytes_dropped == 0
 
 
 def test_a_reset_mid_job_stops_within_one_reply() -> None:
@@ -137,3 +137,32 @@ def test_any_job_under_any_faults_is_executed_exactly_once(
     assert result.failure is None
     assert result.executed == commands
     assert result.host.is_done
+
+
+def test_advanced_ok_fills_the_command_slots_without_overflow() -> None:
+    commands = [f"G1 X{i} Y{i}" for i in range(300)]
+    peak_slots = {}
+    for advanced in (False, True):
+        controller = ControllerSettings(
+            bandwidth=11_520, slots=16, planner=1, move_time=0.002, advanced_ok=advanced
+        )
+        result = run_loopback(commands, FlowControl(max_lines=8), controller)
+        assert result.executed == commands
+        assert result.controller.link.bytes_dropped == 0
+        peak_slots[advanced] = result.controller.link.peak_slots
+    # Counting oks alone, lines waiting in the slots count against the 8 in flight;
+    # with the controller's N they do not, and its 16 slots fill up.
+    assert peak_slots[False] <= 8
+    assert peak_slots[True] == 16
+
+
+@pytest.mark.parametrize("mode", list(FlowMode))
+def test_advanced_ok_under_noise_never_loses_or_repeats_a_line(
+    mode: FlowMode, cone_commands: list[str]
+) -> None:
+    controller = ControllerSettings(
+        latency=0.001, advanced_ok=True, faults=Faults.parse(f"{NOISE + MARLIN} seed=4")
+    )
+    result = run_loopback(cone_commands, FlowControl(mode), controller)
+    assert result.failure is None
+    assert result.executed == cone_commands

@@ -1,5 +1,7 @@
 """The simulated controller: slots, planner, unbuffered waits, buffer overflow."""
 
+import pytest
+
 from repetrel_host.protocol.framing import frame
 from repetrel_host.testing.simulator import ControllerSettings, ControllerSimulator, Overflow
 
@@ -64,7 +66,7 @@ def test_uart_drops_bytes_that_do_not_fit() -> None:
     data = wire("G1 X1", "G1 X2", "G1 X3", "G1 X4", "G1 X5", "G1 X6")
     sim.receive(data, 0.0)
     sim.advance(0.0)
-    assert sim.bytes_dropped == 17
+    assert sim.link.bytes_dropped == 17
 
 
 def test_usb_back_pressure_reports_room() -> None:
@@ -72,3 +74,39 @@ def test_usb_back_pressure_reports_room() -> None:
     assert sim.room() == 31
     sim.receive(b"N1 G28*18\n", 0.0)
     assert sim.room() == 21
+    sim.advance(0.0)
+    assert sim.link.peak_rx_buffer == 15  # the M110 line, the longest so far
+
+
+def test_counters_measure_peak_buffer_and_starvation() -> None:
+    sim = started(ControllerSettings(move_time=0.010, planner=16))
+    sim.receive(wire("G1 X1", "G1 X2"), 0.0)  # 20 ms of moves, planned at once
+    sim.advance(0.0)
+    sim.receive(wire("G1 X3", first=3), 0.015)  # in time: the planner still has 5 ms
+    sim.advance(0.015)
+    sim.receive(wire("G1 X4", first=4), 0.050)  # late: idle from 0.030 to 0.050
+    sim.advance(0.050)
+    link = sim.link
+    assert link.commands == 5  # the M110 and four moves
+    assert link.starved == pytest.approx(0.020)
+    assert link.peak_rx_buffer == 15  # lines are read out as they land; M110's is longest
+    assert link.bytes_dropped == 0
+
+
+def test_time_before_the_first_command_is_not_starvation() -> None:
+    sim = ControllerSimulator(ControllerSettings())
+    sim.receive(frame(0, "M110 N0"), 5.0)
+    sim.advance(5.0)
+    assert sim.link.starved == 0.0
+    assert sim.link.first_command_at == 5.0
+
+
+def test_advanced_ok_reports_last_line_planner_and_slots() -> None:
+    settings = ControllerSettings(move_time=1.0, planner=2, slots=4, advanced_ok=True)
+    sim = ControllerSimulator(settings)
+    sim.receive(frame(0, "M110 N0") + wire("G1 X1", "G1 X2", "G1 X3"), 0.0)
+    sim.advance(0.0)
+    # The third move waits for a planner block, holding a slot: its ok comes later.
+    assert sim.take_output(0.0) == b"start\nok N0 P2 B4\nok N1 P1 B4\nok N2 P0 B4\n"
+    sim.advance(1.0)
+    assert sim.take_output(1.0) == b"ok N3 P0 B4\n"

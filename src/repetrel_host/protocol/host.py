@@ -101,7 +101,9 @@ class FlowControl:
     the controller's receive buffer (character counting, as grbl and
     Repetier-Host do): a line leaves that buffer before it is acknowledged, so
     the buffer never overflows. One byte stays free because a ring buffer of
-    N bytes holds N - 1.
+    N bytes holds N - 1. When the controller reports ADVANCED_OK
+    (``ok N<last line> P.. B..``), lines up to that N have left the buffer for the
+    command slots and stop counting, so the buffer is kept full.
     """
 
     mode: FlowMode = FlowMode.BUFFERED
@@ -261,6 +263,9 @@ class HostProtocol:
         self._stale_expire_at = 0.0
         self._acked_through = -1  # by counting oks: progress
         self._confirmed_through = -1  # by the controller's own numbers: exact
+        # ADVANCED_OK's N: the last line the controller took out of its receive buffer.
+        # Only for flow control (a garbled N costs a resend, never a line).
+        self._read_through = -1
         self._ping: _Transmission | None = None
         self._ping_attempt = 0  # pings sent since one was last answered
         self._trailing_ok_until: float | None = None  # an ok by then ends an error reply
@@ -477,6 +482,8 @@ class HostProtocol:
         if not self._in_flight:
             self.stats.unexpected_oks += 1
             return
+        if reply.line_number is not None and reply.line_number < self._next_number:
+            self._read_through = reply.line_number
         transmission = self._in_flight[0]
         if transmission is self._ping:
             # Nothing is sent after a ping and a ping draws no plain ok: this ok is
@@ -666,7 +673,7 @@ class HostProtocol:
     def _begin_greeting(self) -> None:
         self._phase = _Phase.GREETING
         self._candidate = None
-        self._acked_through = self._confirmed_through = -1
+        self._acked_through = self._confirmed_through = self._read_through = -1
         self._greeting_attempts = 0
         self._queue_greeting()
 
@@ -721,9 +728,14 @@ class HostProtocol:
     def _window_has_room(self, size: int, now: float) -> bool:
         if self._phase is _Phase.GREETING:
             return True
-        if self._live_in_flight >= self.flow.line_limit:
-            return False
         used = self._bytes_in_flight
+        lines = self._live_in_flight
+        if self._read_through >= 0:
+            read_out_bytes, read_out_lines = self._read_out()
+            used -= read_out_bytes
+            lines -= read_out_lines
+        if lines >= self.flow.line_limit:
+            return False
         if now >= self._stale_expire_at:
             used -= self._stale_bytes
         if used == 0:
@@ -805,6 +817,22 @@ class HostProtocol:
         self._bytes_in_flight = self._live_in_flight = 0
         self._stale_bytes = 0
         self._ping = None
+
+    def _read_out(self) -> tuple[int, int]:
+        """Bytes and lines in flight that ADVANCED_OK says left the receive buffer.
+
+        They wait in the command slots for their ok: counted against the buffer and
+        the line limit they would leave the buffer part empty and the slots unfilled.
+        """
+        read_out_bytes = read_out_lines = 0
+        for transmission in self._in_flight:
+            if transmission.stale:
+                continue
+            if transmission.line is None or transmission.number > self._read_through:
+                break
+            read_out_bytes += len(transmission.wire)
+            read_out_lines += 1
+        return read_out_bytes, read_out_lines
 
     def _waiting_on_unbuffered(self) -> bool:
         oldest = next((t for t in self._in_flight if not t.stale and t.line is not None), None)

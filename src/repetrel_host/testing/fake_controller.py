@@ -2,13 +2,17 @@
 
 Run ``hyrel-fake-controller --link /tmp/hyrel0`` and open ``/tmp/hyrel0`` like a
 serial port. Once the pty is ready the process prints ``ready <path>`` on
-stdout. ``--log FILE`` writes every executed command, one a line, in order.
+stdout. ``--log FILE`` writes every executed command, one a line, in order;
+``--stats FILE`` writes the link counters as JSON when the process ends
+(times on ``time.monotonic()``'s clock, which other processes share).
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
+import json
 import os
 import pty
 import selectors
@@ -193,6 +197,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--command-time", type=float, default=0.0, help="seconds per other command")
     parser.add_argument("--no-banner", action="store_true", help="do not say 'start' at boot")
     parser.add_argument(
+        "--advanced-ok",
+        action="store_true",
+        help="answer 'ok N<last line> P<planner free> B<slots free>' (Marlin's ADVANCED_OK)",
+    )
+    parser.add_argument("--stats", type=Path, help="write the link counters here as JSON at exit")
+    parser.add_argument(
         "--faults",
         default="",
         help="faults to inject, e.g. 'corrupt=0.02 garble=0.01 drop_ok=0.01 duplicate_ok=0.01 "
@@ -221,6 +231,7 @@ def settings_from_args(args: argparse.Namespace) -> ControllerSettings:
         move_time=args.move_time,
         command_time=args.command_time,
         banner=not args.no_banner,
+        advanced_ok=args.advanced_ok,
         faults=faults,
     )
 
@@ -254,6 +265,9 @@ def main(argv: list[str] | None = None) -> int:
         for stream in (log, received):
             if stream is not None:
                 stream.close()
+        if args.stats is not None:
+            counters = dataclasses.asdict(controller.simulator.link)
+            args.stats.write_text(json.dumps(counters, indent=1) + "\n")
     return 0
 
 

@@ -91,6 +91,7 @@ class ControllerSettings:
     move_time: float = 0.0  # how long one move takes to execute
     command_time: float = 0.0  # how long any other command takes
     banner: bool = True  # say "start" at boot
+    advanced_ok: bool = False  # ADVANCED_OK: "ok N<last line> P<planner free> B<slots free>"
     faults: Faults = field(default_factory=Faults)
 
 
@@ -102,6 +103,23 @@ class FaultCounts:
     duplicated_oks: int = 0
     spurious_resends: int = 0
     flushed_bytes: int = 0
+
+
+@dataclass(slots=True)
+class LinkCounters:
+    """What the link and the firmware saw, for benchmarks (times in the simulator's clock)."""
+
+    bytes_received: int = 0  # bytes that reached the receive buffer (or were dropped there)
+    bytes_dropped: int = 0  # lost to a full receive buffer
+    peak_rx_buffer: int = 0  # most bytes waiting in the receive buffer at once
+    peak_slots: int = 0  # most command slots in use at once
+    commands: int = 0  # commands accepted into the command slots
+    first_command_at: float | None = None  # the host's greeting, M110
+    first_job_command_at: float | None = None  # the first command that is not M110
+    last_command_at: float | None = None
+    # Time with nothing to execute (slots, planner and the command in hand all done)
+    # that ended because a new command arrived: the controller waited for the host.
+    starved: float = 0.0
 
 
 @dataclass(slots=True)
@@ -144,7 +162,8 @@ class ControllerSimulator:
         self._next_busy = now
         self._outbound: deque[tuple[float, bytes]] = deque()
         self._out_wire_free = now
-        self.bytes_dropped = 0
+        self._idle_from = now  # when the last piece of work finished
+        self.link = LinkCounters()
         if self.settings.banner:
             self._reply(b"start\n", now)
 
@@ -247,11 +266,15 @@ class ControllerSimulator:
     def _deliver(self, data: bytes) -> None:
         self._inbound_bytes -= len(data)
         free = self.settings.rx_buffer - 1 - len(self._rx)
+        link = self.link
+        link.bytes_received += len(data)
         if len(data) > free and self.settings.overflow is Overflow.DROP:
-            self.bytes_dropped += len(data) - free
+            link.bytes_dropped += len(data) - free
             data = data[:free]
         # With back-pressure the host was only let to send what fits (room()).
         self._rx += data
+        if len(self._rx) > link.peak_rx_buffer:
+            link.peak_rx_buffer = len(self._rx)
 
     def _fill_slots(self, now: float) -> None:
         # While a command slot is free the firmware reads the receive buffer into
@@ -270,7 +293,9 @@ class ControllerSimulator:
             outcome = self.protocol.handle_line(raw)
             if isinstance(outcome, Accepted):
                 command = outcome.command
-                self._queue.append(_Command(command, command_word(command), outcome.number))
+                word = command_word(command)
+                self._count_command(word, now)
+                self._queue.append(_Command(command, word, outcome.number))
             elif isinstance(outcome, Rejected):
                 self._reply(outcome.reply.removesuffix(b"ok\n"), now)
                 if not self.faults.resend_without_ok:
@@ -278,6 +303,20 @@ class ControllerSimulator:
                 if self.faults.flush_on_error:
                     self.counts.flushed_bytes += len(self._rx)
                     self._rx.clear()
+
+    def _count_command(self, word: str, now: float) -> None:
+        link = self.link
+        if not self._queue and link.commands:
+            idle_from = max(self._idle_from, self._planner_end, self._busy_until)
+            if now > idle_from:
+                link.starved += now - idle_from
+        if link.first_command_at is None:
+            link.first_command_at = now
+        if link.first_job_command_at is None and word != "M110":
+            link.first_job_command_at = now
+        link.last_command_at = now
+        link.commands += 1
+        link.peak_slots = max(link.peak_slots, len(self._queue) + 1)
 
     def _process_head(self, now: float) -> bool:
         """Work on the oldest command; True when it finished and the next may start."""
@@ -316,6 +355,7 @@ class ControllerSimulator:
             self._busy_until = now + self.settings.command_time
             return False
         self._queue.popleft()
+        self._idle_from = now
         self._on_execute(command.text)
         self._answer(command, now)
         return True
@@ -374,6 +414,11 @@ class ControllerSimulator:
         if self._chance(self.faults.drop_ok):
             self.counts.dropped_oks += 1
             return
+        if self.settings.advanced_ok and line == b"ok\n":
+            planner_free = self.settings.planner - len(self._planner)
+            slots_free = self.settings.slots - len(self._queue)
+            last = self.protocol.last_line
+            line = f"ok N{last} P{planner_free} B{slots_free}\n".encode()
         self._reply(line, now)
         if self._chance(self.faults.duplicate_ok):
             self.counts.duplicated_oks += 1
