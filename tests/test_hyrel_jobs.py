@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from repetrel_host.cli import PRECHECK_LIMIT
 from repetrel_host.config import shipped_config_dir
 from repetrel_host.gcode.header import safe_stop_commands
 from repetrel_host.link import BuiltInFake
@@ -166,3 +167,21 @@ def test_bad_config_is_one_sentence(tmp_path: Path) -> None:
     assert result.stderr.strip().count("\n") == 0
     assert "host.allow_shel: unknown field" in result.stderr
     assert str(config) in result.stderr
+
+
+def test_a_big_job_starts_at_once_and_is_checked_as_it_streams(tmp_path: Path) -> None:
+    # Over the pre-check limit: the refused tool change at line 5 is found only when the
+    # stream reaches it, so the lines before it run and nothing after it does.
+    job = tmp_path / "big.gcode"
+    filler = ("; " + "x" * 98 + "\n") * (PRECHECK_LIMIT // 100 + 10)
+    job.write_text("G28\nT1\nG1 X5\nG1 X6\nT3 ; slot 4 is empty\nG1 X7\n" + filler)
+    log = tmp_path / "fake.log"
+    with BuiltInFake(log) as fake:
+        result = hyrel_send(
+            str(job), "--port", fake.port, "--loadout", str(TWO_HEADS), "--no-header"
+        )
+    assert result.returncode == 2
+    assert "checked as it streams" in result.stdout
+    assert "big.gcode:5: error: T3 selects yoke 1, slot 4" in result.stderr
+    assert executed(log)[:4] == ["G28", "T1", "G1 X5", "G1 X6"]
+    assert "G1 X7" not in executed(log) and "T3" not in executed(log)

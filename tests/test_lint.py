@@ -1,6 +1,6 @@
 """Checks before sending, one finding per problem with its file line."""
 
-from repetrel_host.gcode.lint import Finding, lint
+from repetrel_host.gcode.lint import Finding, Linter, lint
 
 
 def check(text: str, **kwargs: object) -> list[Finding]:
@@ -65,3 +65,21 @@ def test_head_variable_for_an_empty_slot_hints_at_v4_files() -> None:
 def test_a_clean_slicer_file_has_no_findings() -> None:
     text = "M107\nM104 S200\nG28\nG1 Z5 F5000\nM109 S200\nG21\nG90\nM82\nG92 E0\nM106 S255\nM84\n"
     assert check(text, firmware="v5", positions=5, loaded_tools=frozenset({0})) == []
+
+
+def test_streaming_linter_reports_each_problem_as_its_line_is_read() -> None:
+    linter = Linter(firmware="v5", positions=5, loaded_tools=frozenset({0}), streaming=True)
+    lines = ["M999", "G1 X1", "M999", "M229 E1 D1", "M703 T0", "T3"]
+    seen = [linter.check(number, text) for number, text in enumerate(lines, start=1)]
+    assert [[(f.line, f.severity) for f in found] for found in seen] == [
+        [(1, "warning")],  # an unknown code: reported once, at its first use
+        [],
+        [],
+        [],
+        [(5, "error")],  # M703 with M229 E1 D1 earlier: known once both were read
+        [(6, "error")],
+    ]
+    assert linter.commands == 6
+    assert (
+        linter.unknown_codes()[0].message == "M999 is not in Hyrel's code chart (and 1 more lines)"
+    )

@@ -7,7 +7,7 @@ import os
 import signal
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import ExitStack
 from dataclasses import dataclass
 from datetime import datetime
@@ -48,7 +48,7 @@ from repetrel_host.errors import (
 )
 from repetrel_host.gcode import addressing
 from repetrel_host.gcode.header import header_commands, safe_stop_commands
-from repetrel_host.gcode.lint import Finding, lint
+from repetrel_host.gcode.lint import Finding, Linter
 from repetrel_host.job import HostAction, Job, JobItem, JobLine
 from repetrel_host.link import FAKE_PORT, BuiltInFake
 from repetrel_host.protocol.framing import clean_line
@@ -69,6 +69,9 @@ EXIT_CONTROLLER_ERROR = 4
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, as shells report Ctrl-C
 
 PORT_ENV = "HYREL_PORT"
+# Jobs up to this size are checked whole before the first line goes (a fraction of a
+# second); bigger ones are checked as they stream, so that they start at once.
+PRECHECK_LIMIT = 4 << 20
 PROGRESS_REFRESH = 0.1  # seconds between progress bar updates
 
 app = typer.Typer(add_completion=False, pretty_exceptions_enable=False)
@@ -96,8 +99,17 @@ class Plan:
     header: list[JobLine]
     safe_stop: list[str]
 
-    def items(self) -> Iterator[JobItem]:
-        return chain(self.header, self.job.items())
+    def items(self, check: Callable[[int, str], None] | None = None) -> Iterator[JobItem]:
+        return chain(self.header, self.job.items(check))
+
+    def linter(self, streaming: bool = False) -> Linter:
+        machine = self.machine
+        return Linter(
+            firmware=machine.firmware if machine else None,
+            positions=machine.yokes * addressing.ADDRESSES_PER_YOKE if machine else None,
+            loaded_tools=self.loadout.loaded_tools if self.loadout else None,
+            streaming=streaming,
+        )
 
 
 @app.command()
@@ -171,7 +183,8 @@ def send(
         user = load_user_config(config)
         library = load_library(user)
         plan = _plan(job, loadout, machine, user, library, no_header)
-        findings = _lint(plan)
+        streaming_check = not (check or dry_run) and plan.job.size > PRECHECK_LIMIT
+        findings = [] if streaming_check else _lint(plan)
         for finding in findings:
             errors.print(finding.format(plan.job.name), markup=False)
         refused = [f for f in findings if f.severity == "error"]
@@ -185,7 +198,13 @@ def send(
         if refused and not force:
             raise JobError(f"{plan.job.name}: not sent ({len(refused)} errors; --force sends)")
         link = LinkOptions(port, baud, flow, rx_buffer, max_lines, reply_timeout)
-        code = _send(console, plan, user, link, history, no_history, fake_log)
+        checker = _streaming_checker(plan, errors, force) if streaming_check else None
+        if checker is not None:
+            console.print(
+                f"{plan.job.name} is {plan.job.size / 1e6:.0f} MB: checked as it streams; a line "
+                "it would refuse stops the job safely there (--check checks it all first)."
+            )
+        code = _send(console, plan, user, link, history, no_history, fake_log, checker)
     except (JobError, ConfigError) as exc:
         errors.print(f"error: {exc}", markup=False)
         code = EXIT_BAD_INPUT
@@ -235,23 +254,29 @@ def _plan(
 
 def _lint(plan: Plan) -> list[Finding]:
     """Check the whole file first: a bad line is found before anything moves."""
-    machine = plan.machine
-    commands = [0]
-
-    def numbered() -> Iterator[tuple[int, str]]:
-        for number, command, _, _ in plan.job.commands():
-            commands[0] += 1
-            yield number, command
-
-    findings = lint(
-        numbered(),
-        firmware=machine.firmware if machine else None,
-        positions=machine.yokes * addressing.ADDRESSES_PER_YOKE if machine else None,
-        loaded_tools=plan.loadout.loaded_tools if plan.loadout else None,
-    )
-    if not commands[0]:
+    linter = plan.linter()
+    findings: list[Finding] = []
+    for number, command, _, _ in plan.job.commands():
+        findings += linter.check(number, command)
+    if linter.commands == 0:
         raise JobError(f"{plan.job.path}: holds no G-code command (nothing to send)")
+    findings += linter.unknown_codes()
+    findings.sort(key=lambda f: f.line)
     return findings
+
+
+def _streaming_checker(plan: Plan, errors: Console, force: bool) -> Callable[[int, str], None]:
+    """A check run on each command as it is read: warnings shown, an error stops the job."""
+    linter = plan.linter(streaming=True)
+    name = plan.job.name
+
+    def check(number: int, command: str) -> None:
+        for finding in linter.check(number, command):
+            if finding.severity == "error" and not force:
+                raise JobError(f"{finding.format(name)} (--force sends despite it)")
+            errors.print(finding.format(name), markup=False)
+
+    return check
 
 
 def _dry_run(plan: Plan, framed: bool) -> None:
@@ -281,6 +306,7 @@ def _send(
     history: Path | None,
     no_history: bool,
     fake_log: Path | None,
+    checker: Callable[[int, str], None] | None,
 ) -> int:
     # Command line first, then the machine profile's link defaults.
     defaults = plan.machine.link if plan.machine else LinkDefaults()
@@ -317,7 +343,7 @@ def _send(
         stack.callback(observer.close)
         core = HostProtocol(flow_control, reply_timeout=options.reply_timeout)
         summary = asyncio.run(
-            _stream_with_progress(console, plan, port, baud, core, observer, wire_log)
+            _stream_with_progress(console, plan, port, baud, core, observer, wire_log, checker)
         )
     _print_summary(console, summary, plan.job)
     if wire_log is not None:
@@ -340,6 +366,7 @@ async def _stream_with_progress(
     core: HostProtocol,
     observer: ConsoleObserver,
     wire_log: BinaryIO | None,
+    checker: Callable[[int, str], None] | None,
 ) -> Summary:
     loop = asyncio.get_running_loop()
     job = plan.job
@@ -375,7 +402,7 @@ async def _stream_with_progress(
             port,
             baud,
             core,
-            plan.items(),
+            plan.items(checker),
             observer,
             on_open,
             safe_stop=plan.safe_stop,

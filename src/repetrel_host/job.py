@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import os
 import re
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO
@@ -116,11 +116,16 @@ class Job:
                 if command:
                     yield number, command, raw, offset
 
-    def items(self) -> Iterator[JobItem]:
-        """Lines to send and host actions, in order; :class:`JobError` at a line that cannot go."""
+    def items(self, check: Callable[[int, str], None] | None = None) -> Iterator[JobItem]:
+        """Lines to send and host actions, in order; :class:`JobError` at a line that cannot go.
+
+        ``check(line number, command)`` sees each command as read (it may raise JobError).
+        """
         index = 0
         name = self.name
         for number, command, raw, offset in self.commands():
+            if check is not None:
+                check(number, command)
             word = command_word(command)
             if word not in _HOST_WORDS:
                 index += 1

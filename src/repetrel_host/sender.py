@@ -153,9 +153,9 @@ class Sender(asyncio.Protocol):
                 self._items_exhausted = True
                 break
             except JobError as exc:
-                # Send no more of the job, but leave the machine safe first.
+                # A line that cannot go: the lines before it still do, then the safe stop.
                 self._error = exc
-                self._stop_feeding()
+                self._items_exhausted = True
                 break
             if isinstance(item, HostAction):
                 self._barrier = item
@@ -178,6 +178,10 @@ class Sender(asyncio.Protocol):
             self._action_task.add_done_callback(self._action_done)
         elif self._stopping:
             self._finish(self._error or Outcome.CANCELLED)
+        elif self._items_exhausted and self._error is not None:
+            self._stop_feeding()
+            self._pump()
+            return
         elif self._items_exhausted:
             self._finish(Outcome.COMPLETED)
         self._arm_timer(core.next_deadline())

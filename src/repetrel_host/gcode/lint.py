@@ -37,60 +37,97 @@ class Finding:
         return f"{source}:{self.line}: {self.severity}: {self.message}"
 
 
+class Linter:
+    """Checks ``(source line, command)`` pairs one at a time, so a job can be checked
+    while it streams; :func:`lint` checks a whole file.
+
+    ``positions``: the machine's tool positions (yokes x 5 addresses), to catch T
+    commands past them; ``loaded_tools``: the T numbers with a head, when known.
+    ``streaming``: report a code outside the chart at its first use, not at the end.
+    """
+
+    def __init__(
+        self,
+        firmware: addressing.Firmware | None = None,
+        positions: int | None = None,
+        loaded_tools: frozenset[int] | None = None,
+        streaming: bool = False,
+    ) -> None:
+        self.firmware = firmware
+        self.positions = positions
+        self.loaded_tools = loaded_tools
+        self.streaming = streaming
+        self.unknown: dict[str, list[int]] = {}  # code -> [first line, lines using it]
+        self._e_values_d1: int | None = None
+        self._manual_flow: tuple[int, str] | None = None
+        self._combination_reported = False
+        self.commands = 0  # commands checked
+
+    def check(self, line: int, command: str) -> list[Finding]:
+        """Findings about one command (and any it completes with an earlier one)."""
+        self.commands += 1
+        findings: list[Finding] = []
+        word = command_word(command)
+        tool = addressing.tool_change(command)
+        if tool is not None:
+            finding = _check_tool(line, tool, self.positions, self.loaded_tools)
+            return [finding] if finding is not None else findings
+        if word == "M229":
+            e, d = _parameter(command, "E"), _parameter(command, "D")
+            if e == "1" and d == "0":
+                findings.append(Finding(line, "error", "M229 E1 D0 is an illegal combination"))
+            elif e == "1" and d == "1" and self._e_values_d1 is None:
+                self._e_values_d1 = line
+        elif word in ("M703", "M723") and self._manual_flow is None:
+            self._manual_flow = (line, word)
+        elif word not in CODE_CHART and word not in DOCUMENTED_ELSEWHERE:
+            uses = self.unknown.setdefault(word, [line, 0])
+            uses[1] += 1
+            if self.streaming and uses[1] == 1:
+                findings.append(_unknown_code(word, line, 1))
+        if word in NOT_SUPPORTED:
+            findings.append(Finding(line, "warning", f"{word} is marked unsupported by Hyrel"))
+        if self.firmware is not None and self.loaded_tools is not None and word.startswith("M"):
+            finding = _check_variable(line, command, self.firmware, self.loaded_tools)
+            if finding is not None:
+                findings.append(finding)
+        d1_line, manual = self._e_values_d1, self._manual_flow
+        if d1_line is not None and manual is not None and not self._combination_reported:
+            self._combination_reported = True
+            findings.append(
+                Finding(
+                    max(manual[0], d1_line),
+                    "error",
+                    f"{manual[1]} (line {manual[0]}) does not work with M229 E1 D1 "
+                    f"(line {d1_line}); use M229 E0 D0",
+                )
+            )
+        return findings
+
+    def unknown_codes(self) -> list[Finding]:
+        """One warning per code outside Hyrel's chart, at its first line, with a count."""
+        return [_unknown_code(word, line, uses) for word, (line, uses) in self.unknown.items()]
+
+
 def lint(
     commands: Iterable[tuple[int, str]],
     firmware: addressing.Firmware | None = None,
     positions: int | None = None,
     loaded_tools: frozenset[int] | None = None,
 ) -> list[Finding]:
-    """Check ``(source line, command)`` pairs.
-
-    ``positions``: the machine's tool positions (yokes x 5 addresses), to catch T
-    commands past them; ``loaded_tools``: the T numbers with a head, when known.
-    """
+    """Check a whole job's ``(source line, command)`` pairs; findings in line order."""
+    linter = Linter(firmware, positions, loaded_tools)
     findings: list[Finding] = []
-    unknown: dict[str, list[int]] = {}
-    e_values_d1: int | None = None
-    manual_flow: tuple[int, str] | None = None
     for line, command in commands:
-        word = command_word(command)
-        tool = addressing.tool_change(command)
-        if tool is not None:
-            finding = _check_tool(line, tool, positions, loaded_tools)
-            if finding is not None:
-                findings.append(finding)
-            continue
-        if word == "M229":
-            e, d = _parameter(command, "E"), _parameter(command, "D")
-            if e == "1" and d == "0":
-                findings.append(Finding(line, "error", "M229 E1 D0 is an illegal combination"))
-            elif e == "1" and d == "1" and e_values_d1 is None:
-                e_values_d1 = line
-        elif word in ("M703", "M723") and manual_flow is None:
-            manual_flow = (line, word)
-        elif word not in CODE_CHART and word not in DOCUMENTED_ELSEWHERE:
-            unknown.setdefault(word, []).append(line)
-        if word in NOT_SUPPORTED:
-            findings.append(Finding(line, "warning", f"{word} is marked unsupported by Hyrel"))
-        if firmware is not None and loaded_tools is not None and word.startswith("M"):
-            finding = _check_variable(line, command, firmware, loaded_tools)
-            if finding is not None:
-                findings.append(finding)
-    if e_values_d1 is not None and manual_flow is not None:
-        line, word = manual_flow
-        findings.append(
-            Finding(
-                max(line, e_values_d1),
-                "error",
-                f"{word} (line {line}) does not work with M229 E1 D1 (line {e_values_d1}); "
-                "use M229 E0 D0",
-            )
-        )
-    for word, lines in unknown.items():
-        more = f" (and {len(lines) - 1} more lines)" if len(lines) > 1 else ""
-        findings.append(Finding(lines[0], "warning", f"{word} is not in Hyrel's code chart{more}"))
+        findings += linter.check(line, command)
+    findings += linter.unknown_codes()
     findings.sort(key=lambda f: f.line)
     return findings
+
+
+def _unknown_code(word: str, line: int, uses: int) -> Finding:
+    more = f" (and {uses - 1} more lines)" if uses > 1 else ""
+    return Finding(line, "warning", f"{word} is not in Hyrel's code chart{more}")
 
 
 def _check_tool(
