@@ -1,4 +1,4 @@
-"""The soak benchmark runs (on a small input; the figures live in the closing notes)."""
+"""The benchmarks run (on small inputs; their figures live in bench/README.md)."""
 
 import subprocess
 import sys
@@ -20,3 +20,33 @@ def test_soak_bench_runs_and_reports_exactly_once() -> None:
     assert result.returncode == 0, result.stderr
     assert "exactly once" in result.stdout
     assert "stall/ok" in result.stdout
+
+
+RUN = Path(__file__).parent.parent / "bench" / "run.py"
+
+
+@pytest.mark.timeout(240)
+def test_speed_bench_prints_every_figure_against_printcore() -> None:
+    result = subprocess.run(
+        [sys.executable, str(RUN), "--quick"],
+        capture_output=True,
+        text=True,
+        timeout=230,
+    )
+    assert result.returncode == 0, result.stderr
+    rows = [line.split("|")[1:-1] for line in result.stdout.splitlines() if line.startswith("| ")]
+    header, *table = [[cell.strip() for cell in row] for row in rows]
+    assert header[:4] == ["host", "link", "lines", "lines/s"]
+    hosts = {(row[0], row[1]) for row in table}
+    for link in ("uart", "usb"):
+        for host in ("ours-buffered", "ours-unbuffered", "printcore", "ideal"):
+            assert (host, link) in hosts
+    assert ("ours-buffered", "uart+advanced_ok") in hosts
+    for row in table:
+        figures = dict(zip(header, row, strict=True))
+        assert figures["exactly once"] == "yes"
+        assert float(figures["lines/s"].replace(",", "")) > 0
+        assert float(figures["CPU µs/line"]) > 0 and float(figures["peak RSS MB"]) > 0
+        if figures["link"].startswith("uart"):
+            assert figures["dropped B"] == "0"
+    assert "first job line on the wire" in result.stdout

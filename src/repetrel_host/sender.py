@@ -146,6 +146,35 @@ class Sender(asyncio.Protocol):
         if self._done.done():
             return
         core = self.core
+        self._feed()
+        data = core.data_to_send(self._loop.time())
+        if data and self._transport is not None:
+            log.debug("sending %r", data)
+            self._transport.write(data)
+            if self._wire_log is not None:
+                self._wire_log.write(data)
+        # Read the next lines now, while the controller works, not once its ok is here.
+        self._feed()
+        self._dispatch_events()
+        if self._done.done() or not core.is_done:
+            self._arm_timer(core.next_deadline())
+            return
+        if self._barrier is not None and self._action_task is None:
+            self._action_task = self._loop.create_task(self.observer.perform(self._barrier))
+            self._action_task.add_done_callback(self._action_done)
+        elif self._stopping:
+            self._finish(self._error or Outcome.CANCELLED)
+        elif self._items_exhausted and self._error is not None:
+            self._stop_feeding()
+            self._pump()
+            return
+        elif self._items_exhausted:
+            self._finish(Outcome.COMPLETED)
+        self._arm_timer(core.next_deadline())
+
+    def _feed(self) -> None:
+        """Queue job lines while the core wants them, up to a host action."""
+        core = self.core
         while core.wants_lines and not self._stopping and self._barrier is None:
             try:
                 item = next(self._items)
@@ -163,28 +192,6 @@ class Sender(asyncio.Protocol):
                 core.send(item.command, item)
         if self._barrier is not None or self._items_exhausted or self._stopping:
             core.request_sync()  # nothing more for now: have the controller confirm it all
-        data = core.data_to_send(self._loop.time())
-        if data and self._transport is not None:
-            log.debug("sending %r", data)
-            self._transport.write(data)
-            if self._wire_log is not None:
-                self._wire_log.write(data)
-        self._dispatch_events()
-        if self._done.done() or not core.is_done:
-            self._arm_timer(core.next_deadline())
-            return
-        if self._barrier is not None and self._action_task is None:
-            self._action_task = self._loop.create_task(self.observer.perform(self._barrier))
-            self._action_task.add_done_callback(self._action_done)
-        elif self._stopping:
-            self._finish(self._error or Outcome.CANCELLED)
-        elif self._items_exhausted and self._error is not None:
-            self._stop_feeding()
-            self._pump()
-            return
-        elif self._items_exhausted:
-            self._finish(Outcome.COMPLETED)
-        self._arm_timer(core.next_deadline())
 
     def _action_done(self, task: asyncio.Task[bool]) -> None:
         self._action_task = None

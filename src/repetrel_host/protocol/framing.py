@@ -13,6 +13,7 @@ from repetrel_host.gcode.commands import command_word
 
 # A line a slicer or another host already framed: "N12 G1 X5*87". Its number and
 # checksum are the old host's, so we strip both and renumber.
+_CONTROL = re.compile(r"[\x00-\x1f]")
 _EXISTING_FRAME = re.compile(r"^N-?\d+\s*(.*?)\s*(?:\*\d*)?$", re.IGNORECASE)
 
 
@@ -61,12 +62,13 @@ def clean_line(raw: str | bytes, source: str = "line") -> str:
     text = text.replace("\t", " ").strip()
     if not text:
         return ""
-    match = _EXISTING_FRAME.match(text)
-    if match is not None:
-        text = match.group(1)
+    if text[0] in "Nn":
+        match = _EXISTING_FRAME.match(text)
+        if match is not None:
+            text = match.group(1)
     if "*" in text:
         raise JobError(f"{source}: '*' inside a command would be read as a checksum")
-    if any(ord(ch) < 32 for ch in text):
+    if _CONTROL.search(text):
         raise JobError(f"{source}: the command holds control characters")
     return text
 

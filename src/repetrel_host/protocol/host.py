@@ -32,9 +32,9 @@ from dataclasses import dataclass
 from enum import Enum
 
 from repetrel_host.errors import ProtocolError
-from repetrel_host.gcode.commands import is_unbuffered
+from repetrel_host.gcode.commands import UNBUFFERED, command_word
 from repetrel_host.protocol import replies
-from repetrel_host.protocol.framing import checksum, frame, is_reset_command, reset_command
+from repetrel_host.protocol.framing import checksum, frame, reset_command
 
 # Marlin and RepRap count line numbers in a C long, Repetier modulo 65536: renumber
 # before 65536 so every firmware agrees on the numbers.
@@ -248,7 +248,7 @@ class HostProtocol:
         self.reply_timeout = reply_timeout
         self.stats = Statistics()
         self._phase = _Phase.IDLE
-        self._pending: deque[tuple[str, object]] = deque()
+        self._pending: deque[tuple[str, object, bool]] = deque()  # command, tag, unbuffered
         self._candidate: _Line | None = None  # the next new line, framed, not yet numbered
         self._history: dict[int, _Line] = {}
         self._history_floor = 0  # lowest number still held
@@ -302,9 +302,10 @@ class HostProtocol:
 
     def send(self, command: str, tag: object = None) -> None:
         """Queue one clean command (see :func:`clean_line`); ``tag`` comes back in events."""
-        if is_reset_command(command):
+        word = command_word(command)
+        if word == "M110":
             raise ProtocolError("M110 sets line numbers, which the host owns; it cannot be queued")
-        self._pending.append((command, tag))
+        self._pending.append((command, tag, word in UNBUFFERED))
         self._sync_requested = False
 
     def request_sync(self) -> None:
@@ -711,10 +712,9 @@ class HostProtocol:
         # Numbered only once it goes out (see _transmit), so that every number
         # below _next_number has been on the wire and a ping can follow them.
         if self._candidate is None:
-            command, tag = self._pending[0]
+            command, tag, unbuffered = self._pending[0]
             number = self._next_number
-            wire = frame(number, command)
-            self._candidate = _Line(number, command, tag, wire, is_unbuffered(command))
+            self._candidate = _Line(number, command, tag, frame(number, command), unbuffered)
         return self._candidate
 
     def _wants_sync_ping(self) -> bool:

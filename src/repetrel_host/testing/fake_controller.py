@@ -31,6 +31,7 @@ from repetrel_host.testing.simulator import (
 )
 
 READ_SIZE = 4096
+SPIN = 0.0003  # seconds of polling instead of sleeping: before an event, after a reply
 
 
 class PtyController:
@@ -52,6 +53,7 @@ class PtyController:
             settings, now=time.monotonic(), on_execute=self._execute
         )
         self._to_write = bytearray()
+        self._poll_until = 0.0
         self._stopping = False
 
     def _open_pty(self) -> None:
@@ -92,7 +94,9 @@ class PtyController:
         self._stopping = True
 
     def run(self) -> None:
-        selector = selectors.DefaultSelector()
+        # select(2) takes its timeout in microseconds; epoll and poll round it up to a
+        # whole millisecond, which would add up to 1 ms to every emulated delay.
+        selector = selectors.SelectSelector()
         selector.register(self._master, selectors.EVENT_READ)
         blocked = self.simulator.settings.overflow is Overflow.BLOCK
         try:
@@ -107,7 +111,7 @@ class PtyController:
                     timeout = self._timeout(now)
                     ready = selector.select(timeout)
                 else:
-                    time.sleep(max(0.0, min(self._timeout(now) or 0.05, 0.05)))
+                    time.sleep(min(self._timeout(now), 0.05))
                     ready = []
                 now = time.monotonic()
                 for _key, mask in ready:
@@ -121,18 +125,27 @@ class PtyController:
                     self.simulator.link_drop_requested = None
                     self._drop_link(seconds, selector)
                     continue
-                self._to_write += self.simulator.take_output(now)
-                self._flush_writes()
+                output = self.simulator.take_output(now)
+                if output:
+                    self._to_write += output
+                    self._flush_writes()
+                    # The host answers within microseconds: poll for its next line
+                    # rather than sleep, so that a wake-up's delay is not added to it.
+                    self._poll_until = now + SPIN
                 if self._unflushed:
                     self._flush_logs()
         finally:
             selector.close()
 
-    def _timeout(self, now: float) -> float | None:
+    def _timeout(self, now: float) -> float:
+        if now < self._poll_until:
+            return 0.0
         wakeup = self.simulator.next_wakeup()
         if wakeup is None:
             return 0.5  # wake now and then to notice stop()
-        return min(0.5, max(0.0, wakeup - now))
+        # Sleeping wakes late (timer slack, scheduling): sleep until shortly before the
+        # event, then poll, so that emulated delays are what they say.
+        return min(0.5, max(0.0, wakeup - now - SPIN))
 
     def _read(self, now: float, blocked: bool) -> None:
         size = min(READ_SIZE, self.simulator.room()) if blocked else READ_SIZE

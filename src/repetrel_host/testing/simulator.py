@@ -117,6 +117,9 @@ class LinkCounters:
     first_command_at: float | None = None  # the host's greeting, M110
     first_job_command_at: float | None = None  # the first command that is not M110
     last_command_at: float | None = None
+    # bytes_received when those two commands were accepted: the job's own bytes between.
+    bytes_at_first_job_command: int = 0
+    bytes_at_last_command: int = 0
     # Time with nothing to execute (slots, planner and the command in hand all done)
     # that ended because a new command arrived: the controller waited for the host.
     starved: float = 0.0
@@ -162,6 +165,11 @@ class ControllerSimulator:
         self._next_busy = now
         self._outbound: deque[tuple[float, bytes]] = deque()
         self._out_wire_free = now
+        bandwidth = self.settings.bandwidth
+        blocking = self.settings.overflow is Overflow.BLOCK
+        self._wire_capacity = (
+            int(bandwidth * self.settings.latency) if blocking and bandwidth else 0
+        )
         self._idle_from = now  # when the last piece of work finished
         self.link = LinkCounters()
         if self.settings.banner:
@@ -170,9 +178,11 @@ class ControllerSimulator:
     # --- link ---------------------------------------------------------------
 
     def room(self) -> int:
-        """Bytes the controller can take now without dropping any (on the wire or buffered)."""
-        capacity = self.settings.rx_buffer - 1
-        return max(0, capacity - len(self._rx) - self._inbound_bytes)
+        """Bytes the link can take now without dropping any: the receive buffer's free
+        space plus, with back-pressure, what the wire itself holds (bandwidth x latency),
+        as a USB link keeps packets in flight and holds the rest at the sender."""
+        free = self.settings.rx_buffer - 1 - len(self._rx)
+        return max(0, free + self._wire_capacity - self._inbound_bytes)
 
     def receive(self, data: bytes, now: float) -> None:
         """Bytes the host wrote at ``now``; they reach the receive buffer after the wire's delay.
@@ -225,7 +235,7 @@ class ControllerSimulator:
         if self.hung:
             return None
         times: list[float] = []
-        if self._inbound:
+        if self._inbound and self._rx_free() > 0:
             times.append(self._inbound[0][0])
         if self._queue:
             head = self._queue[0]
@@ -254,8 +264,8 @@ class ControllerSimulator:
             self._fill_slots(now)
             if self._process_head(now):
                 continue
-            if self._inbound and self._inbound[0][0] <= now:
-                self._deliver(self._inbound.popleft()[1])
+            if self._inbound and self._inbound[0][0] <= now and self._rx_free() > 0:
+                self._deliver(now)
                 continue
             break
         interval = self.faults.busy_interval
@@ -263,15 +273,25 @@ class ControllerSimulator:
             self._reply(b"echo:busy: processing\n", now)
             self._next_busy = now + interval
 
-    def _deliver(self, data: bytes) -> None:
-        self._inbound_bytes -= len(data)
+    def _rx_free(self) -> int:
+        """Free receive buffer; a UART delivers into a full one too (and loses bytes)."""
+        if self.settings.overflow is Overflow.DROP:
+            return 1
+        return self.settings.rx_buffer - 1 - len(self._rx)
+
+    def _deliver(self, now: float) -> None:
+        arrival, data = self._inbound.popleft()
         free = self.settings.rx_buffer - 1 - len(self._rx)
         link = self.link
+        if len(data) > free and self.settings.overflow is Overflow.BLOCK:
+            # Held at the door until the firmware reads the buffer out.
+            self._inbound.appendleft((arrival, data[free:]))
+            data = data[:free]
+        self._inbound_bytes -= len(data)
         link.bytes_received += len(data)
-        if len(data) > free and self.settings.overflow is Overflow.DROP:
+        if len(data) > free:
             link.bytes_dropped += len(data) - free
             data = data[:free]
-        # With back-pressure the host was only let to send what fits (room()).
         self._rx += data
         if len(self._rx) > link.peak_rx_buffer:
             link.peak_rx_buffer = len(self._rx)
@@ -314,7 +334,9 @@ class ControllerSimulator:
             link.first_command_at = now
         if link.first_job_command_at is None and word != "M110":
             link.first_job_command_at = now
+            link.bytes_at_first_job_command = link.bytes_received
         link.last_command_at = now
+        link.bytes_at_last_command = link.bytes_received
         link.commands += 1
         link.peak_slots = max(link.peak_slots, len(self._queue) + 1)
 
