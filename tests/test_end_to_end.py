@@ -126,3 +126,20 @@ def test_fake_controller_refuses_to_replace_a_file(tmp_path: Path) -> None:
     assert result.returncode == 2
     assert "exists and is not a link" in result.stderr
     assert precious.read_text() == "keep me"
+
+
+def test_a_link_that_pushes_back_holds_the_sender_without_spinning(tmp_path: Path) -> None:
+    # A window far larger than the pty's buffer: writes meet a full port and must wait
+    # for it to drain, with the event loop free (no busy retry, no stuck writer).
+    job = tmp_path / "moves.gcode"
+    commands = [f"G1 X{i % 100}.{i % 10} Y{i % 77}.5 E{i}.25" for i in range(4000)]
+    job.write_text("\n".join(commands) + "\n")
+    log = tmp_path / "fake.log"
+    slow = ["--overflow", "block", "--slots", "1", "--planner", "1", "--move-time", "0.0002"]
+    with BuiltInFake(log, slow) as fake:
+        result = hyrel_send(
+            str(job), "--port", fake.port, "--rx-buffer", "200000", "--max-lines", "4000"
+        )
+    assert result.returncode == 0, result.stderr
+    assert "Exception" not in result.stderr and "Traceback" not in result.stderr
+    assert executed(log) == commands

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import errno
+import functools
 import os
 import select
 import subprocess
@@ -34,12 +35,44 @@ async def open_link(
     """Open ``port`` (a device path or a pyserial URL) and connect ``protocol_factory`` to it."""
     loop = asyncio.get_running_loop()
     try:
-        transport, protocol = await serial_asyncio_fast.create_serial_connection(
-            loop, protocol_factory, port, baudrate=baudrate, exclusive=True
-        )
+        if port.startswith("socket://"):
+            return await serial_asyncio_fast.create_serial_connection(
+                loop, protocol_factory, port, baudrate=baudrate, exclusive=True
+            )
+        opener = functools.partial(serial.serial_for_url, port, baudrate=baudrate, exclusive=True)
+        serial_port = await loop.run_in_executor(None, opener)
     except (serial.SerialException, OSError, ValueError) as exc:
         raise LinkError(describe_open_error(port, exc)) from None
-    return transport, protocol
+    protocol = protocol_factory()
+    return _SerialTransport(loop, protocol, serial_port), protocol
+
+
+class _SerialTransport(serial_asyncio_fast.SerialTransport):
+    """pyserial-asyncio-fast's transport, mended where a link pushes back (its open PR #36).
+
+    A write that meets a full port buffer is queued instead of handed to pyserial,
+    which would retry it in a busy loop and freeze the event loop (and with it every
+    timeout); and once the queue drains the writer is removed, where the library
+    leaves it registered and fails an assertion on every turn of the loop.
+    """
+
+    def write(self, data: bytes | bytearray | memoryview) -> None:
+        if self._closing or self._write_buffer or _writable(self._serial.fileno()):
+            super().write(data)
+            return
+        self._write_buffer.append(data)
+        self._maybe_pause_protocol()
+        self._ensure_writer()
+
+    def _write_ready(self) -> None:
+        if not self._write_buffer:
+            self._remove_writer()
+            return
+        super()._write_ready()
+
+
+def _writable(fd: int) -> bool:
+    return bool(select.select([], [fd], [], 0)[1])
 
 
 def describe_open_error(port: str, exc: BaseException) -> str:
