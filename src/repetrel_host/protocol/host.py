@@ -244,7 +244,9 @@ class HostProtocol:
             raise ValueError("line_number_limit must be at least 3")
         self.flow = flow or FlowControl()
         self.line_number_limit = line_number_limit
-        self.history_margin = max(history_margin, 4 * self.flow.line_limit)
+        self._line_limit = self.flow.line_limit  # read for every line: kept at hand
+        self._byte_limit = self.flow.byte_limit
+        self.history_margin = max(history_margin, 4 * self._line_limit)
         self.reply_timeout = reply_timeout
         self.stats = Statistics()
         self._phase = _Phase.IDLE
@@ -325,7 +327,7 @@ class HostProtocol:
     @property
     def wants_lines(self) -> bool:
         """True when the queue is short enough that a new line could go out soon."""
-        return self._phase is not _Phase.FAILED and len(self._pending) < self.flow.line_limit
+        return self._phase is not _Phase.FAILED and len(self._pending) < self._line_limit
 
     @property
     def is_done(self) -> bool:
@@ -431,14 +433,24 @@ class HostProtocol:
         if not data:
             return
         self._last_received_at = now
-        self._receive_buffer += data
-        while True:
-            end = self._receive_buffer.find(b"\n")
-            if end < 0:
-                break
-            raw = bytes(self._receive_buffer[:end])
-            del self._receive_buffer[: end + 1]
-            text = raw.decode("ascii", errors="replace").strip()
+        buffer = self._receive_buffer
+        buffer += data
+        start = 0
+        while (end := buffer.find(b"\n", start)) >= 0:
+            line_start, start = start, end + 1
+            if (
+                end - line_start == 2
+                and buffer.startswith(b"ok", line_start)
+                and self._trailing_ok_until is None
+                and self._suspect_error is None
+                and self._phase is _Phase.RUNNING
+            ):
+                # A plain ok in a plain state, the bulk of all replies: the same as
+                # the general path below, without decoding and classifying it.
+                self._handle_ok(replies.PLAIN_OK, now)
+                self._previous_reply = replies.PLAIN_OK
+                continue
+            text = buffer[line_start:end].decode("ascii", errors="replace").strip()
             if text:
                 reply = replies.classify(text)
                 trailing = self._trailing_ok_until
@@ -446,6 +458,7 @@ class HostProtocol:
                 if not (trailing is not None and now <= trailing and isinstance(reply, replies.Ok)):
                     self._handle_reply(reply, text, now)
                 self._previous_reply = reply
+        del buffer[:start]
 
     # --- replies ------------------------------------------------------------
 
@@ -734,13 +747,13 @@ class HostProtocol:
             read_out_bytes, read_out_lines = self._read_out()
             used -= read_out_bytes
             lines -= read_out_lines
-        if lines >= self.flow.line_limit:
+        if lines >= self._line_limit:
             return False
         if now >= self._stale_expire_at:
             used -= self._stale_bytes
         if used == 0:
             return True  # a line longer than the buffer still has to go, alone
-        return used + size <= self.flow.byte_limit
+        return used + size <= self._byte_limit
 
     def _transmit(self, line: _Line, now: float) -> None:
         if line is self._candidate:

@@ -67,6 +67,8 @@ class Message:
     text: str
 
 
+PLAIN_OK = Ok()  # the reply nearly every line draws: one shared instance
+
 Reply = Ok | Resend | Error | Busy | Wait | Start | HyrelReport | Message
 
 # The whole line must match: a garbled number ("Resend: 16?9") must not pass for another.
@@ -81,7 +83,9 @@ def classify(line: str) -> Reply:
     """Classify one received line (without its line ending)."""
     text = line.strip()
     lower = text.lower()
-    if lower == "ok" or lower.startswith("ok "):
+    if lower == "ok":
+        return PLAIN_OK
+    if lower.startswith("ok "):
         data = text[3:].strip()
         advanced = _ADVANCED_OK.match(data)
         if advanced is not None:
