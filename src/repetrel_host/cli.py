@@ -59,7 +59,6 @@ from repetrel_host.protocol.host import (
     HostProtocol,
 )
 from repetrel_host.sender import Outcome, Sender, Summary, stream
-from repetrel_host.testing.loopback import wire_preview
 
 # Exit codes: distinct per kind of failure so scripts can tell them apart.
 EXIT_OK = 0
@@ -181,8 +180,7 @@ def send(
     errors = Console(stderr=True, highlight=False, soft_wrap=True)
     try:
         user = load_user_config(config)
-        library = load_library(user)
-        plan = _plan(job, loadout, machine, user, library, no_header)
+        plan = _plan(job, loadout, machine, user, no_header)
         streaming_check = not (check or dry_run) and plan.job.size > PRECHECK_LIMIT
         findings = [] if streaming_check else _lint(plan)
         for finding in findings:
@@ -222,13 +220,14 @@ def _plan(
     loadout_path: Path | None,
     machine_name: str | None,
     user: UserConfig,
-    library: Library,
     no_header: bool,
 ) -> Plan:
     loadout_path = loadout_path or user.printer.loadout
+    machine_name = machine_name or (None if loadout_path else user.printer.machine)
+    # Machines and heads are read only when a job names them: a plain job starts sooner.
+    library = load_library(user) if loadout_path or machine_name else Library({}, {})
     loadout = load_loadout(find_loadout(loadout_path), library) if loadout_path else None
     machine = loadout.machine if loadout else None
-    machine_name = machine_name or (None if loadout else user.printer.machine)
     if machine_name is not None:
         if loadout is not None and machine_name != loadout.machine_name:
             raise ConfigError(
@@ -290,6 +289,8 @@ def _dry_run(plan: Plan, framed: bool) -> None:
                 yield item.command
 
     if framed:
+        from repetrel_host.testing.loopback import wire_preview  # only a preview needs it
+
         for data in wire_preview(commands()):
             sys.stdout.write(data.decode("ascii"))
     else:

@@ -27,7 +27,8 @@ Number = StrictInt | StrictFloat
 
 
 class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # Built on first use: a plain job never validates a machine or a head.
+    model_config = ConfigDict(extra="forbid", frozen=True, defer_build=True)
 
 
 class LinkDefaults(_Model):
