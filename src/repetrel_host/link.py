@@ -48,19 +48,51 @@ async def open_link(
 
 
 class _SerialTransport(serial_asyncio_fast.SerialTransport):
-    """pyserial-asyncio-fast's transport, mended where a link pushes back (its open PR #36).
+    """pyserial-asyncio-fast's transport, reading and writing the port's descriptor itself.
 
-    A write that meets a full port buffer is queued instead of handed to pyserial,
-    which would retry it in a busy loop and freeze the event loop (and with it every
-    timeout); and once the queue drains the writer is removed, where the library
-    leaves it registered and fails an assertion on every turn of the loop.
+    pyserial's write retries a full port buffer in a busy loop, which would freeze the
+    event loop (and with it every timeout) on a link that pushes back, and the library
+    leaves a drained writer registered, failing an assertion on every turn of the loop
+    (its open PR #36). Plain non-blocking ``os.read``/``os.write`` also save the
+    ``select`` pyserial makes around each call, on the path from an ok to the next line,
+    and a port that fails ends the stream with a sentence instead of a logged traceback.
     """
 
-    def write(self, data: bytes | bytearray | memoryview) -> None:
-        if self._closing or self._write_buffer or _writable(self._serial.fileno()):
-            super().write(data)
+    def __init__(
+        self,
+        loop: asyncio.AbstractEventLoop,
+        protocol: asyncio.Protocol,
+        serial_port: serial.Serial,
+    ) -> None:
+        super().__init__(loop, protocol, serial_port)
+        self._fd = serial_port.fileno()
+
+    def _read_ready(self) -> None:
+        try:
+            data = os.read(self._fd, self._max_read_size)
+        except (BlockingIOError, InterruptedError):
             return
-        self._write_buffer.append(data)
+        except OSError as exc:
+            self._close(exc)
+            return
+        if not data:  # readable, yet nothing: the device went away
+            self._close(serial.SerialException("the port returned no data (disconnected?)"))
+            return
+        self._protocol.data_received(data)
+
+    def _write_data(self, data: bytes | bytearray | memoryview) -> None:
+        try:
+            written = os.write(self._fd, data)
+        except (BlockingIOError, InterruptedError):
+            written = 0
+        except OSError as exc:
+            self._abort(exc)
+            return
+        if written == len(data):
+            if self._closing:
+                self._close()
+            return
+        self._write_buffer.append(data[written:])  # the rest once the port drains
         self._maybe_pause_protocol()
         self._ensure_writer()
 
@@ -69,10 +101,6 @@ class _SerialTransport(serial_asyncio_fast.SerialTransport):
             self._remove_writer()
             return
         super()._write_ready()
-
-
-def _writable(fd: int) -> bool:
-    return bool(select.select([], [fd], [], 0)[1])
 
 
 def describe_open_error(port: str, exc: BaseException) -> str:

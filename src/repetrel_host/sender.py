@@ -246,7 +246,10 @@ class Sender(asyncio.Protocol):
                 return
 
     def _arm_timer(self, deadline: float | None) -> None:
-        if deadline == self._timer_at:
+        # A timer already due no later stays: firing early is harmless (the core checks
+        # its own deadline and the pump re-arms), and most lines only push it back.
+        armed = self._timer_at
+        if armed is not None and (deadline is None or armed <= deadline):
             return
         if self._timer is not None:
             self._timer.cancel()
