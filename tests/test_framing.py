@@ -7,7 +7,6 @@ from repetrel_host.protocol.framing import (
     checksum,
     clean_line,
     frame,
-    is_reset_command,
     reset_command,
 )
 
@@ -34,10 +33,6 @@ def test_checksum_is_xor_of_bytes_before_star() -> None:
 
 def test_reset_command_repeats_the_number() -> None:
     assert reset_command(0) == "M110 N0"
-    assert is_reset_command("M110 N0")
-    assert is_reset_command("m110")
-    assert not is_reset_command("M1100")
-    assert not is_reset_command("G1 X1")
 
 
 @pytest.mark.parametrize(

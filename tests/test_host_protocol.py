@@ -405,9 +405,11 @@ def test_replies_split_across_reads() -> None:
     assert acked(host) == [1]
 
 
-def test_m110_cannot_be_queued() -> None:
+@pytest.mark.parametrize("command", ["M110 N5", "m110", "M110N0", "M0110 N1"])
+def test_m110_cannot_be_queued(command: str) -> None:
     with pytest.raises(ProtocolError):
-        HostProtocol().send("M110 N5")
+        HostProtocol().send(command)
+    HostProtocol().send("M1100")  # another code
 
 
 def test_a_line_acknowledged_again_after_a_resend_is_reported_once() -> None:

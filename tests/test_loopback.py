@@ -154,6 +154,9 @@ def test_advanced_ok_fills_the_command_slots_without_overflow() -> None:
     # with the controller's N they do not, and its 16 slots fill up.
     assert peak_slots[False] <= 8
     assert peak_slots[True] == 16
+    one_at_a_time = run_loopback(commands, FlowControl(FlowMode.UNBUFFERED), controller)
+    assert one_at_a_time.executed == commands
+    assert one_at_a_time.controller.link.peak_slots == 1  # unbuffered stays one line
 
 
 @pytest.mark.parametrize("mode", list(FlowMode))

@@ -9,7 +9,6 @@ from __future__ import annotations
 import re
 
 from repetrel_host.errors import JobError
-from repetrel_host.gcode.commands import command_word
 
 # A line a slicer or another host already framed: "N12 G1 X5*87". Its number and
 # checksum are the old host's, so we strip both and renumber.
@@ -71,8 +70,3 @@ def clean_line(raw: str | bytes, source: str = "line") -> str:
     if _CONTROL.search(text):
         raise JobError(f"{source}: the command holds control characters")
     return text
-
-
-def is_reset_command(command: str) -> bool:
-    """True for M110, which only the host may send: it owns the line numbers."""
-    return command_word(command) == "M110"

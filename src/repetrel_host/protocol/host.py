@@ -496,7 +496,11 @@ class HostProtocol:
         if not self._in_flight:
             self.stats.unexpected_oks += 1
             return
-        if reply.line_number is not None and reply.line_number < self._next_number:
+        if (
+            reply.line_number is not None
+            and reply.line_number < self._next_number
+            and self.flow.mode is FlowMode.BUFFERED  # unbuffered means one line in flight
+        ):
             self._read_through = reply.line_number
         transmission = self._in_flight[0]
         if transmission is self._ping:
