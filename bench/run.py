@@ -60,7 +60,7 @@ PROFILES = (
 
 @dataclass
 class Result:
-    host: str  # ours-buffered, ours-unbuffered, printcore
+    host: str  # ours-buffered, ours-unbuffered, printcore, ideal
     profile: Profile
     lines: int
     seconds: float
@@ -91,16 +91,15 @@ def job_file(lines: int, folder: Path) -> tuple[Path, list[str]]:
     """The first ``lines`` commands of the cone file (comments kept), and those commands."""
     from repetrel_host.job import Job
 
-    text = CONE.read_text().splitlines(keepends=True)
     commands: list[str] = []
-    kept: list[str] = []
+    last_line = 0
     for number, command, _, _ in Job(CONE).commands():
         if len(commands) == lines:
             break
         commands.append(command)
-        kept = text[:number]
+        last_line = number
     path = folder / f"cone-{lines}.gcode"
-    path.write_text("".join(kept))
+    path.write_text("".join(CONE.read_text().splitlines(keepends=True)[:last_line]))
     return path, commands
 
 
