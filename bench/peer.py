@@ -91,12 +91,12 @@ def main() -> int:
     else:
         import printrun.printcore  # noqa: F401
     started = cpu_seconds()
-    hosts = {
-        "ours": lambda: run_ours(port, job, options),
-        "printcore": lambda: run_printcore(port, job),
-    }
-    hosts["ideal"] = lambda: run_ideal(port, job)
-    code = hosts[host]()
+    if host == "ours":
+        code = run_ours(port, job, options)
+    elif host == "printcore":
+        code = run_printcore(port, job)
+    else:
+        code = run_ideal(port, job)
     peak_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     report = {"code": code, "cpu_seconds": cpu_seconds() - started, "peak_rss_bytes": peak_rss}
     print("PEER " + json.dumps(report), flush=True)

@@ -254,13 +254,9 @@ def _plan(
 def _lint(plan: Plan) -> list[Finding]:
     """Check the whole file first: a bad line is found before anything moves."""
     linter = plan.linter()
-    findings: list[Finding] = []
-    for number, command, _, _ in plan.job.commands():
-        findings += linter.check(number, command)
+    findings = linter.check_all((number, command) for number, command, _, _ in plan.job.commands())
     if linter.commands == 0:
         raise JobError(f"{plan.job.path}: holds no G-code command (nothing to send)")
-    findings += linter.unknown_codes()
-    findings.sort(key=lambda f: f.line)
     return findings
 
 

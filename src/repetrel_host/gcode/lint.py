@@ -108,6 +108,15 @@ class Linter:
         """One warning per code outside Hyrel's chart, at its first line, with a count."""
         return [_unknown_code(word, line, uses) for word, (line, uses) in self.unknown.items()]
 
+    def check_all(self, commands: Iterable[tuple[int, str]]) -> list[Finding]:
+        """Check a whole job's ``(source line, command)`` pairs; findings in line order."""
+        findings: list[Finding] = []
+        for line, command in commands:
+            findings += self.check(line, command)
+        findings += self.unknown_codes()
+        findings.sort(key=lambda f: f.line)
+        return findings
+
 
 def lint(
     commands: Iterable[tuple[int, str]],
@@ -116,13 +125,7 @@ def lint(
     loaded_tools: frozenset[int] | None = None,
 ) -> list[Finding]:
     """Check a whole job's ``(source line, command)`` pairs; findings in line order."""
-    linter = Linter(firmware, positions, loaded_tools)
-    findings: list[Finding] = []
-    for line, command in commands:
-        findings += linter.check(line, command)
-    findings += linter.unknown_codes()
-    findings.sort(key=lambda f: f.line)
-    return findings
+    return Linter(firmware, positions, loaded_tools).check_all(commands)
 
 
 def _unknown_code(word: str, line: int, uses: int) -> Finding:
