@@ -31,7 +31,7 @@ from pathlib import Path
 
 from repetrel_host.job import Job
 from repetrel_host.link import BuiltInFake
-from repetrel_host.protocol.host import FlowControl, FlowMode
+from repetrel_host.protocol.flow import FlowControl, FlowMode
 from repetrel_host.testing.loopback import run_loopback
 from repetrel_host.testing.simulator import ControllerSettings, Faults
 

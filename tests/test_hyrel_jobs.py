@@ -45,7 +45,7 @@ def test_loadout_job_runs_header_then_job_and_history_is_the_wire(tmp_path: Path
     (history_file,) = history.glob("*-square-tube.gcode")
     assert history_file.read_bytes() == received.read_bytes()
     assert history_file.read_bytes().startswith(
-        b"N0 M110 N0*125\nN1 M105 S0*9999\nN1 M6 T1 O2 X0 Y0 Z0*119\n"
+        b"N0 M110 N0*125\nN1 M105 S0*9999\nN2 M105*37\nN1 M105 S0*9999\nN1 M6 T1 O2 X0 Y0 Z0*119\n"
     )
     assert str(history_file) in result.stdout
 

@@ -4,7 +4,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from repetrel_host.protocol.host import FlowControl, FlowMode
+from repetrel_host.protocol.events import FailureKind
+from repetrel_host.protocol.flow import FlowControl, FlowMode
 from repetrel_host.testing.loopback import run_loopback, wire_preview
 from repetrel_host.testing.simulator import ControllerSettings, Faults
 
@@ -82,13 +83,18 @@ def test_a_reset_mid_job_stops_within_one_reply() -> None:
 def test_a_silent_controller_fails_with_a_timeout() -> None:
     commands = ["G28", "G1 X1", "!!DEBUG:hang", "G1 X2", "G1 X3"]
     result = run_loopback(commands, FlowControl(), noisy("", 0))
-    assert result.failure is not None and result.failure.kind == "timeout"
+    assert result.failure is not None and result.failure.kind is FailureKind.TIMEOUT
     assert result.executed == commands[:2]
 
 
 def test_the_framed_preview_is_the_clean_wire() -> None:
     wire = b"".join(wire_preview(["G28", "G1 X1"]))
-    assert wire == (b"N0 M110 N0*125\nN1 M105 S0*9999\nN1 G28*18\nN2 G1 X1*99\nN3 M105 S0*9999\n")
+    # The greeting: M110 and a probe, then its check (a line with a gap, refused, and
+    # the probe again), then the job and the probe that confirms it.
+    assert wire == (
+        b"N0 M110 N0*125\nN1 M105 S0*9999\nN2 M105*37\nN1 M105 S0*9999\n"
+        b"N1 G28*18\nN2 G1 X1*99\nN3 M105 S0*9999\n"
+    )
 
 
 FAULT_NAMES = ["corrupt", "garble", "drop_ok", "duplicate_ok", "spurious_resend"]

@@ -14,7 +14,8 @@ from repetrel_host.console import ConsoleObserver
 from repetrel_host.errors import ControllerError, JobError, LinkError
 from repetrel_host.job import HostAction, JobItem, JobLine
 from repetrel_host.link import BuiltInFake
-from repetrel_host.protocol.host import Failed, HostProtocol
+from repetrel_host.protocol.dialects.reprap import RepRapDialect as HostProtocol
+from repetrel_host.protocol.events import Failed, FailureKind
 from repetrel_host.sender import Observer, Outcome, _failure_error, stream
 from tests.helpers import executed
 
@@ -80,10 +81,14 @@ def test_an_action_that_declines_stops_the_job_safely(tmp_path: Path) -> None:
 
 def test_failures_name_the_source_position() -> None:
     where = JobLine(0, 0, "M6 T1 O2 X0 Y0 Z0", 0, "header: head T1 (MK1-250)")
-    error = _failure_error(Failed("controller", "the controller reported an error: x", where))
+    error = _failure_error(
+        Failed(FailureKind.CONTROLLER, "the controller reported an error: x", where)
+    )
     assert isinstance(error, ControllerError)
     assert str(error).endswith("(at header: head T1 (MK1-250))")
-    assert isinstance(_failure_error(Failed("timeout", "silence", line(7, "G1"))), LinkError)
+    assert isinstance(
+        _failure_error(Failed(FailureKind.TIMEOUT, "silence", line(7, "G1"))), LinkError
+    )
 
 
 def test_resends_are_shown_with_the_source_position() -> None:

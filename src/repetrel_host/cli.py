@@ -51,13 +51,10 @@ from repetrel_host.gcode.header import header_commands, safe_stop_commands
 from repetrel_host.gcode.lint import Finding, Linter
 from repetrel_host.job import HostAction, Job, JobItem, JobLine
 from repetrel_host.link import FAKE_PORT, BuiltInFake
+from repetrel_host.protocol.dialects.reprap import DEFAULT_REPLY_TIMEOUT
+from repetrel_host.protocol.dialects.reprap import RepRapDialect as HostProtocol
+from repetrel_host.protocol.flow import FlowControl, FlowMode
 from repetrel_host.protocol.framing import clean_line
-from repetrel_host.protocol.host import (
-    DEFAULT_REPLY_TIMEOUT,
-    FlowControl,
-    FlowMode,
-    HostProtocol,
-)
 from repetrel_host.sender import Outcome, Sender, Summary, stream
 
 # Exit codes: distinct per kind of failure so scripts can tell them apart.

@@ -5,6 +5,10 @@ class HostError(Exception):
     """Base of every error this package raises on purpose; its text is one sentence."""
 
 
+class UsageError(HostError):
+    """The API was used in a way it cannot be (a command while printing, M110 queued)."""
+
+
 class JobError(HostError):
     """The job cannot be sent as it is (missing file, a line that cannot be framed)."""
 

@@ -20,11 +20,12 @@ from repetrel_host.errors import ControllerError, HostError, JobError, LinkError
 from repetrel_host.job import HostAction, JobItem, JobLine
 from repetrel_host.link import open_link
 from repetrel_host.protocol import replies
-from repetrel_host.protocol.host import (
+from repetrel_host.protocol.dialect import Dialect as HostProtocol
+from repetrel_host.protocol.events import (
     ControllerMessage,
     ControllerReady,
     Failed,
-    HostProtocol,
+    FailureKind,
     LineAcknowledged,
     Notice,
     ResendRequested,
@@ -289,9 +290,9 @@ class Sender(asyncio.Protocol):
 def _failure_error(event: Failed) -> HostError:
     where = f" (at {event.tag.position})" if isinstance(event.tag, JobLine) else ""
     reason = event.reason + where
-    if event.kind == "controller":
+    if event.kind in (FailureKind.CONTROLLER, FailureKind.RESET):
         return ControllerError(reason)
-    if event.kind == "timeout":
+    if event.kind is FailureKind.TIMEOUT:
         return LinkError(reason)
     return ProtocolError(reason)
 

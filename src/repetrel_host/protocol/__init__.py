@@ -1,29 +1,39 @@
-"""The pure protocol core: framing, reply classification, host and controller state machines."""
+"""The pure protocol core: framing, replies, events, the state parts, and dialects."""
 
-from repetrel_host.protocol.framing import checksum, clean_line, frame
-from repetrel_host.protocol.host import (
+from repetrel_host.protocol.dialect import Dialect, Statistics
+from repetrel_host.protocol.dialects import create_dialect
+from repetrel_host.protocol.dialects.reprap import RepRapDialect
+from repetrel_host.protocol.events import (
     ControllerMessage,
     ControllerReady,
     Event,
     Failed,
-    FlowControl,
-    FlowMode,
-    HostProtocol,
+    FailureKind,
     LineAcknowledged,
+    Notice,
+    ProbeKind,
     ResendRequested,
 )
+from repetrel_host.protocol.flow import FlowControl, FlowMode
+from repetrel_host.protocol.framing import checksum, clean_line, frame
 
 __all__ = [
     "ControllerMessage",
     "ControllerReady",
+    "Dialect",
     "Event",
     "Failed",
+    "FailureKind",
     "FlowControl",
     "FlowMode",
-    "HostProtocol",
     "LineAcknowledged",
+    "Notice",
+    "ProbeKind",
+    "RepRapDialect",
     "ResendRequested",
+    "Statistics",
     "checksum",
     "clean_line",
+    "create_dialect",
     "frame",
 ]

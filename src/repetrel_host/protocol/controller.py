@@ -4,6 +4,11 @@ Marlin's rules and reply strings (PROTOCOL-NOTES.md section 2): a numbered line
 must be the last number plus one (except M110, which sets it), and must carry
 a matching checksum; otherwise the controller answers ``Error:...``,
 ``Resend: <last + 1>`` and ``ok``, and executes nothing.
+
+``counted_resend`` answers as OctoPrint's virtual printer does instead: the
+checksum is checked first, every line with a valid one is counted (resent and
+out-of-sequence lines too), and a bad checksum draws ``Resend:`` for that count
+plus one, which also becomes the controller's own idea of the last line.
 """
 
 from __future__ import annotations
@@ -46,16 +51,23 @@ class ControllerProtocol:
     ``drop_duplicates``: ignore, without a reply, a line numbered ``last_line`` or one
     less (a resent duplicate), as newer Marlin does. Unlike Marlin, a line with two
     ``*`` is refused: it is two lines run together by a lost newline, and one checksum
-    in 256 would let it through.
+    in 256 would let it through. ``counted_resend``: see the module's docstring.
     """
 
-    def __init__(self, drop_duplicates: bool = False) -> None:
+    def __init__(self, drop_duplicates: bool = False, counted_resend: bool = False) -> None:
         self.last_line = 0
         self.drop_duplicates = drop_duplicates
         self.duplicates_dropped = 0
+        self.counted_resend = counted_resend
+        self.received = 0  # lines with a valid checksum (counted_resend)
 
-    def handle_line(self, raw: bytes) -> LineOutcome:
-        """Check one received line (without its ``\\n``)."""
+    def handle_line(self, raw: bytes, drop: bool = False) -> LineOutcome:
+        """Check one received line (without its ``\\n``).
+
+        ``drop``: a line that passes is refused anyway with only ``Error: No Line
+        Number with checksum, Last Line: <n>``: no resend request, no ok (as OctoPrint's
+        virtual printer does at its line 110).
+        """
         line = raw.split(b";", 1)[0].strip()
         if not line:
             return Ignored()
@@ -71,6 +83,8 @@ class ControllerProtocol:
         command = _text(body)
         is_m110 = body.upper().startswith(b"M110")
         number = int(match.group(1))
+        if self.counted_resend:
+            return self._counted(line, star, number, is_m110, command, drop)
         if is_m110:
             # Marlin reads the N that follows M110, if there is one.
             second = _NUMBER.search(body, 4)
@@ -91,13 +105,50 @@ class ControllerProtocol:
             return self._reject("checksum mismatch")
         if checksum(line[:star]) != expected:
             return self._reject("checksum mismatch")
+        if drop and not is_m110:
+            return self._drop()
         self.last_line = number
         return Accepted(command, number)
+
+    def _counted(
+        self, line: bytes, star: int, number: int, is_m110: bool, command: str, drop: bool
+    ) -> LineOutcome:
+        if not _checksum_fits(line, star):
+            self.last_line = self.received
+            return Rejected(
+                "checksum mismatch",
+                f"Error: Checksum mismatch\nResend:{self.received + 1}\nok\n".encode("ascii"),
+            )
+        self.received += 1
+        if is_m110:
+            self.last_line = self.received = number
+            return Accepted(command, number)
+        expected = self.last_line + 1
+        if number != expected:
+            reply = f"Error: expected line {expected} got {number}\nResend:{expected}\nok\n"
+            return Rejected("line number", reply.encode("ascii"))
+        if drop:
+            return self._drop()
+        self.last_line = number
+        return Accepted(command, number)
+
+    def _drop(self) -> Rejected:
+        reply = f"Error: No Line Number with checksum, Last Line: {self.last_line}\n"
+        return Rejected("dropped", reply.encode("ascii"))
 
     def _reject(self, reason: str) -> Rejected:
         last = self.last_line
         reply = f"Error:{reason}, Last Line: {last}\nResend: {last + 1}\nok\n".encode("ascii")
         return Rejected(reason, reply)
+
+
+def _checksum_fits(line: bytes, star: int) -> bool:
+    if star < 0 or line.count(b"*") > 1:
+        return False
+    try:
+        return checksum(line[:star]) == int(line[star + 1 :])
+    except ValueError:
+        return False
 
 
 def _text(data: bytes) -> str:

@@ -76,7 +76,8 @@ _RESEND = re.compile(r"^(?:resend|rs)\s*:?\s*N?\s*(\d+)\s*$", re.IGNORECASE)
 _ADVANCED_OK = re.compile(r"^N(\d+)\s+P(\d+)\s+B(\d+)")
 _HYREL = re.compile(r"^>([A-Za-z]{2}):\s?(.*)$")
 # Marlin's errors about a line's framing: answered by a Resend, not fatal.
-_LINE_ERRORS = ("checksum", "line number", "last line", "no line number", "format error")
+# OctoPrint's virtual printer says "expected line <n> got <m>".
+_LINE_ERRORS = ("checksum", "line number", "last line", "format error", "expected line")
 
 
 def classify(line: str) -> Reply:

@@ -1,7 +1,8 @@
-"""Host protocol against the simulated controller in memory, on simulated time.
+"""The pump against the simulated controller in memory, on simulated time.
 
 No pty, no clock: a 20,000-line job runs in a second, deterministically, so
-tests can try many seeds of line corruption and both flow modes.
+tests can try many seeds of line corruption and both flow modes. The framed
+preview (``hyrel-send --dry-run --framed``) is the same exchange without faults.
 """
 
 from __future__ import annotations
@@ -9,13 +10,11 @@ from __future__ import annotations
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 
-from repetrel_host.protocol.host import (
-    Event,
-    Failed,
-    FlowControl,
-    HostProtocol,
-    LineAcknowledged,
-)
+from repetrel_host.job import JobLine
+from repetrel_host.protocol.dialects.reprap import RepRapDialect
+from repetrel_host.protocol.events import Failed, ProbeKind
+from repetrel_host.protocol.flow import FlowControl
+from repetrel_host.pump import Listener, Pump, Run
 from repetrel_host.testing.simulator import ControllerSettings, ControllerSimulator, Overflow
 
 # The smallest step of simulated time when nothing is scheduled.
@@ -26,12 +25,32 @@ _STUCK_LIMIT = 10_000  # steps of simulated time that get nowhere
 @dataclass
 class LoopbackResult:
     executed: list[str]  # what the controller executed, host M110 lines left out
-    acknowledged: list[int]  # tags of acknowledged lines, in order
-    events: list[Event] = field(repr=False)
+    acknowledged: list[int]  # indexes (from 0) of acknowledged commands, in order
     failure: Failed | None
     seconds: float  # simulated time
-    host: HostProtocol = field(repr=False)
+    host: RepRapDialect = field(repr=False)
     controller: ControllerSimulator = field(repr=False)
+    run: Run = field(repr=False)
+
+
+class _Recorder(Listener):
+    def __init__(self, record: bool) -> None:
+        self.record = record
+        self.indexes: list[int] = []
+        self.failure: Failed | None = None
+
+    def acknowledged(self, line: JobLine) -> None:
+        if self.record:
+            self.indexes.append(line.index - 1)
+
+    def failed(self, failure: Failed) -> None:
+        self.failure = failure
+
+
+def job_lines(commands: Iterable[str]) -> Iterator[JobLine]:
+    """Commands as job lines, numbered from 1 (the first command is line 1)."""
+    for index, command in enumerate(commands, start=1):
+        yield JobLine(index, index, command, index, "job")
 
 
 def run_loopback(
@@ -40,90 +59,74 @@ def run_loopback(
     settings: ControllerSettings | None = None,
     *,
     line_number_limit: int | None = None,
+    probe: ProbeKind | None = None,
     time_limit: float = 36_000.0,
     record: bool = True,
 ) -> LoopbackResult:
-    """Stream ``commands`` (tagged with their index) until confirmed, failed or ``time_limit``.
+    """Stream ``commands`` until confirmed, failed or ``time_limit``.
 
-    ``record=False`` keeps no events and no acknowledgements (for million-line soaks).
+    ``record=False`` keeps no acknowledgements (for million-line soaks). ``probe``
+    None lets the greeting find out how to probe, as a real connection does.
     """
     host = (
-        HostProtocol(flow)
+        RepRapDialect(flow, probe=probe)
         if line_number_limit is None
-        else HostProtocol(flow, line_number_limit=line_number_limit)
+        else RepRapDialect(flow, line_number_limit=line_number_limit, probe=probe)
     )
     controller = ControllerSimulator(settings)
-    events: list[Event] = []
-    acknowledged: list[int] = []
+    recorder = _Recorder(record)
+    pump = Pump(host, recorder)
+    run = Run(job_lines(commands))
+    pump.begin(run)
     now = 0.0
-    host.start(now)
-    fed = 0
     stuck = 0
-    wire = bytearray()  # written by the host, not yet taken by a controller that pushes back
+    wire = bytearray(pump.start(now))  # written by the host, not yet taken by the controller
     block = controller.settings.overflow is Overflow.BLOCK
-    while now < time_limit:
-        host.handle_timeout(now)
-        while host.wants_lines and fed < len(commands):
-            host.send(commands[fed], fed)
-            fed += 1
-        if fed == len(commands):
-            host.request_sync()
-        sent = host.data_to_send(now)
+    while now < time_limit and not run.finished:
+        pump.timeout(now)
+        sent = pump.poke(now)
         wire += sent
         taken = min(len(wire), controller.room()) if block else len(wire)
         controller.receive(bytes(wire[:taken]), now)
         del wire[:taken]
         controller.advance(now)
         received = controller.take_output(now)
-        host.receive_data(received, now)
-        while (event := host.next_event()) is not None:
-            if not record:  # long soaks: keep only what the verdict needs
-                continue
-            events.append(event)
-            if isinstance(event, LineAcknowledged) and isinstance(event.tag, int):
-                acknowledged.append(event.tag)
-        if host.failure is not None or (fed == len(commands) and host.is_done):
-            break
+        pump.receive(received, now)
         if sent or received:
             continue  # let each side answer at the same instant, as the real pump does
-        upcoming = [t for t in (controller.next_wakeup(), host.next_deadline()) if t is not None]
+        upcoming = [t for t in (controller.next_wakeup(), pump.deadline) if t is not None]
         previous, now = now, max(min(upcoming), now + 1e-9) if upcoming else now + _TICK
         stuck = stuck + 1 if now - previous < 1e-6 else 0
         if stuck > _STUCK_LIMIT:
             raise AssertionError(f"no progress at t={now}: a deadline that nothing moves")
     executed = [c for c in controller.executed if not c.startswith("M110")]
-    return LoopbackResult(executed, acknowledged, events, host.failure, now, host, controller)
+    return LoopbackResult(executed, recorder.indexes, recorder.failure, now, host, controller, run)
 
 
 def wire_preview(commands: Iterable[str], flow: FlowControl | None = None) -> Iterator[bytes]:
     """The bytes a clean exchange with a Marlin-style controller puts on the wire, lazily.
 
-    Used by ``hyrel-send --dry-run --framed``: the host core drives a simulated
-    controller without faults, so the greeting, pings and any renumbering show.
+    Used by ``hyrel-send --dry-run --framed``: the pump drives a simulated
+    controller without faults, so the greeting, probes and any renumbering show.
     """
-    host = HostProtocol(flow)
     controller = ControllerSimulator(ControllerSettings(banner=False))
-    clock = [0.0]
-    host.start(0.0)
-
-    def exchange() -> Iterator[bytes]:
-        while True:
-            now = clock[0]
-            sent = host.data_to_send(now)
-            if sent:
-                yield sent
-            controller.receive(sent, now)
-            controller.advance(now)
-            received = controller.take_output(now)
-            host.receive_data(received, now)
-            if not sent and not received:
-                wakeup = controller.next_wakeup()  # a dwell still running
-                if wakeup is None:
-                    return
-                clock[0] = max(wakeup, now)
-
-    for command in commands:
-        host.send(command)
-        yield from exchange()
-    host.request_sync()
-    yield from exchange()
+    pump = Pump(RepRapDialect(flow))
+    run = Run(job_lines(commands))
+    pump.begin(run)
+    now = 0.0
+    sent = pump.start(now)
+    while True:
+        if sent:
+            yield sent
+        controller.receive(sent, now)
+        controller.advance(now)
+        received = controller.take_output(now)
+        pump.receive(received, now)
+        if run.finished:
+            return
+        sent = pump.poke(now)
+        if not sent and not received:
+            wakeup = controller.next_wakeup()  # a dwell still running
+            if wakeup is None:
+                return
+            now = max(wakeup, now)

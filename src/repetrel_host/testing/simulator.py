@@ -51,6 +51,12 @@ class Faults:
     resend_without_ok: bool = False  # line errors end without their ok (some Marlin 2.0.x)
     flush_on_error: bool = False  # a line error empties the receive buffer (Marlin)
     drop_duplicates: bool = False  # a resent line already accepted gets no reply (newer Marlin)
+    # OctoPrint's virtual printer: a bad checksum draws "Resend:" for a count of every
+    # valid line received (resent ones included), and no error states "Last Line".
+    counted_resend: bool = False
+    # Lines dropped with only "Error: No Line Number with checksum, Last Line: <n>":
+    # no resend request, no ok.
+    drop_with_error: float = 0.0
     busy_interval: float | None = None  # "echo:busy: processing" while a command blocks
     seed: int = 0
 
@@ -103,6 +109,7 @@ class FaultCounts:
     duplicated_oks: int = 0
     spurious_resends: int = 0
     flushed_bytes: int = 0
+    dropped_with_error: int = 0
 
 
 @dataclass(slots=True)
@@ -146,7 +153,7 @@ class ControllerSimulator:
         self.settings = settings or ControllerSettings()
         self.faults = self.settings.faults
         self._rng = random.Random(self.faults.seed)
-        self.protocol = ControllerProtocol(drop_duplicates=self.faults.drop_duplicates)
+        self.protocol = self._new_protocol()
         self.executed: list[str] = []
         self._on_execute = on_execute or self.executed.append
         self.counts = FaultCounts()
@@ -310,7 +317,8 @@ class ControllerSimulator:
             del self._rx[: end + 1]
             raw = bytes(self._line).rstrip(b"\r")
             self._line.clear()
-            outcome = self.protocol.handle_line(raw)
+            drop = self._chance(self.faults.drop_with_error)
+            outcome = self.protocol.handle_line(raw, drop)
             if isinstance(outcome, Accepted):
                 command = outcome.command
                 word = command_word(command)
@@ -318,8 +326,10 @@ class ControllerSimulator:
                 self._queue.append(_Command(command, word, outcome.number))
             elif isinstance(outcome, Rejected):
                 self._reply(outcome.reply.removesuffix(b"ok\n"), now)
-                if not self.faults.resend_without_ok:
+                if outcome.reply.endswith(b"ok\n") and not self.faults.resend_without_ok:
                     self._ok(b"ok\n", now)
+                if outcome.reason == "dropped":
+                    self.counts.dropped_with_error += 1
                 if self.faults.flush_on_error:
                     self.counts.flushed_bytes += len(self._rx)
                     self._rx.clear()
@@ -411,6 +421,7 @@ class ControllerSimulator:
         if verb == "set":
             self.faults = Faults.parse(argument, self.faults)
             self.protocol.drop_duplicates = self.faults.drop_duplicates
+            self.protocol.counted_resend = self.faults.counted_resend
         elif verb == "reset":
             self._reboot(now)
             return
@@ -421,8 +432,12 @@ class ControllerSimulator:
             self.link_drop_requested = float(argument or 1.0)
         self._ok(b"ok\n", now)
 
+    def _new_protocol(self) -> ControllerProtocol:
+        faults = self.faults
+        return ControllerProtocol(faults.drop_duplicates, faults.counted_resend)
+
     def _reboot(self, now: float) -> None:
-        self.protocol = ControllerProtocol(drop_duplicates=self.faults.drop_duplicates)
+        self.protocol = self._new_protocol()
         self._queue.clear()
         self._planner.clear()
         self._rx.clear()

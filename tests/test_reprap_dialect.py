@@ -1,27 +1,26 @@
-"""HostProtocol, byte for byte, with replies written by hand from Marlin's strings."""
+"""The RepRap dialect, byte for byte, with replies written by hand from Marlin's strings."""
 
 from itertools import product
 
 import pytest
 
-from repetrel_host.errors import ProtocolError
+from repetrel_host.errors import UsageError
 from repetrel_host.protocol.controller import Accepted, ControllerProtocol
-from repetrel_host.protocol.framing import checksum, frame
-from repetrel_host.protocol.host import (
-    HELLO_ATTEMPTS,
-    HELLO_TIMEOUT,
-    MIN_RTO,
+from repetrel_host.protocol.dialects.reprap import HELLO_ATTEMPTS, HELLO_TIMEOUT, RepRapDialect
+from repetrel_host.protocol.events import (
     ControllerMessage,
     ControllerReady,
     Event,
     Failed,
-    FlowControl,
-    FlowMode,
-    HostProtocol,
+    FailureKind,
     LineAcknowledged,
     Notice,
+    ProbeKind,
     ResendRequested,
 )
+from repetrel_host.protocol.flow import FlowControl, FlowMode
+from repetrel_host.protocol.framing import checksum, frame
+from repetrel_host.protocol.rtt import MIN_RTO
 
 HELLO = b"N0 M110 N0*125\n"
 
@@ -42,23 +41,31 @@ def ping_reply(number: int, trailing_ok: bool = True) -> bytes:
     return f"Error:checksum mismatch, Last Line: {number - 1}\nResend: {number}\n".encode() + ok
 
 
-def events(host: HostProtocol) -> list[Event]:
+def dialect(flow: FlowControl | None = None, **kwargs: object) -> RepRapDialect:
+    """A dialect that probes with checksum probes, without the greeting's check
+    (tested on its own below)."""
+    return RepRapDialect(flow, probe=ProbeKind.CHECKSUM, **kwargs)  # type: ignore[arg-type]
+
+
+def events(host: RepRapDialect) -> list[Event]:
     out = []
     while (event := host.next_event()) is not None:
         out.append(event)
     return out
 
 
-def greeted(flow: FlowControl | None = None, **kwargs: object) -> HostProtocol:
-    host = HostProtocol(flow, **kwargs)  # type: ignore[arg-type]
+def greeted(flow: FlowControl | None = None, **kwargs: object) -> RepRapDialect:
+    host = dialect(flow, **kwargs)
     host.start(0.0)
     assert host.data_to_send(0.0) == HELLO + ping(1)
     host.receive_data(b"ok\n" + ping_reply(1), 0.0)
-    assert [e for e in events(host) if not isinstance(e, ControllerMessage)] == [ControllerReady()]
+    assert [e for e in events(host) if not isinstance(e, ControllerMessage)] == [
+        ControllerReady(ProbeKind.CHECKSUM)
+    ]
     return host
 
 
-def acked(host: HostProtocol) -> list[int]:
+def acked(host: RepRapDialect) -> list[int]:
     return [e.number for e in events(host) if isinstance(e, LineAcknowledged)]
 
 
@@ -74,14 +81,14 @@ def test_the_ping_never_runs_whatever_single_byte_changes() -> None:
 
 
 def test_greeting_waits_for_the_ping_answer() -> None:
-    host = HostProtocol()
+    host = dialect()
     host.send("G28", "a")
     host.start(0.0)
     assert host.data_to_send(0.0) == HELLO + ping(1)
     host.receive_data(b"start\n", 0.1)  # a boot banner is not an answer
     assert host.data_to_send(0.1) == b""
     host.receive_data(b"ok\n" + ping_reply(1, trailing_ok=False), 0.2)
-    assert ControllerReady() in events(host)
+    assert ControllerReady(ProbeKind.CHECKSUM) in events(host)
     assert host.data_to_send(0.2) == b"N1 G28*18\n"
 
 
@@ -164,13 +171,19 @@ def test_a_final_line_whose_ok_was_faked_by_a_duplicate_is_not_lost() -> None:
     host.receive_data(b"Error:checksum mismatch, Last Line: 1\nResend: 2\nok\n", 0.0)
     assert not host.is_done
     assert host.data_to_send(0.0) == b"N2 G1 X1*99\n"
+    # The ping's own answer: it cannot be told from line 2's (the duplicated ok moved
+    # the count), so line 2 goes once more; the controller refuses the duplicate.
     host.receive_data(
         b"Error:Line Number is not Last Line Number+1, Last Line: 1\nResend: 2\n", 0.0
     )
-    host.receive_data(b"ok\nok\n", 0.0)  # the ping's echo's ok, then line 2's
-    assert host.data_to_send(0.0) == ping(3)
-    host.receive_data(ping_reply(3), 0.0)
-    assert host.is_done
+    host.receive_data(b"ok\nok\n", 0.0)  # the ping's answer's ok, then line 2's
+    assert host.data_to_send(0.0) == b"N2 G1 X1*99\n"
+    assert not host.is_done
+    host.receive_data(
+        b"Error:Line Number is not Last Line Number+1, Last Line: 2\nResend: 3\nok\n", 0.0
+    )
+    assert host.is_done  # "Last Line: 2" confirms it
+    assert host.data_to_send(0.0) == b""
 
 
 def test_resend_goes_back_and_absorbs_the_storm() -> None:
@@ -229,7 +242,7 @@ def test_resend_of_a_line_not_held_stops_when_it_is_repeated() -> None:
     assert host.failure is None  # once could be a garbled number
     host.receive_data(b"Resend: 77\n", 0.0)
     failure = host.failure
-    assert failure is not None and failure.kind == "protocol"
+    assert failure is not None and failure.kind is FailureKind.PROTOCOL
     assert "77" in failure.reason
     host.send("G28", 1)
     assert host.data_to_send(0.0) == b""
@@ -269,7 +282,7 @@ def test_reset_mid_job_stops_at_once_and_never_resends() -> None:
     got = events(host)
     assert [type(e) for e in got] == [LineAcknowledged, Failed]
     failure = host.failure
-    assert failure is not None and failure.kind == "controller"
+    assert failure is not None and failure.kind is FailureKind.RESET
     assert "reset" in failure.reason
     assert failure.tag == 1  # the oldest line not acknowledged
     assert host.data_to_send(0.0) == b""
@@ -346,7 +359,7 @@ def test_a_silent_controller_fails_after_the_reply_timeout() -> None:
         now = deadline
         host.handle_timeout(now)
         host.data_to_send(now)
-    assert host.failure is not None and host.failure.kind == "timeout"
+    assert host.failure is not None and host.failure.kind is FailureKind.TIMEOUT
     assert 3.0 <= now < 4.0
 
 
@@ -376,7 +389,7 @@ def test_busy_keepalives_hold_the_pings_back() -> None:
 
 
 def test_opening_line_is_repeated_when_unanswered() -> None:
-    host = HostProtocol()
+    host = dialect()
     host.start(0.0)
     now = 0.0
     for attempt in range(HELLO_ATTEMPTS):
@@ -407,9 +420,9 @@ def test_replies_split_across_reads() -> None:
 
 @pytest.mark.parametrize("command", ["M110 N5", "m110", "M110N0", "M0110 N1"])
 def test_m110_cannot_be_queued(command: str) -> None:
-    with pytest.raises(ProtocolError):
-        HostProtocol().send(command)
-    HostProtocol().send("M1100")  # another code
+    with pytest.raises(UsageError):
+        dialect().send(command)
+    dialect().send("M1100")  # another code
 
 
 def test_a_line_acknowledged_again_after_a_resend_is_reported_once() -> None:
@@ -429,16 +442,145 @@ def test_a_line_acknowledged_again_after_a_resend_is_reported_once() -> None:
 
 
 def test_a_late_answer_to_an_earlier_greeting_is_not_taken_for_the_last() -> None:
-    host = HostProtocol()
+    host = dialect()
     host.start(0.0)
     host.data_to_send(0.0)
     host.handle_timeout(HELLO_TIMEOUT)  # no answer: greet again, with other numbers
     assert host.data_to_send(HELLO_TIMEOUT) == frame(1, "M110 N1") + ping(2)
     # The first greeting's answers arrive late; an M110 may still be on its way.
     host.receive_data(b"ok\n" + ping_reply(1), 2.1)
-    assert ControllerReady() not in events(host)
+    assert ControllerReady(ProbeKind.CHECKSUM) not in events(host)
     host.send("G28", 0)
     assert host.data_to_send(2.1) == b""
     host.receive_data(b"ok\n" + ping_reply(2), 2.2)
-    assert ControllerReady() in events(host)
+    assert ControllerReady(ProbeKind.CHECKSUM) in events(host)
     assert host.data_to_send(2.2) == frame(2, "G28")
+
+
+# --- the greeting's check, and controllers that count lines their own way -------------
+
+GAP = b"N2 M105*37\n"  # line 1 left out on purpose
+OCTOPRINT_TEMPERATURES = b"ok T:21.30 /0.00 B:21.30 /0.00 @:64\n"
+
+
+def test_the_greeting_checks_that_a_bad_checksum_names_the_missing_line() -> None:
+    host = RepRapDialect()
+    host.start(0.0)
+    assert host.data_to_send(0.0) == HELLO + ping(1)
+    host.receive_data(b"ok\n" + ping_reply(1), 0.0)
+    assert host.data_to_send(0.0) == GAP
+    host.receive_data(
+        b"Error:Line Number is not Last Line Number+1, Last Line: 0\nResend: 1\nok\n", 0.0
+    )
+    assert host.data_to_send(0.0) == ping(1)  # a consistent controller asks for 1 again
+    host.receive_data(ping_reply(1), 0.0)
+    assert ControllerReady(ProbeKind.CHECKSUM) in events(host)
+    host.send("G28", 0)
+    assert host.data_to_send(0.0) == b"N1 G28*18\n"
+
+
+def test_a_controller_counting_every_valid_line_is_probed_with_m105_lines() -> None:
+    # OctoPrint's virtual printer: a bad checksum draws "Resend:" for a count of every
+    # line with a valid checksum, and it takes that line for received.
+    host = RepRapDialect()
+    host.start(0.0)
+    host.data_to_send(0.0)
+    host.receive_data(b"ok\nError: Missing checksum\nResend:1\nok\n", 0.0)
+    assert host.data_to_send(0.0) == GAP
+    host.receive_data(b"Error: expected line 1 got 2\nResend:1\nok\n", 0.0)
+    assert host.data_to_send(0.0) == ping(1)
+    host.receive_data(b"Error: Missing checksum\nResend:2\nok\n", 0.0)  # never sent
+    notices = [e for e in events(host) if isinstance(e, Notice)]
+    assert len(notices) == 1 and "M105" in notices[0].text
+    # Renumbered, and confirmed by a probe that runs.
+    assert host.data_to_send(0.0) == frame(1, "M110 N1") + frame(2, "M105")
+    host.receive_data(b"ok\n" + OCTOPRINT_TEMPERATURES, 0.0)
+    assert ControllerReady(ProbeKind.COMMAND) in events(host)
+    host.send("G28", 0)
+    host.send("G1 X1", 1)
+    host.request_sync()
+    assert host.data_to_send(0.0) == frame(3, "G28") + frame(4, "G1 X1")
+    host.receive_data(b"ok\nok\n", 0.0)
+    assert not host.is_done
+    assert host.data_to_send(0.0) == frame(5, "M105")
+    host.receive_data(OCTOPRINT_TEMPERATURES, 0.0)
+    assert host.is_done
+    assert acked(host) == [3, 4]  # the probes are the host's own lines
+
+
+def command_probing() -> RepRapDialect:
+    host = RepRapDialect(FlowControl(FlowMode.UNBUFFERED), probe=ProbeKind.COMMAND)
+    host.start(0.0)
+    assert host.data_to_send(0.0) == HELLO + frame(1, "M105")
+    host.receive_data(b"ok\n" + OCTOPRINT_TEMPERATURES, 0.001)
+    assert ControllerReady(ProbeKind.COMMAND) in events(host)
+    return host
+
+
+def test_only_an_ok_with_temperatures_answers_a_command_probe() -> None:
+    host = command_probing()
+    host.send("G1 X1", 0)
+    host.request_sync()
+    assert host.data_to_send(0.01) == frame(2, "G1 X1")
+    host.receive_data(b"ok\n", 0.011)
+    assert host.data_to_send(0.011) == frame(3, "M105")
+    host.receive_data(b"ok\n", 0.012)  # a duplicated ok: not the probe's answer
+    assert not host.is_done
+    host.receive_data(OCTOPRINT_TEMPERATURES, 0.013)
+    assert host.is_done
+
+
+def test_a_command_probe_answer_is_found_behind_lost_oks() -> None:
+    host = command_probing()
+    host.send("G1 X1", 0)
+    assert host.data_to_send(0.01) == frame(2, "G1 X1")
+    # Line 2's ok is lost: after a timeout the host probes; the probe's answer settles it.
+    deadline = host.next_deadline()
+    assert deadline is not None
+    host.handle_timeout(deadline)
+    assert host.data_to_send(deadline) == frame(3, "M105")
+    host.receive_data(OCTOPRINT_TEMPERATURES, deadline + 0.002)
+    assert acked(host) == [2]
+    host.send("G1 X2", 1)
+    assert host.data_to_send(deadline + 0.002) == frame(4, "G1 X2")
+
+
+def test_a_line_dropped_without_a_resend_request_is_probed_for_within_a_round_trip() -> None:
+    # OctoPrint's virtual printer drops a line with only this error: no resend, no ok.
+    host = greeted(FlowControl(FlowMode.UNBUFFERED))
+    host.send("G1 X1", 0)
+    host.send("G1 X2", 1)
+    host.data_to_send(1.0)
+    host.receive_data(b"ok\n", 1.002)
+    assert host.data_to_send(1.002) == frame(2, "G1 X2")
+    host.receive_data(b"Error: No Line Number with checksum, Last Line: 1\n", 1.004)
+    deadline = host.next_deadline()
+    assert deadline is not None and deadline <= 1.004 + host.retransmission_timeout
+    host.handle_timeout(deadline)
+    assert host.data_to_send(deadline) == ping(3)
+    host.receive_data(
+        b"Error:Line Number is not Last Line Number+1, Last Line: 1\nResend: 2\n", 1.1
+    )
+    assert host.data_to_send(1.1) == frame(2, "G1 X2")
+    host.receive_data(b"ok\n", 1.102)
+    assert acked(host) == [1, 2]
+
+
+def test_a_probe_after_a_stall_never_repeats_the_greetings_probe() -> None:
+    host = greeted(FlowControl(FlowMode.UNBUFFERED))
+    now = 1.0
+    for i in range(5):
+        host.send(f"G1 X{i}", i)
+        host.data_to_send(now)
+        now += 0.002
+        host.receive_data(b"ok\n", now)
+    host.request_sync()
+    assert host.data_to_send(now) == ping(6)
+    sent = []
+    for _ in range(3):  # the answers are lost
+        deadline = host.next_deadline()
+        assert deadline is not None
+        host.handle_timeout(deadline)
+        sent.append(host.data_to_send(deadline))
+    assert ping(1) not in sent  # the greeting's probe, N1 M105 S0*9999
+    assert sent == [ping(6)] * 3

@@ -1,0 +1,834 @@
+"""The RepRap/Marlin line protocol as a dialect (pure: no I/O, no clock).
+
+Why no line is lost or run twice
+--------------------------------
+The controller executes a numbered line only when its number is the previous
+one plus one and its checksum matches, so a line can never run twice, and a
+gap is always noticed. The host keeps every line the controller may still ask
+for and answers ``Resend: n`` by sending ``n`` and what follows again (go-back-N).
+
+A plain ``ok`` does not say which line it answers, and real links drop,
+duplicate and garble replies; counting oks is therefore only used for flow
+control and progress. Where it matters (the end of a job, a renumbering, a
+host action, a stall) the host *probes*: it sends ``N<next> M105 S<k>*9999``, a
+line whose checksum is wrong on purpose and stays wrong under any one-byte
+corruption, so it never runs. Marlin answers it with ``Error:checksum mismatch,
+Last Line: <next - 1>`` and ``Resend: <next>`` exactly when it has accepted
+every line before it; any other state draws a resend request for the first
+missing line. Since nothing is sent after a probe until it is answered, its
+answer also settles every reply still owed.
+
+Not every controller answers a bad checksum that way: OctoPrint's virtual
+printer, for one, names a line counted from every valid line it received,
+resent ones included, and moves its own idea of the last line to match. The
+greeting finds out, before any job line: after M110 and a first probe, it sends
+a line with a deliberate gap in the numbering (refused: every controller asks
+for the missing line) and probes again. A consistent controller asks for the
+same line both times. One that does not is renumbered and probed from then on
+with ``N<next> M105*<cs>``, a real line that every firmware accepts only once it
+holds every line before it, and answers with ``ok T:...``.
+
+The state lives in small parts, each with one job: :class:`History` (numbering
+and the lines that may be asked for again), :class:`Window` (what is in flight),
+:class:`RoundTrip` (timeouts), :class:`ResendGuard` (which requests to obey) and
+:class:`_Probing`; the phase is explicit (:class:`Phase`).
+"""
+
+from __future__ import annotations
+
+import re
+from collections import deque
+from enum import Enum
+
+from repetrel_host.errors import UsageError
+from repetrel_host.gcode.commands import UNBUFFERED, command_word
+from repetrel_host.protocol import replies
+from repetrel_host.protocol.dialect import Statistics
+from repetrel_host.protocol.events import (
+    ControllerMessage,
+    ControllerReady,
+    Event,
+    Failed,
+    FailureKind,
+    LineAcknowledged,
+    Notice,
+    ProbeKind,
+    ResendRequested,
+)
+from repetrel_host.protocol.flow import FlowControl, FlowMode
+from repetrel_host.protocol.framing import checksum, frame, reset_command
+from repetrel_host.protocol.history import History, Line
+from repetrel_host.protocol.resend import RESEND_LOOP_LIMIT, ResendGuard
+from repetrel_host.protocol.rtt import RoundTrip
+from repetrel_host.protocol.window import Transmission, Window
+
+# Marlin and RepRap count line numbers in a C long, Repetier modulo 65536: renumber
+# before 65536 so every firmware agrees on the numbers.
+DEFAULT_LINE_NUMBER_LIMIT = 65535
+# Lines kept behind the last acknowledged one, for resend requests after oks that were
+# counted wrongly (duplicated). Far more than any window plus the drift between probes.
+DEFAULT_HISTORY_MARGIN = 1024
+# Silence that means the controller is gone, while a buffered command waits for its ok.
+DEFAULT_REPLY_TIMEOUT = 30.0
+# A command that waits for the machine (G28, M109...) may stay silent this long
+# before the host probes to find out whether its ok was lost.
+UNBUFFERED_GRACE = 5.0
+# Probes sent in a row without an answer while a long command (G28, M109...) runs,
+# before the host stops adding to that controller's buffer and just waits.
+MAX_UNANSWERED_PINGS = 4
+SLOW_PING_INTERVAL = 20.0  # then one probe this often: a lost answer must not stall for good
+# An error that is not about a line becomes fatal after this long, or this many other
+# replies, without a resend request (Marlin halts and says little more).
+SUSPECT_ERROR_GRACE = 0.2
+SUSPECT_ERROR_LINES = 2
+# Boards that reset when the port opens need about two seconds to boot.
+HELLO_TIMEOUT = 2.0
+HELLO_ATTEMPTS = 10  # a corrupted M110 or a garbled answer costs one timeout
+# The gap line of the greeting's check, sent again when it arrived corrupted.
+GAP_CHECK_ATTEMPTS = 3
+# Warn once when more than this share of lines needed resending (after enough lines).
+RESEND_WARNING_RATIO = 0.10
+RESEND_WARNING_AFTER = 100
+
+# A checksum probe's checksum field. Valid checksums are 0..255; one changed character
+# turns "9999" into 0, 9, 99 or a number above 255, so the probe's body is chosen with
+# a checksum outside {0, 9, 99} and can never become valid.
+_PING_CHECKSUM = b"9999"
+_PING_UNSAFE = frozenset({0, 9, 99})
+_LAST_LINE = re.compile(r"last\s*line:?\s*(-?\d+)", re.IGNORECASE)
+PROBE_COMMAND = "M105"  # harmless everywhere; its ok carries the temperatures
+
+
+class Phase(Enum):
+    IDLE = "idle"  # start() not called yet
+    GREETING = "greeting"  # M110 and a probe in flight: numbering being (re)set
+    GAP_CHECK = "gap check"  # a line with a gap in the numbering, to be refused
+    PROBE_CHECK = "probe check"  # a checksum probe: does it name the same line?
+    RUNNING = "running"
+    FAILED = "failed"
+
+
+_CHECK_PHASES = frozenset({Phase.GAP_CHECK, Phase.PROBE_CHECK})
+
+
+class _Probing:
+    """The probe in flight, if any, and how many went unanswered."""
+
+    __slots__ = ("attempt", "current", "kind", "unanswered")
+
+    def __init__(self, kind: ProbeKind) -> None:
+        self.kind = kind
+        self.current: Transmission | None = None
+        self.attempt = 0  # probes sent since one was last answered
+        self.unanswered = 0  # timeouts in a row while a long command runs
+
+    def answered(self) -> None:
+        self.current = None
+        self.attempt = self.unanswered = 0
+
+    def superseded(self) -> None:
+        """A resend request answers a probe too: its line is now just a stale transmission."""
+        if self.current is not None:
+            self.answered()
+
+
+class RepRapDialect:
+    """Numbering, history, window, go-back-N resend and probes for one RepRap controller.
+
+    ``probe``: how to probe; None finds out at the greeting (see the module's docstring).
+    """
+
+    def __init__(
+        self,
+        flow: FlowControl | None = None,
+        *,
+        line_number_limit: int = DEFAULT_LINE_NUMBER_LIMIT,
+        history_margin: int = DEFAULT_HISTORY_MARGIN,
+        reply_timeout: float = DEFAULT_REPLY_TIMEOUT,
+        probe: ProbeKind | None = None,
+    ) -> None:
+        if line_number_limit < 3:
+            raise ValueError("line_number_limit must be at least 3")
+        self.flow = flow or FlowControl()
+        self.line_number_limit = line_number_limit
+        self.reply_timeout = reply_timeout
+        self.stats = Statistics()
+        self._phase = Phase.IDLE
+        self._history = History(max(history_margin, 4 * self.flow.line_limit))
+        self._window = Window(self.flow)
+        self._rtt = RoundTrip()
+        self._guard = ResendGuard()
+        self._probing = _Probing(probe or ProbeKind.CHECKSUM)
+        self._check_at_greeting = probe is None
+        self._gap_attempts = 0
+        self._greeting_attempts = 0
+        self._greeted = False
+        self._pending: deque[tuple[str, object, bool]] = deque()  # command, tag, unbuffered
+        self._candidate: Line | None = None  # the next new line, framed, not yet numbered
+        self._sync_requested = False
+        self._acked_through = -1  # by counting oks: progress
+        self._confirmed_through = -1  # by the controller's own numbers: exact
+        self._last_received_at = 0.0
+        self._last_sent_at = 0.0
+        self._last_progress_at = 0.0
+        self._previous_reply: replies.Reply | None = None
+        self._trailing_ok_until: float | None = None  # an ok by then ends an error reply
+        self._suspect_error: tuple[str, float] | None = None  # (text, when it becomes fatal)
+        self._suspect_lines = 0
+        self._line_error_at: float | None = None  # a line error no resend request followed
+        self._warned_resends = False
+        self._receive_buffer = bytearray()
+        self._outgoing = bytearray()
+        self._events: deque[Event] = deque()
+        self._failure: Failed | None = None
+
+    # --- feeding ------------------------------------------------------------
+
+    def start(self, now: float) -> None:
+        """Begin: the first line on the wire will be ``N0 M110 N0``."""
+        if self._phase is not Phase.IDLE:
+            raise UsageError("the dialect was already started")
+        self._last_received_at = self._last_sent_at = self._last_progress_at = now
+        self._begin_greeting()
+
+    def send(self, command: str, tag: object = None) -> None:
+        """Queue one clean command (see :func:`clean_line`); ``tag`` comes back in events."""
+        word = command_word(command)
+        if word == "M110":
+            raise UsageError("M110 sets line numbers, which the host owns; it cannot be queued")
+        self._pending.append((command, tag, word in UNBUFFERED))
+        self._sync_requested = False
+
+    def send_urgent(self, command: str) -> None:
+        """Write ``command`` unnumbered, ahead of everything (Marlin's emergency parser
+        reads M112, M108 and M410 as they arrive, whatever the line numbers)."""
+        data = command.encode("ascii") + b"\n"
+        self.stats.bytes_sent += len(data)
+        self._outgoing += data
+
+    def request_sync(self) -> None:
+        """No more lines for now: confirm that the controller accepted every line sent.
+
+        :attr:`is_done` becomes true once it has.
+        """
+        self._sync_requested = True
+
+    def cancel_pending(self) -> list[object]:
+        """Drop queued lines not yet on the wire; return their tags."""
+        dropped = [tag for _, tag, _ in self._pending]
+        self._pending.clear()
+        self._candidate = None
+        return dropped
+
+    @property
+    def wants_lines(self) -> bool:
+        """True when the queue is short enough that a new line could go out soon."""
+        return self._phase is not Phase.FAILED and len(self._pending) < self._window.line_limit
+
+    @property
+    def is_done(self) -> bool:
+        """Every line queued so far is confirmed accepted by the controller itself."""
+        history = self._history
+        return (
+            self._phase is Phase.RUNNING
+            and not self._pending
+            and history.cursor == history.next_number
+            and self._confirmed_through == history.next_number - 1
+            and self._window.live == 0
+        )
+
+    @property
+    def is_ready(self) -> bool:
+        return self._phase is Phase.RUNNING
+
+    @property
+    def probe(self) -> ProbeKind:
+        return self._probing.kind
+
+    @property
+    def phase(self) -> Phase:
+        return self._phase
+
+    @property
+    def failure(self) -> Failed | None:
+        return self._failure
+
+    @property
+    def retransmission_timeout(self) -> float:
+        return self._rtt.rto
+
+    # --- output -------------------------------------------------------------
+
+    def data_to_send(self, now: float) -> bytes:
+        """Bytes to write now: every line the window has room for, or a probe."""
+        while (
+            self._phase is Phase.RUNNING or self._phase is Phase.GREETING
+        ) and self._probing.current is None:
+            line = self._next_line_to_transmit()
+            if line is None:
+                if self._wants_probe():
+                    self._send_probe(now)
+                break
+            if self._phase is Phase.RUNNING and not self._window.has_room(len(line.wire), now):
+                break
+            self._transmit(line, now)
+        data = bytes(self._outgoing)
+        self._outgoing.clear()
+        return data
+
+    def next_event(self) -> Event | None:
+        return self._events.popleft() if self._events else None
+
+    def next_deadline(self) -> float | None:
+        """When :meth:`handle_timeout` wants to be called, or None."""
+        phase = self._phase
+        if phase is Phase.FAILED or phase is Phase.IDLE:
+            return None
+        if self._suspect_error is not None:
+            return self._suspect_error[1]
+        window = self._window
+        if phase is not Phase.RUNNING:
+            return max(self._last_received_at, self._last_sent_at) + HELLO_TIMEOUT
+        probing = self._probing
+        wait = self._rtt.backed_off(probing.unanswered)
+        probe = probing.current
+        if probe is not None:
+            if probing.unanswered >= MAX_UNANSWERED_PINGS and window.waiting_on_unbuffered():
+                # A long command holds the probes back: ask again, but seldom.
+                return probe.sent_at + SLOW_PING_INTERVAL
+            return probe.sent_at + wait
+        # A line error that no resend request followed: the controller dropped the
+        # line without asking for it again. Probe within a round trip, not later.
+        refused = None if self._line_error_at is None else self._line_error_at + self._rtt.rto
+        oldest = window.oldest_live()
+        if oldest is None:
+            if not window.in_flight:
+                return refused
+            # Only stale transmissions left, whose replies may never come (flushed).
+            deadline = max(window.in_flight[-1].sent_at, self._last_progress_at) + wait
+        else:
+            if oldest.line is not None and oldest.line.unbuffered:
+                wait = max(wait, UNBUFFERED_GRACE)
+            deadline = max(oldest.sent_at, self._last_progress_at) + wait
+        return deadline if refused is None else min(deadline, refused)
+
+    def handle_timeout(self, now: float) -> None:
+        deadline = self.next_deadline()
+        if deadline is None or now < deadline:
+            return
+        if self._suspect_error is not None:
+            self._fail_suspect()
+            return
+        window = self._window
+        if self._phase is not Phase.RUNNING:
+            if self._greeting_attempts >= HELLO_ATTEMPTS:
+                self._fail(
+                    FailureKind.TIMEOUT,
+                    "the controller did not answer M110 (line numbering reset)",
+                )
+                return
+            # No answer (the board still booting, a line lost): greet again, with new
+            # numbers; a check that got no answer is given up.
+            self._regreet()
+            return
+        self._line_error_at = None
+        silent = now - self._last_received_at
+        if silent >= self.reply_timeout and not window.waiting_on_unbuffered():
+            self._fail(
+                FailureKind.TIMEOUT,
+                f"no answer from the controller for {silent:.1f} s; it stopped answering",
+            )
+            return
+        # A lost ok (or a lost resend request): ask where the controller stands.
+        self.stats.stalls_recovered += 1
+        probing = self._probing
+        probing.unanswered += 1
+        if probing.current is not None:
+            window.discard(probing.current)
+            probing.current = None
+        self._send_probe(now)
+
+    # --- input --------------------------------------------------------------
+
+    def receive_data(self, data: bytes, now: float) -> None:
+        """Bytes read from the controller."""
+        if not data:
+            return
+        self._last_received_at = now
+        buffer = self._receive_buffer
+        buffer += data
+        start = 0
+        while (end := buffer.find(b"\n", start)) >= 0:
+            line_start, start = start, end + 1
+            if (
+                end - line_start == 2
+                and buffer.startswith(b"ok", line_start)
+                and self._trailing_ok_until is None
+                and self._suspect_error is None
+                and self._phase is Phase.RUNNING
+            ):
+                # A plain ok in a plain state, the bulk of all replies: the same as
+                # the general path below, without decoding and classifying it.
+                self._handle_ok(replies.PLAIN_OK, now)
+                self._previous_reply = replies.PLAIN_OK
+                continue
+            text = buffer[line_start:end].decode("ascii", errors="replace").strip()
+            if text:
+                reply = replies.classify(text)
+                trailing = self._trailing_ok_until
+                self._trailing_ok_until = None  # it must be the very next line
+                if not (trailing is not None and now <= trailing and isinstance(reply, replies.Ok)):
+                    self._handle_reply(reply, text, now)
+                self._previous_reply = reply
+        del buffer[:start]
+
+    # --- replies ------------------------------------------------------------
+
+    def _handle_reply(self, reply: replies.Reply, text: str, now: float) -> None:
+        if self._phase is Phase.FAILED:
+            return
+        if self._suspect_error is not None:
+            if isinstance(reply, replies.Resend):
+                self._suspect_error = None
+            else:
+                self._suspect_lines += 1
+                if self._suspect_lines > SUSPECT_ERROR_LINES:
+                    self._fail_suspect()
+                    return
+        if isinstance(reply, replies.Ok):
+            self._handle_ok(reply, now)
+        elif isinstance(reply, replies.Resend):
+            self._handle_resend(reply.line_number, now)
+        elif isinstance(reply, replies.Start):
+            self._handle_start(text)
+        elif isinstance(reply, replies.Error):
+            if reply.line_error:
+                # An error about a line answers one transmission, the oldest, as each
+                # line refused in a resend storm draws its own; the resend request that
+                # follows (if one does) says which line to send again.
+                self._line_error_at = now
+                if self._window.in_flight:
+                    self._window.drop(self._window.in_flight[0])
+            else:
+                # Fatal, unless a resend request follows: then it was a line error whose
+                # words a garbled newline cut off ("Error:chec" / "ksum mismatch...").
+                self._suspect_error = (reply.text, now + max(SUSPECT_ERROR_GRACE, self._rtt.rto))
+                self._suspect_lines = 0
+        else:
+            if isinstance(reply, replies.Busy):
+                self._last_progress_at = now  # a long command is running: not a lost ok
+            self._events.append(ControllerMessage(reply, text))
+
+    def _handle_ok(self, reply: replies.Ok, now: float) -> None:
+        self._last_progress_at = now
+        window = self._window
+        if not window.in_flight or self._phase in _CHECK_PHASES:
+            # Nothing owed one, or the greeting's check, which only resend requests answer.
+            self.stats.unexpected_oks += 1
+            return
+        if (
+            reply.line_number is not None
+            and reply.line_number < self._history.next_number
+            and self.flow.mode is FlowMode.BUFFERED  # unbuffered means one line in flight
+        ):
+            window.read_through = reply.line_number
+        probe = self._probing.current
+        if probe is not None and probe.line is not None and self._answers_probe(reply, probe):
+            # A command probe's "ok T:...": it ran, so every line before it had.
+            self._probe_answered(probe, probe.number, now)
+            return
+        transmission = window.in_flight[0]
+        if transmission is probe:
+            # Nothing is sent after a probe and a checksum probe draws no plain ok: this
+            # ok is one too many (duplicated, or owed to a line already settled).
+            self.stats.unexpected_oks += 1
+            return
+        window.drop(transmission)
+        line = transmission.line
+        if transmission.stale or line is None:
+            return
+        # Karn: no samples from retransmissions.
+        if not transmission.retransmitted and self._rtt.sample(now - transmission.sent_at):
+            self._probing.unanswered = 0
+        if line.is_host_line:
+            return  # the probe behind an M110 confirms the reset
+        self._acknowledge(line, reply.data)
+
+    def _answers_probe(self, reply: replies.Ok, probe: Transmission) -> bool:
+        """An "ok T:..." answers a command probe unless an M105 ahead of it may draw one:
+        nothing is sent after a probe, and lost oks must not hide its answer."""
+        if "T:" not in reply.data:
+            return False
+        for transmission in self._window.in_flight:
+            if transmission is probe:
+                return True
+            line = transmission.line
+            if line is not None and command_word(line.command) == PROBE_COMMAND:
+                return False
+        return False
+
+    def _handle_resend(self, number: int, now: float) -> None:
+        self._last_progress_at = now
+        self._line_error_at = None
+        previous = self._previous_reply
+        stated_last = _stated_last_line(previous)
+        if stated_last is not None and stated_last + 1 != number:
+            self.stats.ignored_resend_requests += 1  # garbled: the two lines disagree
+            return
+        self._trailing_ok_until = now + self._rtt.trailing_ok_window
+        phase = self._phase
+        if phase is Phase.GAP_CHECK:
+            self._gap_refused(number, previous, now)
+            return
+        if phase is Phase.PROBE_CHECK:
+            self._check_answered(number, previous)
+            return
+        window = self._window
+        probe = self._probing.current
+        if (
+            probe is not None
+            and probe.line is None
+            and number == probe.number
+            and _is_checksum_error(previous)
+        ):
+            self._probe_answered(probe, number - 1, now)
+            return
+        # A resend request without an error line still answers one transmission, the
+        # oldest (a probe too); its ok is part of that answer, not another one.
+        if window.in_flight and not _is_line_error(previous):
+            window.drop(window.in_flight[0])
+        if stated_last is not None and phase is Phase.RUNNING:
+            self._confirm_through(stated_last)  # true whatever line drew it
+        if self._guard.is_echo(number):
+            # An echo of the request being served, from a line that was in transit
+            # when the first came (the resend storm).
+            self.stats.ignored_resend_requests += 1
+            return
+        if phase is Phase.GREETING:
+            # An earlier greeting's answer, or this M110 did not take (corrupted, or
+            # the board still booting): the hello timeout greets again, with new numbers.
+            self.stats.ignored_resend_requests += 1
+            return
+        history = self._history
+        if number == history.next_number:
+            # "Send me the next line": everything sent was accepted.
+            self._mark_in_flight_stale(number, now, expect_echoes=False)
+            history.cursor = number
+            self._probing.superseded()
+            return
+        line = history.get(number)
+        if line is None or line.is_reset:
+            self._unheld_request(number, corroborated=stated_last is not None)
+            return
+        rounds = self._guard.rounds(number)
+        if rounds >= RESEND_LOOP_LIMIT:
+            self._fail(
+                FailureKind.CONTROLLER,
+                f"the controller asked for line {number} ({line.command}) {rounds} times "
+                "in a row; the link is too noisy to go on",
+            )
+            return
+        self.stats.resend_requests += 1
+        self._mark_in_flight_stale(number, now)
+        history.cursor = number
+        self._acked_through = min(self._acked_through, number - 1)
+        self._probing.superseded()
+        self._events.append(ResendRequested(number, line.command, line.tag))
+        self._maybe_warn()
+
+    def _probe_answered(self, probe: Transmission, accepted_through: int, now: float) -> None:
+        """The controller accepted every line through ``accepted_through`` and nothing after."""
+        self._probing.answered()
+        # Every transmission before the probe was answered (replies come in order),
+        # whether or not its ok reached us; none was sent after it.
+        self._window.drop_through(probe)
+        self._guard.echoes = 0
+        self._confirm_through(accepted_through)
+        self._history.cursor = accepted_through + 1
+        if self._phase is not Phase.GREETING:
+            return
+        if self._check_at_greeting:
+            self._check_at_greeting = False  # once per connection
+            self._send_gap_line(now)
+            return
+        self._finish_greeting(accepted_through)
+
+    def _finish_greeting(self, accepted_through: int) -> None:
+        self._phase = Phase.RUNNING
+        self._acked_through = accepted_through
+        if not self._greeted:
+            self._greeted = True
+            self._events.append(ControllerReady(self._probing.kind))
+
+    def _handle_start(self, text: str) -> None:
+        if self._greeted:
+            # Never resend across a reset: the controller lost its queue and state.
+            self._fail(FailureKind.RESET, "the controller reset (it sent 'start')")
+        else:
+            # The boot banner while greeting: the probe (or its timeout) tells the rest.
+            self._events.append(ControllerMessage(replies.Start(), text))
+
+    def _unheld_request(self, number: int, corroborated: bool) -> None:
+        # A garbled number must not stop a job; a real request for a line we no
+        # longer hold must. The controller repeats real requests.
+        history = self._history
+        seen = self._guard.unheld(number)
+        if seen < 2 and not (corroborated and number < history.floor):
+            self.stats.ignored_resend_requests += 1
+            return
+        if number >= history.next_number:
+            reason = (
+                f"the controller asked for line {number}, which the host never sent "
+                f"(it holds lines {history.held()}): the controller counts lines its own "
+                "way; stopping rather than guessing"
+            )
+        else:
+            reason = (
+                f"the controller asked for line {number} again, but the host holds only "
+                f"lines {history.held()}; stopping rather than guessing"
+            )
+        self._fail(FailureKind.PROTOCOL, reason)
+
+    def _maybe_warn(self) -> None:
+        sent = self.stats.lines_sent
+        if (
+            not self._warned_resends
+            and sent >= RESEND_WARNING_AFTER
+            and self.stats.resend_requests > RESEND_WARNING_RATIO * sent
+        ):
+            self._warned_resends = True
+            self._events.append(
+                Notice(
+                    f"{self.stats.resend_requests} resend requests for {sent} lines: "
+                    "the serial link is noisy (check the cable, or lower the baud rate)"
+                )
+            )
+
+    # --- the greeting's check -------------------------------------------------
+
+    def _send_gap_line(self, now: float) -> None:
+        """``N<k+2> M105``, valid but for the number: a consistent controller asks for k+1."""
+        self._phase = Phase.GAP_CHECK
+        number = self._history.next_number + 1
+        self._push(Transmission(None, frame(number, PROBE_COMMAND), now, number))
+
+    def _gap_refused(self, number: int, previous: replies.Reply | None, now: float) -> None:
+        self._window.forget()
+        if number == self._history.next_number and not _is_checksum_error(previous):
+            self._phase = Phase.PROBE_CHECK
+            self._push(Transmission(None, _ping_wire(number), now, number))
+            self.stats.pings += 1
+            return
+        # The gap line arrived corrupted, or the answer was garbled: once more.
+        self._gap_attempts += 1
+        if self._gap_attempts < GAP_CHECK_ATTEMPTS:
+            self._send_gap_line(now)
+        else:
+            self._regreet()
+
+    def _check_answered(self, number: int, previous: replies.Reply | None) -> None:
+        self._window.forget()
+        expected = self._history.next_number
+        if number == expected + 1 and _is_checksum_error(previous):
+            # It named a line it never got, and now takes it for received: renumber,
+            # and from now on probe with lines that run.
+            self._probing.kind = ProbeKind.COMMAND
+            self._events.append(
+                Notice(
+                    "the controller's answer to a bad checksum names a line it never got; "
+                    "probing with numbered M105 lines instead"
+                )
+            )
+            self._regreet()
+            return
+        if number != expected or not _is_checksum_error(previous):
+            self._regreet()  # a garbled answer: no verdict, keep the usual probe
+            return
+        self._finish_greeting(expected - 1)
+
+    def _regreet(self) -> None:
+        """Greet again with the next attempt's numbers, without the check."""
+        self._check_at_greeting = False
+        self._window.forget()
+        self._probing.current = None
+        self._restart_greeting()
+
+    # --- acknowledgement and confirmation -----------------------------------
+
+    def _acknowledge(self, line: Line, data: str = "") -> None:
+        if line.number > self._acked_through:
+            self._acked_through = line.number
+        self._guard.progress(line.number)
+        if not line.acknowledged:  # after a resend the controller may acknowledge it again
+            line.acknowledged = True
+            self._events.append(LineAcknowledged(line.number, line.command, line.tag, data))
+        self._history.prune(self._acked_through)
+
+    def _confirm_through(self, number: int) -> None:
+        """The controller said its last accepted line is ``number``: acknowledge up to it."""
+        if number <= self._confirmed_through:
+            return
+        history = self._history
+        start = max(self._confirmed_through + 1, history.floor)
+        self._confirmed_through = number
+        for n in range(start, number + 1):
+            line = history.get(n)
+            if line is not None and not line.is_host_line:
+                self._acknowledge(line)
+
+    # --- transmission -------------------------------------------------------
+
+    def _begin_greeting(self) -> None:
+        self._greeting_attempts = 0
+        self._restart_greeting()
+
+    def _restart_greeting(self) -> None:
+        self._phase = Phase.GREETING
+        self._candidate = None
+        self._acked_through = self._confirmed_through = self._window.read_through = -1
+        self._queue_greeting()
+
+    def _queue_greeting(self) -> None:
+        """(Re)send M110 and the probe behind it; the probe's answer confirms the reset.
+
+        Attempt ``k`` (from 0) sends ``Nk M110 Nk`` and probes line k + 1, so that a
+        late answer to an earlier attempt's probe is never taken for this one's: lines
+        must not start while an earlier M110 could still reset the numbering.
+        """
+        base = self._greeting_attempts
+        self._greeting_attempts += 1
+        command = reset_command(base)
+        self._history.restart(Line(base, command, None, frame(base, command), True, True))
+        self._probing.superseded()
+
+    def _next_line_to_transmit(self) -> Line | None:
+        history = self._history
+        if self._phase is Phase.GREETING:
+            return history.lines[history.cursor] if history.cursor < history.next_number else None
+        if history.cursor < history.next_number:
+            return history.lines[history.cursor]
+        if not self._pending:
+            return None
+        if history.next_number > self.line_number_limit:
+            # Renumber only once the controller confirmed every line: no resend
+            # request may ever name a number from before the reset.
+            if self._confirmed_through == history.next_number - 1 and not self._window.live:
+                self._begin_greeting()
+                return history.lines[history.cursor]
+            self._sync_requested = True
+            return None
+        # Numbered only once it goes out (see _transmit), so that every number
+        # below next_number has been on the wire and a probe can follow them.
+        if self._candidate is None:
+            command, tag, unbuffered = self._pending[0]
+            number = history.next_number
+            self._candidate = Line(number, command, tag, frame(number, command), unbuffered)
+        return self._candidate
+
+    def _wants_probe(self) -> bool:
+        history = self._history
+        if self._phase is Phase.GREETING:
+            return history.cursor == history.next_number  # the reset line went out
+        if self._confirmed_through == history.next_number - 1:
+            return False
+        # After the oks of what was sent, so that an M400 before a pause has finished.
+        return self._sync_requested and not self._window.live
+
+    def _transmit(self, line: Line, now: float) -> None:
+        history = self._history
+        if line is self._candidate:
+            self._pending.popleft()
+            history.append(line)
+            self._candidate = None
+        history.cursor = line.number + 1
+        retransmitted = line.transmitted
+        if retransmitted:
+            self.stats.retransmissions += 1
+            self._guard.sent_again(line.number)
+        else:
+            line.transmitted = True
+            self.stats.lines_sent += not line.is_host_line
+        self._push(Transmission(line, line.wire, now, line.number, retransmitted=retransmitted))
+
+    def _send_probe(self, now: float) -> None:
+        probing = self._probing
+        history = self._history
+        if probing.kind is ProbeKind.COMMAND:
+            self._candidate = None  # framed with the number the probe now takes
+            number = history.next_number
+            wire = frame(number, PROBE_COMMAND)
+            line = Line(number, PROBE_COMMAND, None, wire, False, is_probe=True, transmitted=True)
+            history.append(line)
+            history.cursor = number + 1
+        else:
+            # The number the controller should expect next. Probes alternate between
+            # the next new number (right when it has everything) and the first line
+            # whose ok was not counted (right when that ok was lost). Never the first
+            # line not confirmed: the last confirmation may be as old as the greeting,
+            # whose own probe must not go out again mid-job.
+            if self._phase is Phase.GREETING or probing.attempt % 2 == 0:
+                number = history.next_number
+            else:
+                number = self._acked_through + 1
+            line, wire = None, _ping_wire(number)
+        probing.attempt += 1
+        probe = Transmission(line, wire, now, number)
+        probing.current = probe
+        self.stats.pings += 1
+        self._push(probe)
+
+    def _push(self, transmission: Transmission) -> None:
+        self._last_sent_at = transmission.sent_at
+        self._window.push(transmission)
+        self.stats.bytes_sent += len(transmission.wire)
+        self._outgoing += transmission.wire
+
+    def _mark_in_flight_stale(self, number: int, now: float, expect_echoes: bool = True) -> None:
+        # The transmission of line ``number`` drew this request (unless its reply was
+        # counted off already); every other one in flight may draw an echo (or
+        # nothing, if the controller flushed it or dropped it as a duplicate).
+        window = self._window
+        cause = any(t.number == number and t.line is not None for t in window.in_flight)
+        self._guard.expect_echoes(number, len(window.in_flight) - cause if expect_echoes else 0)
+        window.mark_stale(now + self._rtt.rto)
+
+    def _fail_suspect(self) -> None:
+        assert self._suspect_error is not None
+        self._fail(
+            FailureKind.CONTROLLER,
+            f"the controller reported an error: {self._suspect_error[0]}",
+        )
+
+    def _fail(self, kind: FailureKind, reason: str) -> None:
+        self._phase = Phase.FAILED
+        oldest = self._history.get(self._acked_through + 1)
+        self._failure = Failed(kind, reason, oldest.tag if oldest is not None else None)
+        self._events.append(self._failure)
+
+
+def _ping_wire(number: int) -> bytes:
+    """``N<number> M105 S<k>*9999``: refused by any controller that checks checksums."""
+    for k in range(10):
+        body = f"N{number} {PROBE_COMMAND} S{k}".encode("ascii")
+        if checksum(body) not in _PING_UNSAFE:
+            return body + b"*" + _PING_CHECKSUM + b"\n"
+    raise AssertionError("unreachable: ten bodies cannot all have unsafe checksums")
+
+
+def _stated_last_line(reply: replies.Reply | None) -> int | None:
+    """The "Last Line: L" of a Marlin line error just before a resend request."""
+    if isinstance(reply, replies.Error) and reply.line_error:
+        match = _LAST_LINE.search(reply.text)
+        if match is not None:
+            return int(match.group(1))
+    return None
+
+
+def _is_line_error(reply: replies.Reply | None) -> bool:
+    return isinstance(reply, replies.Error) and reply.line_error
+
+
+def _is_checksum_error(reply: replies.Reply | None) -> bool:
+    return (
+        isinstance(reply, replies.Error) and reply.line_error and "checksum" in reply.text.lower()
+    )

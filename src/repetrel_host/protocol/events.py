@@ -1,0 +1,83 @@
+"""What a dialect reports to the session: events, and why a stream failed."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import Enum
+
+from repetrel_host.protocol import replies
+
+
+class FailureKind(Enum):
+    """Why the stream cannot go on."""
+
+    CONTROLLER = "controller"  # the controller reported an error of its own
+    RESET = "reset"  # the controller (re)booted: its queue and state are gone
+    PROTOCOL = "protocol"  # a request the host cannot honour
+    TIMEOUT = "timeout"  # the controller fell silent
+
+
+class ProbeKind(Enum):
+    """How the host asks the controller which lines it holds."""
+
+    # N<n> M105 S<k>*9999: a checksum that never fits, so it never runs; a
+    # Marlin-style controller answers "Last Line: n-1 / Resend: n" when it holds
+    # every line before it.
+    CHECKSUM = "checksum"
+    # N<n> M105*<cs>: a real, harmless line, accepted only once every line before
+    # it was; its "ok T:..." says so. For controllers whose answer to a bad
+    # checksum does not name the line they expect (found at the greeting).
+    COMMAND = "command"
+
+
+@dataclass(frozen=True, slots=True)
+class ControllerReady:
+    """The controller confirmed the opening M110: it is there and numbering agrees."""
+
+    probe: ProbeKind = ProbeKind.CHECKSUM
+
+
+@dataclass(frozen=True, slots=True)
+class LineAcknowledged:
+    """The controller acknowledged a line sent with ``send`` (once per line)."""
+
+    number: int
+    command: str
+    tag: object
+    data: str  # what followed "ok", e.g. temperatures
+
+
+@dataclass(frozen=True, slots=True)
+class ResendRequested:
+    """The controller asked for ``number`` and what follows again; the host will send them."""
+
+    number: int
+    command: str
+    tag: object
+
+
+@dataclass(frozen=True, slots=True)
+class ControllerMessage:
+    """A line that is not flow control: echo, comments, Hyrel reports, busy, line errors."""
+
+    reply: replies.Reply
+    text: str
+
+
+@dataclass(frozen=True, slots=True)
+class Notice:
+    """Something the user should know that does not stop the stream (a high resend rate)."""
+
+    text: str
+
+
+@dataclass(frozen=True, slots=True)
+class Failed:
+    """The stream cannot go on. Nothing more is sent; ``reason`` is one sentence."""
+
+    kind: FailureKind
+    reason: str
+    tag: object = None  # the oldest unacknowledged line's tag, where the trouble most likely is
+
+
+Event = ControllerReady | LineAcknowledged | ResendRequested | ControllerMessage | Notice | Failed

@@ -1,0 +1,378 @@
+"""The one pump between a dialect and what feeds it: a job's lines, single commands, the
+safe stop. Sans-IO like the dialect: no asyncio, no port, no clock.
+
+Whoever drives it (the session on a real link, the loopback on simulated time, the
+framed preview) does three things: hands it received bytes (:meth:`Pump.receive`),
+calls :meth:`Pump.poke` after anything happened and writes the bytes it returns,
+and calls :meth:`Pump.timeout` once :attr:`Pump.deadline` has passed. What happens
+is told to a :class:`Listener`.
+
+A job is a :class:`Run`: its lines are read while the controller works, a host
+action (M0, M792...) waits until every line before it is confirmed, and a stop
+drops what is queued and sends the safe-stop sequence ahead of anything else.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Iterator, Sequence
+from dataclasses import dataclass
+from enum import Enum
+
+from repetrel_host.errors import (
+    ControllerError,
+    HostError,
+    JobError,
+    LinkError,
+    ProtocolError,
+    UsageError,
+)
+from repetrel_host.job import HostAction, JobItem, JobLine
+from repetrel_host.protocol import replies
+from repetrel_host.protocol.dialect import Dialect
+from repetrel_host.protocol.events import (
+    ControllerMessage,
+    ControllerReady,
+    Failed,
+    FailureKind,
+    LineAcknowledged,
+    Notice,
+    ProbeKind,
+    ResendRequested,
+)
+
+# After a stop, how long the safe-stop lines (and those already sent) may take to be
+# acknowledged: a heater's M109 ahead of them can hold the queue.
+CANCEL_DRAIN_TIMEOUT = 30.0
+SAFE_STOP_SOURCE = "safe stop"
+
+
+class Outcome(Enum):
+    COMPLETED = "completed"
+    CANCELLED = "cancelled"
+
+
+@dataclass(frozen=True, slots=True)
+class Summary:
+    """How a job ended."""
+
+    outcome: Outcome
+    lines: int  # job lines acknowledged
+    seconds: float
+    resends: int
+    retransmissions: int
+
+
+class Listener:
+    """Told what the pump sees; override what you need."""
+
+    def ready(self, probe: ProbeKind) -> None:
+        """The greeting is over: lines flow."""
+
+    def acknowledged(self, line: JobLine) -> None:
+        """A line of the running job (or its header or safe stop) was acknowledged."""
+
+    def command_done(self, tag: object, data: str) -> None:
+        """A command sent with :meth:`Pump.command` was acknowledged; ``data`` follows its ok."""
+
+    def commands_dropped(self, tags: list[object]) -> None:
+        """Commands that will never go: the stream failed or stopped before they went out."""
+
+    def resend(self, line: JobLine) -> None:
+        """The controller asked for a job line again."""
+
+    def message(self, text: str, reply: replies.Reply) -> None:
+        """A controller line that is not flow control (echo:, busy, temperatures...)."""
+
+    def notice(self, text: str) -> None:
+        """Something worth knowing that does not stop anything."""
+
+    def action_due(self, action: HostAction) -> None:
+        """Every line before ``action`` is confirmed: do it, then call :meth:`Pump.action_done`."""
+
+    def paused(self) -> None:
+        """A pause asked for is reached: every line sent so far is confirmed."""
+
+    def finished(self, run: Run) -> None:
+        """The run ended: :attr:`Run.outcome` or :attr:`Run.error` says how."""
+
+    def failed(self, failure: Failed) -> None:
+        """The dialect stopped: the connection needs a new greeting (or a new link)."""
+
+
+class Run:
+    """One job streaming through the pump: its lines, its progress, how it ends."""
+
+    def __init__(
+        self, items: Iterable[JobItem], safe_stop: Sequence[str] = (), started_at: float = 0.0
+    ) -> None:
+        self.items: Iterator[JobItem] = iter(items)
+        self.safe_stop = list(safe_stop)
+        self.started_at = started_at
+        self.exhausted = False
+        self.error: HostError | None = None  # reported once the safe stop is acknowledged
+        self.stopping = False  # no more job lines: cancelled, refused or failed
+        self.barrier: HostAction | None = None  # waiting for every earlier line's ok
+        self.action_running = False
+        self.pause_requested = False
+        self.paused = False
+        self.stop_deadline: float | None = None
+        self.stop_requests = 0
+        # Progress: the job line with the highest index acknowledged so far.
+        self.lines = 0
+        self.offset = 0
+        self.last: JobLine | None = None
+        self.safe_stop_acknowledged = 0
+        self.outcome: Outcome | None = None
+        self.summary: Summary | None = None
+        self.finished = False
+
+    @property
+    def safe_stop_missing(self) -> list[str]:
+        """Safe-stop commands not acknowledged (all of them before a stop began)."""
+        return self.safe_stop[self.safe_stop_acknowledged :]
+
+    def where(self) -> str:
+        """The last line the controller acknowledged, for failure messages."""
+        line = self.last
+        if line is None:
+            return "no line of the job was acknowledged"
+        return (
+            f"the last line the controller acknowledged is {line.position} "
+            f"(command {line.index} of the job, {line.command})"
+        )
+
+
+class Pump:
+    """Feeds ``dialect`` from the current run and commands; reports to ``listener``."""
+
+    def __init__(self, dialect: Dialect, listener: Listener | None = None) -> None:
+        self.dialect = dialect
+        self.listener = listener or Listener()
+        self.run: Run | None = None
+
+    # --- driving ------------------------------------------------------------
+
+    def start(self, now: float) -> bytes:
+        """Greet the controller; returns the first bytes to write."""
+        self.dialect.start(now)
+        return self.poke(now)
+
+    def receive(self, data: bytes, now: float) -> None:
+        self.dialect.receive_data(data, now)
+
+    def timeout(self, now: float) -> None:
+        run = self.run
+        if run is not None and run.stop_deadline is not None and now >= run.stop_deadline:
+            self._finish(run, run.error or Outcome.CANCELLED, now)  # the safe stop took too long
+        self.dialect.handle_timeout(now)
+
+    @property
+    def deadline(self) -> float | None:
+        deadline = self.dialect.next_deadline()
+        run = self.run
+        if run is not None and run.stop_deadline is not None:
+            deadline = run.stop_deadline if deadline is None else min(deadline, run.stop_deadline)
+        return deadline
+
+    def poke(self, now: float) -> bytes:
+        """Feed, take the bytes to write, read ahead, and act on what happened."""
+        out = b""
+        while True:
+            self._feed()
+            out += self.dialect.data_to_send(now)
+            # Read the next lines now, while the controller works, not once its ok is here.
+            self._feed()
+            if not self._dispatch(now) or not self._settle(now):
+                return out
+
+    # --- jobs and commands ---------------------------------------------------
+
+    def begin(self, run: Run) -> None:
+        if self.run is not None:
+            raise UsageError("a job is already running on this connection")
+        self.run = run
+
+    def command(self, command: str, tag: object) -> None:
+        """Send one command outside any job; :meth:`Listener.command_done` gets ``tag``."""
+        self.dialect.send(command, tag)
+
+    def pause(self) -> None:
+        """Stop feeding job lines; :meth:`Listener.paused` once every line sent is confirmed."""
+        run = self.run
+        if run is not None and not run.stopping:
+            run.pause_requested = True
+
+    def resume(self) -> None:
+        run = self.run
+        if run is not None:
+            run.pause_requested = run.paused = False
+
+    def action_done(self, proceed: bool | HostError) -> None:
+        """The host action is over: go on, stop the job (False), or stop it with an error."""
+        run = self.run
+        if run is None or run.barrier is None:
+            return
+        run.barrier = None
+        run.action_running = False
+        if isinstance(proceed, HostError):
+            run.error = proceed
+            self._stop_feeding(run)
+        elif not proceed:
+            self._stop_feeding(run)
+
+    def stop(self, now: float, error: HostError | None = None) -> bool:
+        """Stop the job: the safe-stop sequence goes ahead of anything not yet sent.
+
+        A second call abandons the safe stop and ends the job at once; returns True then.
+        """
+        run = self.run
+        if run is None:
+            return False
+        run.stop_requests += 1
+        if run.stop_requests > 1:
+            self._finish(run, Outcome.CANCELLED, now)
+            return True
+        if error is not None and run.error is None:
+            run.error = error
+        self._stop_feeding(run)
+        run.stop_deadline = now + CANCEL_DRAIN_TIMEOUT
+        return False
+
+    # --- inside ---------------------------------------------------------------
+
+    def _feed(self) -> None:
+        """Queue job lines while the dialect wants them, up to a host action."""
+        run = self.run
+        if run is None:
+            return
+        dialect = self.dialect
+        while (
+            dialect.wants_lines
+            and not run.stopping
+            and run.barrier is None
+            and not run.pause_requested
+            and not run.exhausted
+        ):
+            try:
+                item = next(run.items)
+            except StopIteration:
+                run.exhausted = True
+                break
+            except JobError as exc:
+                # A line that cannot go: the lines before it still do, then the safe stop.
+                run.error = exc
+                run.exhausted = True
+                break
+            if isinstance(item, HostAction):
+                run.barrier = item
+            else:
+                dialect.send(item.command, item)
+        if run.barrier is not None or run.exhausted or run.stopping or run.pause_requested:
+            dialect.request_sync()  # nothing more for now: have the controller confirm it all
+
+    def _dispatch(self, now: float) -> bool:
+        """Hand the dialect's events on; False once it failed."""
+        listener = self.listener
+        dialect = self.dialect
+        while (event := dialect.next_event()) is not None:
+            if isinstance(event, LineAcknowledged):
+                tag = event.tag
+                if isinstance(tag, JobLine):
+                    self._acknowledged(tag)
+                else:
+                    listener.command_done(tag, event.data)
+            elif isinstance(event, ControllerMessage):
+                listener.message(event.text, event.reply)
+            elif isinstance(event, ResendRequested):
+                if isinstance(event.tag, JobLine):
+                    listener.resend(event.tag)
+            elif isinstance(event, ControllerReady):
+                listener.ready(event.probe)
+            elif isinstance(event, Notice):
+                listener.notice(event.text)
+            elif isinstance(event, Failed):
+                run = self.run
+                if run is not None:
+                    self._finish(run, _failure_error(event, run), now)
+                dropped = [tag for tag in dialect.cancel_pending() if not isinstance(tag, JobLine)]
+                if dropped:
+                    listener.commands_dropped(dropped)
+                listener.failed(event)
+                return False
+        return True
+
+    def _acknowledged(self, line: JobLine) -> None:
+        run = self.run
+        if run is None:
+            return
+        if line.index > run.lines:
+            run.lines = line.index
+            run.offset = line.end_offset
+            run.last = line
+        elif line.source == SAFE_STOP_SOURCE:
+            run.safe_stop_acknowledged += 1
+        self.listener.acknowledged(line)
+
+    def _settle(self, now: float) -> bool:
+        """Act once the controller confirmed everything; True when more was queued."""
+        run = self.run
+        if run is None or not self.dialect.is_done:
+            return False
+        if run.barrier is not None:
+            if not run.action_running:
+                run.action_running = True
+                self.listener.action_due(run.barrier)
+        elif run.stopping:
+            self._finish(run, run.error or Outcome.CANCELLED, now)
+        elif run.exhausted and run.error is not None:
+            self._stop_feeding(run)
+            return True
+        elif run.exhausted:
+            self._finish(run, Outcome.COMPLETED, now)
+        elif run.pause_requested and not run.paused:
+            run.paused = True
+            self.listener.paused()
+        return False
+
+    def _stop_feeding(self, run: Run) -> None:
+        """No more job lines: drop what is queued and queue the safe stop."""
+        if run.stopping:
+            return
+        run.stopping = True
+        run.barrier = None
+        run.action_running = False
+        run.pause_requested = run.paused = False
+        dropped = [tag for tag in self.dialect.cancel_pending() if not isinstance(tag, JobLine)]
+        if dropped:
+            self.listener.commands_dropped(dropped)
+        for command in run.safe_stop:
+            self.dialect.send(command, JobLine(0, 0, command, 0, SAFE_STOP_SOURCE))
+
+    def _finish(self, run: Run, result: Outcome | HostError, now: float) -> None:
+        if run.finished:
+            return
+        run.finished = True
+        self.run = None
+        if isinstance(result, HostError):
+            run.error = result
+        else:
+            run.outcome = result
+            stats = self.dialect.stats
+            run.summary = Summary(
+                outcome=result,
+                lines=run.lines,
+                seconds=now - run.started_at,
+                resends=stats.resend_requests,
+                retransmissions=stats.retransmissions,
+            )
+        self.listener.finished(run)
+
+
+def _failure_error(event: Failed, run: Run) -> HostError:
+    where = f" (at {event.tag.position})" if isinstance(event.tag, JobLine) else ""
+    reason = f"{event.reason}{where}; {run.where()}"
+    if event.kind is FailureKind.CONTROLLER or event.kind is FailureKind.RESET:
+        return ControllerError(reason)
+    if event.kind is FailureKind.TIMEOUT:
+        return LinkError(reason)
+    return ProtocolError(reason)
