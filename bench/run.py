@@ -155,8 +155,9 @@ def run_host(host: str, profile: Profile, job: Path, commands: list[str], folder
     report = json.loads(report_line[-1].removeprefix("PEER "))
     stats = json.loads((folder / f"{tag}.json").read_text())
     executed = (folder / f"{tag}.log").read_text().splitlines()
-    # Greetings are not the job: our M110, printcore's M110 N-1 and the M105 it connects with.
-    job_executed = [c for c in executed if not c.startswith(("M110", "M105"))]
+    # Greetings are not the job: our M110 and M115, printcore's M110 N-1 and the M105 it
+    # connects with.
+    job_executed = [c for c in executed if not c.startswith(("M110", "M105", "M115"))]
     job_commands = [c for c in commands if not c.startswith("M105")]
     return Result(
         host=host,

@@ -30,8 +30,8 @@ import time
 from pathlib import Path
 
 from repetrel_host.job import Job
-from repetrel_host.link import BuiltInFake
 from repetrel_host.protocol.flow import FlowControl, FlowMode
+from repetrel_host.testing.fake_controller import BuiltInFake
 from repetrel_host.testing.loopback import run_loopback
 from repetrel_host.testing.simulator import ControllerSettings, Faults
 
@@ -92,6 +92,8 @@ def pty_run(commands: list[str], mode: FlowMode, latency: float, faults: str) ->
             fake.stop()
         seconds = time.monotonic() - wall
         done = [c for c in log.read_text().splitlines() if not c.startswith("M110")]
+        if done[:1] == ["M115"]:
+            done = done[1:]  # the session asks who the controller is before the job
     summary = re.search(r"(\d+) resend requests", result.stdout)
     return {
         "seconds": seconds,

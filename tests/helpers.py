@@ -20,8 +20,19 @@ def job_commands(path: Path) -> list[str]:
 
 
 def executed(log: Path) -> list[str]:
-    """The fake controller's log without the host's own M110 lines."""
-    return [c for c in log.read_text().splitlines() if not c.startswith("M110")]
+    """The fake controller's log without the host's own lines: M110, and the M115 a
+    session asks right after it (who are you?)."""
+    commands: list[str] = []
+    greeting = False
+    for command in log.read_text().splitlines():
+        if command.startswith("M110"):
+            greeting = True
+        elif not (greeting and command == "M115"):
+            greeting = False
+            commands.append(command)
+        else:
+            greeting = False
+    return commands
 
 
 def hyrel_send(

@@ -172,3 +172,9 @@ def test_loadouts_by_name() -> None:
         == shipped_config_dir() / "loadouts" / "wiki-one-head.toml"
     )
     assert find_loadout(Path("elsewhere/x.toml")) == Path("elsewhere/x.toml")
+
+
+def test_a_mistyped_loadout_name_lists_the_known_ones() -> None:
+    with pytest.raises(ConfigError, match="wiki-one-head, wiki-two-heads") as error:
+        find_loadout(Path("wiki-one-haed"))
+    assert "no such loadout" in str(error.value)

@@ -11,11 +11,11 @@ from pathlib import Path
 
 import pytest
 
-from repetrel_host.gcode.header import safe_stop_commands
-from repetrel_host.link import BuiltInFake
+from repetrel_host.testing.fake_controller import BuiltInFake
 from tests.helpers import CONE, EXAMPLE, executed, hyrel_send, job_commands, start_streaming
 
 pytestmark = pytest.mark.timeout(120)
+MARLIN_SAFE_STOP = ["M107", "M104 S0", "M140 S0", "G91", "G0 Z10", "G90", "M84"]
 
 
 @pytest.fixture
@@ -83,10 +83,13 @@ def test_ctrl_c_stops_cleanly_without_losing_or_repeating(tmp_path: Path) -> Non
     assert process.returncode == 130, stderr
     assert "Traceback" not in stderr
     assert "interrupted" in stdout
-    # What was sent ran once, in order, then the safe-stop sequence (no machine given:
-    # the standard footer with v5 group addresses).
+    assert "stopping: sending the safe-stop sequence (Ctrl-C again to abandon it)" in stdout
+    assert f"the last line the controller acknowledged is {CONE.name}:" in stdout
+    # What was sent ran once, in order, then the safe-stop sequence: no machine given, and
+    # the fake says it is a Marlin-style controller, so the marlin profile's.
+    assert "Machine profile: marlin (from the firmware: repetrel-host fake controller" in stdout
     done = executed(log)
-    safe_stop = safe_stop_commands("v5")
+    safe_stop = MARLIN_SAFE_STOP
     assert done[-len(safe_stop) :] == safe_stop
     sent = done[: -len(safe_stop)]
     commands = job_commands(CONE)

@@ -10,10 +10,10 @@ from pathlib import Path
 
 import pytest
 
-from repetrel_host.cli import PRECHECK_LIMIT
 from repetrel_host.config import shipped_config_dir
 from repetrel_host.gcode.header import safe_stop_commands
-from repetrel_host.link import BuiltInFake
+from repetrel_host.planning import PRECHECK_LIMIT
+from repetrel_host.testing.fake_controller import BuiltInFake
 from tests.helpers import EXAMPLE, executed, hyrel_send, job_commands, start_streaming
 
 pytestmark = pytest.mark.timeout(60)
@@ -43,10 +43,10 @@ def test_loadout_job_runs_header_then_job_and_history_is_the_wire(tmp_path: Path
     assert result.returncode == 0, result.stderr
     assert executed(log) == dry_run(EXAMPLE, TWO_HEADS)
     (history_file,) = history.glob("*-square-tube.gcode")
-    assert history_file.read_bytes() == received.read_bytes()
-    assert history_file.read_bytes().startswith(
-        b"N0 M110 N0*125\nN1 M105 S0*9999\nN2 M105*37\nN1 M105 S0*9999\nN1 M6 T1 O2 X0 Y0 Z0*119\n"
-    )
+    # The job's stream, from its first line to the probe that confirmed its last, as the
+    # fake received it after the session's greeting and M115.
+    assert received.read_bytes().endswith(history_file.read_bytes())
+    assert history_file.read_bytes().startswith(b"N2 M6 T1 O2 X0 Y0 Z0*116\n")
     assert str(history_file) in result.stdout
 
 
@@ -140,8 +140,10 @@ def test_m719_logs_the_controllers_reports_until_m718(tmp_path: Path) -> None:
         result = hyrel_send(str(job), "--port", fake.port, "--history", str(history))
     assert result.returncode == 0, result.stderr
     (reports,) = history.glob("*-logged-reports.log")
+    # One M115's answer: its name, then its capabilities.
     lines = reports.read_text().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("FIRMWARE_NAME:")
+    assert len(lines) == 3 and lines[0].startswith("FIRMWARE_NAME:")
+    assert lines[1:] == ["Cap:AUTOREPORT_TEMP:1", "Cap:EMERGENCY_PARSER:1"]
 
 
 def test_ctrl_c_sends_the_machines_safe_stop(tmp_path: Path) -> None:

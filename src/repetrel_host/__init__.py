@@ -1,3 +1,75 @@
-"""repetrel-host: streams G-code to Hyrel printers' motion controllers."""
+"""repetrel-host: streams G-code to Hyrel printers' motion controllers.
 
-__version__ = "0.1.0"
+The printer session is the heart::
+
+    import repetrel_host as rh
+
+    async with rh.connect("fake") as printer:
+        reply = await printer.command("M115")
+        job = await printer.print("part.gcode")
+        summary = await job.wait()
+"""
+
+from repetrel_host.errors import (
+    ConfigError,
+    ControllerError,
+    HostError,
+    JobError,
+    LinkError,
+    ProtocolError,
+    UsageError,
+)
+from repetrel_host.events import (
+    Action,
+    Done,
+    Failed,
+    Message,
+    Notice,
+    Paused,
+    Progress,
+    Resend,
+    Resumed,
+    State,
+    StateChanged,
+    Temperatures,
+)
+from repetrel_host.protocol.events import ProbeKind
+from repetrel_host.protocol.flow import FlowControl, FlowMode
+from repetrel_host.protocol.reports import Firmware
+from repetrel_host.pump import Outcome, Summary
+from repetrel_host.session import Printer, PrintJob, Reply, connect
+
+__version__ = "0.2.0"
+
+__all__ = [
+    "Action",
+    "ConfigError",
+    "ControllerError",
+    "Done",
+    "Failed",
+    "Firmware",
+    "FlowControl",
+    "FlowMode",
+    "HostError",
+    "JobError",
+    "LinkError",
+    "Message",
+    "Notice",
+    "Outcome",
+    "Paused",
+    "PrintJob",
+    "Printer",
+    "ProbeKind",
+    "Progress",
+    "ProtocolError",
+    "Reply",
+    "Resend",
+    "Resumed",
+    "State",
+    "StateChanged",
+    "Summary",
+    "Temperatures",
+    "UsageError",
+    "__version__",
+    "connect",
+]

@@ -1,22 +1,24 @@
-"""``hyrel-send``: stream one G-code job from a terminal. Presentation only."""
+"""``hyrel-send``: stream one G-code job from a terminal.
+
+Presentation only: the plan is ``planning``'s, the streaming the session's. This
+module parses options, opens a session, draws progress, answers M0 pauses at the
+keyboard and turns Ctrl-C into the safe stop.
+"""
 
 from __future__ import annotations
 
 import asyncio
-import os
 import signal
 import sys
 import time
-from collections.abc import Callable, Iterator
-from contextlib import ExitStack
+from collections.abc import Iterator
 from dataclasses import dataclass
-from datetime import datetime
-from itertools import chain
 from pathlib import Path
-from typing import Annotated, BinaryIO
+from typing import Annotated
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import (
     BarColumn,
     Progress,
@@ -26,18 +28,9 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
-from repetrel_host.config import (
-    Library,
-    LinkDefaults,
-    Loadout,
-    Machine,
-    UserConfig,
-    find_loadout,
-    load_library,
-    load_loadout,
-    load_user_config,
-)
-from repetrel_host.console import ConsoleObserver
+from repetrel_host import __version__
+from repetrel_host.config import UserConfig, load_user_config
+from repetrel_host.console import ConsoleActions, read_line
 from repetrel_host.errors import (
     ConfigError,
     ControllerError,
@@ -45,17 +38,28 @@ from repetrel_host.errors import (
     JobError,
     LinkError,
     ProtocolError,
+    UsageError,
 )
-from repetrel_host.gcode import addressing
-from repetrel_host.gcode.header import header_commands, safe_stop_commands
-from repetrel_host.gcode.lint import Finding, Linter
-from repetrel_host.job import HostAction, Job, JobItem, JobLine
-from repetrel_host.link import FAKE_PORT, BuiltInFake
+from repetrel_host.events import Message, Notice, Paused, Resend
+from repetrel_host.gcode.lint import Finding
+from repetrel_host.job import HostAction
+from repetrel_host.links import FAKE_PORT, FakeLink
+from repetrel_host.planning import (
+    PORT_ENV,
+    JobPlan,
+    JobRequest,
+    LinkRequest,
+    default_history_dir,
+    history_file,
+    link_settings,
+    plan_job,
+    replan_for_firmware,
+    resolve_port,
+)
 from repetrel_host.protocol.dialects.reprap import DEFAULT_REPLY_TIMEOUT
-from repetrel_host.protocol.dialects.reprap import RepRapDialect as HostProtocol
-from repetrel_host.protocol.flow import FlowControl, FlowMode
-from repetrel_host.protocol.framing import clean_line
-from repetrel_host.sender import Outcome, Sender, Summary, stream
+from repetrel_host.protocol.flow import FlowMode
+from repetrel_host.pump import Outcome, Summary
+from repetrel_host.session import Printer, PrintJob, connect
 
 # Exit codes: distinct per kind of failure so scripts can tell them apart.
 EXIT_OK = 0
@@ -64,48 +68,28 @@ EXIT_LINK_FAILURE = 3
 EXIT_CONTROLLER_ERROR = 4
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, as shells report Ctrl-C
 
-PORT_ENV = "HYREL_PORT"
-# Jobs up to this size are checked whole before the first line goes (a fraction of a
-# second); bigger ones are checked as they stream, so that they start at once.
-PRECHECK_LIMIT = 4 << 20
 PROGRESS_REFRESH = 0.1  # seconds between progress bar updates
 
-app = typer.Typer(add_completion=False, pretty_exceptions_enable=False)
+app = typer.Typer(add_completion=False, pretty_exceptions_enable=False, rich_markup_mode=None)
 
 
 @dataclass(frozen=True)
-class LinkOptions:
-    """The link as given on the command line (None: not given)."""
+class Options:
+    """What the command line says about the run, beyond the job's plan."""
 
     port: str | None
-    baud: int | None
-    flow: FlowMode | None
-    rx_buffer: int | None
-    max_lines: int | None
+    link: LinkRequest
     reply_timeout: float
+    history: Path | None
+    no_history: bool
+    fake_log: Path | None
+    force: bool
 
 
-@dataclass(frozen=True)
-class Plan:
-    """Everything decided before the port opens."""
-
-    job: Job
-    machine: Machine | None
-    loadout: Loadout | None
-    header: list[JobLine]
-    safe_stop: list[str]
-
-    def items(self, check: Callable[[int, str], None] | None = None) -> Iterator[JobItem]:
-        return chain(self.header, self.job.items(check))
-
-    def linter(self, streaming: bool = False) -> Linter:
-        machine = self.machine
-        return Linter(
-            firmware=machine.firmware if machine else None,
-            positions=machine.yokes * addressing.ADDRESSES_PER_YOKE if machine else None,
-            loaded_tools=self.loadout.loaded_tools if self.loadout else None,
-            streaming=streaming,
-        )
+def _version(value: bool) -> None:
+    if value:
+        typer.echo(f"hyrel-send (repetrel-host) {__version__}")
+        raise typer.Exit(EXIT_OK)
 
 
 @app.command()
@@ -114,7 +98,7 @@ def send(
     port: Annotated[
         str | None,
         typer.Option(
-            help=f"Serial port or pyserial URL; 'fake' for the built-in fake controller. "
+            help="Serial port or pyserial URL; 'fake' for the built-in fake controller. "
             f"Default: ${PORT_ENV}, then [printer] port in the configuration, else the fake."
         ),
     ] = None,
@@ -141,7 +125,11 @@ def send(
         typer.Option(help="Loadout TOML (or the name of a shipped one): which head is where."),
     ] = None,
     machine: Annotated[
-        str | None, typer.Option(help="Machine profile, when there is no loadout.")
+        str | None,
+        typer.Option(
+            help="Machine profile, when there is no loadout (default: from the firmware's "
+            "answer to M115, or, without a printer, from the slicer that wrote the job)."
+        ),
     ] = None,
     config: Annotated[
         Path | None,
@@ -162,7 +150,9 @@ def send(
     force: Annotated[bool, typer.Option("--force", help="Send despite errors found.")] = False,
     history: Annotated[
         Path | None,
-        typer.Option(help="Folder for the print history (default ~/.local/share/repetrel-host)."),
+        typer.Option(
+            help="Folder for the print history (default ~/.local/share/repetrel-host/history)."
+        ),
     ] = None,
     no_history: Annotated[
         bool, typer.Option("--no-history", help="Do not keep the transmitted stream.")
@@ -171,36 +161,48 @@ def send(
         Path | None,
         typer.Option(help="Where the built-in fake writes the commands it executed."),
     ] = None,
+    version: Annotated[
+        bool,
+        typer.Option(
+            "--version", help="Show the version and exit.", callback=_version, is_eager=True
+        ),
+    ] = False,
 ) -> None:
     """Stream JOB to a Hyrel (or Marlin-style) controller and show progress."""
     console = Console(highlight=False, soft_wrap=True)
     errors = Console(stderr=True, highlight=False, soft_wrap=True)
     try:
+        if framed and not dry_run:
+            raise UsageError("--framed shows the wire of a dry run: add --dry-run")
         user = load_user_config(config)
-        plan = _plan(job, loadout, machine, user, no_header)
-        streaming_check = not (check or dry_run) and plan.job.size > PRECHECK_LIMIT
-        findings = [] if streaming_check else _lint(plan)
-        for finding in findings:
-            errors.print(finding.format(plan.job.name), markup=False)
-        refused = [f for f in findings if f.severity == "error"]
-        if check:
-            verdict = "refused" if refused else "ok"
-            console.print(f"{plan.job.name}: {verdict} ({len(findings)} findings)")
-            raise typer.Exit(EXIT_BAD_INPUT if refused else EXIT_OK)
-        if dry_run:  # a preview: shown even when the findings would refuse the job
-            _dry_run(plan, framed)
-            raise typer.Exit(EXIT_OK)
-        if refused and not force:
-            raise JobError(f"{plan.job.name}: not sent ({len(refused)} errors; --force sends)")
-        link = LinkOptions(port, baud, flow, rx_buffer, max_lines, reply_timeout)
-        checker = _streaming_checker(plan, errors, force) if streaming_check else None
-        if checker is not None:
-            console.print(
-                f"{plan.job.name} is {plan.job.size / 1e6:.0f} MB: checked as it streams; a line "
-                "it would refuse stops the job safely there (--check checks it all first)."
-            )
-        code = _send(console, plan, user, link, history, no_history, fake_log, checker)
-    except (JobError, ConfigError) as exc:
+        plan = plan_job(job, JobRequest(loadout, machine, not no_header), user)
+        if check or dry_run or not plan.checked_as_it_streams:
+            findings = _check(plan, errors)
+            refused = [f for f in findings if f.severity == "error"]
+            if check:
+                verdict = "refused" if refused else "ok"
+                console.print(
+                    f"{plan.job.name}: {verdict} ({len(findings)} findings) with machine "
+                    f"profile {plan.profile.describe()}",
+                    markup=False,
+                )
+                raise typer.Exit(EXIT_BAD_INPUT if refused else EXIT_OK)
+            if dry_run:  # a preview: shown even when the findings would refuse the job
+                _dry_run(plan, framed)
+                raise typer.Exit(EXIT_OK)
+            if refused and not force:
+                raise JobError(f"{plan.job.name}: not sent ({len(refused)} errors; --force sends)")
+        options = Options(
+            port,
+            LinkRequest(baud, flow, rx_buffer, max_lines),
+            reply_timeout,
+            history,
+            no_history,
+            fake_log,
+            force,
+        )
+        code = asyncio.run(_send(console, errors, plan, user, options))
+    except (JobError, ConfigError, UsageError) as exc:
         errors.print(f"error: {exc}", markup=False)
         code = EXIT_BAD_INPUT
     except LinkError as exc:
@@ -212,66 +214,15 @@ def send(
     raise typer.Exit(code)
 
 
-def _plan(
-    job_path: Path,
-    loadout_path: Path | None,
-    machine_name: str | None,
-    user: UserConfig,
-    no_header: bool,
-) -> Plan:
-    loadout_path = loadout_path or user.printer.loadout
-    machine_name = machine_name or (None if loadout_path else user.printer.machine)
-    # Machines and heads are read only when a job names them: a plain job starts sooner.
-    library = load_library(user) if loadout_path or machine_name else Library({}, {})
-    loadout = load_loadout(find_loadout(loadout_path), library) if loadout_path else None
-    machine = loadout.machine if loadout else None
-    if machine_name is not None:
-        if loadout is not None and machine_name != loadout.machine_name:
-            raise ConfigError(
-                f"--machine {machine_name} is not the loadout's machine, {loadout.machine_name}"
-            )
-        machine = library.machines.get(machine_name)
-        if machine is None:
-            known = ", ".join(sorted(library.machines))
-            raise ConfigError(f"unknown machine '{machine_name}' (known: {known})")
-    job = Job(job_path, pause_sync=machine.pause_sync if machine else "M400")
-    header = [
-        JobLine(0, 0, command, 0, origin)
-        for command, origin in (header_commands(loadout) if loadout and not no_header else [])
-    ]
-    if machine is None:
-        safe_stop = safe_stop_commands("v5")
-    else:
-        safe_stop = machine.safe_stop or safe_stop_commands(machine.firmware)
-    if user.host.safe_stop is not None:
-        safe_stop = user.host.safe_stop
-    return Plan(job, machine, loadout, header, [clean_line(c) for c in safe_stop])
-
-
-def _lint(plan: Plan) -> list[Finding]:
-    """Check the whole file first: a bad line is found before anything moves."""
-    linter = plan.linter()
-    findings = linter.check_all((number, command) for number, command, _, _ in plan.job.commands())
-    if linter.commands == 0:
-        raise JobError(f"{plan.job.path}: holds no G-code command (nothing to send)")
+def _check(plan: JobPlan, errors: Console) -> list[Finding]:
+    """Check the whole file and print the findings."""
+    findings = plan.check()
+    for finding in findings:
+        errors.print(finding.format(plan.job.name), markup=False)
     return findings
 
 
-def _streaming_checker(plan: Plan, errors: Console, force: bool) -> Callable[[int, str], None]:
-    """A check run on each command as it is read: warnings shown, an error stops the job."""
-    linter = plan.linter(streaming=True)
-    name = plan.job.name
-
-    def check(number: int, command: str) -> None:
-        for finding in linter.check(number, command):
-            if finding.severity == "error" and not force:
-                raise JobError(f"{finding.format(name)} (--force sends despite it)")
-            errors.print(finding.format(name), markup=False)
-
-    return check
-
-
-def _dry_run(plan: Plan, framed: bool) -> None:
+def _dry_run(plan: JobPlan, framed: bool) -> None:
     """The commands on stdout, exactly as they would go; host actions noted on stderr."""
 
     def commands() -> Iterator[str]:
@@ -292,78 +243,84 @@ def _dry_run(plan: Plan, framed: bool) -> None:
     sys.stdout.flush()
 
 
-def _send(
-    console: Console,
-    plan: Plan,
-    user: UserConfig,
-    options: LinkOptions,
-    history: Path | None,
-    no_history: bool,
-    fake_log: Path | None,
-    checker: Callable[[int, str], None] | None,
+async def _send(
+    console: Console, errors: Console, plan: JobPlan, user: UserConfig, options: Options
 ) -> int:
-    # Command line first, then the machine profile's link defaults.
-    defaults = plan.machine.link if plan.machine else LinkDefaults()
-    baud = options.baud or defaults.baud
-    flow_control = FlowControl(
-        options.flow or FlowMode(defaults.flow),
-        rx_buffer=options.rx_buffer or defaults.rx_buffer,
-        max_lines=options.max_lines or defaults.max_lines,
+    port = resolve_port(options.port, user)
+    baud, flow = link_settings(options.link, plan.machine)
+    printer = await connect(
+        port,
+        flow=flow,
+        baud=baud,
+        config=user,
+        reconnect=False,
+        poll_interval=None,
+        reply_timeout=options.reply_timeout,
+        fake_log=options.fake_log,
     )
-    port = options.port or os.environ.get(PORT_ENV) or user.printer.port or FAKE_PORT
-    stem = f"{datetime.now():%Y%m%d-%H%M%S}-{plan.job.path.stem}"
-    history_dir = history or user.host.history_dir or _default_history_dir()
-    observer = ConsoleObserver(console, user.host, history_dir / f"{stem}-reports.log")
-    with ExitStack() as stack:
-        wire_log: BinaryIO | None = None
-        if not no_history:
-            history_file = history_dir / f"{stem}.gcode"
-            try:
-                history_dir.mkdir(parents=True, exist_ok=True)
-                wire_log = stack.enter_context(history_file.open("wb"))
-            except OSError as exc:
-                raise ConfigError(
-                    f"cannot write the print history {history_file}: {exc.strerror}"
-                ) from None
-        fake: BuiltInFake | None = None
+    try:
         if port == FAKE_PORT:
-            # The fake's link runs at the chosen baud rate: 10 bits on the wire per byte.
-            fake = BuiltInFake(fake_log, ["--bandwidth", str(baud / 10), "--latency", "0.001"])
-            port = fake.start()
-            stack.callback(fake.stop)
             console.print(
-                f"No printer port given: streaming to the built-in fake controller on {port}."
+                "No printer port given: streaming to the built-in fake controller on "
+                f"{printer.link.device}.",
+                markup=False,
             )
-        stack.callback(observer.close)
-        core = HostProtocol(flow_control, reply_timeout=options.reply_timeout)
-        summary = asyncio.run(
-            _stream_with_progress(console, plan, port, baud, core, observer, wire_log, checker)
+        plan = _plan_for(printer, plan, user, errors, options.force)
+        console.print(f"Machine profile: {plan.profile.describe()}", markup=False)
+        if plan.checked_as_it_streams:
+            console.print(
+                f"{plan.job.name} is {plan.job.size / 1e6:.0f} MB: checked as it streams; a line "
+                "it would refuse stops the job safely there (--check checks it all first).",
+                markup=False,
+            )
+        summary, history, last = await _stream(console, errors, printer, plan, user, options)
+    finally:
+        await printer.close()
+    _print_summary(console, summary, plan, last)
+    if history is not None:
+        console.print(f"Print history (the stream as transmitted): {history}", markup=False)
+    if isinstance(printer.link, FakeLink):
+        console.print(
+            f"The fake controller's log of executed commands: {printer.link.log_path}",
+            markup=False,
         )
-    _print_summary(console, summary, plan.job)
-    if wire_log is not None:
-        console.print(f"Print history (the stream as transmitted): {wire_log.name}")
-    if fake is not None:
-        console.print(f"The fake controller's log of executed commands: {fake.log_path}")
     return EXIT_INTERRUPTED if summary.outcome is Outcome.CANCELLED else EXIT_OK
 
 
-def _default_history_dir() -> Path:
-    base = os.environ.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
-    return Path(base) / "repetrel-host" / "history"
+def _plan_for(
+    printer: Printer, plan: JobPlan, user: UserConfig, errors: Console, force: bool
+) -> JobPlan:
+    """The plan for the controller that answered: its M115 identity may choose the profile."""
+    if printer.firmware is None:
+        return plan
+    chosen = replan_for_firmware(plan, printer.firmware, user)
+    if chosen.profile.name != plan.profile.name and not chosen.checked_as_it_streams:
+        refused = [f for f in _check(chosen, errors) if f.severity == "error"]
+        if refused and not force:
+            raise JobError(f"{plan.job.name}: not sent ({len(refused)} errors; --force sends)")
+    return chosen
 
 
-async def _stream_with_progress(
+async def _stream(
     console: Console,
-    plan: Plan,
-    port: str,
-    baud: int,
-    core: HostProtocol,
-    observer: ConsoleObserver,
-    wire_log: BinaryIO | None,
-    checker: Callable[[int, str], None] | None,
-) -> Summary:
+    errors: Console,
+    printer: Printer,
+    plan: JobPlan,
+    user: UserConfig,
+    options: Options,
+) -> tuple[Summary, Path | None, str]:
     loop = asyncio.get_running_loop()
-    job = plan.job
+    history_folder = options.history or user.host.history_dir or default_history_dir()
+    history = None if options.no_history else history_file(history_folder, user, plan.job)
+    reports = history_folder / f"{time.strftime('%Y%m%d-%H%M%S')}-{plan.job.path.stem}-reports.log"
+    actions = ConsoleActions(console, user.host, reports)
+    job = await printer.print(
+        plan,
+        force=options.force,
+        history=history or False,
+        on_action=actions.perform,
+        on_warning=lambda text: errors.print(text, markup=False),
+    )
     progress = Progress(
         TextColumn("[bold]{task.description}"),
         BarColumn(),
@@ -374,73 +331,93 @@ async def _stream_with_progress(
         console=console,
         transient=False,
     )
-    task = progress.add_task(job.name, total=max(job.size, 1), lines=0, rate=0.0)
+    task = progress.add_task(escape(job.name), total=max(job.size, 1), lines=0, rate=0.0)
     started = time.monotonic()
+    interrupts = 0
+
+    def interrupt() -> None:
+        nonlocal interrupts
+        interrupts += 1
+        if interrupts == 1:
+            console.print("stopping: sending the safe-stop sequence (Ctrl-C again to abandon it)")
+            job.stop()
+            return
+        if job.stop():
+            missing = job.safe_stop_missing
+            if missing:
+                console.print(
+                    "safe stop abandoned: the controller did not confirm "
+                    f"{', '.join(missing)} - check the machine (heaters, motors)",
+                    markup=False,
+                )
 
     async def refresh() -> None:
         while True:
-            _update(progress, task, observer, started)
+            _update(progress, task, job, started)
             await asyncio.sleep(PROGRESS_REFRESH)
 
-    refresher: asyncio.Task[None] | None = None
-
-    def on_open(sender: Sender) -> None:
-        # The bar appears only once the port is open: a port that fails shows no bar.
-        nonlocal refresher
-        loop.add_signal_handler(signal.SIGINT, sender.cancel)
-        progress.start()
-        refresher = asyncio.create_task(refresh())
-
+    loop.add_signal_handler(signal.SIGINT, interrupt)
+    progress.start()
+    refresher = asyncio.create_task(refresh())
+    watcher = asyncio.create_task(_watch(console, printer, job, actions))
     try:
-        summary = await stream(
-            port,
-            baud,
-            core,
-            plan.items(checker),
-            observer,
-            on_open,
-            safe_stop=plan.safe_stop,
-            wire_log=wire_log,
-        )
-        if summary.outcome is Outcome.COMPLETED:
-            observer.offset = job.size  # trailing comments count as sent
-    except (LinkError, ControllerError, ProtocolError, JobError) as exc:
-        if refresher is None:
-            raise  # the port never opened: nothing was sent
-        raise type(exc)(f"{exc}; {_last_acknowledged(job, observer)}") from None
+        summary = await job.wait()
     finally:
-        if refresher is not None:
-            refresher.cancel()
-            loop.remove_signal_handler(signal.SIGINT)
-            _update(progress, task, observer, started)
-            progress.stop()
-    return summary
+        refresher.cancel()
+        watcher.cancel()
+        loop.remove_signal_handler(signal.SIGINT)
+        _update(progress, task, job, started)
+        progress.stop()
+        actions.close()
+    if summary.outcome is Outcome.COMPLETED:
+        progress.update(task, completed=job.size)  # trailing comments count as sent
+    return summary, history, job.where()
 
 
-def _last_acknowledged(job: Job, observer: ConsoleObserver) -> str:
-    if observer.last is None:
-        return "no line of the job was acknowledged"
-    line = observer.last
-    return (
-        f"the last line the controller acknowledged is {line.position} "
-        f"(command {line.index} of the job, {line.command})"
-    )
+async def _watch(
+    console: Console, printer: Printer, job: PrintJob, actions: ConsoleActions
+) -> None:
+    """Show what the job tells, and answer an M0 at the keyboard."""
+    async for event in job.events():
+        if isinstance(event, Message):
+            actions.log(event.text)
+            console.print(f"[dim]controller:[/] {escape(event.text)}")
+        elif isinstance(event, Resend):
+            where = escape(event.position)
+            console.print(f"[dim]resend: the controller asked again for {where}[/]")
+        elif isinstance(event, Notice):
+            console.print(f"[yellow]warning:[/] {escape(event.text)}")
+        elif isinstance(event, Paused) and event.reason == "M0":
+            message = f": {event.message}" if event.message else ""
+            console.print(
+                f"[bold]Paused[/] at {escape(event.position)}{escape(message)} "
+                "- press Enter to resume (Ctrl-C stops the job)"
+            )
+            if await read_line(sys.stdin) is None:
+                job.stop(
+                    JobError(
+                        f"{event.position}: M0 waits for the operator, but standard input is closed"
+                    )
+                )
+            else:
+                console.print("resumed")
+                await printer.resume()
 
 
-def _update(progress: Progress, task: TaskID, observer: ConsoleObserver, started: float) -> None:
+def _update(progress: Progress, task: TaskID, job: PrintJob, started: float) -> None:
     elapsed = max(time.monotonic() - started, 1e-6)
-    progress.update(
-        task, completed=observer.offset, lines=observer.lines, rate=observer.lines / elapsed
-    )
+    progress.update(task, completed=job.offset, lines=job.lines, rate=job.lines / elapsed)
 
 
-def _print_summary(console: Console, summary: Summary, job: Job) -> None:
+def _print_summary(console: Console, summary: Summary, plan: JobPlan, last: str) -> None:
     rate = summary.lines / summary.seconds if summary.seconds > 0 else 0.0
-    verdict = "done" if summary.outcome is Outcome.COMPLETED else "stopped (interrupted)"
+    done = summary.outcome is Outcome.COMPLETED
+    verdict = "done" if done else f"stopped (interrupted; {last})"
     console.print(
-        f"{job.name}: {verdict}: {summary.lines} lines in {summary.seconds:.2f} s "
+        f"{plan.job.name}: {verdict}: {summary.lines} lines in {summary.seconds:.2f} s "
         f"({rate:.0f} lines/s), {summary.resends} resend requests, "
-        f"{summary.retransmissions} lines sent again."
+        f"{summary.retransmissions} lines sent again; machine profile {plan.profile.name}.",
+        markup=False,
     )
 
 

@@ -40,6 +40,8 @@ class LinkDefaults(_Model):
 
 class Machine(_Model):
     description: str = ""
+    # hyrel: Hyrel's code chart and T addressing apply; marlin: a RepRap-style controller.
+    family: Literal["hyrel", "marlin"] = "hyrel"
     yokes: int = Field(ge=1, le=addressing.MAX_YOKES)
     slots_per_yoke: int = Field(ge=1, le=addressing.ADDRESSES_PER_YOKE)
     firmware: addressing.Firmware
@@ -203,11 +205,15 @@ def find_loadout(value: Path) -> Path:
     """A loadout path as given, or a bare name found in the user's or the shipped loadouts."""
     if value.exists() or value.suffix or len(value.parts) > 1:
         return value
-    for folder in (user_config_path().parent / "loadouts", shipped_config_dir() / "loadouts"):
+    folders = (user_config_path().parent / "loadouts", shipped_config_dir() / "loadouts")
+    for folder in folders:
         candidate = folder / f"{value}.toml"
         if candidate.exists():
             return candidate
-    return value
+    known = sorted({p.stem for folder in folders if folder.is_dir() for p in folder.glob("*.toml")})
+    raise ConfigError(
+        f"{value}: no such loadout (known: {', '.join(known)}; or give the path of a TOML file)"
+    )
 
 
 def load_loadout(path: Path, library: Library) -> Loadout:

@@ -1,7 +1,7 @@
-"""What ``hyrel-send`` shows and does at a terminal: messages, resends, host actions.
+"""What ``hyrel-send`` does at a terminal for a job's host actions.
 
-Host actions (M0 pauses, M792 actions, M718/M719 report logging) run here, on
-the operator's machine. ``M792 SHELL`` runs a program only when the user's
+Host actions (M792 actions, an M0's SAY..., M718/M719 report logging) run here,
+on the operator's machine. ``M792 SHELL`` runs a program only when the user's
 configuration says ``[host] allow_shell = true``.
 """
 
@@ -11,7 +11,6 @@ import asyncio
 import os
 import shlex
 import shutil
-import sys
 from pathlib import Path
 from typing import TextIO
 
@@ -19,56 +18,29 @@ from rich.console import Console
 from rich.markup import escape
 
 from repetrel_host.config import HostSettings
-from repetrel_host.errors import JobError
-from repetrel_host.job import HostAction, JobLine
-from repetrel_host.protocol import replies
-from repetrel_host.sender import Observer
+from repetrel_host.job import HostAction
 
 SPEECH_PROGRAMS = ("espeak-ng", "espeak", "spd-say", "say")
 ACTION_TIMEOUT = 60.0  # seconds an action's program may run before it is abandoned
 
 
-class ConsoleObserver(Observer):
-    """Counts acknowledgements for the progress bar and carries out host actions."""
+class ConsoleActions:
+    """Carries out a job's host actions at a terminal, and keeps the report log."""
 
-    def __init__(
-        self, console: Console, host: HostSettings, reports_path: Path, stdin: TextIO = sys.stdin
-    ) -> None:
+    def __init__(self, console: Console, host: HostSettings, reports_path: Path) -> None:
         self.console = console
         self.host = host
         self.reports_path = reports_path
-        self.stdin = stdin
-        self.lines = 0
-        self.offset = 0
-        self.last: JobLine | None = None
         self._reports: TextIO | None = None
 
-    # --- stream events ------------------------------------------------------
-
-    def on_acknowledged(self, line: JobLine) -> None:
-        if line.index:  # header and safe-stop lines are not the job's
-            self.lines = line.index
-            self.offset = line.end_offset
-            self.last = line
-
-    def on_resend(self, line: JobLine) -> None:
-        self.console.print(
-            f"[dim]resend: the controller asked again for {escape(line.position)}[/]"
-        )
-
-    def on_notice(self, text: str) -> None:
-        self.console.print(f"[yellow]warning:[/] {escape(text)}")
-
-    def on_message(self, text: str, reply: replies.Reply) -> None:
+    def log(self, text: str) -> None:
+        """A controller line, kept while M719 asked for the reports."""
         if self._reports is not None:
             self._reports.write(text + "\n")
-        if isinstance(reply, replies.Busy | replies.Wait | replies.Start | replies.Error):
-            return  # keepalives; line errors are shown as the resend that follows
-        self.console.print(f"[dim]controller:[/] {escape(text)}")
-
-    # --- host actions -------------------------------------------------------
 
     async def perform(self, action: HostAction) -> bool:
+        """What the session calls at an M0, M792, M718 or M719 (the pause itself is the
+        session's: it waits for resume)."""
         if action.kind == "log_start":
             self._start_reports()
             self.console.print(f"logging the controller's reports to {self.reports_path}")
@@ -77,22 +49,6 @@ class ConsoleObserver(Observer):
         else:
             for verb, argument in action.actions:
                 await self._act(verb, argument, action)
-            if action.kind == "pause":
-                return await self._pause(action)
-        return True
-
-    async def _pause(self, action: HostAction) -> bool:
-        message = f": {action.message}" if action.message else ""
-        self.console.print(
-            f"[bold]Paused[/] at {escape(action.position)}{escape(message)} "
-            "- press Enter to resume (Ctrl-C stops the job)"
-        )
-        line = await _read_line(self.stdin)
-        if line is None:
-            raise JobError(
-                f"{action.position}: M0 waits for the operator, but standard input is closed"
-            )
-        self.console.print("resumed")
         return True
 
     async def _act(self, verb: str, argument: str, action: HostAction) -> None:
@@ -149,7 +105,7 @@ async def _run(argv: list[str]) -> None:
         raise
 
 
-async def _read_line(stream: TextIO) -> str | None:
+async def read_line(stream: TextIO) -> str | None:
     """One line from ``stream`` without blocking the event loop; None at end of input."""
     fd = stream.fileno()
     loop = asyncio.get_running_loop()

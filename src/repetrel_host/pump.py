@@ -106,6 +106,7 @@ class Run:
         self, items: Iterable[JobItem], safe_stop: Sequence[str] = (), started_at: float = 0.0
     ) -> None:
         self.items: Iterator[JobItem] = iter(items)
+        self.resends_before = self.retransmissions_before = 0  # the connection's, at the start
         self.safe_stop = list(safe_stop)
         self.started_at = started_at
         self.exhausted = False
@@ -163,7 +164,8 @@ class Pump:
     def timeout(self, now: float) -> None:
         run = self.run
         if run is not None and run.stop_deadline is not None and now >= run.stop_deadline:
-            self._finish(run, run.error or Outcome.CANCELLED, now)  # the safe stop took too long
+            # The safe stop took too long.
+            self._finish(run, _naming_where(run.error, run) or Outcome.CANCELLED, now)
         self.dialect.handle_timeout(now)
 
     @property
@@ -191,6 +193,9 @@ class Pump:
         if self.run is not None:
             raise UsageError("a job is already running on this connection")
         self.run = run
+        stats = self.dialect.stats
+        run.resends_before = stats.resend_requests
+        run.retransmissions_before = stats.retransmissions
 
     def command(self, command: str, tag: object) -> None:
         """Send one command outside any job; :meth:`Listener.command_done` gets ``tag``."""
@@ -237,6 +242,15 @@ class Pump:
         self._stop_feeding(run)
         run.stop_deadline = now + CANCEL_DRAIN_TIMEOUT
         return False
+
+    def abort(self, now: float, error: HostError) -> None:
+        """End the job at once with ``error``: nothing more goes, not even the safe stop
+        (the link is gone, or an emergency stop was sent)."""
+        run = self.run
+        if run is not None:
+            run.stopping = True
+            self.dialect.cancel_pending()
+            self._finish(run, error, now)
 
     # --- inside ---------------------------------------------------------------
 
@@ -293,7 +307,7 @@ class Pump:
             elif isinstance(event, Failed):
                 run = self.run
                 if run is not None:
-                    self._finish(run, _failure_error(event, run), now)
+                    self._finish(run, failure_error(event, run), now)
                 dropped = [tag for tag in dialect.cancel_pending() if not isinstance(tag, JobLine)]
                 if dropped:
                     listener.commands_dropped(dropped)
@@ -323,7 +337,7 @@ class Pump:
                 run.action_running = True
                 self.listener.action_due(run.barrier)
         elif run.stopping:
-            self._finish(run, run.error or Outcome.CANCELLED, now)
+            self._finish(run, _naming_where(run.error, run) or Outcome.CANCELLED, now)
         elif run.exhausted and run.error is not None:
             self._stop_feeding(run)
             return True
@@ -362,15 +376,21 @@ class Pump:
                 outcome=result,
                 lines=run.lines,
                 seconds=now - run.started_at,
-                resends=stats.resend_requests,
-                retransmissions=stats.retransmissions,
+                resends=stats.resend_requests - run.resends_before,
+                retransmissions=stats.retransmissions - run.retransmissions_before,
             )
         self.listener.finished(run)
 
 
-def _failure_error(event: Failed, run: Run) -> HostError:
+def _naming_where(error: HostError | None, run: Run) -> HostError | None:
+    """``error`` with where the job stood (after a bad line, or an action that failed)."""
+    return None if error is None else type(error)(f"{error}; {run.where()}")
+
+
+def failure_error(event: Failed, run: Run | None = None) -> HostError:
+    """The error a dialect's failure is reported as, naming where the job stood."""
     where = f" (at {event.tag.position})" if isinstance(event.tag, JobLine) else ""
-    reason = f"{event.reason}{where}; {run.where()}"
+    reason = f"{event.reason}{where}" + (f"; {run.where()}" if run is not None else "")
     if event.kind is FailureKind.CONTROLLER or event.kind is FailureKind.RESET:
         return ControllerError(reason)
     if event.kind is FailureKind.TIMEOUT:

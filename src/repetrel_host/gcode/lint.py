@@ -44,6 +44,7 @@ class Linter:
     ``positions``: the machine's tool positions (yokes x 5 addresses), to catch T
     commands past them; ``loaded_tools``: the T numbers with a head, when known.
     ``streaming``: report a code outside the chart at its first use, not at the end.
+    ``code_chart``: warn about codes outside Hyrel's chart (not for other firmwares).
     """
 
     def __init__(
@@ -52,8 +53,10 @@ class Linter:
         positions: int | None = None,
         loaded_tools: frozenset[int] | None = None,
         streaming: bool = False,
+        code_chart: bool = True,
     ) -> None:
         self.firmware = firmware
+        self.code_chart = code_chart
         self.positions = positions
         self.loaded_tools = loaded_tools
         self.streaming = streaming
@@ -80,7 +83,7 @@ class Linter:
                 self._e_values_d1 = line
         elif word in ("M703", "M723") and self._manual_flow is None:
             self._manual_flow = (line, word)
-        elif word not in CODE_CHART and word not in DOCUMENTED_ELSEWHERE:
+        elif self.code_chart and word not in CODE_CHART and word not in DOCUMENTED_ELSEWHERE:
             uses = self.unknown.setdefault(word, [line, 0])
             uses[1] += 1
             if self.streaming and uses[1] == 1:

@@ -5,6 +5,9 @@ serial port. Once the pty is ready the process prints ``ready <path>`` on
 stdout. ``--log FILE`` writes every executed command, one a line, in order;
 ``--stats FILE`` writes the link counters as JSON when the process ends
 (times on ``time.monotonic()``'s clock, which other processes share).
+
+:class:`BuiltInFake` runs it in a subprocess for the ``fake`` port: the whole path
+(process, pty, termios, pyserial) is the real one.
 """
 
 from __future__ import annotations
@@ -15,14 +18,20 @@ import dataclasses
 import json
 import os
 import pty
+import select
 import selectors
+import shutil
 import signal
+import subprocess
 import sys
+import tempfile
 import time
 import tty
+from collections.abc import Sequence
 from pathlib import Path
 from typing import BinaryIO, TextIO
 
+from repetrel_host.errors import LinkError
 from repetrel_host.testing.simulator import (
     ControllerSettings,
     ControllerSimulator,
@@ -31,6 +40,8 @@ from repetrel_host.testing.simulator import (
 )
 
 READ_SIZE = 4096
+# Starting Python and the fake takes well under a second; leave room for a slow CI.
+FAKE_START_TIMEOUT = 15.0
 SPIN = 0.0003  # seconds of polling instead of sleeping: before an event, after a reply
 
 
@@ -81,6 +92,7 @@ class PtyController:
         selector.unregister(self._master)
         self._close_pty()
         self._to_write.clear()
+        self.simulator.unplug()
         time.sleep(seconds)
         self._open_pty()
         selector.register(self._master, selectors.EVENT_READ)
@@ -214,13 +226,22 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="answer 'ok N<last line> P<planner free> B<slots free>' (Marlin's ADVANCED_OK)",
     )
+    parser.add_argument(
+        "--heat-rate",
+        type=float,
+        default=None,
+        help="degrees per second a heater moves toward its target, so that M109 and M190 "
+        "wait (default: targets are reached at once)",
+    )
     parser.add_argument("--stats", type=Path, help="write the link counters here as JSON at exit")
     parser.add_argument(
         "--faults",
         default="",
         help="faults to inject, e.g. 'corrupt=0.02 garble=0.01 drop_ok=0.01 duplicate_ok=0.01 "
         "spurious_resend=0.005 resend_without_ok=1 flush_on_error=1 drop_duplicates=1 "
-        "busy_interval=2 seed=7'",
+        "busy_interval=2 seed=7'; and two controllers' ways: counted_resend=1 (OctoPrint's "
+        "virtual printer's answer to a bad checksum) and drop_with_error=0.01 (lines dropped "
+        "with only an error line)",
     )
     return parser
 
@@ -245,6 +266,7 @@ def settings_from_args(args: argparse.Namespace) -> ControllerSettings:
         command_time=args.command_time,
         banner=not args.no_banner,
         advanced_ok=args.advanced_ok,
+        heat_rate=args.heat_rate,
         faults=faults,
     )
 
@@ -282,6 +304,91 @@ def main(argv: list[str] | None = None) -> int:
             counters = dataclasses.asdict(controller.simulator.link)
             args.stats.write_text(json.dumps(counters, indent=1) + "\n")
     return 0
+
+
+class BuiltInFake:
+    """The fake controller in a subprocess, on its own pty, for demos and tests.
+
+    The pty is reached through a link in a private folder, so its path stays the same
+    when the fake unplugs and replugs it (``!!DEBUG:link_drop``).
+    """
+
+    def __init__(self, log_path: Path | None = None, extra_args: Sequence[str] = ()) -> None:
+        if log_path is None:
+            # Kept after the run: it is the proof of what the fake executed.
+            fd, name = tempfile.mkstemp(prefix="hyrel-fake-", suffix=".log")
+            os.close(fd)
+            log_path = Path(name)
+        self.log_path = log_path
+        self.extra_args = list(extra_args)
+        self.port = ""
+        self.process: subprocess.Popen[bytes] | None = None
+        self._folder: str | None = None
+
+    def start(self) -> str:
+        """Start the fake and return the path of its pty."""
+        self._folder = tempfile.mkdtemp(prefix="hyrel-fake-")
+        link = Path(self._folder) / "tty"
+        command = [
+            sys.executable,
+            "-m",
+            "repetrel_host.testing.fake_controller",
+            "--log",
+            str(self.log_path),
+            "--link",
+            str(link),
+            *self.extra_args,
+        ]
+        self.process = subprocess.Popen(
+            command, stdout=subprocess.PIPE, stdin=subprocess.DEVNULL, start_new_session=True
+        )
+        assert self.process.stdout is not None
+        line = _read_line(self.process.stdout.fileno(), FAKE_START_TIMEOUT)
+        if not line.startswith("ready "):
+            self.stop()
+            raise LinkError("the built-in fake controller did not start")
+        self.port = line.split(" ", 1)[1]
+        return self.port
+
+    def stop(self) -> None:
+        """Stop the fake; its log is complete once this returns."""
+        if self.process is not None and self.process.poll() is None:
+            self.process.terminate()
+            try:
+                self.process.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+        if self.process is not None and self.process.stdout is not None:
+            self.process.stdout.close()
+        self.process = None
+        if self._folder is not None:
+            shutil.rmtree(self._folder, ignore_errors=True)
+            self._folder = None
+
+    def __enter__(self) -> BuiltInFake:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+def _read_line(fd: int, timeout: float) -> str:
+    deadline = time.monotonic() + timeout
+    data = b""
+    while not data.endswith(b"\n"):
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            break
+        readable, _, _ = select.select([fd], [], [], remaining)
+        if not readable:
+            break
+        chunk = os.read(fd, 256)
+        if not chunk:
+            break
+        data += chunk
+    return data.decode("ascii", errors="replace").strip()
 
 
 if __name__ == "__main__":

@@ -28,7 +28,21 @@ from repetrel_host.protocol.controller import Accepted, ControllerProtocol, Reje
 
 _MOVES = frozenset({"G0", "G1", "G2", "G3", "G5"})
 _DWELL = re.compile(r"\b([PS])\s*(\d+(?:\.\d*)?)", re.IGNORECASE)
+_S_VALUE = re.compile(r"\bS\s*(-?\d+(?:\.\d*)?)", re.IGNORECASE)
+# What each temperature command sets: the hotend (T) or the bed (B), and whether it waits.
+_HEATERS = {"M104": ("T", False), "M109": ("T", True), "M140": ("B", False), "M190": ("B", True)}
+AMBIENT = 21.0
+# Marlin's M115: the identity line, then its capabilities.
+M115_REPLY = (
+    b"FIRMWARE_NAME:repetrel-host fake controller (Marlin replies) "
+    b"PROTOCOL_VERSION:1.0 MACHINE_TYPE:Fake EXTRUDER_COUNT:1\n"
+    b"Cap:AUTOREPORT_TEMP:1\n"
+    b"Cap:EMERGENCY_PARSER:1\n"
+)
+KILLED = b"Error:Printer halted. kill() called!\n"
 DEBUG_PREFIX = "!!DEBUG:"
+# What a host's session sends before a job: the greeting and its question "who are you?".
+_SESSION_WORDS = frozenset({"M110", "M115"})
 MAX_CMD_SIZE = 96  # Marlin's line buffer
 
 
@@ -98,6 +112,9 @@ class ControllerSettings:
     command_time: float = 0.0  # how long any other command takes
     banner: bool = True  # say "start" at boot
     advanced_ok: bool = False  # ADVANCED_OK: "ok N<last line> P<planner free> B<slots free>"
+    # Degrees per second a heater moves toward its target (M109/M190 wait that long);
+    # None: temperatures reach their targets at once.
+    heat_rate: float | None = None
     faults: Faults = field(default_factory=Faults)
 
 
@@ -122,7 +139,7 @@ class LinkCounters:
     peak_slots: int = 0  # most command slots in use at once
     commands: int = 0  # commands accepted into the command slots
     first_command_at: float | None = None  # the host's greeting, M110
-    first_job_command_at: float | None = None  # the first command that is not M110
+    first_job_command_at: float | None = None  # the first command that is not M110 or M115
     last_command_at: float | None = None
     # bytes_received when those two commands were accepted: the job's own bytes between.
     bytes_at_first_job_command: int = 0
@@ -179,6 +196,10 @@ class ControllerSimulator:
         )
         self._idle_from = now  # when the last piece of work finished
         self.link = LinkCounters()
+        # Heater: [current, target, when current was last moved toward target]
+        self.heaters = {name: [AMBIENT, 0.0, now] for name in ("T", "B")}
+        self._report_every: float | None = None  # M155 S<n>
+        self._next_report = now
         if self.settings.banner:
             self._reply(b"start\n", now)
 
@@ -225,6 +246,12 @@ class ControllerSimulator:
         pending = [t for t in times if t is not None]
         return min(pending) if pending else None
 
+    def unplug(self) -> None:
+        """The cable is pulled: whatever was on the wire either way is lost."""
+        self._inbound.clear()
+        self._inbound_bytes = 0
+        self._outbound.clear()
+
     # --- firmware -----------------------------------------------------------
 
     def advance(self, now: float) -> None:
@@ -242,6 +269,8 @@ class ControllerSimulator:
         if self.hung:
             return None
         times: list[float] = []
+        if self._report_every is not None:
+            times.append(self._next_report)
         if self._inbound and self._rx_free() > 0:
             times.append(self._inbound[0][0])
         if self._queue:
@@ -275,6 +304,9 @@ class ControllerSimulator:
                 self._deliver(now)
                 continue
             break
+        if self._report_every is not None and now >= self._next_report:
+            self._reply(b" " + self._temperatures(now).encode() + b"\n", now)
+            self._next_report = now + self._report_every
         interval = self.faults.busy_interval
         if interval and self._blocked() and now >= self._next_busy:
             self._reply(b"echo:busy: processing\n", now)
@@ -299,6 +331,9 @@ class ControllerSimulator:
         if len(data) > free:
             link.bytes_dropped += len(data) - free
             data = data[:free]
+        if b"M112" in data and data.lstrip().startswith(b"M112"):
+            self._kill(now)  # Marlin's emergency parser acts as the bytes arrive
+            return
         self._rx += data
         if len(self._rx) > link.peak_rx_buffer:
             link.peak_rx_buffer = len(self._rx)
@@ -342,7 +377,7 @@ class ControllerSimulator:
                 link.starved += now - idle_from
         if link.first_command_at is None:
             link.first_command_at = now
-        if link.first_job_command_at is None and word != "M110":
+        if link.first_job_command_at is None and word not in _SESSION_WORDS:
             link.first_job_command_at = now
             link.bytes_at_first_job_command = link.bytes_received
         link.last_command_at = now
@@ -393,6 +428,9 @@ class ControllerSimulator:
         return True
 
     def _duration(self, command: _Command) -> float:
+        heater = _HEATERS.get(command.word)
+        if heater is not None and heater[1]:
+            return self._set_target(heater[0], command.text, self._last_step)
         if command.word == "G4":
             match = _DWELL.search(command.text[2:])
             if match is not None:
@@ -402,15 +440,20 @@ class ControllerSimulator:
         return self.settings.command_time
 
     def _answer(self, command: _Command, now: float) -> None:
-        if command.word == "M105":
-            self._ok(b"ok T:21.0 /0.0 B:21.0 /0.0 @:0 B@:0\n", now)
+        word = command.word
+        heater = _HEATERS.get(word)
+        if heater is not None and not heater[1]:
+            self._set_target(heater[0], command.text, now)
+        if word == "M105":
+            self._ok(f"ok {self._temperatures(now)}\n".encode(), now)
             return
-        if command.word == "M115":
-            self._reply(
-                b"FIRMWARE_NAME:repetrel-host fake controller (Marlin replies) "
-                b"PROTOCOL_VERSION:1.0 MACHINE_TYPE:Fake\n",
-                now,
-            )
+        if word == "M115":
+            self._reply(M115_REPLY, now)
+        elif word == "M155":
+            match = _S_VALUE.search(command.text)
+            seconds = float(match.group(1)) if match else 0.0
+            self._report_every = seconds if seconds > 0 else None
+            self._next_report = now + seconds
         if command.number is not None and self._chance(self.faults.spurious_resend):
             self.counts.spurious_resends += 1
             self._reply(f"Resend: {command.number}\n".encode(), now)
@@ -435,6 +478,49 @@ class ControllerSimulator:
     def _new_protocol(self) -> ControllerProtocol:
         faults = self.faults
         return ControllerProtocol(faults.drop_duplicates, faults.counted_resend)
+
+    # --- heaters -------------------------------------------------------------
+
+    def _heat(self, name: str, now: float) -> list[float]:
+        """The heater's state at ``now``, moved toward its target since last asked."""
+        heater = self.heaters[name]
+        current, target, since = heater
+        rate = self.settings.heat_rate
+        goal = max(target, AMBIENT)
+        if rate is None:
+            current = goal
+        else:
+            step = rate * max(0.0, now - since)
+            current = min(goal, current + step) if current < goal else max(goal, current - step)
+        heater[0], heater[2] = current, now
+        return heater
+
+    def _set_target(self, name: str, command: str, now: float) -> float:
+        """Set a heater's target; return how long until it is reached (for M109/M190)."""
+        match = _S_VALUE.search(command)
+        heater = self._heat(name, now)
+        if match is not None:
+            heater[1] = float(match.group(1))
+        rate = self.settings.heat_rate
+        if rate is None or heater[1] <= heater[0]:
+            self._heat(name, now)
+            return 0.0
+        return (heater[1] - heater[0]) / rate
+
+    def _temperatures(self, now: float) -> str:
+        hotend, bed = self._heat("T", now), self._heat("B", now)
+        return f"T:{hotend[0]:.1f} /{hotend[1]:.1f} B:{bed[0]:.1f} /{bed[1]:.1f} @:0 B@:0"
+
+    def _kill(self, now: float) -> None:
+        """M112: Marlin's kill(): heaters off, nothing more until a reset."""
+        self._on_execute("M112")
+        for heater in self.heaters.values():
+            heater[1] = 0.0
+        self._queue.clear()
+        self._planner.clear()
+        self._rx.clear()
+        self._reply(KILLED, now)
+        self.hung = True
 
     def _reboot(self, now: float) -> None:
         self.protocol = self._new_protocol()

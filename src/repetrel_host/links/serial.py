@@ -1,9 +1,5 @@
-"""The only module that touches pyserial: open a port by name or URL, or start the fake.
-
-``fake`` as a port name starts the built-in fake controller in a subprocess on
-a fresh pty and opens that, so the whole path (process, pty, termios, pyserial)
-is the real one.
-"""
+"""The only module that touches pyserial: a serial device, or a pyserial URL
+(``socket://host:port``, ``rfc2217://host:port``)."""
 
 from __future__ import annotations
 
@@ -11,25 +7,15 @@ import asyncio
 import errno
 import functools
 import os
-import select
-import subprocess
-import sys
-import tempfile
-import time
-from collections.abc import Callable, Sequence
-from pathlib import Path
+from collections.abc import Callable
 
 import serial
 import serial_asyncio_fast
 
 from repetrel_host.errors import LinkError
 
-FAKE_PORT = "fake"
-# Starting Python and the fake takes well under a second; leave room for a slow CI.
-FAKE_START_TIMEOUT = 15.0
 
-
-async def open_link(
+async def open_serial(
     port: str, baudrate: int, protocol_factory: Callable[[], asyncio.Protocol]
 ) -> tuple[asyncio.Transport, asyncio.Protocol]:
     """Open ``port`` (a device path or a pyserial URL) and connect ``protocol_factory`` to it."""
@@ -118,76 +104,3 @@ def describe_open_error(port: str, exc: BaseException) -> str:
     if code == errno.EBUSY or "Resource temporarily unavailable" in text or "busy" in text:
         return f"cannot open {port}: the port is busy (another program has it open)"
     return f"cannot open {port}: {text}"
-
-
-class BuiltInFake:
-    """The fake controller in a subprocess, on its own pty, for demos and tests."""
-
-    def __init__(self, log_path: Path | None = None, extra_args: Sequence[str] = ()) -> None:
-        if log_path is None:
-            # Kept after the run: it is the proof of what the fake executed.
-            fd, name = tempfile.mkstemp(prefix="hyrel-fake-", suffix=".log")
-            os.close(fd)
-            log_path = Path(name)
-        self.log_path = log_path
-        self.extra_args = list(extra_args)
-        self.port = ""
-        self.process: subprocess.Popen[bytes] | None = None
-
-    def start(self) -> str:
-        """Start the fake and return the path of its pty."""
-        command = [
-            sys.executable,
-            "-m",
-            "repetrel_host.testing.fake_controller",
-            "--log",
-            str(self.log_path),
-            *self.extra_args,
-        ]
-        self.process = subprocess.Popen(
-            command, stdout=subprocess.PIPE, stdin=subprocess.DEVNULL, start_new_session=True
-        )
-        assert self.process.stdout is not None
-        line = _read_line(self.process.stdout.fileno(), FAKE_START_TIMEOUT)
-        if not line.startswith("ready "):
-            self.stop()
-            raise LinkError("the built-in fake controller did not start")
-        self.port = line.split(" ", 1)[1]
-        return self.port
-
-    def stop(self) -> None:
-        """Stop the fake; its log is complete once this returns."""
-        if self.process is not None and self.process.poll() is None:
-            self.process.terminate()
-            try:
-                self.process.wait(timeout=5)
-            except subprocess.TimeoutExpired:
-                self.process.kill()
-                self.process.wait()
-        if self.process is not None and self.process.stdout is not None:
-            self.process.stdout.close()
-        self.process = None
-
-    def __enter__(self) -> BuiltInFake:
-        self.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
-
-
-def _read_line(fd: int, timeout: float) -> str:
-    deadline = time.monotonic() + timeout
-    data = b""
-    while not data.endswith(b"\n"):
-        remaining = deadline - time.monotonic()
-        if remaining <= 0:
-            break
-        readable, _, _ = select.select([fd], [], [], remaining)
-        if not readable:
-            break
-        chunk = os.read(fd, 256)
-        if not chunk:
-            break
-        data += chunk
-    return data.decode("ascii", errors="replace").strip()

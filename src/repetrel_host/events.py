@@ -1,0 +1,111 @@
+"""What a printer session tells its users: state changes, temperatures, controller
+messages, and each job's progress and end. Frozen and slotted, as h11's events."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import Enum
+
+from repetrel_host.errors import HostError
+from repetrel_host.pump import Summary
+
+
+class State(Enum):
+    """Where a printer session stands."""
+
+    CONNECTING = "connecting"  # opening the port, greeting the controller
+    READY = "ready"  # greeted; commands and jobs may start
+    PRINTING = "printing"
+    PAUSED = "paused"  # a job waits: commands may move the machine meanwhile
+    DISCONNECTED = "disconnected"  # the port went away (reconnecting, unless told not to)
+    CLOSED = "closed"
+
+
+@dataclass(frozen=True, slots=True)
+class StateChanged:
+    state: State
+    previous: State | None
+    reason: str = ""
+
+
+@dataclass(frozen=True, slots=True)
+class Temperatures:
+    """A temperature report: ``readings`` maps a sensor (``T``, ``T1``, ``B``, ``C``) to
+    (current, target); the target is None when the report gave none."""
+
+    readings: dict[str, tuple[float, float | None]]
+    text: str
+
+
+@dataclass(frozen=True, slots=True)
+class Message:
+    """A line from the controller that is not an answer to a command (echo:, //, >IN:...)."""
+
+    text: str
+
+
+@dataclass(frozen=True, slots=True)
+class Notice:
+    """Something worth knowing that stops nothing (a noisy link, a probe chosen)."""
+
+    text: str
+
+
+@dataclass(frozen=True, slots=True)
+class Progress:
+    """How far a job is: the controller acknowledged ``lines`` of its lines, up to byte
+    ``offset`` of ``size``, the last at ``position`` (``part.gcode:1234``)."""
+
+    lines: int
+    offset: int
+    size: int
+    position: str
+
+
+@dataclass(frozen=True, slots=True)
+class Resend:
+    """The controller asked for a job line again."""
+
+    position: str
+
+
+@dataclass(frozen=True, slots=True)
+class Action:
+    """A host action the job asked for (M792, or the text of an M0)."""
+
+    kind: str  # "pause", "actions", "log_start", "log_stop"
+    message: str
+    actions: tuple[tuple[str, str], ...]
+    position: str
+
+
+@dataclass(frozen=True, slots=True)
+class Paused:
+    """The job is paused: by :meth:`Printer.pause` (``reason`` "pause") or by an M0."""
+
+    reason: str
+    message: str
+    position: str
+
+
+@dataclass(frozen=True, slots=True)
+class Resumed:
+    pass
+
+
+@dataclass(frozen=True, slots=True)
+class Done:
+    """The job ended: completed, or cancelled after its safe stop."""
+
+    summary: Summary
+
+
+@dataclass(frozen=True, slots=True)
+class Failed:
+    """The job failed; ``error`` is what :meth:`PrintJob.wait` raises."""
+
+    error: HostError
+
+
+PrinterEvent = StateChanged | Temperatures | Message | Notice
+JobEvent = Progress | Resend | Message | Notice | Action | Paused | Resumed | Done | Failed

@@ -1,0 +1,960 @@
+"""The printer session: one long-lived connection to one controller.
+
+``connect`` opens the port, greets the controller (M110 and a probe), asks M115
+who it is, and hands back a READY :class:`Printer`. The session then keeps
+reading: controller messages and temperatures become events, commands get
+their replies, jobs stream one after another on the same numbering, and a
+vanished port is reopened (with backoff) and greeted again. It never resumes a
+job by itself.
+
+All I/O is here: bytes go between a link (``repetrel_host.links``) and the one
+pump (``repetrel_host.pump``), which drives the dialect. Models: zigpy-znp's
+``api.py`` (connect, request and wait for the response, reconnect), Klipper's
+``serialhdl.py`` (connect with retry, ``send_with_response``), h11's
+``start_next_cycle`` (one connection, many exchanges).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+import re
+from collections import deque
+from collections.abc import AsyncIterator, Awaitable, Callable, Coroutine, Generator, Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, BinaryIO, Generic, TypeVar
+
+from repetrel_host.config import UserConfig, load_user_config
+from repetrel_host.errors import ControllerError, HostError, JobError, LinkError, UsageError
+from repetrel_host.events import (
+    Action,
+    Done,
+    Failed,
+    JobEvent,
+    Message,
+    Notice,
+    Paused,
+    PrinterEvent,
+    Progress,
+    Resend,
+    Resumed,
+    State,
+    StateChanged,
+    Temperatures,
+)
+from repetrel_host.gcode.commands import command_word
+from repetrel_host.job import HostAction, JobLine
+from repetrel_host.links import Link, make_link
+from repetrel_host.planning import (
+    JobPlan,
+    JobRequest,
+    LinkRequest,
+    explicit_machine,
+    history_file,
+    link_settings,
+    plan_job,
+    resolve_port,
+)
+from repetrel_host.protocol import replies
+from repetrel_host.protocol.dialects import create_dialect
+from repetrel_host.protocol.dialects.reprap import DEFAULT_REPLY_TIMEOUT
+from repetrel_host.protocol.events import Failed as DialectFailed
+from repetrel_host.protocol.events import FailureKind, ProbeKind
+from repetrel_host.protocol.flow import FlowControl, FlowMode
+from repetrel_host.protocol.framing import clean_line
+from repetrel_host.protocol.reports import Firmware, parse_temperatures
+from repetrel_host.pump import CANCEL_DRAIN_TIMEOUT, Listener, Pump, Run, Summary, failure_error
+
+if TYPE_CHECKING:
+    from repetrel_host.testing.simulator import ControllerSettings
+
+log = logging.getLogger(__name__)
+
+# A controller that does not answer M115 this fast is used without knowing its name.
+FIRMWARE_TIMEOUT = 2.0
+# Temperatures are asked for this often while idle (M105), unless the firmware reports them.
+POLL_INTERVAL = 5.0
+# After an unplug, the port is tried again after this long, doubling up to the maximum.
+RECONNECT_FIRST = 0.25
+RECONNECT_MAX = 5.0
+# A job's progress goes to its event subscribers at most this often.
+PROGRESS_INTERVAL = 0.1
+# Events a late subscriber to a job still gets.
+JOB_EVENT_BACKLOG = 1000
+LINK_LOST = "the serial link was lost (printer unplugged, or its port closed)"
+_FRAMED = re.compile(r"^\s*N-?\d|\*")
+
+E = TypeVar("E")
+_END = object()
+
+
+@dataclass(frozen=True, slots=True)
+class Reply:
+    """The controller's answer to one command."""
+
+    command: str
+    lines: list[str]  # the controller's lines for it, before its ok
+    ok: str  # the ok line itself ("ok T:200.0 /200.0 B:60.0 /60.0"); "" for M112
+
+
+@dataclass(frozen=True, slots=True)
+class SessionSettings:
+    """What a session was opened with."""
+
+    port: str
+    baud: int
+    flow: FlowControl
+    reply_timeout: float = DEFAULT_REPLY_TIMEOUT
+    reconnect: bool = True
+    poll_interval: float | None = POLL_INTERVAL
+    protocol: str = "reprap"
+    user: UserConfig = field(default_factory=UserConfig)
+    request: JobRequest = field(default_factory=JobRequest)
+
+
+class _Hub(Generic[E]):
+    """Hands every event to every subscriber, each at its own pace."""
+
+    def __init__(self, backlog: int = 0) -> None:
+        self._queues: list[asyncio.Queue[object]] = []
+        self._backlog: deque[E] | None = deque(maxlen=backlog) if backlog else None
+        self._closed = False
+
+    @property
+    def listened(self) -> bool:
+        return bool(self._queues)
+
+    def publish(self, event: E) -> None:
+        if self._backlog is not None:
+            self._backlog.append(event)
+        for queue in self._queues:
+            queue.put_nowait(event)
+
+    def close(self) -> None:
+        self._closed = True
+        for queue in self._queues:
+            queue.put_nowait(_END)
+
+    async def stream(self, first: Iterable[E] = ()) -> AsyncIterator[E]:
+        queue: asyncio.Queue[object] = asyncio.Queue()
+        for event in (*first, *(self._backlog or ())):
+            queue.put_nowait(event)
+        if self._closed:
+            queue.put_nowait(_END)
+        self._queues.append(queue)
+        try:
+            while (event := await queue.get()) is not _END:
+                yield event  # type: ignore[misc]
+        finally:
+            self._queues.remove(queue)
+
+
+class _Command:
+    """A command on its way: the lines that come for it, and the reply it awaits."""
+
+    __slots__ = ("command", "future", "lines")
+
+    def __init__(self, command: str, future: asyncio.Future[Reply]) -> None:
+        self.command = command
+        self.lines: list[str] = []
+        self.future = future
+
+
+class _Connection(asyncio.Protocol):
+    """The asyncio side of one opened link; a stale one (after an unplug) is ignored."""
+
+    def __init__(self, printer: Printer) -> None:
+        self.printer = printer
+        self.transport: asyncio.Transport | None = None
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
+        self.transport = transport
+        self.printer._made(self)
+
+    def data_received(self, data: bytes) -> None:
+        self.printer._received(self, data)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.printer._lost(self, exc)
+
+
+ActionHandler = Callable[[HostAction], Awaitable[bool]]
+
+
+class PrintJob:
+    """One job streaming on a session: its progress, events and end."""
+
+    def __init__(
+        self,
+        printer: Printer,
+        plan: JobPlan,
+        run: Run,
+        on_action: ActionHandler | None,
+        history: Path | None,
+    ) -> None:
+        self.printer = printer
+        self.plan = plan
+        self.name = plan.job.name
+        self.size = plan.job.size
+        self.history = history  # the stream as transmitted, or None
+        self.on_action = on_action
+        self._run = run
+        self._done: asyncio.Future[Summary] = asyncio.get_running_loop().create_future()
+        self._hub: _Hub[JobEvent] = _Hub(JOB_EVENT_BACKLOG)
+        self._progress_due = False
+        self._m0: asyncio.Future[None] | None = None  # an M0 waiting for resume()
+
+    # --- progress -------------------------------------------------------------
+
+    @property
+    def lines(self) -> int:
+        """Job lines the controller acknowledged (the header's and safe stop's not counted)."""
+        return self._run.lines
+
+    @property
+    def offset(self) -> int:
+        """Bytes of the file up to the last acknowledged line."""
+        return self._run.offset
+
+    @property
+    def last(self) -> JobLine | None:
+        """The last job line the controller acknowledged."""
+        return self._run.last
+
+    @property
+    def done(self) -> bool:
+        return self._done.done()
+
+    def where(self) -> str:
+        """The last line the controller acknowledged, as error messages name it."""
+        return self._run.where()
+
+    @property
+    def safe_stop_missing(self) -> list[str]:
+        """Safe-stop commands the controller did not confirm (after an abandoned stop)."""
+        return self._run.safe_stop_missing
+
+    def events(self) -> AsyncIterator[JobEvent]:
+        """Progress, messages, resends, pauses, then Done or Failed (the last event)."""
+        return self._hub.stream()
+
+    async def wait(self) -> Summary:
+        """The summary once the job ended; raises what ended it (the errors hyrel-send shows)."""
+        return await asyncio.shield(self._done)
+
+    # --- control ----------------------------------------------------------------
+
+    async def pause(self) -> None:
+        await self.printer.pause()
+
+    async def resume(self) -> None:
+        await self.printer.resume()
+
+    async def cancel(self) -> None:
+        await self.printer.cancel()
+
+    def stop(self, error: HostError | None = None) -> bool:
+        """Stop without waiting: the safe-stop sequence goes ahead of anything not sent,
+        and :meth:`wait` raises ``error`` once it went (a cancel, without one).
+
+        A second call abandons the safe stop and ends the job at once; it returns True
+        then (:attr:`safe_stop_missing` says what was not confirmed)."""
+        return self.printer._stop_job(self, error)
+
+    # --- from the session ---------------------------------------------------------
+
+    def _publish(self, event: JobEvent) -> None:
+        self._hub.publish(event)
+
+    def _acknowledged(self) -> None:
+        if self._hub.listened and not self._progress_due:
+            self._progress_due = True
+            asyncio.get_running_loop().call_later(PROGRESS_INTERVAL, self._send_progress)
+
+    def _send_progress(self) -> None:
+        self._progress_due = False
+        if not self.done:
+            self._publish(self._progress())
+
+    def _progress(self) -> Progress:
+        last = self._run.last
+        return Progress(self.lines, self.offset, self.size, last.position if last else "")
+
+    def _finish(self, run: Run) -> None:
+        if self._done.done():
+            return
+        self._publish(self._progress())
+        if run.error is not None:
+            self._publish(Failed(run.error))
+            self._done.set_exception(run.error)
+            self._done.exception()  # retrieved: a job nobody waits for is no error
+        else:
+            assert run.summary is not None
+            self._publish(Done(run.summary))
+            self._done.set_result(run.summary)
+        self._hub.close()
+
+
+class Printer:
+    """One long-lived connection to one controller (see the module's docstring)."""
+
+    def __init__(self, link: Link, settings: SessionSettings) -> None:
+        self._loop = asyncio.get_running_loop()
+        self.link = link
+        self.settings = settings
+        self.state = State.CONNECTING
+        self.firmware: Firmware | None = None
+        self.probe: ProbeKind | None = None
+        self.temperatures: dict[str, tuple[float, float | None]] = {}
+        self._connection: _Connection | None = None
+        self._pump: Pump | None = None
+        self._listener = _PumpListener(self)
+        self._timer: asyncio.TimerHandle | None = None
+        self._timer_at: float | None = None
+        self._ready: asyncio.Future[ProbeKind] | None = None
+        self._commands: deque[_Command] = deque()
+        self._lock = asyncio.Lock()
+        self._job: PrintJob | None = None
+        self._wire_log: BinaryIO | None = None
+        self._hub: _Hub[PrinterEvent] = _Hub()
+        self._state_waiters: list[tuple[Callable[[], bool], asyncio.Future[None]]] = []
+        self._tasks: set[asyncio.Task[Any]] = set()
+        self._reconnecting: asyncio.Task[None] | None = None
+        self._autoreport = False
+        self._closing = False
+
+    @property
+    def port(self) -> str:
+        return self.link.port
+
+    @property
+    def job(self) -> PrintJob | None:
+        """The job streaming now, if any."""
+        return self._job
+
+    def events(self) -> AsyncIterator[PrinterEvent]:
+        """State changes (the current state first), temperatures, controller messages."""
+        return self._hub.stream([StateChanged(self.state, None)])
+
+    async def wait_for(self, *states: State, timeout: float | None = None) -> None:
+        """Wait until the session is in one of ``states``."""
+        await asyncio.wait_for(self._until(lambda: self.state in states), timeout)
+
+    # --- commands ---------------------------------------------------------------
+
+    async def command(self, line: str, *, timeout: float | None = None) -> Reply:
+        """Send one command through the numbered, checksummed, resend-safe path and
+        return the controller's reply. M112 goes out at once, unnumbered, and stops a job."""
+        command = _clean_command(line)
+        if command_word(command) == "M112":
+            self._emergency_stop(command)
+            return Reply(command, [], "")
+        self._check_can_command()
+        async with self._lock:
+            self._check_can_command()
+            return await self._command(command, timeout)
+
+    async def _command(self, command: str, timeout: float | None) -> Reply:
+        pump = self._pump
+        if pump is None:
+            raise LinkError(f"{self.port} is not connected")
+        pending = _Command(command, self._loop.create_future())
+        self._commands.append(pending)
+        pump.command(command, pending)
+        self._poke()
+        # Shielded: a timeout leaves it pending, so that its late lines are still its own.
+        return await asyncio.wait_for(asyncio.shield(pending.future), timeout)
+
+    def _check_can_command(self) -> None:
+        state = self.state
+        if state is State.PRINTING:
+            raise UsageError(
+                "a job is printing: commands wait until it ends or is paused (pause() first)"
+            )
+        if state is not State.READY and state is not State.PAUSED:
+            raise LinkError(f"{self.port} is not connected (the session is {state.value})")
+
+    def _emergency_stop(self, command: str) -> None:
+        pump = self._pump
+        if pump is None:
+            raise LinkError(f"{self.port} is not connected")
+        pump.dialect.send_urgent(command)
+        pump.abort(self._loop.time(), ControllerError("stopped by an emergency stop (M112)"))
+        self._poke()
+
+    # --- jobs -------------------------------------------------------------------
+
+    def plan(self, path: Path | str, *, header: bool = True) -> JobPlan:
+        """What :meth:`print` would stream for ``path``: profile, header, safe stop."""
+        request = JobRequest(self.settings.request.loadout, self.settings.request.machine, header)
+        return plan_job(Path(path), request, self.settings.user, self.firmware)
+
+    async def print(
+        self,
+        job: Path | str | JobPlan,
+        *,
+        force: bool = False,
+        history: Path | bool = True,
+        on_action: ActionHandler | None = None,
+        on_warning: Callable[[str], None] | None = None,
+    ) -> PrintJob:
+        """Start streaming ``job`` (a path, or a plan from :meth:`plan`); returns at once.
+
+        The file is checked first (over 4 MB, as it streams): an error refuses the job
+        unless ``force``. ``history``: keep the stream as transmitted (True: in the
+        configured folder; a path: that file). ``on_action`` performs M792's SAY, BEEP,
+        SHELL... and an M0's; M0 pauses the job until :meth:`resume`.
+        """
+        if self._job is not None or self.state is State.PRINTING or self.state is State.PAUSED:
+            raise UsageError("a job is already running on this printer")
+        self._check_can_command()
+        plan = job if isinstance(job, JobPlan) else self.plan(job)
+        warn = on_warning or (lambda text: self._hub.publish(Notice(text)))
+        checker = None
+        if plan.checked_as_it_streams:
+            checker = plan.streaming_checker(warn, force)
+        elif not isinstance(job, JobPlan):
+            findings = plan.check()
+            for finding in findings:
+                warn(finding.format(plan.job.name))
+            refused = [f for f in findings if f.severity == "error"]
+            if refused and not force:
+                raise JobError(f"{plan.job.name}: not sent ({len(refused)} errors; force sends)")
+        path = self._open_history(plan, history)
+        async with self._lock:
+            self._check_can_command()
+            pump = self._pump
+            assert pump is not None
+            run = Run(plan.items(checker), plan.safe_stop, started_at=self._loop.time())
+            print_job = PrintJob(self, plan, run, on_action, path)
+            self._job = print_job
+            pump.begin(run)
+            self._set_state(State.PRINTING, plan.job.name)
+            self._poke()
+        return print_job
+
+    def _open_history(self, plan: JobPlan, history: Path | bool) -> Path | None:
+        if history is False:
+            return None
+        path = (
+            history
+            if isinstance(history, Path)
+            else history_file(None, self.settings.user, plan.job)
+        )
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            self._wire_log = path.open("wb")
+        except OSError as exc:
+            raise JobError(f"cannot write the print history {path}: {exc.strerror}") from None
+        return path
+
+    async def pause(self) -> None:
+        """Stop feeding the job; returns once every line sent is confirmed (PAUSED)."""
+        job = self._job
+        if job is None:
+            raise UsageError("no job is printing")
+        if self.state is State.PAUSED:
+            return
+        if self._pump is not None:
+            self._pump.pause()
+            self._poke()
+        await self._until(lambda: self.state is not State.PRINTING or job.done)
+
+    async def resume(self) -> None:
+        """Go on with a paused job (paused by :meth:`pause` or by an M0)."""
+        job = self._job
+        if job is None or self.state is not State.PAUSED:
+            raise UsageError("no job is paused")
+        self._set_state(State.PRINTING, "resumed")
+        job._publish(Resumed())
+        if job._m0 is not None:
+            m0, job._m0 = job._m0, None
+            m0.set_result(None)
+        elif self._pump is not None:
+            self._pump.resume()
+            self._poke()
+
+    async def cancel(self) -> None:
+        """Stop the job with the safe-stop sequence; returns once it went."""
+        job = self._job
+        if job is None:
+            return
+        job.stop()
+        with contextlib.suppress(HostError):
+            await job.wait()
+
+    def _stop_job(self, job: PrintJob, error: HostError | None) -> bool:
+        if job is not self._job or self._pump is None:
+            return False
+        if job._m0 is not None:
+            job._m0.cancel()
+            job._m0 = None
+        if self.state is State.PAUSED:
+            self._set_state(State.PRINTING, "stopping")
+        abandoned = self._pump.stop(self._loop.time(), error)
+        self._poke()
+        return abandoned
+
+    # --- opening, greeting, reconnecting -------------------------------------
+
+    async def _open(self) -> None:
+        """Open the link and greet the controller: READY, or a HostError."""
+        self._set_state(State.CONNECTING, f"opening {self.port}")
+        self._ready = self._loop.create_future()
+        await self.link.open(lambda: _Connection(self))
+        await self._greet()
+
+    async def _greet(self) -> None:
+        ready = self._ready
+        assert ready is not None
+        try:
+            self.probe = await ready
+            await self._identify()
+        except BaseException:
+            self._drop_connection()
+            raise
+        self._set_state(State.READY, "greeted")
+        if self.settings.poll_interval and not self._autoreport:
+            self._spawn(self._poll(self.settings.poll_interval))
+
+    async def _identify(self) -> None:
+        self.firmware = None
+        self._autoreport = False
+        try:
+            reply = await self._command("M115", FIRMWARE_TIMEOUT)
+        except TimeoutError:
+            return  # fine: a controller that does not say who it is
+        self.firmware = Firmware.parse([*reply.lines, reply.ok])
+        interval = self.settings.poll_interval
+        if interval and self.firmware is not None and self.firmware.can("AUTOREPORT_TEMP"):
+            await self._command(f"M155 S{max(1, math.ceil(interval))}", FIRMWARE_TIMEOUT)
+            self._autoreport = True
+
+    def _made(self, connection: _Connection) -> None:
+        if self._closing:
+            if connection.transport is not None:
+                connection.transport.close()
+            return
+        self._connection = connection
+        self._start_pump()
+
+    def _start_pump(self) -> None:
+        settings = self.settings
+        dialect = create_dialect(
+            settings.protocol, settings.flow, reply_timeout=settings.reply_timeout
+        )
+        self._pump = Pump(dialect, self._listener)
+        self._write(self._pump.start(self._loop.time()))
+        self._arm_timer(self._pump.deadline)
+
+    async def _regreet(self, reason: str) -> None:
+        """Greet again on the same port (after a reset, or a failure)."""
+        if self._connection is None or self._closing:
+            return
+        self._set_state(State.CONNECTING, reason)
+        self._ready = self._loop.create_future()
+        self._start_pump()
+        try:
+            await self._greet()
+        except HostError as exc:
+            self._pump = None
+            self._set_state(State.DISCONNECTED, str(exc))
+            if self.settings.reconnect and self._reconnecting is None and not self._closing:
+                self._reconnecting = self._spawn(self._reconnect())
+
+    async def _reconnect(self) -> None:
+        delay = RECONNECT_FIRST
+        while not self._closing:
+            await asyncio.sleep(delay)
+            try:
+                await self._open()
+            except HostError as exc:
+                log.debug("reconnect: %s", exc)
+                self._set_state(State.DISCONNECTED, str(exc))
+                delay = min(delay * 2, RECONNECT_MAX)
+                continue
+            break
+        self._reconnecting = None
+
+    async def _poll(self, interval: float) -> None:
+        """M105 every ``interval`` seconds while nothing else talks to the controller."""
+        while True:
+            await asyncio.sleep(interval)
+            if self.state is not State.READY or self._lock.locked() or self._commands:
+                continue
+            with contextlib.suppress(HostError, TimeoutError):
+                async with self._lock:
+                    await self._command("M105", interval * 2)
+
+    # --- I/O ------------------------------------------------------------------
+
+    def _received(self, connection: _Connection, data: bytes) -> None:
+        pump = self._pump
+        if connection is not self._connection or pump is None:
+            return
+        log.debug("received %r", data)
+        pump.receive(data, self._loop.time())
+        self._poke()
+
+    def _lost(self, connection: _Connection, exc: Exception | None) -> None:
+        if connection is not self._connection:
+            return
+        log.debug("connection lost: %s", exc)
+        self._connection = None
+        self._end_connection(LinkError(LINK_LOST))
+        if self._closing:
+            return
+        self._set_state(State.DISCONNECTED, LINK_LOST)
+        if self.settings.reconnect and self._reconnecting is None:
+            self._reconnecting = self._spawn(self._reconnect())
+
+    def _end_connection(self, error: HostError) -> None:
+        """The pump is gone: the job fails naming its last line, commands fail."""
+        pump, self._pump = self._pump, None
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = self._timer_at = None
+        if pump is not None and pump.run is not None:
+            pump.abort(self._loop.time(), type(error)(f"{error}; {pump.run.where()}"))
+        if self._ready is not None and not self._ready.done():
+            self._ready.set_exception(error)
+            self._ready.exception()
+        self._fail_commands(self._commands, error)
+
+    def _drop_connection(self) -> None:
+        connection, self._connection = self._connection, None
+        if connection is not None and connection.transport is not None:
+            connection.transport.close()
+
+    def _fail_commands(self, commands: Iterable[_Command], error: HostError) -> None:
+        for pending in list(commands):
+            if not pending.future.done():
+                pending.future.set_exception(error)
+                pending.future.exception()
+            with contextlib.suppress(ValueError):
+                self._commands.remove(pending)
+
+    def _write(self, data: bytes) -> None:
+        connection = self._connection
+        if not data or connection is None or connection.transport is None:
+            return
+        log.debug("sending %r", data)
+        connection.transport.write(data)
+        if self._wire_log is not None:
+            self._wire_log.write(data)
+
+    def _poke(self) -> None:
+        pump = self._pump
+        if pump is None:
+            return
+        self._write(pump.poke(self._loop.time()))
+        if self._pump is pump:
+            self._arm_timer(pump.deadline)
+
+    def _arm_timer(self, deadline: float | None) -> None:
+        # A timer already due no later stays: firing early is harmless (the pump checks
+        # its own deadline and is poked again), and most lines only push it back.
+        armed = self._timer_at
+        if armed is not None and (deadline is None or armed <= deadline):
+            return
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+        self._timer_at = deadline
+        if deadline is not None:
+            self._timer = self._loop.call_at(deadline, self._on_timer)
+
+    def _on_timer(self) -> None:
+        self._timer = self._timer_at = None
+        pump = self._pump
+        if pump is not None:
+            pump.timeout(self._loop.time())
+            self._poke()
+
+    # --- state and events ----------------------------------------------------
+
+    def _set_state(self, state: State, reason: str = "") -> None:
+        if state is self.state:
+            return
+        previous, self.state = self.state, state
+        self._hub.publish(StateChanged(state, previous, reason))
+        waiters, self._state_waiters = self._state_waiters, []
+        for ready, future in waiters:
+            if future.done():
+                continue
+            if ready():
+                future.set_result(None)
+            elif state is State.CLOSED:
+                future.set_exception(LinkError("the session is closed"))
+            else:
+                self._state_waiters.append((ready, future))
+
+    async def _until(self, ready: Callable[[], bool]) -> None:
+        if ready():
+            return
+        future: asyncio.Future[None] = self._loop.create_future()
+        self._state_waiters.append((ready, future))
+        await future
+
+    def _spawn(self, coroutine: Coroutine[Any, Any, None]) -> asyncio.Task[None]:
+        task = self._loop.create_task(coroutine)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+        return task
+
+    # --- closing ----------------------------------------------------------------
+
+    async def close(self) -> None:
+        """Stop a running job with the safe stop first, then close the port."""
+        if self.state is State.CLOSED:
+            return
+        job = self._job
+        if job is not None and self._pump is not None:
+            job.stop()
+            with contextlib.suppress(HostError, TimeoutError):
+                await asyncio.wait_for(job.wait(), CANCEL_DRAIN_TIMEOUT + 5)
+        self._closing = True
+        for task in list(self._tasks):
+            task.cancel()
+        self._end_connection(LinkError("the session is closed"))
+        self._drop_connection()
+        await self._loop.run_in_executor(None, self.link.close)
+        self._set_state(State.CLOSED, "closed")
+        self._hub.close()
+
+    async def __aenter__(self) -> Printer:
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+
+class _PumpListener(Listener):
+    """What the pump tells the session, kept off the public Printer."""
+
+    def __init__(self, printer: Printer) -> None:
+        self.printer = printer
+
+    def ready(self, probe: ProbeKind) -> None:
+        ready = self.printer._ready
+        if ready is not None and not ready.done():
+            ready.set_result(probe)
+
+    def acknowledged(self, line: JobLine) -> None:
+        job = self.printer._job
+        if job is not None:
+            job._acknowledged()
+
+    def command_done(self, tag: object, data: str) -> None:
+        if not isinstance(tag, _Command):
+            return
+        printer = self.printer
+        with contextlib.suppress(ValueError):
+            printer._commands.remove(tag)
+        if data:
+            self._temperatures(data, f"ok {data}")
+        if not tag.future.done():
+            tag.future.set_result(Reply(tag.command, tag.lines, f"ok {data}" if data else "ok"))
+
+    def commands_dropped(self, tags: list[object]) -> None:
+        error = UsageError("the command was not sent: the job it waited behind was stopped")
+        self.printer._fail_commands((t for t in tags if isinstance(t, _Command)), error)
+
+    def resend(self, line: JobLine) -> None:
+        job = self.printer._job
+        if job is not None:
+            job._publish(Resend(line.position))
+
+    def message(self, text: str, reply: replies.Reply) -> None:
+        printer = self.printer
+        if isinstance(reply, replies.Busy | replies.Wait):
+            return  # keepalives
+        reported = "T:" in text and self._temperatures(text, text)
+        if printer._commands and not (reported and printer._autoreport):
+            printer._commands[0].lines.append(text)
+            return
+        if reported:
+            return
+        printer._hub.publish(Message(text))
+        if printer._job is not None:
+            printer._job._publish(Message(text))
+
+    def _temperatures(self, text: str, line: str) -> bool:
+        readings = parse_temperatures(text)
+        if not readings:
+            return False
+        self.printer.temperatures = readings
+        self.printer._hub.publish(Temperatures(readings, line))
+        return True
+
+    def notice(self, text: str) -> None:
+        printer = self.printer
+        printer._hub.publish(Notice(text))
+        if printer._job is not None:
+            printer._job._publish(Notice(text))
+
+    def action_due(self, action: HostAction) -> None:
+        printer = self.printer
+        job = printer._job
+        if job is not None:
+            printer._spawn(_perform(printer, job, action))
+
+    def paused(self) -> None:
+        printer = self.printer
+        job = printer._job
+        if job is not None:
+            last = job.last
+            job._publish(Paused("pause", "", last.position if last else ""))
+            printer._set_state(State.PAUSED, "paused")
+
+    def finished(self, run: Run) -> None:
+        printer = self.printer
+        job, printer._job = printer._job, None
+        if printer._wire_log is not None:
+            printer._wire_log.close()
+            printer._wire_log = None
+        if job is not None:
+            job._finish(run)
+        pump = printer._pump
+        healthy = pump is not None and pump.dialect.failure is None
+        if healthy and (printer.state is State.PRINTING or printer.state is State.PAUSED):
+            printer._set_state(State.READY, "the job ended")
+
+    def failed(self, failure: DialectFailed) -> None:
+        printer = self.printer
+        error = failure_error(failure)
+        ready = printer._ready
+        if ready is not None and not ready.done():
+            ready.set_exception(error)  # the greeting failed: connect() says why
+            ready.exception()
+            return
+        printer._fail_commands(printer._commands, error)
+        if failure.kind is FailureKind.RESET:
+            printer._hub.publish(Notice("the controller reset; greeting it again"))
+        if printer.settings.reconnect and not printer._closing:
+            printer._spawn(printer._regreet(failure.reason))
+        else:
+            printer._pump = None
+            printer._drop_connection()
+            printer._set_state(State.DISCONNECTED, failure.reason)
+
+
+async def _perform(printer: Printer, job: PrintJob, action: HostAction) -> None:
+    """Carry out a host action once everything before it is confirmed."""
+    job._publish(Action(action.kind, action.message, action.actions, action.position))
+    result: bool | HostError
+    try:
+        proceed = await job.on_action(action) if job.on_action is not None else True
+        if proceed and action.kind == "pause":
+            job._m0 = printer._loop.create_future()
+            job._publish(Paused("M0", action.message, action.position))
+            printer._set_state(State.PAUSED, f"M0 at {action.position}")
+            await job._m0
+        result = proceed
+    except HostError as exc:
+        result = exc
+    except asyncio.CancelledError:
+        return  # the job was stopped meanwhile
+    pump = printer._pump
+    if pump is not None and printer._job is job:
+        pump.action_done(result)
+        printer._poke()
+
+
+def _clean_command(line: str) -> str:
+    if _FRAMED.search(line.split(";", 1)[0]):
+        raise UsageError(
+            "line numbers and checksums are the host's: send the command alone, "
+            "without N<number> and *<checksum>"
+        )
+    command = clean_line(line, "command")
+    if not command:
+        raise UsageError("the command is empty")
+    if command_word(command) == "M110":
+        raise UsageError("M110 sets line numbers, which the host owns; it cannot be sent")
+    return command
+
+
+class _Connect:
+    """``connect(...)``: awaited, a READY printer; with ``async with``, closed at the end."""
+
+    def __init__(self, opening: Callable[[], Coroutine[Any, Any, Printer]]) -> None:
+        self._opening = opening
+        self._printer: Printer | None = None
+
+    def __await__(self) -> Generator[Any, None, Printer]:
+        return self._opening().__await__()
+
+    async def __aenter__(self) -> Printer:
+        self._printer = await self._opening()
+        return self._printer
+
+    async def __aexit__(self, *exc: object) -> None:
+        if self._printer is not None:
+            await self._printer.close()
+
+
+def connect(
+    port: str | None = None,
+    machine: str | None = None,
+    loadout: Path | str | None = None,
+    flow: FlowControl | FlowMode | str | None = None,
+    config: Path | UserConfig | None = None,
+    *,
+    baud: int | None = None,
+    reply_timeout: float = DEFAULT_REPLY_TIMEOUT,
+    reconnect: bool = True,
+    poll_interval: float | None = POLL_INTERVAL,
+    protocol: str = "reprap",
+    fake_log: Path | None = None,
+    fake_args: Iterable[str] = (),
+    sim: ControllerSettings | None = None,
+) -> _Connect:
+    """Open a printer session on ``port`` and greet the controller.
+
+    ``port``: a device path, a pyserial URL (``socket://``, ``rfc2217://``), ``fake``
+    (the built-in fake on a fresh pty, started and stopped with the session) or
+    ``sim`` (the simulator in this process); None: ``$HYREL_PORT``, then the
+    configuration's ``[printer] port``, else the fake. ``machine`` and ``loadout``
+    choose the profile (else the firmware's M115 answer does), ``flow`` the flow
+    control (else the profile's). ``poll_interval``: seconds between temperature
+    polls while idle, None for silence. ``reconnect=False``: a lost port stays lost.
+    """
+
+    async def opening() -> Printer:
+        user = config if isinstance(config, UserConfig) else load_user_config(config)
+        request = JobRequest(Path(loadout) if loadout is not None else None, machine)
+        if isinstance(flow, FlowControl):
+            flow_control = flow
+            link_baud, _ = link_settings(LinkRequest(baud=baud), explicit_machine(request, user))
+        else:
+            mode = FlowMode(flow) if isinstance(flow, str) else flow
+            link_baud, flow_control = link_settings(
+                LinkRequest(baud=baud, flow=mode), explicit_machine(request, user)
+            )
+        name = resolve_port(port, user)
+        link = make_link(name, link_baud, fake_log=fake_log, fake_args=tuple(fake_args), sim=sim)
+        settings = SessionSettings(
+            name,
+            link_baud,
+            flow_control,
+            reply_timeout,
+            reconnect,
+            poll_interval,
+            protocol,
+            user,
+            request,
+        )
+        printer = Printer(link, settings)
+        try:
+            await printer._open()
+        except BaseException:
+            await printer.close()
+            raise
+        return printer
+
+    return _Connect(opening)

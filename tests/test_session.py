@@ -1,0 +1,434 @@
+"""The printer session, the same cases on the in-process simulator and on the pty fake
+(as python-can runs one test file on every backend)."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Callable, Coroutine
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+import repetrel_host as rh
+from repetrel_host.links import SimLink
+from repetrel_host.testing.simulator import ControllerSettings, Faults
+from tests.helpers import EXAMPLE, job_commands
+
+pytestmark = pytest.mark.timeout(60)
+MARLIN_SAFE_STOP = ["M107", "M104 S0", "M140 S0", "G91", "G0 Z10", "G90", "M84"]
+
+
+@dataclass
+class Rig:
+    """How to reach one kind of controller, and what it executed."""
+
+    kind: str
+    tmp_path: Path
+    move_time: float = 0.0
+    faults: str = ""
+
+    def connect(self, **options: Any) -> Any:
+        options.setdefault("poll_interval", None)
+        if self.kind == "sim":
+            settings = ControllerSettings(
+                latency=0.0005, move_time=self.move_time, faults=Faults.parse(self.faults)
+            )
+            return rh.connect("sim", sim=settings, **options)
+        args = ["--move-time", str(self.move_time)]
+        if self.faults:
+            args += ["--faults", self.faults]
+        return rh.connect("fake", fake_log=self.log, fake_args=args, **options)
+
+    @property
+    def log(self) -> Path:
+        return self.tmp_path / "executed.log"
+
+    def executed(self, printer: rh.Printer) -> list[str]:
+        """What the controller executed, without the session's greeting and M115."""
+        if isinstance(printer.link, SimLink):
+            simulator = printer.link.controller.simulator
+            assert simulator is not None
+            commands = list(simulator.executed)
+        else:
+            commands = self.log.read_text().splitlines() if self.log.exists() else []
+        kept, greeting = [], False
+        for command in commands:
+            if command.startswith("M110"):
+                greeting = True
+            elif greeting and command == "M115":
+                greeting = False
+            else:
+                greeting = False
+                kept.append(command)
+        return kept
+
+
+@pytest.fixture(params=["sim", "fake"])
+def rig(request: pytest.FixtureRequest, tmp_path: Path) -> Rig:
+    return Rig(request.param, tmp_path)
+
+
+def run(scenario: Callable[[], Coroutine[Any, Any, None]]) -> None:
+    asyncio.run(scenario())
+
+
+def job_file(tmp_path: Path, commands: list[str], name: str = "job.gcode") -> Path:
+    path = tmp_path / name
+    path.write_text("".join(f"{c}\n" for c in commands))
+    return path
+
+
+async def settle(rig: Rig, printer: rh.Printer, count: int, timeout: float = 10.0) -> list[str]:
+    """Wait until the controller executed ``count`` commands (the fake's log lags a little)."""
+    deadline = asyncio.get_running_loop().time() + timeout
+    while len(done := rig.executed(printer)) < count:
+        assert asyncio.get_running_loop().time() < deadline, done
+        await asyncio.sleep(0.02)
+    return done
+
+
+# --- connecting and commands ---------------------------------------------------------
+
+
+def test_connect_greets_and_asks_who_the_controller_is(rig: Rig) -> None:
+    async def scenario() -> None:
+        async with rig.connect() as printer:
+            assert printer.state is rh.State.READY
+            assert printer.probe is rh.ProbeKind.CHECKSUM
+            assert printer.firmware is not None
+            assert printer.firmware.name.startswith("repetrel-host fake controller")
+            assert printer.firmware.can("AUTOREPORT_TEMP")
+            reply = await printer.command("M115")
+            assert reply.lines[0].startswith("FIRMWARE_NAME:repetrel-host fake controller")
+            assert reply.lines[1:] == ["Cap:AUTOREPORT_TEMP:1", "Cap:EMERGENCY_PARSER:1"]
+            assert reply.ok == "ok"
+            reply = await printer.command("M105")
+            assert reply.lines == []
+            assert reply.ok == "ok T:21.0 /0.0 B:21.0 /0.0 @:0 B@:0"
+            assert printer.temperatures["T"] == (21.0, 0.0)
+            reply = await printer.command("M104 S200 ; a comment is fine")
+            assert (await printer.command("M105")).ok.startswith("ok T:200.0 /200.0")
+        assert printer.state is rh.State.CLOSED
+
+    run(scenario)
+
+
+def test_host_owned_words_and_bad_commands_are_refused(rig: Rig) -> None:
+    async def scenario() -> None:
+        async with rig.connect() as printer:
+            with pytest.raises(rh.UsageError, match="M110"):
+                await printer.command("M110 N5")
+            with pytest.raises(rh.UsageError, match="line numbers and checksums"):
+                await printer.command("N5 M105 S0*9999")  # the probe
+            with pytest.raises(rh.UsageError, match="empty"):
+                await printer.command("; only a comment")
+            with pytest.raises(rh.JobError, match="not ASCII"):
+                await printer.command("M117 café")
+            assert (await printer.command("M105")).ok.startswith("ok T:")
+
+    run(scenario)
+
+
+def test_a_port_that_cannot_open_fails_connect_with_one_sentence(tmp_path: Path) -> None:
+    async def scenario() -> None:
+        with pytest.raises(rh.LinkError, match="no such port"):
+            await rh.connect(str(tmp_path / "ttyUSB9"))
+
+    run(scenario)
+
+
+def test_temperatures_come_as_events_while_idle(rig: Rig) -> None:
+    async def scenario() -> None:
+        async with rig.connect(poll_interval=0.2) as printer:
+            await printer.command("M140 S60")
+            async for event in printer.events():
+                if isinstance(event, rh.Temperatures) and event.readings["B"] == (60.0, 60.0):
+                    break
+            # The firmware advertised auto-reports: the session asked for them (M155).
+            assert "M155 S1" in rig.executed(printer)
+
+    run(scenario)
+
+
+# --- jobs --------------------------------------------------------------------------
+
+
+def test_two_jobs_on_one_connection_run_exactly_once(rig: Rig, tmp_path: Path) -> None:
+    first = job_commands(EXAMPLE)
+    second = [f"G1 X{i} Y{i % 7}" for i in range(200)]
+
+    async def scenario() -> None:
+        async with rig.connect() as printer:
+            job = await printer.print(EXAMPLE, history=tmp_path / "first.gcode")
+            summary = await job.wait()
+            assert summary.outcome is rh.Outcome.COMPLETED and summary.lines == len(first)
+            assert printer.state is rh.State.READY
+            job = await printer.print(job_file(tmp_path, second), history=tmp_path / "second.gcode")
+            events = [event async for event in job.events()]
+            assert isinstance(events[-1], rh.Done) and events[-1].summary.lines == len(second)
+            assert isinstance(events[-2], rh.Progress) and events[-2].lines == len(second)
+            assert rig.executed(printer) == first + second
+            assert (await printer.command("M105")).ok.startswith("ok T:")
+
+    run(scenario)
+    # No second greeting: the line numbers went on counting.
+    first_wire = (tmp_path / "first.gcode").read_bytes()
+    second_wire = (tmp_path / "second.gcode").read_bytes()
+    last_number = int(first_wire.splitlines()[-2].split()[0][1:])
+    assert second_wire.startswith(f"N{last_number + 1} G1 X0 Y0*".encode())
+
+
+def test_commands_wait_while_printing_and_work_while_paused(rig: Rig, tmp_path: Path) -> None:
+    rig.move_time = 0.003
+    commands = [f"G1 X{i % 100} Y{i % 50}" for i in range(400)]
+
+    async def scenario() -> None:
+        async with rig.connect() as printer:
+            job = await printer.print(job_file(tmp_path, commands), history=False)
+            with pytest.raises(rh.UsageError, match="printing"):
+                await printer.command("M105")
+            await printer.pause()
+            assert printer.state is rh.State.PAUSED
+            paused_at = len(await settle(rig, printer, 1))
+            await asyncio.sleep(0.5)
+            # Nothing more ran: every line sent was executed, none was sent since.
+            executed = rig.executed(printer)
+            assert executed == commands[: len(executed)]
+            assert len(executed) - paused_at <= 20  # the planner's and slots' lines finish
+            await asyncio.sleep(0.3)
+            assert len(rig.executed(printer)) == len(executed)
+            reply = await printer.command("M105")  # e.g. to move a head during a pause
+            assert reply.ok.startswith("ok T:")
+            await printer.resume()
+            assert printer.state is rh.State.PRINTING
+            await job.wait()
+            kinds = [type(e).__name__ async for e in job.events()]
+            assert "Paused" in kinds and "Resumed" in kinds
+        assert rig.executed(printer) == [
+            *commands[: len(executed)],
+            "M105",
+            *commands[len(executed) :],
+        ]
+
+    run(scenario)
+
+
+def test_cancel_runs_the_safe_stop_then_a_new_job_runs(rig: Rig, tmp_path: Path) -> None:
+    rig.move_time = 0.003
+    commands = [f"G1 X{i % 100} Y{i % 50}" for i in range(2000)]
+
+    async def scenario() -> None:
+        async with rig.connect() as printer:
+            job = await printer.print(job_file(tmp_path, commands), history=False)
+            await settle(rig, printer, 50)
+            await printer.cancel()
+            summary = await job.wait()
+            assert summary.outcome is rh.Outcome.CANCELLED
+            assert printer.state is rh.State.READY
+            executed = rig.executed(printer)
+            sent = executed[: -len(MARLIN_SAFE_STOP)]
+            assert executed[-len(MARLIN_SAFE_STOP) :] == MARLIN_SAFE_STOP
+            assert 50 <= len(sent) < len(commands) and sent == commands[: len(sent)]
+            job = await printer.print(job_file(tmp_path, ["G28", "G1 X1"], "next.gcode"))
+            assert (await job.wait()).outcome is rh.Outcome.COMPLETED
+            assert rig.executed(printer)[-2:] == ["G28", "G1 X1"]
+
+    run(scenario)
+
+
+def test_leaving_the_session_during_a_job_stops_it_safely_first(rig: Rig, tmp_path: Path) -> None:
+    rig.move_time = 0.003
+    commands = [f"G1 X{i % 100}" for i in range(2000)]
+
+    async def scenario() -> None:
+        async with rig.connect() as printer:
+            job = await printer.print(job_file(tmp_path, commands), history=False)
+            await settle(rig, printer, 20)
+        assert (await job.wait()).outcome is rh.Outcome.CANCELLED
+        executed = await settle(rig, printer, 0)
+        assert executed[-len(MARLIN_SAFE_STOP) :] == MARLIN_SAFE_STOP
+
+    run(scenario)
+
+
+def test_m112_goes_out_at_once_and_ends_the_job(rig: Rig, tmp_path: Path) -> None:
+    rig.move_time = 0.003
+    commands = [f"G1 X{i % 100}" for i in range(2000)]
+
+    async def scenario() -> None:
+        async with rig.connect(reconnect=False) as printer:
+            job = await printer.print(job_file(tmp_path, commands), history=False)
+            await settle(rig, printer, 20)
+            reply = await printer.command("M112")  # allowed while printing
+            assert reply == rh.Reply("M112", [], "")
+            with pytest.raises(rh.ControllerError, match="emergency stop"):
+                await job.wait()
+            executed = await settle(rig, printer, 21)
+            while executed[-1] != "M112":
+                await asyncio.sleep(0.02)  # the fake's log lags behind
+                executed = rig.executed(printer)
+            # Within what was already in the controller's buffer, then nothing more.
+            assert executed[:-1] == commands[: len(executed) - 1]
+            assert len(executed) < 200
+
+    run(scenario)
+
+
+# --- losing the link, resets -----------------------------------------------------------
+
+
+def test_an_unplugged_controller_comes_back_ready(rig: Rig) -> None:
+    async def scenario() -> None:
+        async with rig.connect() as printer:
+            states = printer.events()
+            with pytest.raises(rh.LinkError, match="lost"):
+                await printer.command("!!DEBUG:link_drop 0.5")
+            seen = []
+            async for event in states:
+                if isinstance(event, rh.StateChanged):
+                    seen.append(event.state)
+                    if seen[-2:] == [rh.State.CONNECTING, rh.State.READY] and len(seen) > 2:
+                        break
+            assert rh.State.DISCONNECTED in seen
+            assert printer.state is rh.State.READY
+            assert (await printer.command("M105")).ok.startswith("ok T:")
+
+    run(scenario)
+
+
+def test_a_job_fails_when_the_link_goes_and_is_never_resumed(rig: Rig, tmp_path: Path) -> None:
+    commands = [f"G1 X{i}" for i in range(30)] + ["!!DEBUG:link_drop 0.5"]
+    commands += [f"G1 Y{i}" for i in range(30)]
+
+    async def scenario() -> None:
+        async with rig.connect() as printer:
+            job = await printer.print(job_file(tmp_path, commands), history=False)
+            with pytest.raises(rh.LinkError, match="lost") as error:
+                await job.wait()
+            assert "the last line the controller acknowledged is job.gcode:" in str(error.value)
+            await printer.wait_for(rh.State.READY, timeout=15)
+            assert (await printer.command("M105")).ok.startswith("ok T:")
+            await asyncio.sleep(0.3)
+            done = rig.executed(printer)
+            assert done[-1] == "M105"
+            ran = done[:-1]
+            assert ran == [c for c in commands if not c.startswith("!!")][: len(ran)]
+            assert len(ran) <= 31
+
+    run(scenario)
+
+
+def test_without_reconnect_a_lost_link_stays_lost(rig: Rig) -> None:
+    async def scenario() -> None:
+        async with rig.connect(reconnect=False) as printer:
+            with pytest.raises(rh.LinkError):
+                await printer.command("!!DEBUG:link_drop 0.2")
+            await asyncio.sleep(0.6)
+            assert printer.state is rh.State.DISCONNECTED
+            with pytest.raises(rh.LinkError, match="not connected"):
+                await printer.command("M105")
+
+    run(scenario)
+
+
+def test_a_controller_reset_between_jobs_is_greeted_again(rig: Rig, tmp_path: Path) -> None:
+    async def scenario() -> None:
+        async with rig.connect() as printer:
+            job = await printer.print(job_file(tmp_path, ["G28", "G1 X1"]), history=False)
+            await job.wait()
+            with pytest.raises(rh.ControllerError, match="reset"):
+                await printer.command("!!DEBUG:reset")
+            await printer.wait_for(rh.State.READY, timeout=10)
+            job = await printer.print(job_file(tmp_path, ["G1 X2", "G1 X3"], "b.gcode"))
+            await job.wait()
+            assert rig.executed(printer) == ["G28", "G1 X1", "G1 X2", "G1 X3"]
+
+    run(scenario)
+
+
+# --- host actions ----------------------------------------------------------------------
+
+
+def test_an_m0_pauses_until_resume(rig: Rig, tmp_path: Path) -> None:
+    job_path = tmp_path / "m0.gcode"
+    job_path.write_text("G28\nG1 X1\nM0 ;Remove the part ; SAY done\nG1 X2\n")
+    performed: list[str] = []
+
+    async def record(action: rh.job.HostAction) -> bool:
+        performed.extend(verb for verb, _ in action.actions)
+        return True
+
+    async def scenario() -> None:
+        async with rig.connect() as printer:
+            job = await printer.print(job_path, history=False, on_action=record)
+            async for event in job.events():
+                if isinstance(event, rh.Paused):
+                    assert event == rh.Paused("M0", "Remove the part", "m0.gcode:3")
+                    break
+            assert printer.state is rh.State.PAUSED
+            assert await settle(rig, printer, 3) == ["G28", "G1 X1", "M400"]
+            await asyncio.sleep(0.2)
+            assert len(rig.executed(printer)) == 3
+            await printer.resume()
+            await job.wait()
+            assert rig.executed(printer) == ["G28", "G1 X1", "M400", "G1 X2"]
+        assert performed == ["SAY"]
+
+    run(scenario)
+
+
+def test_an_action_that_declines_stops_the_job_safely(rig: Rig, tmp_path: Path) -> None:
+    job_path = job_file(tmp_path, ["G28", "M792 ; BEEP", "G1 X1"])
+
+    async def decline(action: rh.job.HostAction) -> bool:
+        return False
+
+    async def scenario() -> None:
+        async with rig.connect() as printer:
+            job = await printer.print(job_path, history=False, on_action=decline)
+            assert (await job.wait()).outcome is rh.Outcome.CANCELLED
+            assert rig.executed(printer) == ["G28", *MARLIN_SAFE_STOP]
+
+    run(scenario)
+
+
+def test_a_bad_line_mid_job_stops_with_the_safe_stop_first(rig: Rig, tmp_path: Path) -> None:
+    job_path = tmp_path / "bad.gcode"
+    job_path.write_bytes(b"G28\nG1 X1\nM117 caf\xe9\nG1 X2\n")
+
+    async def scenario() -> None:
+        async with rig.connect() as printer:
+            plan = printer.plan(job_path)  # a plan is not checked before: as a huge job
+            job = await printer.print(plan, history=False)
+            with pytest.raises(rh.JobError, match=r"bad\.gcode:3") as error:
+                await job.wait()
+            assert "acknowledged is bad.gcode:2" in str(error.value)
+            assert rig.executed(printer) == ["G28", "G1 X1", *MARLIN_SAFE_STOP]
+            with pytest.raises(rh.JobError, match="not ASCII"):
+                await printer.print(job_path)  # checked first: nothing moves
+
+    run(scenario)
+
+
+# --- controllers that answer differently -------------------------------------------------
+
+
+def test_a_controller_counting_lines_its_own_way_prints_through(tmp_path: Path) -> None:
+    # OctoPrint's virtual printer's answer to a bad checksum, with its resend requests
+    # for accepted lines and lines it drops with only an error.
+    rig = Rig("sim", tmp_path, faults="counted_resend=1 spurious_resend=0.01 drop_with_error=0.01")
+    commands = job_commands(EXAMPLE)
+
+    async def scenario() -> None:
+        async with rig.connect() as printer:
+            assert printer.probe is rh.ProbeKind.COMMAND
+            for _ in range(2):
+                summary = await (await printer.print(EXAMPLE, history=False)).wait()
+                assert summary.resends > 0
+            # The probes are M105 lines that ran; the job ran exactly once, twice.
+            ran = [c for c in rig.executed(printer) if c not in ("M105", "M115")]
+            assert ran == commands + commands
+
+    run(scenario)
