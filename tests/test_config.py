@@ -38,6 +38,14 @@ def test_shipped_machines_cover_the_reference_models(library: Library) -> None:
     assert set(library.heads) >= {"MK1-250", "SDS-05"}
 
 
+def test_every_shipped_machine_and_head_is_valid(library: Library) -> None:
+    # Read when a job names them: each must still be valid.
+    assert all(library.machines[name].yokes >= 1 for name in library.machines)
+    assert all(library.heads[name].flow.multiplier > 0 for name in library.heads)
+    assert library.machines["marlin"].family == "marlin"
+    assert library.machines["hyrel"].family == "hyrel"
+
+
 def test_loadout_resolves_positions_registers_and_overrides(
     library: Library, tmp_path: Path
 ) -> None:

@@ -89,11 +89,11 @@ def test_a_silent_controller_fails_with_a_timeout() -> None:
 
 def test_the_framed_preview_is_the_clean_wire() -> None:
     wire = b"".join(wire_preview(["G28", "G1 X1"]))
-    # The greeting: M110 and a probe, then its check (a line with a gap, refused, and
-    # the probe again), then the job and the probe that confirms it.
+    # The greeting: M110 and a line with a gap (refused: "send 1"), then a probe for the
+    # same line (a consistent controller asks for 1 again), the job, and the probe that
+    # confirms it.
     assert wire == (
-        b"N0 M110 N0*125\nN1 M105 S0*9999\nN2 M105*37\nN1 M105 S0*9999\n"
-        b"N1 G28*18\nN2 G1 X1*99\nN3 M105 S0*9999\n"
+        b"N0 M110 N0*125\nN2 M105*37\nN1 M105 S0*9999\nN1 G28*18\nN2 G1 X1*99\nN3 M105 S0*9999\n"
     )
 
 

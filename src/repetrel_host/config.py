@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import os
 import tomllib
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, TypeVar, get_args
@@ -24,6 +24,9 @@ from repetrel_host.gcode import addressing
 # Numbers keep the type they were written with, so 1.0 prints "1.0" and 77 prints "77",
 # the way the Hyrel reference writes them.
 Number = StrictInt | StrictFloat
+
+
+M = TypeVar("M", bound=BaseModel)
 
 
 class _Model(BaseModel):
@@ -181,24 +184,40 @@ def load_user_config(path: Path | None) -> UserConfig:
     return _validate(UserConfig, read_toml(path), path)
 
 
+class _Shipped(Mapping[str, M]):
+    """Shipped entries, validated when first used (a job names one machine, if any);
+    the user's own entries are validated at once, so a mistake there is found."""
+
+    def __init__(self, model: type[M], path: Path, user: Mapping[str, M]) -> None:
+        self._model = model
+        self._path = path
+        self._raw = read_toml(path)
+        self._done: dict[str, M] = dict(user)
+
+    def __getitem__(self, name: str) -> M:
+        if name not in self._done:
+            self._done[name] = _validate(self._model, self._raw[name], self._path, name)
+        return self._done[name]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter({**self._raw, **self._done})
+
+    def __len__(self) -> int:
+        return len({**self._raw, **self._done})
+
+
 def load_library(user: UserConfig) -> Library:
     """The shipped machines and heads, with the user's additions and replacements."""
     shipped = shipped_config_dir()
-    machines_file, heads_file = shipped / "machines.toml", shipped / "heads.toml"
-    machines = {
-        name: _validate(Machine, data, machines_file, name)
-        for name, data in read_toml(machines_file).items()
-    }
-    heads = {
-        name: _validate(Head, data, heads_file, name)
-        for name, data in read_toml(heads_file).items()
-    }
     user_file = user_config_path()
-    machines |= {
+    machines = {
         n: _validate(Machine, d, user_file, f"machines.{n}") for n, d in user.machines.items()
     }
-    heads |= {n: _validate(Head, d, user_file, f"heads.{n}") for n, d in user.heads.items()}
-    return Library(machines, heads)
+    heads = {n: _validate(Head, d, user_file, f"heads.{n}") for n, d in user.heads.items()}
+    return Library(
+        _Shipped(Machine, shipped / "machines.toml", machines),
+        _Shipped(Head, shipped / "heads.toml", heads),
+    )
 
 
 def find_loadout(value: Path) -> Path:
@@ -281,9 +300,6 @@ def _override(base: Head, entry: LoadedHead, where: str) -> Head:
         return Head.model_validate(data)
     except ValidationError as exc:
         raise ConfigError(f"{where}: {_describe(exc, Head)}") from None
-
-
-M = TypeVar("M", bound=BaseModel)
 
 
 def _validate(model: type[M], data: object, path: Path, prefix: str = "") -> M:

@@ -123,10 +123,6 @@ class _Hub(Generic[E]):
         self._backlog: deque[E] | None = deque(maxlen=backlog) if backlog else None
         self._closed = False
 
-    @property
-    def listened(self) -> bool:
-        return bool(self._queues)
-
     def publish(self, event: E) -> None:
         if self._backlog is not None:
             self._backlog.append(event)
@@ -205,7 +201,8 @@ class PrintJob:
         self._run = run
         self._done: asyncio.Future[Summary] = asyncio.get_running_loop().create_future()
         self._hub: _Hub[JobEvent] = _Hub(JOB_EVENT_BACKLOG)
-        self._progress_due = False
+        self._ticking = False  # progress goes out while someone listens
+        self._reported = -1
         self._m0: asyncio.Future[None] | None = None  # an M0 waiting for resume()
 
     # --- progress -------------------------------------------------------------
@@ -240,6 +237,9 @@ class PrintJob:
 
     def events(self) -> AsyncIterator[JobEvent]:
         """Progress, messages, resends, pauses, then Done or Failed (the last event)."""
+        if not self._ticking and not self.done:
+            self._ticking = True
+            asyncio.get_running_loop().call_later(PROGRESS_INTERVAL, self._tick)
         return self._hub.stream()
 
     async def wait(self) -> Summary:
@@ -270,15 +270,14 @@ class PrintJob:
     def _publish(self, event: JobEvent) -> None:
         self._hub.publish(event)
 
-    def _acknowledged(self) -> None:
-        if self._hub.listened and not self._progress_due:
-            self._progress_due = True
-            asyncio.get_running_loop().call_later(PROGRESS_INTERVAL, self._send_progress)
-
-    def _send_progress(self) -> None:
-        self._progress_due = False
-        if not self.done:
+    def _tick(self) -> None:
+        # Polled, not pushed per line: a line's acknowledgement costs nothing here.
+        if self.done:
+            return
+        if self.lines != self._reported:
+            self._reported = self.lines
             self._publish(self._progress())
+        asyncio.get_running_loop().call_later(PROGRESS_INTERVAL, self._tick)
 
     def _progress(self) -> Progress:
         last = self._run.last
@@ -743,11 +742,6 @@ class _PumpListener(Listener):
         ready = self.printer._ready
         if ready is not None and not ready.done():
             ready.set_result(probe)
-
-    def acknowledged(self, line: JobLine) -> None:
-        job = self.printer._job
-        if job is not None:
-            job._acknowledged()
 
     def command_done(self, tag: object, data: str) -> None:
         if not isinstance(tag, _Command):

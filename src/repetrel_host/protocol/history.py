@@ -19,10 +19,7 @@ class Line:
     is_probe: bool = False
     transmitted: bool = False
     acknowledged: bool = False
-
-    @property
-    def is_host_line(self) -> bool:
-        return self.is_reset or self.is_probe
+    is_host_line: bool = False  # is_reset or is_probe, read for every acknowledgement
 
 
 class History:

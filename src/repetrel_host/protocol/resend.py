@@ -18,7 +18,16 @@ class ResendGuard:
       number; only a repeated one is real.
     """
 
-    __slots__ = ("_loop_count", "_loop_number", "_loop_sent_again", "_unheld", "echoes", "target")
+    __slots__ = (
+        "_loop_count",
+        "_loop_number",
+        "_loop_sent_again",
+        "_resent_at",
+        "_resent_number",
+        "_unheld",
+        "echoes",
+        "target",
+    )
 
     def __init__(self) -> None:
         self.target: int | None = None  # the line the last obeyed request asked for
@@ -27,6 +36,8 @@ class ResendGuard:
         self._loop_count = 0
         self._loop_sent_again = False
         self._unheld: dict[int, int] = {}
+        self._resent_number = -1  # the line last sent again for a request, and when
+        self._resent_at = 0.0
 
     def expect_echoes(self, number: int, count: int) -> None:
         self.target = number
@@ -54,15 +65,26 @@ class ResendGuard:
         self._loop_sent_again = False
         return self._loop_count
 
-    def sent_again(self, number: int) -> None:
+    def sent_again(self, number: int, now: float) -> None:
         if number == self._loop_number:
             self._loop_sent_again = True
+        self._resent_number, self._resent_at = number, now
+
+    def just_sent_again(self, number: int, now: float, round_trip: float) -> bool:
+        """A request for a line that went out again less than a round trip ago cannot be
+        about that transmission: it is one more answer to an older one, still queued
+        behind the replies a slow link carries. Obeying it would add another refusal to
+        that queue, and another request, without end."""
+        return number == self._resent_number and now - self._resent_at < round_trip
 
     def progress(self, number: int) -> None:
         """Line ``number`` was acknowledged: only requests repeated without progress count."""
         if number > self._loop_number:
             self._loop_count = 0
-        self._unheld.clear()
+        if number >= self._resent_number:
+            self._resent_number = -1
+        if self._unheld:
+            self._unheld.clear()
 
     def unheld(self, number: int) -> int:
         """Count a request for a line not held; how many times it was seen."""

@@ -67,6 +67,17 @@ class Window:
         elif transmission.line is not None:
             self.live -= 1
 
+    def pop_oldest(self) -> Transmission:
+        """Drop the oldest transmission (the one a reply answers) and return it."""
+        transmission = self.in_flight.popleft()
+        size = len(transmission.wire)
+        self.bytes -= size
+        if transmission.stale:
+            self.stale_bytes -= size
+        elif transmission.line is not None:
+            self.live -= 1
+        return transmission
+
     def discard(self, transmission: Transmission) -> None:
         """Drop ``transmission`` if an answer has not dropped it already."""
         if any(t is transmission for t in self.in_flight):
@@ -75,9 +86,7 @@ class Window:
     def drop_through(self, last: Transmission) -> None:
         """Drop every transmission up to and including ``last``: all were answered."""
         while self.in_flight:
-            first = self.in_flight[0]
-            self.drop(first)
-            if first is last:
+            if self.pop_oldest() is last:
                 return
 
     def mark_stale(self, expire_at: float) -> None:

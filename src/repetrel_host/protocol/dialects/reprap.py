@@ -156,6 +156,7 @@ class RepRapDialect:
         self._phase = Phase.IDLE
         self._history = History(max(history_margin, 4 * self.flow.line_limit))
         self._window = Window(self.flow)
+        self._line_limit = self._window.line_limit  # read for every line: kept at hand
         self._rtt = RoundTrip()
         self._guard = ResendGuard()
         self._probing = _Probing(probe or ProbeKind.CHECKSUM)
@@ -223,7 +224,7 @@ class RepRapDialect:
     @property
     def wants_lines(self) -> bool:
         """True when the queue is short enough that a new line could go out soon."""
-        return self._phase is not Phase.FAILED and len(self._pending) < self._window.line_limit
+        return self._phase is not Phase.FAILED and len(self._pending) < self._line_limit
 
     @property
     def is_done(self) -> bool:
@@ -272,6 +273,9 @@ class RepRapDialect:
             if self._phase is Phase.RUNNING and not self._window.has_room(len(line.wire), now):
                 break
             self._transmit(line, now)
+        if not self._outgoing:
+            return b""
+        self._last_sent_at = now
         data = bytes(self._outgoing)
         self._outgoing.clear()
         return data
@@ -331,7 +335,12 @@ class RepRapDialect:
             # numbers; a check that got no answer is given up.
             self._regreet()
             return
-        self._line_error_at = None
+        if self._line_error_at is not None:
+            # The error answered the oldest line, refused without a resend request: its
+            # ok will never come. The probe below finds out which line to send again.
+            self._line_error_at = None
+            if window.in_flight:
+                window.pop_oldest()
         silent = now - self._last_received_at
         if silent >= self.reply_timeout and not window.waiting_on_unbuffered():
             self._fail(
@@ -403,12 +412,9 @@ class RepRapDialect:
             self._handle_start(text)
         elif isinstance(reply, replies.Error):
             if reply.line_error:
-                # An error about a line answers one transmission, the oldest, as each
-                # line refused in a resend storm draws its own; the resend request that
-                # follows (if one does) says which line to send again.
+                # Told by the resend request that follows it; if none does, the
+                # controller dropped the line without asking for it again.
                 self._line_error_at = now
-                if self._window.in_flight:
-                    self._window.drop(self._window.in_flight[0])
             else:
                 # Fatal, unless a resend request follows: then it was a line error whose
                 # words a garbled newline cut off ("Error:chec" / "ksum mismatch...").
@@ -421,10 +427,23 @@ class RepRapDialect:
 
     def _handle_ok(self, reply: replies.Ok, now: float) -> None:
         self._last_progress_at = now
+        # A line error with an ok after it was answered (its resend request garbled, say);
+        # only one the controller fell silent after dropped its line.
+        self._line_error_at = None
         window = self._window
-        if not window.in_flight or self._phase in _CHECK_PHASES:
-            # Nothing owed one, or the greeting's check, which only resend requests answer.
-            self.stats.unexpected_oks += 1
+        in_flight = window.in_flight
+        if not in_flight:
+            self.stats.unexpected_oks += 1  # nothing owed one
+            return
+        if self._phase is not Phase.RUNNING and self._phase in _CHECK_PHASES:
+            # Only resend requests answer the check's lines; an ok is the M110's (a first
+            # round trip to measure), or one too many.
+            first = in_flight[0]
+            if first.line is not None and first.line.is_reset:
+                window.drop(first)
+                self._rtt.sample(now - first.sent_at)
+            else:
+                self.stats.unexpected_oks += 1
             return
         if (
             reply.line_number is not None
@@ -432,18 +451,19 @@ class RepRapDialect:
             and self.flow.mode is FlowMode.BUFFERED  # unbuffered means one line in flight
         ):
             window.read_through = reply.line_number
+        transmission = in_flight[0]
         probe = self._probing.current
-        if probe is not None and probe.line is not None and self._answers_probe(reply, probe):
-            # A command probe's "ok T:...": it ran, so every line before it had.
-            self._probe_answered(probe, probe.number, now)
-            return
-        transmission = window.in_flight[0]
-        if transmission is probe:
-            # Nothing is sent after a probe and a checksum probe draws no plain ok: this
-            # ok is one too many (duplicated, or owed to a line already settled).
-            self.stats.unexpected_oks += 1
-            return
-        window.drop(transmission)
+        if probe is not None:
+            if probe.line is not None and self._answers_probe(reply, probe):
+                # A command probe's "ok T:...": it ran, so every line before it had.
+                self._probe_answered(probe, probe.number, now)
+                return
+            if transmission is probe:
+                # Nothing is sent after a probe and a checksum probe draws no plain ok:
+                # this ok is one too many (duplicated, or owed to a line already settled).
+                self.stats.unexpected_oks += 1
+                return
+        window.pop_oldest()
         line = transmission.line
         if transmission.stale or line is None:
             return
@@ -493,10 +513,22 @@ class RepRapDialect:
         ):
             self._probe_answered(probe, number - 1, now)
             return
-        # A resend request without an error line still answers one transmission, the
-        # oldest (a probe too); its ok is part of that answer, not another one.
-        if window.in_flight and not _is_line_error(previous):
-            window.drop(window.in_flight[0])
+        if self._guard.just_sent_again(number, now, self._rtt.rto):
+            # An answer to an older transmission (a stale one, if one is still held): the
+            # line's new transmission stays in flight, its own answer still to come.
+            if window.in_flight and window.in_flight[0].stale:
+                window.pop_oldest()
+            self.stats.ignored_resend_requests += 1
+            return
+        # An error, its resend request and (on most firmwares) an ok answer one
+        # transmission, the oldest: the ok is part of that answer, not another one. A
+        # checksum probe is answered so only when refused for its number (the controller
+        # misses lines before it); after a checksum error this is another line's answer
+        # (its ok was miscounted), and the probe's own is still to come.
+        if window.in_flight and (
+            window.in_flight[0] is not probe or probe.line is not None or _is_number_error(previous)
+        ):
+            window.pop_oldest()
         if stated_last is not None and phase is Phase.RUNNING:
             self._confirm_through(stated_last)  # true whatever line drew it
         if self._guard.is_echo(number):
@@ -545,13 +577,8 @@ class RepRapDialect:
         self._guard.echoes = 0
         self._confirm_through(accepted_through)
         self._history.cursor = accepted_through + 1
-        if self._phase is not Phase.GREETING:
-            return
-        if self._check_at_greeting:
-            self._check_at_greeting = False  # once per connection
-            self._send_gap_line(now)
-            return
-        self._finish_greeting(accepted_through)
+        if self._phase is Phase.GREETING:
+            self._finish_greeting(accepted_through)
 
     def _finish_greeting(self, accepted_through: int) -> None:
         self._phase = Phase.RUNNING
@@ -613,18 +640,27 @@ class RepRapDialect:
         self._push(Transmission(None, frame(number, PROBE_COMMAND), now, number))
 
     def _gap_refused(self, number: int, previous: replies.Reply | None, now: float) -> None:
-        self._window.forget()
-        if number == self._history.next_number and not _is_checksum_error(previous):
-            self._phase = Phase.PROBE_CHECK
-            self._push(Transmission(None, _ping_wire(number), now, number))
-            self.stats.pings += 1
+        expected = self._history.next_number
+        if number != expected:
+            # An earlier greeting's answer, or this M110 did not take (corrupted, or the
+            # board still booting): the hello timeout greets again, with new numbers.
+            self.stats.ignored_resend_requests += 1
             return
-        # The gap line arrived corrupted, or the answer was garbled: once more.
-        self._gap_attempts += 1
-        if self._gap_attempts < GAP_CHECK_ATTEMPTS:
-            self._send_gap_line(now)
-        else:
-            self._regreet()
+        self._window.forget()
+        self._confirm_through(expected - 1)  # the M110's number: the reset took
+        if _is_checksum_error(previous):
+            # The gap line arrived corrupted: once more, then no verdict.
+            self._gap_attempts += 1
+            if self._gap_attempts < GAP_CHECK_ATTEMPTS:
+                self._send_gap_line(now)
+            else:
+                self._check_at_greeting = False
+                self._finish_greeting(expected - 1)
+            return
+        self._check_at_greeting = False  # once per connection
+        self._phase = Phase.PROBE_CHECK
+        self._push(Transmission(None, _ping_wire(number), now, number))
+        self.stats.pings += 1
 
     def _check_answered(self, number: int, previous: replies.Reply | None) -> None:
         self._window.forget()
@@ -647,8 +683,7 @@ class RepRapDialect:
         self._finish_greeting(expected - 1)
 
     def _regreet(self) -> None:
-        """Greet again with the next attempt's numbers, without the check."""
-        self._check_at_greeting = False
+        """Greet again with the next attempt's numbers (the check too, if it is still due)."""
         self._window.forget()
         self._probing.current = None
         self._restart_greeting()
@@ -656,13 +691,16 @@ class RepRapDialect:
     # --- acknowledgement and confirmation -----------------------------------
 
     def _acknowledge(self, line: Line, data: str = "") -> None:
-        if line.number > self._acked_through:
-            self._acked_through = line.number
-        self._guard.progress(line.number)
+        number = line.number
+        if number > self._acked_through:
+            self._acked_through = number
+        self._guard.progress(number)
         if not line.acknowledged:  # after a resend the controller may acknowledge it again
             line.acknowledged = True
-            self._events.append(LineAcknowledged(line.number, line.command, line.tag, data))
-        self._history.prune(self._acked_through)
+            self._events.append(LineAcknowledged(number, line.command, line.tag, data))
+        history = self._history
+        if self._acked_through - history.margin > history.floor:
+            history.prune(self._acked_through)
 
     def _confirm_through(self, number: int) -> None:
         """The controller said its last accepted line is ``number``: acknowledge up to it."""
@@ -698,7 +736,8 @@ class RepRapDialect:
         base = self._greeting_attempts
         self._greeting_attempts += 1
         command = reset_command(base)
-        self._history.restart(Line(base, command, None, frame(base, command), True, True))
+        reset = Line(base, command, None, frame(base, command), True, True, is_host_line=True)
+        self._history.restart(reset)
         self._probing.superseded()
 
     def _next_line_to_transmit(self) -> Line | None:
@@ -744,20 +783,25 @@ class RepRapDialect:
         retransmitted = line.transmitted
         if retransmitted:
             self.stats.retransmissions += 1
-            self._guard.sent_again(line.number)
+            self._guard.sent_again(line.number, now)
         else:
             line.transmitted = True
             self.stats.lines_sent += not line.is_host_line
         self._push(Transmission(line, line.wire, now, line.number, retransmitted=retransmitted))
 
     def _send_probe(self, now: float) -> None:
+        if self._phase is Phase.GREETING and self._check_at_greeting:
+            self._send_gap_line(now)  # its refusal confirms the M110, and starts the check
+            return
         probing = self._probing
         history = self._history
         if probing.kind is ProbeKind.COMMAND:
             self._candidate = None  # framed with the number the probe now takes
             number = history.next_number
             wire = frame(number, PROBE_COMMAND)
-            line = Line(number, PROBE_COMMAND, None, wire, False, is_probe=True, transmitted=True)
+            line = Line(
+                number, PROBE_COMMAND, None, wire, False, False, True, True, is_host_line=True
+            )
             history.append(line)
             history.cursor = number + 1
         else:
@@ -778,7 +822,6 @@ class RepRapDialect:
         self._push(probe)
 
     def _push(self, transmission: Transmission) -> None:
-        self._last_sent_at = transmission.sent_at
         self._window.push(transmission)
         self.stats.bytes_sent += len(transmission.wire)
         self._outgoing += transmission.wire
@@ -824,8 +867,13 @@ def _stated_last_line(reply: replies.Reply | None) -> int | None:
     return None
 
 
-def _is_line_error(reply: replies.Reply | None) -> bool:
-    return isinstance(reply, replies.Error) and reply.line_error
+def _is_number_error(reply: replies.Reply | None) -> bool:
+    """A line refused for its number ("Line Number is not Last Line Number+1")."""
+    return (
+        isinstance(reply, replies.Error)
+        and reply.line_error
+        and "checksum" not in reply.text.lower()
+    )
 
 
 def _is_checksum_error(reply: replies.Reply | None) -> bool:
