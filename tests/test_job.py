@@ -5,7 +5,7 @@ from pathlib import Path
 import pytest
 
 from repetrel_host.errors import JobError
-from repetrel_host.job import HostAction, Job, JobLine, parse_actions
+from repetrel_host.job import ActionKind, HostAction, Job, JobLine, parse_actions
 
 
 def items(tmp_path: Path, text: bytes, pause_sync: str = "M400") -> list[object]:
@@ -23,7 +23,7 @@ def test_lines_keep_their_source_positions(tmp_path: Path) -> None:
 def test_m0_becomes_a_sync_then_a_pause_with_its_message(tmp_path: Path) -> None:
     got = items(tmp_path, b"G1 X1\nM0 ;Remove the part\nG1 X2\n", pause_sync="G4 P1")
     assert got[1] == JobLine(2, 2, "G4 P1", 26, "job.gcode")
-    assert got[2] == HostAction("pause", "Remove the part", (), 2, "job.gcode")
+    assert got[2] == HostAction(ActionKind.PAUSE, "Remove the part", (), 2, "job.gcode")
     assert got[3] == JobLine(3, 3, "G1 X2", 32, "job.gcode")
 
 
@@ -32,15 +32,16 @@ def test_m0_and_m792_actions(tmp_path: Path) -> None:
     pause = got[1]
     assert isinstance(pause, HostAction)
     assert pause.actions == (("SAY", "Hello Wilbur"), ("PIC", "C:\\mr_ed.png"))
-    assert got[2] == HostAction("actions", "", (("BEEP", ""), ("SEND", "hi")), 2, "job.gcode")
+    actions = (("BEEP", ""), ("SEND", "hi"))
+    assert got[2] == HostAction(ActionKind.ACTIONS, "", actions, 2, "job.gcode")
     assert len(got) == 3  # M792 itself is not forwarded
 
 
 def test_logging_codes(tmp_path: Path) -> None:
     got = items(tmp_path, b"M719 P10 S1\nM718\n")
     assert got[0] == JobLine(1, 1, "M719 P10 S1", 12, "job.gcode")
-    assert isinstance(got[1], HostAction) and got[1].kind == "log_start"
-    assert isinstance(got[2], HostAction) and got[2].kind == "log_stop"
+    assert isinstance(got[1], HostAction) and got[1].kind is ActionKind.LOG_START
+    assert isinstance(got[2], HostAction) and got[2].kind is ActionKind.LOG_STOP
     assert len(got) == 3
 
 

@@ -365,7 +365,7 @@ def test_an_m0_pauses_until_resume(rig: Rig, tmp_path: Path) -> None:
             job = await printer.print(job_path, history=False, on_action=record)
             async for event in job.events():
                 if isinstance(event, rh.Paused):
-                    assert event == rh.Paused("M0", "Remove the part", "m0.gcode:3")
+                    assert event == rh.Paused(rh.PauseReason.M0, "Remove the part", "m0.gcode:3")
                     break
             assert printer.state is rh.State.PAUSED
             assert await settle(rig, printer, 3) == ["G28", "G1 X1", "M400"]

@@ -40,8 +40,8 @@ from repetrel_host.errors import (
     ProtocolError,
     UsageError,
 )
-from repetrel_host.events import Message, Notice, Paused, Resend
-from repetrel_host.gcode.lint import Finding
+from repetrel_host.events import Message, Notice, Paused, PauseReason, Resend
+from repetrel_host.gcode.lint import Finding, Severity
 from repetrel_host.job import HostAction
 from repetrel_host.links import FAKE_PORT, FakeLink
 from repetrel_host.planning import (
@@ -94,46 +94,63 @@ def _version(value: bool) -> None:
 
 @app.command()
 def send(
-    job: Annotated[Path, typer.Argument(help="G-code file to stream.", readable=False)],
+    job: Annotated[
+        Path, typer.Argument(help="G-code file to stream.", readable=False, metavar="JOB")
+    ],
     port: Annotated[
         str | None,
         typer.Option(
+            metavar="PORT",
             help="Serial port or pyserial URL; 'fake' for the built-in fake controller. "
-            f"Default: ${PORT_ENV}, then [printer] port in the configuration, else the fake."
+            f"Default: ${PORT_ENV}, then [printer] port in the configuration, else the fake.",
         ),
     ] = None,
-    baud: Annotated[int | None, typer.Option(help="Baud rate (default 115200).", min=1)] = None,
+    baud: Annotated[
+        int | None, typer.Option(help="Baud rate (default 115200).", min=1, metavar="N")
+    ] = None,
     flow: Annotated[
         FlowMode | None,
         typer.Option(help="buffered (default): several lines in flight; unbuffered: one."),
     ] = None,
     rx_buffer: Annotated[
         int | None,
-        typer.Option(help="Controller receive buffer in bytes (default 128).", min=2),
+        typer.Option(
+            help="Controller receive buffer in bytes (default 128).", min=2, metavar="BYTES"
+        ),
     ] = None,
     max_lines: Annotated[
-        int | None, typer.Option(help="Most lines in flight at once (default 8).", min=1)
+        int | None,
+        typer.Option(help="Most lines in flight at once (default 8).", min=1, metavar="N"),
     ] = None,
     reply_timeout: Annotated[
         float,
         typer.Option(
-            help="Seconds of silence after which the controller is taken as gone.", min=0.1
+            help="Seconds of silence after which the controller is taken as gone.",
+            min=0.1,
+            metavar="SECONDS",
         ),
     ] = DEFAULT_REPLY_TIMEOUT,
     loadout: Annotated[
         Path | None,
-        typer.Option(help="Loadout TOML (or the name of a shipped one): which head is where."),
+        typer.Option(
+            help="Loadout TOML (or the name of a shipped one): which head is where.",
+            metavar="FILE|NAME",
+        ),
     ] = None,
     machine: Annotated[
         str | None,
         typer.Option(
+            metavar="NAME",
             help="Machine profile, when there is no loadout (default: from the firmware's "
-            "answer to M115, or, without a printer, from the slicer that wrote the job)."
+            "answer to M115, or, without a printer, from the slicer that wrote the job).",
         ),
     ] = None,
     config: Annotated[
         Path | None,
-        typer.Option(help="Configuration file (default ~/.config/repetrel-host/config.toml)."),
+        typer.Option(
+            help="Configuration file (default ~/.config/repetrel-host/config.toml).",
+            metavar="FILE",
+        ),
     ] = None,
     no_header: Annotated[
         bool, typer.Option("--no-header", help="Do not send the heads' settings first.")
@@ -151,7 +168,8 @@ def send(
     history: Annotated[
         Path | None,
         typer.Option(
-            help="Folder for the print history (default ~/.local/share/repetrel-host/history)."
+            help="Folder for the print history (default ~/.local/share/repetrel-host/history).",
+            metavar="DIR",
         ),
     ] = None,
     no_history: Annotated[
@@ -159,7 +177,9 @@ def send(
     ] = False,
     fake_log: Annotated[
         Path | None,
-        typer.Option(help="Where the built-in fake writes the commands it executed."),
+        typer.Option(
+            help="Where the built-in fake writes the commands it executed.", metavar="FILE"
+        ),
     ] = None,
     version: Annotated[
         bool,
@@ -178,7 +198,7 @@ def send(
         plan = plan_job(job, JobRequest(loadout, machine, not no_header), user)
         if check or dry_run or not plan.checked_as_it_streams:
             findings = _check(plan, errors)
-            refused = [f for f in findings if f.severity == "error"]
+            refused = [f for f in findings if f.severity is Severity.ERROR]
             if check:
                 verdict = "refused" if refused else "ok"
                 console.print(
@@ -295,7 +315,7 @@ def _plan_for(
         return plan
     chosen = replan_for_firmware(plan, printer.firmware, user)
     if chosen.profile.name != plan.profile.name and not chosen.checked_as_it_streams:
-        refused = [f for f in _check(chosen, errors) if f.severity == "error"]
+        refused = [f for f in _check(chosen, errors) if f.severity is Severity.ERROR]
         if refused and not force:
             raise JobError(f"{plan.job.name}: not sent ({len(refused)} errors; --force sends)")
     return chosen
@@ -387,7 +407,7 @@ async def _watch(
             console.print(f"[dim]resend: the controller asked again for {where}[/]")
         elif isinstance(event, Notice):
             console.print(f"[yellow]warning:[/] {escape(event.text)}")
-        elif isinstance(event, Paused) and event.reason == "M0":
+        elif isinstance(event, Paused) and event.reason is PauseReason.M0:
             message = f": {event.message}" if event.message else ""
             console.print(
                 f"[bold]Paused[/] at {escape(event.position)}{escape(message)} "

@@ -18,7 +18,7 @@ from rich.console import Console
 from rich.markup import escape
 
 from repetrel_host.config import HostSettings
-from repetrel_host.job import HostAction
+from repetrel_host.job import ActionKind, HostAction
 
 SPEECH_PROGRAMS = ("espeak-ng", "espeak", "spd-say", "say")
 ACTION_TIMEOUT = 60.0  # seconds an action's program may run before it is abandoned
@@ -41,10 +41,10 @@ class ConsoleActions:
     async def perform(self, action: HostAction) -> bool:
         """What the session calls at an M0, M792, M718 or M719 (the pause itself is the
         session's: it waits for resume)."""
-        if action.kind == "log_start":
+        if action.kind is ActionKind.LOG_START:
             self._start_reports()
             self.console.print(f"logging the controller's reports to {self.reports_path}")
-        elif action.kind == "log_stop":
+        elif action.kind is ActionKind.LOG_STOP:
             self.close()
         else:
             for verb, argument in action.actions:

@@ -4,9 +4,10 @@ messages, and each job's progress and end. Frozen and slotted, as h11's events."
 from __future__ import annotations
 
 from dataclasses import dataclass
-from enum import Enum
+from enum import Enum, StrEnum
 
 from repetrel_host.errors import HostError
+from repetrel_host.job import ActionKind
 from repetrel_host.pump import Summary
 
 
@@ -73,17 +74,22 @@ class Resend:
 class Action:
     """A host action the job asked for (M792, or the text of an M0)."""
 
-    kind: str  # "pause", "actions", "log_start", "log_stop"
+    kind: ActionKind
     message: str
     actions: tuple[tuple[str, str], ...]
     position: str
 
 
+class PauseReason(StrEnum):
+    REQUEST = "pause"  # Printer.pause()
+    M0 = "M0"  # the job's M0 (or M1): the operator resumes
+
+
 @dataclass(frozen=True, slots=True)
 class Paused:
-    """The job is paused: by :meth:`Printer.pause` (``reason`` "pause") or by an M0."""
+    """The job is paused, and waits for :meth:`Printer.resume`."""
 
-    reason: str
+    reason: PauseReason
     message: str
     position: str
 

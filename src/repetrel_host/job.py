@@ -20,6 +20,7 @@ import os
 import re
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from enum import StrEnum
 from pathlib import Path
 from typing import BinaryIO
 
@@ -47,14 +48,18 @@ class JobLine:
         return f"{self.source}:{self.source_line}" if self.source_line else self.source
 
 
+class ActionKind(StrEnum):
+    PAUSE = "pause"  # M0, M1: wait for the operator
+    ACTIONS = "actions"  # M792: SAY, BEEP, SHELL...
+    LOG_START = "log_start"  # M719: keep the controller's reports
+    LOG_STOP = "log_stop"  # M718
+
+
 @dataclass(frozen=True, slots=True)
 class HostAction:
-    """Something the host does itself once every line before it is acknowledged.
+    """Something the host does itself once every line before it is acknowledged."""
 
-    ``kind``: ``pause`` (M0/M1), ``actions`` (M792), ``log_start`` (M719), ``log_stop`` (M718).
-    """
-
-    kind: str
+    kind: ActionKind
     message: str
     actions: tuple[tuple[str, str], ...]  # (verb, argument), e.g. ("SAY", "Hello")
     source_line: int
@@ -150,16 +155,16 @@ class Job:
         if word == "M110":
             return []  # forwarding it would desynchronise the host's line numbers
         if word == "M718":
-            return [HostAction("log_stop", "", (), number, name)]
+            return [HostAction(ActionKind.LOG_STOP, "", (), number, name)]
         if word == "M719":
-            return [command, HostAction("log_start", command, (), number, name)]
+            return [command, HostAction(ActionKind.LOG_START, command, (), number, name)]
         # M0, M1 and M792 carry their text after the command and after semicolons.
         text = raw.decode("utf-8", errors="replace")
         text = text.strip()[len(text.strip().split(None, 1)[0]) :]
         message, actions = parse_actions(text)
         if word == "M792":
-            return [HostAction("actions", message, actions, number, name)]
-        return [self.pause_sync, HostAction("pause", message, actions, number, name)]
+            return [HostAction(ActionKind.ACTIONS, message, actions, number, name)]
+        return [self.pause_sync, HostAction(ActionKind.PAUSE, message, actions, number, name)]
 
 
 _HOST_WORDS = frozenset({"M0", "M1", "M110", "M718", "M719", "M792"})

@@ -26,7 +26,7 @@ from repetrel_host.config import (
 from repetrel_host.errors import ConfigError, JobError
 from repetrel_host.gcode import addressing
 from repetrel_host.gcode.header import header_commands, safe_stop_commands
-from repetrel_host.gcode.lint import Finding, Linter
+from repetrel_host.gcode.lint import Finding, Linter, Severity
 from repetrel_host.job import Job, JobItem, JobLine
 from repetrel_host.links import FAKE_PORT
 from repetrel_host.protocol.flow import FlowControl, FlowMode
@@ -115,7 +115,7 @@ class JobPlan:
 
         def check(number: int, command: str) -> None:
             for finding in linter.check(number, command):
-                if finding.severity == "error" and not force:
+                if finding.severity is Severity.ERROR and not force:
                     raise JobError(f"{finding.format(name)} (force sends despite it)")
                 warn(finding.format(name))
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from enum import Enum
+from itertools import chain
 
 from repetrel_host.errors import (
     ControllerError,
@@ -202,10 +203,20 @@ class Pump:
         self.dialect.send(command, tag)
 
     def pause(self) -> None:
-        """Stop feeding job lines; :meth:`Listener.paused` once every line sent is confirmed."""
+        """Stop feeding job lines; :meth:`Listener.paused` once every line sent is confirmed.
+
+        Lines read ahead but not yet on the wire wait for :meth:`resume`."""
         run = self.run
-        if run is not None and not run.stopping:
-            run.pause_requested = True
+        if run is None or run.stopping or run.pause_requested:
+            return
+        run.pause_requested = True
+        held = []
+        for command, tag in self.dialect.cancel_pending():
+            if isinstance(tag, JobLine):
+                held.append(tag)
+            else:
+                self.dialect.send(command, tag)  # not the job's: it goes
+        run.items = chain(held, run.items)
 
     def resume(self) -> None:
         run = self.run
@@ -308,7 +319,7 @@ class Pump:
                 run = self.run
                 if run is not None:
                     self._finish(run, failure_error(event, run), now)
-                dropped = [tag for tag in dialect.cancel_pending() if not isinstance(tag, JobLine)]
+                dropped = [t for _, t in dialect.cancel_pending() if not isinstance(t, JobLine)]
                 if dropped:
                     listener.commands_dropped(dropped)
                 listener.failed(event)
@@ -356,7 +367,7 @@ class Pump:
         run.barrier = None
         run.action_running = False
         run.pause_requested = run.paused = False
-        dropped = [tag for tag in self.dialect.cancel_pending() if not isinstance(tag, JobLine)]
+        dropped = [t for _, t in self.dialect.cancel_pending() if not isinstance(t, JobLine)]
         if dropped:
             self.listener.commands_dropped(dropped)
         for command in run.safe_stop:

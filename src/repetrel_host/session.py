@@ -37,6 +37,7 @@ from repetrel_host.events import (
     Message,
     Notice,
     Paused,
+    PauseReason,
     PrinterEvent,
     Progress,
     Resend,
@@ -46,7 +47,8 @@ from repetrel_host.events import (
     Temperatures,
 )
 from repetrel_host.gcode.commands import command_word
-from repetrel_host.job import HostAction, JobLine
+from repetrel_host.gcode.lint import Severity
+from repetrel_host.job import ActionKind, HostAction, JobLine
 from repetrel_host.links import Link, make_link
 from repetrel_host.planning import (
     JobPlan,
@@ -420,7 +422,7 @@ class Printer:
             findings = plan.check()
             for finding in findings:
                 warn(finding.format(plan.job.name))
-            refused = [f for f in findings if f.severity == "error"]
+            refused = [f for f in findings if f.severity is Severity.ERROR]
             if refused and not force:
                 raise JobError(f"{plan.job.name}: not sent ({len(refused)} errors; force sends)")
         path = self._open_history(plan, history)
@@ -802,7 +804,7 @@ class _PumpListener(Listener):
         job = printer._job
         if job is not None:
             last = job.last
-            job._publish(Paused("pause", "", last.position if last else ""))
+            job._publish(Paused(PauseReason.REQUEST, "", last.position if last else ""))
             printer._set_state(State.PAUSED, "paused")
 
     def finished(self, run: Run) -> None:
@@ -843,9 +845,9 @@ async def _perform(printer: Printer, job: PrintJob, action: HostAction) -> None:
     result: bool | HostError
     try:
         proceed = await job.on_action(action) if job.on_action is not None else True
-        if proceed and action.kind == "pause":
+        if proceed and action.kind is ActionKind.PAUSE:
             job._m0 = printer._loop.create_future()
-            job._publish(Paused("M0", action.message, action.position))
+            job._publish(Paused(PauseReason.M0, action.message, action.position))
             printer._set_state(State.PAUSED, f"M0 at {action.position}")
             await job._m0
         result = proceed

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass
+from enum import StrEnum
 
 from repetrel_host.gcode import addressing
 from repetrel_host.gcode.commands import command_word
@@ -27,10 +28,15 @@ DOCUMENTED_ELSEWHERE = frozenset({"M1", "M627", "M702", "M704"})
 NOT_SUPPORTED = frozenset({"G10", "G11"})
 
 
+class Severity(StrEnum):
+    ERROR = "error"  # refuses the job unless forced
+    WARNING = "warning"
+
+
 @dataclass(frozen=True, slots=True)
 class Finding:
     line: int
-    severity: str  # "error" or "warning"
+    severity: Severity
     message: str
 
     def format(self, source: str) -> str:
@@ -78,7 +84,9 @@ class Linter:
         if word == "M229":
             e, d = _parameter(command, "E"), _parameter(command, "D")
             if e == "1" and d == "0":
-                findings.append(Finding(line, "error", "M229 E1 D0 is an illegal combination"))
+                findings.append(
+                    Finding(line, Severity.ERROR, "M229 E1 D0 is an illegal combination")
+                )
             elif e == "1" and d == "1" and self._e_values_d1 is None:
                 self._e_values_d1 = line
         elif word in ("M703", "M723") and self._manual_flow is None:
@@ -89,7 +97,9 @@ class Linter:
             if self.streaming and uses[1] == 1:
                 findings.append(_unknown_code(word, line, 1))
         if word in NOT_SUPPORTED:
-            findings.append(Finding(line, "warning", f"{word} is marked unsupported by Hyrel"))
+            findings.append(
+                Finding(line, Severity.WARNING, f"{word} is marked unsupported by Hyrel")
+            )
         if self.firmware is not None and self.loaded_tools is not None and word.startswith("M"):
             finding = _check_variable(line, command, self.firmware, self.loaded_tools)
             if finding is not None:
@@ -100,7 +110,7 @@ class Linter:
             findings.append(
                 Finding(
                     max(manual[0], d1_line),
-                    "error",
+                    Severity.ERROR,
                     f"{manual[1]} (line {manual[0]}) does not work with M229 E1 D1 "
                     f"(line {d1_line}); use M229 E0 D0",
                 )
@@ -133,7 +143,7 @@ def lint(
 
 def _unknown_code(word: str, line: int, uses: int) -> Finding:
     more = f" (and {uses - 1} more lines)" if uses > 1 else ""
-    return Finding(line, "warning", f"{word} is not in Hyrel's code chart{more}")
+    return Finding(line, Severity.WARNING, f"{word} is not in Hyrel's code chart{more}")
 
 
 def _check_tool(
@@ -141,11 +151,11 @@ def _check_tool(
 ) -> Finding | None:
     where = addressing.position_of_tool(tool)
     if where is None or (positions is not None and tool >= positions):
-        return Finding(line, "error", f"T{tool} is not a tool position on this machine")
+        return Finding(line, Severity.ERROR, f"T{tool} is not a tool position on this machine")
     if loaded_tools is not None and tool not in loaded_tools:
         return Finding(
             line,
-            "error",
+            Severity.ERROR,
             f"T{tool} selects yoke {where[0]}, slot {where[1]}, which has no head loaded",
         )
     return None
@@ -165,7 +175,7 @@ def _check_variable(
     hint = " (v4 files name the second slot T12)" if firmware == "v5" and value > 9 else ""
     return Finding(
         line,
-        "warning",
+        Severity.WARNING,
         f"T{value} addresses {addressing.describe_variable(firmware, value)}, "
         f"which has no head loaded{hint}",
     )

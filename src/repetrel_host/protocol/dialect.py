@@ -45,8 +45,8 @@ class Dialect(Protocol):
     def request_sync(self) -> None:
         """No more lines for now: have the controller confirm every line sent."""
 
-    def cancel_pending(self) -> list[object]:
-        """Drop queued lines not yet on the wire; return their tags."""
+    def cancel_pending(self) -> list[tuple[str, object]]:
+        """Drop queued lines not yet on the wire; return them (command, tag)."""
 
     @property
     def wants_lines(self) -> bool:

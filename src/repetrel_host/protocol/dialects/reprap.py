@@ -214,9 +214,9 @@ class RepRapDialect:
         """
         self._sync_requested = True
 
-    def cancel_pending(self) -> list[object]:
-        """Drop queued lines not yet on the wire; return their tags."""
-        dropped = [tag for _, tag, _ in self._pending]
+    def cancel_pending(self) -> list[tuple[str, object]]:
+        """Drop queued lines not yet on the wire; return them (command, tag)."""
+        dropped = [(command, tag) for command, tag, _ in self._pending]
         self._pending.clear()
         self._candidate = None
         return dropped

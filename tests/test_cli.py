@@ -1,0 +1,105 @@
+"""What a newcomer meets at the command line: help, version, the profile chosen and why,
+option mistakes, and Ctrl-C while the machine is moving."""
+
+from __future__ import annotations
+
+import signal
+import time
+from pathlib import Path
+
+import pytest
+
+from repetrel_host import __version__
+from repetrel_host.testing.fake_controller import BuiltInFake
+from tests.helpers import CONE, EXAMPLE, executed, hyrel_send, job_commands, start_streaming
+
+pytestmark = pytest.mark.timeout(60)
+MARLIN_SAFE_STOP = ["M107", "M104 S0", "M140 S0", "G91", "G0 Z10", "G90", "M84"]
+
+
+def test_help_shows_plain_flags_and_the_true_defaults() -> None:
+    result = hyrel_send("--help")
+    assert result.returncode == 0
+    text = " ".join(result.stdout.split())
+    assert "<bool>" not in text
+    assert "--check Only check the job" in text and "--framed With --dry-run" in text
+    assert "[printer] port in the configuration" in text
+    assert "--history DIR Folder for the print history (default" in text
+    assert "~/.local/share/repetrel-host/history" in text
+
+
+def test_version() -> None:
+    result = hyrel_send("--version")
+    assert result.returncode == 0
+    assert result.stdout.strip() == f"hyrel-send (repetrel-host) {__version__}"
+
+
+def test_framed_without_a_dry_run_is_an_error(tmp_path: Path) -> None:
+    result = hyrel_send(str(EXAMPLE), "--framed")
+    assert result.returncode == 2
+    assert result.stderr.strip() == "error: --framed shows the wire of a dry run: add --dry-run"
+
+
+def test_a_mistyped_loadout_lists_the_known_ones() -> None:
+    result = hyrel_send(str(EXAMPLE), "--loadout", "wiki-two-head", "--check")
+    assert result.returncode == 2
+    assert "no such loadout" in result.stderr
+    assert "wiki-one-head, wiki-two-heads" in result.stderr
+
+
+def test_check_names_the_profile_from_the_slicer(tmp_path: Path) -> None:
+    # A PrusaSlicer file is written for a Marlin-style firmware: its safe stop must not
+    # use Hyrel's group addresses.
+    result = hyrel_send(str(CONE), "--check")
+    assert result.returncode == 0, result.stderr
+    assert "machine profile marlin (from the slicer: PrusaSlicer)" in result.stdout
+    plain = tmp_path / "plain.gcode"
+    plain.write_text("G28\nG1 X1\n")
+    result = hyrel_send(str(plain), "--check")
+    assert "machine profile hyrel (default: no machine given)" in result.stdout
+    result = hyrel_send(str(plain), "--check", "--machine", "esr")
+    assert "machine profile esr (--machine)" in result.stdout
+
+
+def test_the_profile_comes_from_the_firmware_and_is_named(tmp_path: Path) -> None:
+    job = tmp_path / "plain.gcode"
+    job.write_text("G28\nG1 X1\n")
+    with BuiltInFake(tmp_path / "fake.log") as fake:
+        result = hyrel_send(str(job), "--port", fake.port, "--no-history")
+    assert result.returncode == 0, result.stderr
+    expected = "Machine profile: marlin (from the firmware: repetrel-host fake controller"
+    assert expected in result.stdout
+    assert "machine profile marlin." in result.stdout  # in the summary too
+
+
+def test_no_history_file_when_the_port_does_not_open(tmp_path: Path) -> None:
+    history = tmp_path / "history"
+    result = hyrel_send(
+        str(EXAMPLE), "--port", str(tmp_path / "ttyUSB9"), "--history", str(history)
+    )
+    assert result.returncode == 3
+    assert not history.exists() or not any(history.iterdir())
+
+
+def test_a_second_ctrl_c_says_what_the_safe_stop_did_not_confirm(tmp_path: Path) -> None:
+    log = tmp_path / "slow.log"
+    # 20 ms a move and a 16-block planner: the safe stop waits a third of a second
+    # behind the moves already planned.
+    with BuiltInFake(log, ["--move-time", "0.02"]) as slow:
+        process = start_streaming(CONE, slow.port, log, "--no-history")
+        process.send_signal(signal.SIGINT)
+        time.sleep(0.05)
+        process.send_signal(signal.SIGINT)
+        stdout, stderr = process.communicate(timeout=30)
+    assert process.returncode == 130, stderr
+    assert "stopping: sending the safe-stop sequence (Ctrl-C again to abandon it)" in stdout
+    assert "safe stop abandoned: the controller did not confirm M107" in stdout
+    assert "check the machine" in stdout
+    # What ran is a part of the job, once and in order, then what the controller took of
+    # the safe stop before it was abandoned.
+    done, commands = executed(log), job_commands(CONE)
+    assert any(
+        done[: len(done) - j] == commands[: len(done) - j]
+        and done[len(done) - j :] == MARLIN_SAFE_STOP[:j]
+        for j in range(len(MARLIN_SAFE_STOP) + 1)
+    ), done[-10:]
