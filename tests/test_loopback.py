@@ -4,7 +4,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from repetrel_host.protocol.events import FailureKind
+from repetrel_host.protocol.events import FailureKind, ProbeKind
 from repetrel_host.protocol.flow import FlowControl, FlowMode
 from repetrel_host.testing.loopback import run_loopback, wire_preview
 from repetrel_host.testing.simulator import ControllerSettings, Faults
@@ -175,3 +175,42 @@ def test_advanced_ok_under_noise_never_loses_or_repeats_a_line(
     result = run_loopback(cone_commands, FlowControl(mode), controller)
     assert result.failure is None
     assert result.executed == cone_commands
+
+
+OCTOPRINT = "counted_resend=1 spurious_resend=0.005 drop_with_error=0.005"
+
+
+@pytest.mark.parametrize("mode", list(FlowMode))
+def test_a_controller_counting_lines_its_own_way_is_probed_with_lines_that_run(
+    mode: FlowMode, cone_commands: list[str]
+) -> None:
+    result = run_loopback(cone_commands, FlowControl(mode), noisy(OCTOPRINT, 6))
+    assert result.failure is None
+    assert result.host.probe is ProbeKind.COMMAND
+    probes = [c for c in result.executed if c == "M105"]  # the job has none
+    assert [c for c in result.executed if c != "M105"] == cone_commands
+    assert 0 < len(probes) <= result.host.stats.pings
+
+
+@pytest.mark.parametrize("mode", list(FlowMode))
+def test_with_the_usual_probe_such_a_controller_ends_in_one_sentence_never_a_repeat(
+    mode: FlowMode, cone_commands: list[str]
+) -> None:
+    result = run_loopback(
+        cone_commands, FlowControl(mode), noisy(OCTOPRINT, 6), probe=ProbeKind.CHECKSUM
+    )
+    assert result.failure is not None and result.failure.kind is FailureKind.PROTOCOL
+    assert "which the host never sent" in result.failure.reason
+    assert result.executed == cone_commands[: len(result.executed)]
+
+
+@pytest.mark.parametrize("mode", list(FlowMode))
+def test_lines_dropped_with_only_an_error_are_sent_again(
+    mode: FlowMode, cone_commands: list[str]
+) -> None:
+    result = run_loopback(
+        cone_commands, FlowControl(mode), noisy(f"{NOISE}{MARLIN} drop_with_error=0.005", 7)
+    )
+    assert result.failure is None
+    assert result.executed == cone_commands
+    assert result.controller.counts.dropped_with_error > 50

@@ -17,6 +17,9 @@ from tests.helpers import CONE, executed, hyrel_send, job_commands
 
 NOISE = "corrupt=0.02 garble=0.01 drop_ok=0.01 duplicate_ok=0.01 spurious_resend=0.005"
 MARLIN = "flush_on_error=1 drop_duplicates=1 resend_without_ok=1 busy_interval=2"
+# OctoPrint's virtual printer: its answer to a bad checksum counts every valid line it got,
+# it asks for accepted lines again, and drops some with only an error line.
+OCTOPRINT = "counted_resend=1 spurious_resend=0.005 drop_with_error=0.005"
 
 
 @pytest.mark.timeout(60)
@@ -39,3 +42,19 @@ def test_noisy_link_executes_every_line_exactly_once(
     assert executed(log) == job_commands(CONE)
     summary = re.search(r"(\d+) resend requests, \d+ lines sent again", result.stdout)
     assert summary is not None and int(summary.group(1)) > 100  # the noise was there
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("flow", ["buffered", "unbuffered"])
+def test_a_controller_counting_lines_its_own_way_runs_every_line_once(
+    flow: str, tmp_path: Path
+) -> None:
+    log = tmp_path / "fake.log"
+    with BuiltInFake(log, ["--faults", f"{OCTOPRINT} seed=5"]) as fake:
+        result = hyrel_send(str(CONE), "--port", fake.port, "--flow", flow, timeout=55)
+    assert result.returncode == 0, result.stderr
+    # Its probes are numbered M105 lines that run (the job has none), and M115 asks who
+    # the controller is; the job ran exactly once.
+    ran = [c for c in log.read_text().splitlines() if c not in ("M105", "M115")]
+    assert [c for c in ran if not c.startswith("M110")] == job_commands(CONE)
+    assert "probing with numbered M105 lines" in result.stdout

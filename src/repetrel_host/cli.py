@@ -57,6 +57,7 @@ from repetrel_host.planning import (
     resolve_port,
 )
 from repetrel_host.protocol.dialects.reprap import DEFAULT_REPLY_TIMEOUT
+from repetrel_host.protocol.events import ProbeKind
 from repetrel_host.protocol.flow import FlowMode
 from repetrel_host.pump import Outcome, Summary
 from repetrel_host.session import Printer, PrintJob, connect
@@ -284,6 +285,11 @@ async def _send(
                 "No printer port given: streaming to the built-in fake controller on "
                 f"{printer.link.device}.",
                 markup=False,
+            )
+        if printer.probe is ProbeKind.COMMAND:
+            console.print(
+                "The controller's answer to a bad checksum names a line it never got: "
+                "probing with numbered M105 lines (they run; they are harmless)."
             )
         plan = _plan_for(printer, plan, user, errors, options.force)
         console.print(f"Machine profile: {plan.profile.describe()}", markup=False)
