@@ -600,3 +600,24 @@ def test_a_probe_after_a_stall_never_repeats_the_greetings_probe() -> None:
         sent.append(host.data_to_send(deadline))
     assert ping(1) not in sent  # the greeting's probe, N1 M105 S0*9999
     assert sent == [ping(6)] * 3
+
+
+def test_a_command_probe_that_gets_no_answer_goes_again_not_a_new_one() -> None:
+    # A controller busy heating (M190) answers nothing for a while: probes must not pile
+    # up in its buffer, each a line that runs.
+    host = command_probing()
+    host.send("M190 S60", 0)
+    host.request_sync()
+    assert host.data_to_send(0.01) == frame(2, "M190 S60")
+    sent = []
+    now = 0.01
+    for _ in range(6):
+        deadline = host.next_deadline()
+        assert deadline is not None and deadline > now
+        now = deadline
+        host.handle_timeout(now)
+        sent.append(host.data_to_send(now))
+    assert sent == [frame(3, "M105")] * 6
+    assert now >= 5.0  # a command that waits for the machine holds the probes back
+    host.receive_data(b"ok\n" + OCTOPRINT_TEMPERATURES, now + 0.01)
+    assert host.is_done

@@ -769,7 +769,7 @@ class _PumpListener(Listener):
         printer = self.printer
         if isinstance(reply, replies.Busy | replies.Wait):
             return  # keepalives
-        reported = "T:" in text and self._temperatures(text, text)
+        reported = self._temperatures(text, text)
         if printer._commands and not (reported and printer._autoreport):
             printer._commands[0].lines.append(text)
             return

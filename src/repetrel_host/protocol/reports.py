@@ -5,6 +5,9 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass, field
 
+# A line that is a temperature report (M105's answer, an auto-report, a heat-up's):
+# it starts with a reading.
+_REPORT = re.compile(r"^\s*(?:ok\s+)?[TBC]\d*:\s*-?\d")
 _READING = re.compile(r"(?<![\w@])([TBC]\d*):\s*(-?\d+(?:\.\d+)?)(?:\s*/\s*(-?\d+(?:\.\d+)?))?")
 # "FIRMWARE_NAME:Marlin 2.1.2 (Jan 1 2024) SOURCE_CODE_URL:... PROTOCOL_VERSION:1.0 ..."
 _FIELD = re.compile(r"(?:^|\s)([A-Z][A-Z0-9_]+):")
@@ -12,8 +15,11 @@ _CAPABILITY = re.compile(r"^Cap:([A-Z0-9_]+):\s*([01])\s*$")
 
 
 def parse_temperatures(text: str) -> dict[str, tuple[float, float | None]]:
-    """``T:21.0 /200.0 B:60.0 /60.0 @:0`` as {sensor: (current, target)}; {} if none."""
+    """``T:21.0 /200.0 B:60.0 /60.0 @:0`` as {sensor: (current, target)}; {} if the line
+    is not a temperature report."""
     readings: dict[str, tuple[float, float | None]] = {}
+    if _REPORT.match(text) is None:
+        return readings
     for sensor, current, target in _READING.findall(text):
         readings[sensor] = (float(current), float(target) if target else None)
     return readings

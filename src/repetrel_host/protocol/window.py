@@ -124,9 +124,12 @@ class Window:
         return next((t for t in self.in_flight if not t.stale), None)
 
     def waiting_on_unbuffered(self) -> bool:
-        """The oldest live line is a command that waits for the machine (G28, M109...)."""
-        oldest = next((t for t in self.in_flight if not t.stale and t.line is not None), None)
-        return oldest is not None and oldest.line is not None and oldest.line.unbuffered
+        """The oldest live line (a probe aside) waits for the machine (G28, M109...)."""
+        for transmission in self.in_flight:
+            line = transmission.line
+            if not transmission.stale and line is not None and not line.is_probe:
+                return line.unbuffered
+        return False
 
     def _read_out(self) -> tuple[int, int]:
         """Bytes and lines in flight that ADVANCED_OK says left the receive buffer.

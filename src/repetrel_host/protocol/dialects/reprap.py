@@ -352,8 +352,18 @@ class RepRapDialect:
         self.stats.stalls_recovered += 1
         probing = self._probing
         probing.unanswered += 1
-        if probing.current is not None:
-            window.discard(probing.current)
+        probe = probing.current
+        if probe is not None and probe.line is not None:
+            # A command probe runs: the same line goes again (refused if it arrived), so
+            # that probes never pile up in a controller busy heating.
+            window.discard(probe)
+            self._transmit(probe.line, now)
+            probing.current = window.in_flight[-1]
+            probing.attempt += 1
+            self.stats.pings += 1
+            return
+        if probe is not None:
+            window.discard(probe)
             probing.current = None
         self._send_probe(now)
 
