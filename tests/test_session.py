@@ -13,7 +13,7 @@ import pytest
 
 import repetrel_host as rh
 from repetrel_host.links import SimLink
-from repetrel_host.testing.simulator import ControllerSettings, Faults
+from repetrel_host.testing.simulator import ControllerSettings, ControllerSimulator, Faults
 from tests.helpers import EXAMPLE, job_commands
 
 pytestmark = pytest.mark.timeout(60)
@@ -430,5 +430,35 @@ def test_a_controller_counting_lines_its_own_way_prints_through(tmp_path: Path) 
             # The probes are M105 lines that ran; the job ran exactly once, twice.
             ran = [c for c in rig.executed(printer) if c not in ("M105", "M115")]
             assert ran == commands + commands
+
+    run(scenario)
+
+
+def test_a_pyserial_url_reaches_a_controller_over_tcp() -> None:
+    # socket://host:port, as ser2net or an ESP32 bridge serves a printer's port.
+    async def scenario() -> None:
+        loop = asyncio.get_running_loop()
+        simulator = ControllerSimulator(ControllerSettings(banner=False), now=loop.time())
+
+        class Serve(asyncio.Protocol):
+            def connection_made(self, transport: asyncio.BaseTransport) -> None:
+                assert isinstance(transport, asyncio.Transport)
+                self.transport = transport
+
+            def data_received(self, data: bytes) -> None:
+                now = loop.time()
+                simulator.receive(data, now)
+                simulator.advance(now)
+                self.transport.write(simulator.take_output(now))
+
+        server = await loop.create_server(Serve, "127.0.0.1", 0)
+        port = server.sockets[0].getsockname()[1]
+        async with rh.connect(f"socket://127.0.0.1:{port}", poll_interval=None) as printer:
+            assert printer.firmware is not None
+            summary = await (await printer.print(EXAMPLE, history=False)).wait()
+            assert summary.lines == len(job_commands(EXAMPLE))
+        server.close()
+        ran = [c for c in simulator.executed if not c.startswith("M110")]
+        assert ran == ["M115", *job_commands(EXAMPLE)]
 
     run(scenario)

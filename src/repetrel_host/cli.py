@@ -14,19 +14,9 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
-from rich.console import Console
-from rich.markup import escape
-from rich.progress import (
-    BarColumn,
-    Progress,
-    TaskID,
-    TaskProgressColumn,
-    TextColumn,
-    TimeRemainingColumn,
-)
 
 from repetrel_host import __version__
 from repetrel_host.config import UserConfig, load_user_config
@@ -62,6 +52,10 @@ from repetrel_host.protocol.flow import FlowMode
 from repetrel_host.pump import Outcome, Summary
 from repetrel_host.session import Printer, PrintJob, connect
 
+if TYPE_CHECKING:
+    from rich.console import Console
+    from rich.progress import Progress, TaskID
+
 # Exit codes: distinct per kind of failure so scripts can tell them apart.
 EXIT_OK = 0
 EXIT_BAD_INPUT = 2  # also what typer uses for a bad option
@@ -72,6 +66,29 @@ EXIT_INTERRUPTED = 130  # 128 + SIGINT, as shells report Ctrl-C
 PROGRESS_REFRESH = 0.1  # seconds between progress bar updates
 
 app = typer.Typer(add_completion=False, pretty_exceptions_enable=False, rich_markup_mode=None)
+
+
+class Out:
+    """A terminal stream through rich, imported on first use: a job's first line goes out
+    before rich's modules (a good share of the start-up) have been read."""
+
+    def __init__(self, stderr: bool = False) -> None:
+        self._stderr = stderr
+        self._console: Console | None = None
+
+    @property
+    def console(self) -> Console:
+        if self._console is None:
+            from rich.console import Console
+
+            self._console = Console(stderr=self._stderr, highlight=False, soft_wrap=True)
+        return self._console
+
+    def print(self, text: str, markup: bool | None = None) -> None:
+        self.console.print(text, markup=markup)
+
+    def bell(self) -> None:
+        self.console.bell()
 
 
 @dataclass(frozen=True)
@@ -190,8 +207,7 @@ def send(
     ] = False,
 ) -> None:
     """Stream JOB to a Hyrel (or Marlin-style) controller and show progress."""
-    console = Console(highlight=False, soft_wrap=True)
-    errors = Console(stderr=True, highlight=False, soft_wrap=True)
+    console, errors = Out(), Out(stderr=True)
     try:
         if framed and not dry_run:
             raise UsageError("--framed shows the wire of a dry run: add --dry-run")
@@ -235,7 +251,7 @@ def send(
     raise typer.Exit(code)
 
 
-def _check(plan: JobPlan, errors: Console) -> list[Finding]:
+def _check(plan: JobPlan, errors: Out) -> list[Finding]:
     """Check the whole file and print the findings."""
     findings = plan.check()
     for finding in findings:
@@ -265,7 +281,7 @@ def _dry_run(plan: JobPlan, framed: bool) -> None:
 
 
 async def _send(
-    console: Console, errors: Console, plan: JobPlan, user: UserConfig, options: Options
+    console: Out, errors: Out, plan: JobPlan, user: UserConfig, options: Options
 ) -> int:
     port = resolve_port(options.port, user)
     baud, flow = link_settings(options.link, plan.machine)
@@ -280,25 +296,7 @@ async def _send(
         fake_log=options.fake_log,
     )
     try:
-        if port == FAKE_PORT:
-            console.print(
-                "No printer port given: streaming to the built-in fake controller on "
-                f"{printer.link.device}.",
-                markup=False,
-            )
-        if printer.probe is ProbeKind.COMMAND:
-            console.print(
-                "The controller's answer to a bad checksum names a line it never got: "
-                "probing with numbered M105 lines (they run; they are harmless)."
-            )
         plan = _plan_for(printer, plan, user, errors, options.force)
-        console.print(f"Machine profile: {plan.profile.describe()}", markup=False)
-        if plan.checked_as_it_streams:
-            console.print(
-                f"{plan.job.name} is {plan.job.size / 1e6:.0f} MB: checked as it streams; a line "
-                "it would refuse stops the job safely there (--check checks it all first).",
-                markup=False,
-            )
         summary, history, last = await _stream(console, errors, printer, plan, user, options)
     finally:
         await printer.close()
@@ -313,8 +311,30 @@ async def _send(
     return EXIT_INTERRUPTED if summary.outcome is Outcome.CANCELLED else EXIT_OK
 
 
+def _announce(console: Out, printer: Printer, plan: JobPlan) -> None:
+    """What the run is talking to and why, once its first lines are on their way."""
+    if isinstance(printer.link, FakeLink) and printer.link.port == FAKE_PORT:
+        console.print(
+            "No printer port given: streaming to the built-in fake controller on "
+            f"{printer.link.device}.",
+            markup=False,
+        )
+    if printer.probe is ProbeKind.COMMAND:
+        console.print(
+            "The controller's answer to a bad checksum names a line it never got: "
+            "probing with numbered M105 lines (they run; they are harmless)."
+        )
+    console.print(f"Machine profile: {plan.profile.describe()}", markup=False)
+    if plan.checked_as_it_streams:
+        console.print(
+            f"{plan.job.name} is {plan.job.size / 1e6:.0f} MB: checked as it streams; a line "
+            "it would refuse stops the job safely there (--check checks it all first).",
+            markup=False,
+        )
+
+
 def _plan_for(
-    printer: Printer, plan: JobPlan, user: UserConfig, errors: Console, force: bool
+    printer: Printer, plan: JobPlan, user: UserConfig, errors: Out, force: bool
 ) -> JobPlan:
     """The plan for the controller that answered: its M115 identity may choose the profile."""
     if printer.firmware is None:
@@ -328,8 +348,8 @@ def _plan_for(
 
 
 async def _stream(
-    console: Console,
-    errors: Console,
+    console: Out,
+    errors: Out,
     printer: Printer,
     plan: JobPlan,
     user: UserConfig,
@@ -347,6 +367,16 @@ async def _stream(
         on_action=actions.perform,
         on_warning=lambda text: errors.print(text, markup=False),
     )
+    _announce(console, printer, plan)
+    from rich.markup import escape
+    from rich.progress import (
+        BarColumn,
+        Progress,
+        TaskProgressColumn,
+        TextColumn,
+        TimeRemainingColumn,
+    )
+
     progress = Progress(
         TextColumn("[bold]{task.description}"),
         BarColumn(),
@@ -354,7 +384,7 @@ async def _stream(
         TextColumn("{task.fields[lines]} lines"),
         TextColumn("{task.fields[rate]:.0f} lines/s"),
         TimeRemainingColumn(),
-        console=console,
+        console=console.console,
         transient=False,
     )
     task = progress.add_task(escape(job.name), total=max(job.size, 1), lines=0, rate=0.0)
@@ -400,10 +430,10 @@ async def _stream(
     return summary, history, job.where()
 
 
-async def _watch(
-    console: Console, printer: Printer, job: PrintJob, actions: ConsoleActions
-) -> None:
+async def _watch(console: Out, printer: Printer, job: PrintJob, actions: ConsoleActions) -> None:
     """Show what the job tells, and answer an M0 at the keyboard."""
+    from rich.markup import escape
+
     async for event in job.events():
         if isinstance(event, Message):
             actions.log(event.text)
@@ -435,7 +465,7 @@ def _update(progress: Progress, task: TaskID, job: PrintJob, started: float) -> 
     progress.update(task, completed=job.offset, lines=job.lines, rate=job.lines / elapsed)
 
 
-def _print_summary(console: Console, summary: Summary, plan: JobPlan, last: str) -> None:
+def _print_summary(console: Out, summary: Summary, plan: JobPlan, last: str) -> None:
     rate = summary.lines / summary.seconds if summary.seconds > 0 else 0.0
     done = summary.outcome is Outcome.COMPLETED
     verdict = "done" if done else f"stopped (interrupted; {last})"
@@ -452,14 +482,14 @@ def main() -> None:
     try:
         app()
     except KeyboardInterrupt:
-        Console(stderr=True, soft_wrap=True).print("interrupted before streaming began.")
+        Out(stderr=True).print("interrupted before streaming began.")
         raise SystemExit(EXIT_INTERRUPTED) from None
     except HostError as exc:  # a last guard: one sentence, never a traceback
-        Console(stderr=True, soft_wrap=True).print(f"error: {exc}", markup=False)
+        Out(stderr=True).print(f"error: {exc}", markup=False)
         raise SystemExit(EXIT_BAD_INPUT) from None
     except OSError as exc:
         where = f"{exc.filename}: " if exc.filename else ""
-        Console(stderr=True, soft_wrap=True).print(f"error: {where}{exc.strerror}", markup=False)
+        Out(stderr=True).print(f"error: {where}{exc.strerror}", markup=False)
         raise SystemExit(EXIT_BAD_INPUT) from None
 
 

@@ -12,10 +12,7 @@ import os
 import shlex
 import shutil
 from pathlib import Path
-from typing import TextIO
-
-from rich.console import Console
-from rich.markup import escape
+from typing import Protocol, TextIO
 
 from repetrel_host.config import HostSettings
 from repetrel_host.job import ActionKind, HostAction
@@ -24,10 +21,16 @@ SPEECH_PROGRAMS = ("espeak-ng", "espeak", "spd-say", "say")
 ACTION_TIMEOUT = 60.0  # seconds an action's program may run before it is abandoned
 
 
+class Terminal(Protocol):
+    def print(self, text: str, markup: bool | None = None) -> None: ...
+
+    def bell(self) -> None: ...
+
+
 class ConsoleActions:
     """Carries out a job's host actions at a terminal, and keeps the report log."""
 
-    def __init__(self, console: Console, host: HostSettings, reports_path: Path) -> None:
+    def __init__(self, console: Terminal, host: HostSettings, reports_path: Path) -> None:
         self.console = console
         self.host = host
         self.reports_path = reports_path
@@ -52,6 +55,8 @@ class ConsoleActions:
         return True
 
     async def _act(self, verb: str, argument: str, action: HostAction) -> None:
+        from rich.markup import escape
+
         where = escape(action.position)
         if verb == "SAY":
             program = self.host.speech_program or next(

@@ -20,16 +20,18 @@ async def open_serial(
 ) -> tuple[asyncio.Transport, asyncio.Protocol]:
     """Open ``port`` (a device path or a pyserial URL) and connect ``protocol_factory`` to it."""
     loop = asyncio.get_running_loop()
+    url = "://" in port
+    options = {} if url else {"exclusive": True}
+    opener = functools.partial(serial.serial_for_url, port, baudrate=baudrate, **options)
     try:
-        if port.startswith("socket://"):
-            return await serial_asyncio_fast.create_serial_connection(
-                loop, protocol_factory, port, baudrate=baudrate, exclusive=True
-            )
-        opener = functools.partial(serial.serial_for_url, port, baudrate=baudrate, exclusive=True)
         serial_port = await loop.run_in_executor(None, opener)
     except (serial.SerialException, OSError, ValueError) as exc:
         raise LinkError(describe_open_error(port, exc)) from None
     protocol = protocol_factory()
+    if url:
+        # A URL's bytes pass through pyserial's own read and write (RFC 2217's telnet
+        # escapes, a socket's framing): the library's transport, as it is.
+        return serial_asyncio_fast.SerialTransport(loop, protocol, serial_port), protocol
     return _SerialTransport(loop, protocol, serial_port), protocol
 
 
