@@ -462,3 +462,22 @@ def test_a_pyserial_url_reaches_a_controller_over_tcp() -> None:
         assert ran == ["M115", *job_commands(EXAMPLE)]
 
     run(scenario)
+
+
+def test_a_controller_slow_to_say_who_it_is_is_used_without_its_name(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # A round trip of half a second, and the session waits only 0.3 s for M115's answer.
+    monkeypatch.setattr(rh.session, "FIRMWARE_TIMEOUT", 0.3)
+    settings = ControllerSettings(latency=0.25)
+
+    async def scenario() -> None:
+        async with rh.connect("sim", sim=settings, poll_interval=None) as printer:
+            assert printer.state is rh.State.READY and printer.firmware is None
+            # M115's late answer stays its own: M105 gets only its temperatures.
+            reply = await printer.command("M105")
+            assert reply.lines == [] and reply.ok.startswith("ok T:21.0")
+            reply = await printer.command("M115")
+            assert reply.lines[0].startswith("FIRMWARE_NAME:")
+
+    run(scenario)
