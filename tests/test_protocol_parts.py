@@ -254,3 +254,46 @@ def test_a_line_that_cannot_go_stops_the_job_after_the_lines_before_it() -> None
 @pytest.mark.parametrize("kind", list(ActionKind))
 def test_action_kinds_print_as_their_names(kind: ActionKind) -> None:
     assert f"{kind}" == kind.value
+
+
+def test_a_file_that_cannot_be_read_on_stops_the_job_safely() -> None:
+    def items() -> Iterator[JobItem]:
+        yield job_line(1)
+        raise OSError(5, "Input/output error")
+
+    pump, run, _ = greeted_pump(items(), ["M84"])
+    pump.poke(0.0)
+    pump.receive(b"ok\n", 0.0)
+    pump.poke(0.0)
+    confirm(pump, 2)
+    assert pump.poke(0.0) == frame(2, "M84")  # not a completed job: the safe stop
+    pump.receive(b"ok\n", 0.0)
+    pump.poke(0.0)
+    confirm(pump, 3)
+    pump.poke(0.0)
+    assert isinstance(run.error, JobError) and "could not be read on" in str(run.error)
+
+
+def test_a_pause_keeps_a_host_action_behind_the_lines_before_it() -> None:
+    action = HostAction(ActionKind.ACTIONS, "", (("BEEP", ""),), 3, "job.gcode")
+    items: list[JobItem] = [job_line(1), job_line(2, "G1 X2"), action, job_line(4, "G1 X4")]
+    recorder = Recorder()
+    pump = Pump(RepRapDialect(FlowControl(max_lines=1), probe=ProbeKind.CHECKSUM), recorder)
+    run = Run(items, [])
+    pump.begin(run)
+    pump.start(0.0)
+    pump.receive(b"ok\nError:checksum mismatch, Last Line: 0\nResend: 1\nok\n", 0.0)
+    assert pump.poke(0.0) == frame(1, "G1 X1")  # line 2 and the action are read ahead
+    pump.pause()
+    pump.receive(b"ok\n", 0.0)
+    pump.poke(0.0)
+    confirm(pump, 2)
+    pump.poke(0.0)
+    assert recorder.paused_count == 1 and recorder.actions == []
+    pump.resume()
+    assert pump.poke(0.0) == frame(2, "G1 X2")  # before the action, as in the file
+    pump.receive(b"ok\n", 0.0)
+    pump.poke(0.0)
+    confirm(pump, 3)
+    pump.poke(0.0)
+    assert recorder.actions == [action]

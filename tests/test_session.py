@@ -122,6 +122,8 @@ def test_host_owned_words_and_bad_commands_are_refused(rig: Rig) -> None:
                 await printer.command("M110 N5")
             with pytest.raises(rh.UsageError, match="line numbers and checksums"):
                 await printer.command("N5 M105 S0*9999")  # the probe
+            with pytest.raises(rh.UsageError, match="line numbers and checksums"):
+                await printer.command("n5 g1 x1")
             with pytest.raises(rh.UsageError, match="empty"):
                 await printer.command("; only a comment")
             with pytest.raises(rh.JobError, match="not ASCII"):
@@ -312,8 +314,10 @@ def test_a_job_fails_when_the_link_goes_and_is_never_resumed(rig: Rig, tmp_path:
             assert (await printer.command("M105")).ok.startswith("ok T:")
             await asyncio.sleep(0.3)
             done = rig.executed(printer)
+            # Once the link was back, the safe stop the job could not send went first.
             assert done[-1] == "M105"
-            ran = done[:-1]
+            assert done[-1 - len(MARLIN_SAFE_STOP) : -1] == MARLIN_SAFE_STOP
+            ran = done[: -1 - len(MARLIN_SAFE_STOP)]
             assert ran == [c for c in commands if not c.startswith("!!")][: len(ran)]
             assert len(ran) <= 31
 
@@ -479,5 +483,39 @@ def test_a_controller_slow_to_say_who_it_is_is_used_without_its_name(
             assert reply.lines == [] and reply.ok.startswith("ok T:21.0")
             reply = await printer.command("M115")
             assert reply.lines[0].startswith("FIRMWARE_NAME:")
+
+    run(scenario)
+
+
+def test_a_stop_under_way_is_not_abandoned_by_leaving_the_session(rig: Rig, tmp_path: Path) -> None:
+    rig.move_time = 0.003
+    commands = ["M104 S200", *(f"G1 X{i % 100}" for i in range(2000))]
+
+    async def scenario() -> None:
+        async with rig.connect() as printer:
+            job = await printer.print(job_file(tmp_path, commands), history=False)
+            await settle(rig, printer, 20)
+            assert not job.stop()  # the safe stop starts...
+        # ...and closing the session waits for it rather than abandoning it.
+        assert (await job.wait()).outcome is rh.Outcome.CANCELLED
+        assert job.safe_stop_missing == []
+        assert rig.executed(printer)[-len(MARLIN_SAFE_STOP) :] == MARLIN_SAFE_STOP
+
+    run(scenario)
+
+
+def test_a_host_action_that_breaks_stops_the_job_safely(rig: Rig, tmp_path: Path) -> None:
+    job_path = job_file(tmp_path, ["G28", "M792 ; SHELL echo", "G1 X1"])
+
+    async def broken(action: rh.job.HostAction) -> bool:
+        raise ValueError("no closing quotation")
+
+    async def scenario() -> None:
+        async with rig.connect() as printer:
+            job = await printer.print(job_path, history=False, on_action=broken)
+            with pytest.raises(rh.JobError, match="host action failed"):
+                await asyncio.wait_for(job.wait(), 10)
+            assert rig.executed(printer) == ["G28", *MARLIN_SAFE_STOP]
+            assert printer.state is rh.State.READY
 
     run(scenario)

@@ -215,8 +215,8 @@ def send(
         plan = plan_job(job, JobRequest(loadout, machine, not no_header), user)
         if check or dry_run or not plan.checked_as_it_streams:
             findings = _check(plan, errors)
-            refused = [f for f in findings if f.severity is Severity.ERROR]
             if check:
+                refused = [f for f in findings if f.severity is Severity.ERROR]
                 verdict = "refused" if refused else "ok"
                 console.print(
                     f"{plan.job.name}: {verdict} ({len(findings)} findings) with machine "
@@ -227,8 +227,7 @@ def send(
             if dry_run:  # a preview: shown even when the findings would refuse the job
                 _dry_run(plan, framed)
                 raise typer.Exit(EXIT_OK)
-            if refused and not force:
-                raise JobError(f"{plan.job.name}: not sent ({len(refused)} errors; --force sends)")
+            plan.refuse(findings, force, "--force")
         options = Options(
             port,
             LinkRequest(baud, flow, rx_buffer, max_lines),
@@ -341,9 +340,7 @@ def _plan_for(
         return plan
     chosen = replan_for_firmware(plan, printer.firmware, user)
     if chosen.profile.name != plan.profile.name and not chosen.checked_as_it_streams:
-        refused = [f for f in _check(chosen, errors) if f.severity is Severity.ERROR]
-        if refused and not force:
-            raise JobError(f"{plan.job.name}: not sent ({len(refused)} errors; --force sends)")
+        chosen.refuse(_check(chosen, errors), force, "--force")
     return chosen
 
 

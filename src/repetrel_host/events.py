@@ -8,7 +8,26 @@ from enum import Enum, StrEnum
 
 from repetrel_host.errors import HostError
 from repetrel_host.job import ActionKind
+from repetrel_host.protocol.events import Notice
 from repetrel_host.pump import Summary
+
+__all__ = [
+    "Action",
+    "Done",
+    "Failed",
+    "JobEvent",
+    "Message",
+    "Notice",
+    "PauseReason",
+    "Paused",
+    "PrinterEvent",
+    "Progress",
+    "Resend",
+    "Resumed",
+    "State",
+    "StateChanged",
+    "Temperatures",
+]
 
 
 class State(Enum):
@@ -41,13 +60,6 @@ class Temperatures:
 @dataclass(frozen=True, slots=True)
 class Message:
     """A line from the controller that is not an answer to a command (echo:, //, >IN:...)."""
-
-    text: str
-
-
-@dataclass(frozen=True, slots=True)
-class Notice:
-    """Something worth knowing that stops nothing (a noisy link, a probe chosen)."""
 
     text: str
 

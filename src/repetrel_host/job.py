@@ -180,7 +180,10 @@ def _raw_lines(handle: BinaryIO) -> Iterator[tuple[bytes, int]]:
     offset = 0
     pending = b""
     while True:
-        chunk = handle.read(_READ_SIZE)
+        try:
+            chunk = handle.read(_READ_SIZE)
+        except OSError as exc:  # a stick pulled out, a network share gone
+            raise JobError(f"{handle.name}: cannot be read on ({exc.strerror})") from None
         data = pending + chunk
         if chunk and data.endswith(b"\r"):
             data, pending = data[:-1], b"\r"  # maybe the first half of a CRLF

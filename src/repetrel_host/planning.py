@@ -121,6 +121,14 @@ class JobPlan:
 
         return check
 
+    def refuse(self, findings: list[Finding], force: bool, how_to_force: str) -> None:
+        """Refuse the job (JobError) when the findings hold errors, unless forced."""
+        errors = [f for f in findings if f.severity is Severity.ERROR]
+        if errors and not force:
+            raise JobError(
+                f"{self.job.name}: not sent ({len(errors)} errors; {how_to_force} sends)"
+            )
+
     @property
     def checked_as_it_streams(self) -> bool:
         return self.job.size > PRECHECK_LIMIT
@@ -136,8 +144,7 @@ def plan_job(
 ) -> JobPlan:
     """Plan ``path``: the profile from the request, else the firmware's identity (M115),
     else the slicer's header; the header from the loadout; the safe stop."""
-    loadout_path = request.loadout or user.printer.loadout
-    machine_name = request.machine or (None if loadout_path else user.printer.machine)
+    loadout_path, machine_name = _chosen(request, user)
     library = library or load_library(user)
     loadout = load_loadout(find_loadout(loadout_path), library) if loadout_path else None
     job = Job(path)
@@ -155,6 +162,13 @@ def plan_job(
     if user.host.safe_stop is not None:
         safe_stop = user.host.safe_stop
     return JobPlan(job, profile, loadout, header, [clean_line(c) for c in safe_stop])
+
+
+def _chosen(request: JobRequest, user: UserConfig) -> tuple[Path | None, str | None]:
+    """The loadout and machine asked for: on the command line, else in the configuration."""
+    loadout_path = request.loadout or user.printer.loadout
+    machine_name = request.machine or (None if loadout_path else user.printer.machine)
+    return loadout_path, machine_name
 
 
 def _profile(
@@ -190,8 +204,7 @@ def _profile(
 
 def explicit_machine(request: JobRequest, user: UserConfig) -> Machine | None:
     """The machine the user chose (for the link's defaults), reading the library only then."""
-    loadout_path = request.loadout or user.printer.loadout
-    machine_name = request.machine or (None if loadout_path else user.printer.machine)
+    loadout_path, machine_name = _chosen(request, user)
     if machine_name is None and loadout_path is None:
         return None
     library = load_library(user)

@@ -210,12 +210,15 @@ class Pump:
         if run is None or run.stopping or run.pause_requested:
             return
         run.pause_requested = True
-        held = []
+        held: list[JobItem] = []
         for command, tag in self.dialect.cancel_pending():
             if isinstance(tag, JobLine):
                 held.append(tag)
             else:
                 self.dialect.send(command, tag)  # not the job's: it goes
+        if run.barrier is not None and not run.action_running:
+            held.append(run.barrier)  # after the lines before it, as in the file
+            run.barrier = None
         run.items = chain(held, run.items)
 
     def resume(self) -> None:
@@ -260,7 +263,7 @@ class Pump:
         run = self.run
         if run is not None:
             run.stopping = True
-            self.dialect.cancel_pending()
+            self._drop_pending()
             self._finish(run, error, now)
 
     # --- inside ---------------------------------------------------------------
@@ -283,9 +286,13 @@ class Pump:
             except StopIteration:
                 run.exhausted = True
                 break
-            except JobError as exc:
+            except HostError as exc:
                 # A line that cannot go: the lines before it still do, then the safe stop.
                 run.error = exc
+                run.exhausted = True
+                break
+            except Exception as exc:  # the file could not be read on: stop, safely
+                run.error = JobError(f"the job could not be read on ({exc!r})")
                 run.exhausted = True
                 break
             if isinstance(item, HostAction):
@@ -319,9 +326,7 @@ class Pump:
                 run = self.run
                 if run is not None:
                     self._finish(run, failure_error(event, run), now)
-                dropped = [t for _, t in dialect.cancel_pending() if not isinstance(t, JobLine)]
-                if dropped:
-                    listener.commands_dropped(dropped)
+                self._drop_pending()
                 listener.failed(event)
                 return False
         return True
@@ -367,11 +372,15 @@ class Pump:
         run.barrier = None
         run.action_running = False
         run.pause_requested = run.paused = False
+        self._drop_pending()
+        for command in run.safe_stop:
+            self.dialect.send(command, JobLine(0, 0, command, 0, SAFE_STOP_SOURCE))
+
+    def _drop_pending(self) -> None:
+        """Drop what is queued and not on the wire; commands among it are told."""
         dropped = [t for _, t in self.dialect.cancel_pending() if not isinstance(t, JobLine)]
         if dropped:
             self.listener.commands_dropped(dropped)
-        for command in run.safe_stop:
-            self.dialect.send(command, JobLine(0, 0, command, 0, SAFE_STOP_SOURCE))
 
     def _finish(self, run: Run, result: Outcome | HostError, now: float) -> None:
         if run.finished:

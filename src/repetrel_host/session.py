@@ -47,7 +47,6 @@ from repetrel_host.events import (
     Temperatures,
 )
 from repetrel_host.gcode.commands import command_word
-from repetrel_host.gcode.lint import Severity
 from repetrel_host.job import ActionKind, HostAction, JobLine
 from repetrel_host.links import Link, make_link
 from repetrel_host.planning import (
@@ -82,12 +81,18 @@ POLL_INTERVAL = 5.0
 # After an unplug, the port is tried again after this long, doubling up to the maximum.
 RECONNECT_FIRST = 0.25
 RECONNECT_MAX = 5.0
+# After a failure, the line must be this quiet (or this long, at most) before a new
+# greeting: answers to the old lines still on their way must not be taken for its own.
+QUIET = 0.3
+QUIET_MAX = 5.0
+# How long each line of an owed safe stop may take to be answered after a reconnect.
+SAFE_STOP_TIMEOUT = 30.0
 # A job's progress goes to its event subscribers at most this often.
 PROGRESS_INTERVAL = 0.1
 # Events a late subscriber to a job still gets.
 JOB_EVENT_BACKLOG = 1000
 LINK_LOST = "the serial link was lost (printer unplugged, or its port closed)"
-_FRAMED = re.compile(r"^\s*N-?\d|\*")
+_FRAMED = re.compile(r"^\s*N-?\d|\*", re.IGNORECASE)
 
 E = TypeVar("E")
 _END = object()
@@ -136,13 +141,17 @@ class _Hub(Generic[E]):
         for queue in self._queues:
             queue.put_nowait(_END)
 
-    async def stream(self, first: Iterable[E] = ()) -> AsyncIterator[E]:
+    def stream(self, first: Iterable[E] = ()) -> AsyncIterator[E]:
+        """A subscription from now on (not from the first ``anext``), after ``first``."""
         queue: asyncio.Queue[object] = asyncio.Queue()
         for event in (*first, *(self._backlog or ())):
             queue.put_nowait(event)
         if self._closed:
             queue.put_nowait(_END)
         self._queues.append(queue)
+        return self._drain(queue)
+
+    async def _drain(self, queue: asyncio.Queue[object]) -> AsyncIterator[E]:
         try:
             while (event := await queue.get()) is not _END:
                 yield event  # type: ignore[misc]
@@ -231,6 +240,11 @@ class PrintJob:
     def where(self) -> str:
         """The last line the controller acknowledged, as error messages name it."""
         return self._run.where()
+
+    @property
+    def stopping(self) -> bool:
+        """A stop was asked for (the safe stop is going, or went)."""
+        return self._run.stop_requests > 0
 
     @property
     def safe_stop_missing(self) -> list[str]:
@@ -325,8 +339,12 @@ class Printer:
         self._state_waiters: list[tuple[Callable[[], bool], asyncio.Future[None]]] = []
         self._tasks: set[asyncio.Task[Any]] = set()
         self._reconnecting: asyncio.Task[None] | None = None
+        self._polling: asyncio.Task[None] | None = None
         self._autoreport = False
         self._closing = False
+        self._last_data_at = 0.0
+        # The safe stop a job that failed (the link, the controller) could not send.
+        self._owed_safe_stop: list[str] = []
 
     @property
     def port(self) -> str:
@@ -352,7 +370,7 @@ class Printer:
         return the controller's reply. M112 goes out at once, unnumbered, and stops a job."""
         command = _clean_command(line)
         if command_word(command) == "M112":
-            self._emergency_stop(command)
+            self._emergency_stop()
             return Reply(command, [], "")
         self._check_can_command()
         async with self._lock:
@@ -379,11 +397,11 @@ class Printer:
         if state is not State.READY and state is not State.PAUSED:
             raise LinkError(f"{self.port} is not connected (the session is {state.value})")
 
-    def _emergency_stop(self, command: str) -> None:
+    def _emergency_stop(self) -> None:
         pump = self._pump
         if pump is None:
             raise LinkError(f"{self.port} is not connected")
-        pump.dialect.send_urgent(command)
+        pump.dialect.send_urgent("M112")  # as emergency parsers read it, whatever was typed
         pump.abort(self._loop.time(), ControllerError("stopped by an emergency stop (M112)"))
         self._poke()
 
@@ -399,22 +417,24 @@ class Printer:
         job: Path | str | JobPlan,
         *,
         force: bool = False,
-        history: Path | bool = True,
+        history: Path | str | bool = True,
         on_action: ActionHandler | None = None,
         on_warning: Callable[[str], None] | None = None,
     ) -> PrintJob:
         """Start streaming ``job`` (a path, or a plan from :meth:`plan`); returns at once.
 
-        The file is checked first (over 4 MB, as it streams): an error refuses the job
-        unless ``force``. ``history``: keep the stream as transmitted (True: in the
-        configured folder; a path: that file). ``on_action`` performs M792's SAY, BEEP,
-        SHELL... and an M0's; M0 pauses the job until :meth:`resume`.
+        A path is checked first (over 4 MB, as it streams): an error refuses the job
+        unless ``force``; a plan was checked by whoever made it (a big one is still
+        checked as it streams). ``history``: keep the stream as transmitted (True, the
+        default: in the configured history folder; a path: that file; False: none).
+        ``on_action`` performs M792's SAY, BEEP, SHELL... and an M0's; M0 pauses the job
+        until :meth:`resume`. Warnings go to ``on_warning``, else to the events.
         """
         if self._job is not None or self.state is State.PRINTING or self.state is State.PAUSED:
             raise UsageError("a job is already running on this printer")
         self._check_can_command()
         plan = job if isinstance(job, JobPlan) else self.plan(job)
-        warn = on_warning or (lambda text: self._hub.publish(Notice(text)))
+        warn = on_warning or self._warn
         checker = None
         if plan.checked_as_it_streams:
             checker = plan.streaming_checker(warn, force)
@@ -422,14 +442,14 @@ class Printer:
             findings = plan.check()
             for finding in findings:
                 warn(finding.format(plan.job.name))
-            refused = [f for f in findings if f.severity is Severity.ERROR]
-            if refused and not force:
-                raise JobError(f"{plan.job.name}: not sent ({len(refused)} errors; force sends)")
-        path = self._open_history(plan, history)
+            plan.refuse(findings, force, "force=True")
         async with self._lock:
+            if self._job is not None:  # another print() got here first
+                raise UsageError("a job is already running on this printer")
             self._check_can_command()
             pump = self._pump
             assert pump is not None
+            path = self._open_history(plan, history)
             run = Run(plan.items(checker), plan.safe_stop, started_at=self._loop.time())
             print_job = PrintJob(self, plan, run, on_action, path)
             self._job = print_job
@@ -438,14 +458,19 @@ class Printer:
             self._poke()
         return print_job
 
-    def _open_history(self, plan: JobPlan, history: Path | bool) -> Path | None:
+    def _warn(self, text: str) -> None:
+        notice = Notice(text)
+        self._hub.publish(notice)
+        if self._job is not None:
+            self._job._publish(notice)
+
+    def _open_history(self, plan: JobPlan, history: Path | str | bool) -> Path | None:
         if history is False:
             return None
-        path = (
-            history
-            if isinstance(history, Path)
-            else history_file(None, self.settings.user, plan.job)
-        )
+        if history is True:
+            path = history_file(None, self.settings.user, plan.job)
+        else:
+            path = Path(history)
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             self._wire_log = path.open("wb")
@@ -484,7 +509,8 @@ class Printer:
         job = self._job
         if job is None:
             return
-        job.stop()
+        if not job.stopping:
+            job.stop()
         with contextlib.suppress(HostError):
             await job.wait()
 
@@ -515,12 +541,28 @@ class Printer:
         try:
             self.probe = await ready
             await self._identify()
-        except BaseException:
+        except BaseException as exc:
+            # Nothing of this connection may outlive it: its pump, its commands (the
+            # next connection's replies must not be taken for theirs).
+            error = exc if isinstance(exc, HostError) else LinkError("the greeting stopped")
+            self._end_connection(error)
             self._drop_connection()
             raise
+        await self._send_owed_safe_stop()
         self._set_state(State.READY, "greeted")
-        if self.settings.poll_interval and not self._autoreport:
-            self._spawn(self._poll(self.settings.poll_interval))
+        interval = self.settings.poll_interval
+        if interval and self._polling is None:
+            self._polling = self._spawn(self._poll(interval))
+
+    async def _send_owed_safe_stop(self) -> None:
+        """What a failed job could not send: heaters off before anything else."""
+        owed, self._owed_safe_stop = self._owed_safe_stop, []
+        if not owed:
+            return
+        self._hub.publish(Notice(f"sending the safe stop the interrupted job missed: {owed}"))
+        for command in owed:
+            with contextlib.suppress(HostError, TimeoutError):
+                await self._command(command, SAFE_STOP_TIMEOUT)
 
     async def _identify(self) -> None:
         self.firmware = None
@@ -532,8 +574,9 @@ class Printer:
         self.firmware = Firmware.parse([*reply.lines, reply.ok])
         interval = self.settings.poll_interval
         if interval and self.firmware is not None and self.firmware.can("AUTOREPORT_TEMP"):
-            await self._command(f"M155 S{max(1, math.ceil(interval))}", FIRMWARE_TIMEOUT)
-            self._autoreport = True
+            with contextlib.suppress(TimeoutError):  # then it is polled instead
+                await self._command(f"M155 S{max(1, math.ceil(interval))}", FIRMWARE_TIMEOUT)
+                self._autoreport = True
 
     def _made(self, connection: _Connection) -> None:
         if self._closing:
@@ -557,12 +600,20 @@ class Printer:
         if self._connection is None or self._closing:
             return
         self._set_state(State.CONNECTING, reason)
+        # Late answers to what went before must not be taken for the new greeting's.
+        quiet_since = self._loop.time()
+        while self._loop.time() - quiet_since < QUIET_MAX:
+            wait = self._last_data_at + QUIET - self._loop.time()
+            if wait <= 0:
+                break
+            await asyncio.sleep(wait)
+        if self._connection is None or self._closing:
+            return
         self._ready = self._loop.create_future()
         self._start_pump()
         try:
             await self._greet()
         except HostError as exc:
-            self._pump = None
             self._set_state(State.DISCONNECTED, str(exc))
             if self.settings.reconnect and self._reconnecting is None and not self._closing:
                 self._reconnecting = self._spawn(self._reconnect())
@@ -573,8 +624,8 @@ class Printer:
             await asyncio.sleep(delay)
             try:
                 await self._open()
-            except HostError as exc:
-                log.debug("reconnect: %s", exc)
+            except Exception as exc:  # whatever the port did, try again later
+                log.debug("reconnect: %r", exc)
                 self._set_state(State.DISCONNECTED, str(exc))
                 delay = min(delay * 2, RECONNECT_MAX)
                 continue
@@ -582,9 +633,12 @@ class Printer:
         self._reconnecting = None
 
     async def _poll(self, interval: float) -> None:
-        """M105 every ``interval`` seconds while nothing else talks to the controller."""
+        """M105 every ``interval`` seconds while nothing else talks to the controller (and
+        it does not report temperatures itself)."""
         while True:
             await asyncio.sleep(interval)
+            if self._autoreport:
+                continue
             if self.state is not State.READY or self._lock.locked() or self._commands:
                 continue
             with contextlib.suppress(HostError, TimeoutError):
@@ -594,12 +648,14 @@ class Printer:
     # --- I/O ------------------------------------------------------------------
 
     def _received(self, connection: _Connection, data: bytes) -> None:
-        pump = self._pump
-        if connection is not self._connection or pump is None:
+        if connection is not self._connection:
             return
         log.debug("received %r", data)
-        pump.receive(data, self._loop.time())
-        self._poke()
+        self._last_data_at = now = self._loop.time()
+        pump = self._pump
+        if pump is not None:  # none between a failure and the next greeting: let it drain
+            pump.receive(data, now)
+            self._poke()
 
     def _lost(self, connection: _Connection, exc: Exception | None) -> None:
         if connection is not self._connection:
@@ -715,7 +771,8 @@ class Printer:
             return
         job = self._job
         if job is not None and self._pump is not None:
-            job.stop()
+            if not job.stopping:
+                job.stop()  # a stop under way goes on: a second one would abandon it
             with contextlib.suppress(HostError, TimeoutError):
                 await asyncio.wait_for(job.wait(), CANCEL_DRAIN_TIMEOUT + 5)
         self._closing = True
@@ -813,7 +870,14 @@ class _PumpListener(Listener):
         if printer._wire_log is not None:
             printer._wire_log.close()
             printer._wire_log = None
+        if run.error is not None and run.stop_requests < 2 and run.safe_stop_missing:
+            # Failed before its safe stop went (and nobody abandoned it): owed on the
+            # next greeting, so that no heater stays on while the session waits.
+            printer._owed_safe_stop = run.safe_stop
         if job is not None:
+            if job._m0 is not None:
+                job._m0.cancel()
+                job._m0 = None
             job._finish(run)
         pump = printer._pump
         healthy = pump is not None and pump.dialect.failure is None
@@ -823,18 +887,20 @@ class _PumpListener(Listener):
     def failed(self, failure: DialectFailed) -> None:
         printer = self.printer
         error = failure_error(failure)
-        ready = printer._ready
-        if ready is not None and not ready.done():
-            ready.set_exception(error)  # the greeting failed: connect() says why
-            ready.exception()
+        if printer.state is State.CONNECTING:
+            # The greeting (or its M115) failed: whoever greets says why.
+            ready = printer._ready
+            if ready is not None and not ready.done():
+                ready.set_exception(error)
+                ready.exception()
+            printer._fail_commands(printer._commands, error)
             return
-        printer._fail_commands(printer._commands, error)
         if failure.kind is FailureKind.RESET:
             printer._hub.publish(Notice("the controller reset; greeting it again"))
+        printer._end_connection(error)
         if printer.settings.reconnect and not printer._closing:
             printer._spawn(printer._regreet(failure.reason))
         else:
-            printer._pump = None
             printer._drop_connection()
             printer._set_state(State.DISCONNECTED, failure.reason)
 
@@ -855,6 +921,8 @@ async def _perform(printer: Printer, job: PrintJob, action: HostAction) -> None:
         result = exc
     except asyncio.CancelledError:
         return  # the job was stopped meanwhile
+    except Exception as exc:  # a handler's own failure stops the job, safely
+        result = JobError(f"{action.position}: the host action failed ({exc!r})")
     pump = printer._pump
     if pump is not None and printer._job is job:
         pump.action_done(result)
@@ -924,16 +992,13 @@ def connect(
     async def opening() -> Printer:
         user = config if isinstance(config, UserConfig) else load_user_config(config)
         request = JobRequest(Path(loadout) if loadout is not None else None, machine)
+        mode = FlowMode(flow) if isinstance(flow, str) else flow
+        link = LinkRequest(baud=baud, flow=mode if isinstance(mode, FlowMode) else None)
+        link_baud, flow_control = link_settings(link, explicit_machine(request, user))
         if isinstance(flow, FlowControl):
             flow_control = flow
-            link_baud, _ = link_settings(LinkRequest(baud=baud), explicit_machine(request, user))
-        else:
-            mode = FlowMode(flow) if isinstance(flow, str) else flow
-            link_baud, flow_control = link_settings(
-                LinkRequest(baud=baud, flow=mode), explicit_machine(request, user)
-            )
         name = resolve_port(port, user)
-        link = make_link(name, link_baud, fake_log=fake_log, fake_args=tuple(fake_args), sim=sim)
+        opened = make_link(name, link_baud, fake_log=fake_log, fake_args=tuple(fake_args), sim=sim)
         settings = SessionSettings(
             name,
             link_baud,
@@ -945,7 +1010,7 @@ def connect(
             user,
             request,
         )
-        printer = Printer(link, settings)
+        printer = Printer(opened, settings)
         try:
             await printer._open()
         except BaseException:
