@@ -17,40 +17,24 @@ import argparse
 import random
 import time
 
-from repetrel_host.protocol.flow import FlowControl, FlowMode
-from repetrel_host.testing.loopback import run_loopback
-from repetrel_host.testing.simulator import ControllerSettings, Faults
-
-COMMANDS = ["G1 X1 Y2 E3", "G28", "M105", "G4 P1", "G92 E0", "M400", "T1"]
-RATES = [0.0, 0.01, 0.05, 0.15]
-FAULTS = ["corrupt", "garble", "drop_ok", "duplicate_ok", "spurious_resend"]
+from repetrel_host.protocol.flow import FlowMode
+from repetrel_host.testing.loopback import (
+    NOISE_COMMANDS,
+    NOISE_FAULTS,
+    NOISE_RATES,
+    run_noisy_job,
+)
 
 
 def one_job(case: int) -> str | None:
     """None when the job ran exactly once to a confirmed end, else what happened."""
     rng = random.Random(case)
-    commands = [rng.choice(COMMANDS) for _ in range(rng.randint(1, 150))]
+    commands = [rng.choice(NOISE_COMMANDS) for _ in range(rng.randint(1, 150))]
     mode = rng.choice(list(FlowMode))
-    rates = {name: rng.choice(RATES) for name in FAULTS}
-    flush, duplicates, no_ok = (rng.random() < 0.5 for _ in range(3))
+    rates = [rng.choice(NOISE_RATES) for _ in NOISE_FAULTS]
+    marlin = (rng.random() < 0.5, rng.random() < 0.5, rng.random() < 0.5)
     rx_buffer, limit = rng.randint(40, 256), rng.randint(5, 500)
-    faults = Faults(
-        **rates,
-        flush_on_error=flush,
-        drop_duplicates=duplicates,
-        resend_without_ok=no_ok,
-        seed=rng.randint(0, 65536),
-    )
-    settings = ControllerSettings(
-        latency=0.001, rx_buffer=rx_buffer, bandwidth=20_000, faults=faults
-    )
-    result = run_loopback(
-        commands,
-        FlowControl(mode, rx_buffer=rx_buffer),
-        settings,
-        line_number_limit=limit,
-        time_limit=1200.0,
-    )
+    result = run_noisy_job(commands, mode, rates, marlin, rng.randint(0, 65536), rx_buffer, limit)
     if result.failure is not None:
         return result.failure.reason
     if result.executed != commands or not result.host.is_done:

@@ -6,7 +6,14 @@ from hypothesis import strategies as st
 
 from repetrel_host.protocol.events import FailureKind, ProbeKind
 from repetrel_host.protocol.flow import FlowControl, FlowMode
-from repetrel_host.testing.loopback import run_loopback, wire_preview
+from repetrel_host.testing.loopback import (
+    NOISE_COMMANDS,
+    NOISE_FAULTS,
+    NOISE_RATES,
+    run_loopback,
+    run_noisy_job,
+    wire_preview,
+)
 from repetrel_host.testing.simulator import ControllerSettings, Faults
 
 UART = ControllerSettings(bandwidth=11_520, latency=0.002, rx_buffer=128)
@@ -97,18 +104,13 @@ def test_the_framed_preview_is_the_clean_wire() -> None:
     )
 
 
-FAULT_NAMES = ["corrupt", "garble", "drop_ok", "duplicate_ok", "spurious_resend"]
-
-
 @settings(max_examples=60, deadline=None)
 @given(
-    commands=st.lists(
-        st.sampled_from(["G1 X1 Y2 E3", "G28", "M105", "G4 P1", "G92 E0", "M400", "T1"]),
-        min_size=1,
-        max_size=150,
-    ),
+    commands=st.lists(st.sampled_from(NOISE_COMMANDS), min_size=1, max_size=150),
     mode=st.sampled_from(list(FlowMode)),
-    rates=st.lists(st.sampled_from([0.0, 0.01, 0.05, 0.15]), min_size=5, max_size=5),
+    rates=st.lists(
+        st.sampled_from(NOISE_RATES), min_size=len(NOISE_FAULTS), max_size=len(NOISE_FAULTS)
+    ),
     marlin=st.tuples(st.booleans(), st.booleans(), st.booleans()),
     seed=st.integers(0, 2**16),
     rx_buffer=st.integers(40, 256),
@@ -123,23 +125,7 @@ def test_any_job_under_any_faults_is_executed_exactly_once(
     rx_buffer: int,
     limit: int,
 ) -> None:
-    faults = Faults(
-        **dict(zip(FAULT_NAMES, rates, strict=True)),
-        flush_on_error=marlin[0],
-        drop_duplicates=marlin[1],
-        resend_without_ok=marlin[2],
-        seed=seed,
-    )
-    settings_ = ControllerSettings(
-        latency=0.001, rx_buffer=rx_buffer, bandwidth=20_000, faults=faults
-    )
-    result = run_loopback(
-        commands,
-        FlowControl(mode, rx_buffer=rx_buffer),
-        settings_,
-        line_number_limit=limit,
-        time_limit=1200.0,
-    )
+    result = run_noisy_job(commands, mode, rates, marlin, seed, rx_buffer, limit)
     assert result.failure is None
     assert result.executed == commands
     assert result.host.is_done

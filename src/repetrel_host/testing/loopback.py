@@ -13,9 +13,14 @@ from dataclasses import dataclass, field
 from repetrel_host.job import JobLine
 from repetrel_host.protocol.dialects.reprap import RepRapDialect
 from repetrel_host.protocol.events import Failed, ProbeKind
-from repetrel_host.protocol.flow import FlowControl
+from repetrel_host.protocol.flow import FlowControl, FlowMode
 from repetrel_host.pump import Listener, Pump, Run
-from repetrel_host.testing.simulator import ControllerSettings, ControllerSimulator, Overflow
+from repetrel_host.testing.simulator import (
+    ControllerSettings,
+    ControllerSimulator,
+    Faults,
+    Overflow,
+)
 
 # The smallest step of simulated time when nothing is scheduled.
 _TICK = 0.0005
@@ -101,6 +106,48 @@ def run_loopback(
             raise AssertionError(f"no progress at t={now}: a deadline that nothing moves")
     executed = [c for c in controller.executed if not c.startswith("M110")]
     return LoopbackResult(executed, recorder.indexes, recorder.failure, now, host, controller, run)
+
+
+# Heavy random noise, as the property test in tests/test_loopback.py and
+# bench/noise_loops.py draw it: jobs of these commands, each fault at one of these rates.
+NOISE_COMMANDS = ("G1 X1 Y2 E3", "G28", "M105", "G4 P1", "G92 E0", "M400", "T1")
+NOISE_RATES = (0.0, 0.01, 0.05, 0.15)
+NOISE_FAULTS = ("corrupt", "garble", "drop_ok", "duplicate_ok", "spurious_resend")
+
+
+def run_noisy_job(
+    commands: Sequence[str],
+    mode: FlowMode,
+    rates: Sequence[float],
+    marlin: tuple[bool, bool, bool],
+    seed: int,
+    rx_buffer: int,
+    line_number_limit: int,
+) -> LoopbackResult:
+    """One job under heavy noise: ``rates`` for NOISE_FAULTS in order; ``marlin`` switches
+    Marlin's flush_on_error, drop_duplicates and resend_without_ok."""
+    corrupt, garble, drop_ok, duplicate_ok, spurious_resend = rates  # NOISE_FAULTS' order
+    faults = Faults(
+        corrupt=corrupt,
+        garble=garble,
+        drop_ok=drop_ok,
+        duplicate_ok=duplicate_ok,
+        spurious_resend=spurious_resend,
+        flush_on_error=marlin[0],
+        drop_duplicates=marlin[1],
+        resend_without_ok=marlin[2],
+        seed=seed,
+    )
+    settings = ControllerSettings(
+        latency=0.001, rx_buffer=rx_buffer, bandwidth=20_000, faults=faults
+    )
+    return run_loopback(
+        commands,
+        FlowControl(mode, rx_buffer=rx_buffer),
+        settings,
+        line_number_limit=line_number_limit,
+        time_limit=1200.0,
+    )
 
 
 def wire_preview(commands: Iterable[str], flow: FlowControl | None = None) -> Iterator[bytes]:
