@@ -143,6 +143,10 @@ class Run:
             f"(command {line.index} of the job, {line.command})"
         )
 
+    def naming_where(self, error: HostError) -> HostError:
+        """``error`` with where the job stood (:meth:`where`) after it."""
+        return type(error)(f"{error}; {self.where()}")
+
 
 class Pump:
     """Feeds ``dialect`` from the current run and commands; reports to ``listener``."""
@@ -165,8 +169,7 @@ class Pump:
     def timeout(self, now: float) -> None:
         run = self.run
         if run is not None and run.stop_deadline is not None and now >= run.stop_deadline:
-            # The safe stop took too long.
-            self._finish(run, _naming_where(run.error, run) or Outcome.CANCELLED, now)
+            self._finish_stopped(run, now)  # the safe stop took too long
         self.dialect.handle_timeout(now)
 
     @property
@@ -353,7 +356,7 @@ class Pump:
                 run.action_running = True
                 self.listener.action_due(run.barrier)
         elif run.stopping:
-            self._finish(run, _naming_where(run.error, run) or Outcome.CANCELLED, now)
+            self._finish_stopped(run, now)
         elif run.exhausted and run.error is not None:
             self._stop_feeding(run)
             return True
@@ -382,6 +385,12 @@ class Pump:
         if dropped:
             self.listener.commands_dropped(dropped)
 
+    def _finish_stopped(self, run: Run, now: float) -> None:
+        """A stopped job ends cancelled, or with its error (a bad line, a failed action)."""
+        self._finish(
+            run, Outcome.CANCELLED if run.error is None else run.naming_where(run.error), now
+        )
+
     def _finish(self, run: Run, result: Outcome | HostError, now: float) -> None:
         if run.finished:
             return
@@ -402,17 +411,15 @@ class Pump:
         self.listener.finished(run)
 
 
-def _naming_where(error: HostError | None, run: Run) -> HostError | None:
-    """``error`` with where the job stood (after a bad line, or an action that failed)."""
-    return None if error is None else type(error)(f"{error}; {run.where()}")
-
-
 def failure_error(event: Failed, run: Run | None = None) -> HostError:
     """The error a dialect's failure is reported as, naming where the job stood."""
     where = f" (at {event.tag.position})" if isinstance(event.tag, JobLine) else ""
-    reason = f"{event.reason}{where}" + (f"; {run.where()}" if run is not None else "")
+    reason = f"{event.reason}{where}"
+    error: HostError
     if event.kind is FailureKind.CONTROLLER or event.kind is FailureKind.RESET:
-        return ControllerError(reason)
-    if event.kind is FailureKind.TIMEOUT:
-        return LinkError(reason)
-    return ProtocolError(reason)
+        error = ControllerError(reason)
+    elif event.kind is FailureKind.TIMEOUT:
+        error = LinkError(reason)
+    else:
+        error = ProtocolError(reason)
+    return error if run is None else run.naming_where(error)

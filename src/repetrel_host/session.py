@@ -286,6 +286,12 @@ class PrintJob:
     def _publish(self, event: JobEvent) -> None:
         self._hub.publish(event)
 
+    def _drop_m0(self) -> None:
+        """An M0's wait ends without a resume (the job stops, or ended)."""
+        if self._m0 is not None:
+            self._m0.cancel()
+            self._m0 = None
+
     def _tick(self) -> None:
         # Polled, not pushed per line: a line's acknowledgement costs nothing here.
         if self.done:
@@ -459,10 +465,13 @@ class Printer:
         return print_job
 
     def _warn(self, text: str) -> None:
-        notice = Notice(text)
-        self._hub.publish(notice)
+        self._broadcast(Notice(text))
+
+    def _broadcast(self, event: Notice | Message) -> None:
+        """To the session's subscribers and the running job's."""
+        self._hub.publish(event)
         if self._job is not None:
-            self._job._publish(notice)
+            self._job._publish(event)
 
     def _open_history(self, plan: JobPlan, history: Path | str | bool) -> Path | None:
         if history is False:
@@ -517,9 +526,7 @@ class Printer:
     def _stop_job(self, job: PrintJob, error: HostError | None) -> bool:
         if job is not self._job or self._pump is None:
             return False
-        if job._m0 is not None:
-            job._m0.cancel()
-            job._m0 = None
+        job._drop_m0()
         if self.state is State.PAUSED:
             self._set_state(State.PRINTING, "stopping")
         abandoned = self._pump.stop(self._loop.time(), error)
@@ -676,10 +683,15 @@ class Printer:
             self._timer.cancel()
             self._timer = self._timer_at = None
         if pump is not None and pump.run is not None:
-            pump.abort(self._loop.time(), type(error)(f"{error}; {pump.run.where()}"))
-        if self._ready is not None and not self._ready.done():
-            self._ready.set_exception(error)
-            self._ready.exception()
+            pump.abort(self._loop.time(), pump.run.naming_where(error))
+        self._fail_waiters(error)
+
+    def _fail_waiters(self, error: HostError) -> None:
+        """The greeting under way and every command awaiting its reply fail with ``error``."""
+        ready = self._ready
+        if ready is not None and not ready.done():
+            ready.set_exception(error)
+            ready.exception()  # retrieved: nobody may be awaiting it
         self._fail_commands(self._commands, error)
 
     def _drop_connection(self) -> None:
@@ -830,11 +842,8 @@ class _PumpListener(Listener):
         if printer._commands and not (reported and printer._autoreport):
             printer._commands[0].lines.append(text)
             return
-        if reported:
-            return
-        printer._hub.publish(Message(text))
-        if printer._job is not None:
-            printer._job._publish(Message(text))
+        if not reported:
+            printer._broadcast(Message(text))
 
     def _temperatures(self, text: str, line: str) -> bool:
         readings = parse_temperatures(text)
@@ -845,10 +854,7 @@ class _PumpListener(Listener):
         return True
 
     def notice(self, text: str) -> None:
-        printer = self.printer
-        printer._hub.publish(Notice(text))
-        if printer._job is not None:
-            printer._job._publish(Notice(text))
+        self.printer._broadcast(Notice(text))
 
     def action_due(self, action: HostAction) -> None:
         printer = self.printer
@@ -875,9 +881,7 @@ class _PumpListener(Listener):
             # next greeting, so that no heater stays on while the session waits.
             printer._owed_safe_stop = run.safe_stop
         if job is not None:
-            if job._m0 is not None:
-                job._m0.cancel()
-                job._m0 = None
+            job._drop_m0()
             job._finish(run)
         pump = printer._pump
         healthy = pump is not None and pump.dialect.failure is None
@@ -889,11 +893,7 @@ class _PumpListener(Listener):
         error = failure_error(failure)
         if printer.state is State.CONNECTING:
             # The greeting (or its M115) failed: whoever greets says why.
-            ready = printer._ready
-            if ready is not None and not ready.done():
-                ready.set_exception(error)
-                ready.exception()
-            printer._fail_commands(printer._commands, error)
+            printer._fail_waiters(error)
             return
         if failure.kind is FailureKind.RESET:
             printer._hub.publish(Notice("the controller reset; greeting it again"))
