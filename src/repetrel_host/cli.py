@@ -39,12 +39,10 @@ from repetrel_host.planning import (
     JobPlan,
     JobRequest,
     LinkRequest,
-    default_history_dir,
     history_file,
     link_settings,
     plan_job,
     replan_for_firmware,
-    resolve_port,
 )
 from repetrel_host.protocol.dialects.reprap import DEFAULT_REPLY_TIMEOUT
 from repetrel_host.protocol.events import ProbeKind
@@ -282,10 +280,9 @@ def _dry_run(plan: JobPlan, framed: bool) -> None:
 async def _send(
     console: Out, errors: Out, plan: JobPlan, user: UserConfig, options: Options
 ) -> int:
-    port = resolve_port(options.port, user)
     baud, flow = link_settings(options.link, plan.machine)
     printer = await connect(
-        port,
+        options.port,
         flow=flow,
         baud=baud,
         config=user,
@@ -353,9 +350,9 @@ async def _stream(
     options: Options,
 ) -> tuple[Summary, Path | None, str]:
     loop = asyncio.get_running_loop()
-    history_folder = options.history or user.host.history_dir or default_history_dir()
-    history = None if options.no_history else history_file(history_folder, user, plan.job)
-    reports = history_folder / f"{time.strftime('%Y%m%d-%H%M%S')}-{plan.job.path.stem}-reports.log"
+    stream_file = history_file(options.history, user, plan.job)
+    history = None if options.no_history else stream_file
+    reports = stream_file.with_name(f"{stream_file.stem}-reports.log")  # the same run's name
     actions = ConsoleActions(console, user.host, reports)
     job = await printer.print(
         plan,
