@@ -12,7 +12,7 @@ import asyncio
 from collections.abc import Callable
 
 from repetrel_host.errors import LinkError
-from repetrel_host.testing.simulator import ControllerSettings, ControllerSimulator, Overflow
+from repetrel_host.testing.simulator import ControllerSettings, ControllerSimulator
 
 
 class SimController:
@@ -88,15 +88,11 @@ class SimTransport(asyncio.Transport):
     def _step(self) -> None:
         self._timer = None
         simulator = self._simulator
-        blocked = simulator.settings.overflow is Overflow.BLOCK
         self._stepping = True
         try:
             while not self._closing:
                 now = self._loop.time()
-                if self._wire:
-                    taken = min(len(self._wire), simulator.room()) if blocked else len(self._wire)
-                    simulator.receive(bytes(self._wire[:taken]), now)
-                    del self._wire[:taken]
+                simulator.receive_from(self._wire, now)
                 simulator.advance(now)
                 if simulator.link_drop_requested is not None:
                     seconds = simulator.link_drop_requested

@@ -15,12 +15,7 @@ from repetrel_host.protocol.dialects.reprap import RepRapDialect
 from repetrel_host.protocol.events import Failed, ProbeKind
 from repetrel_host.protocol.flow import FlowControl, FlowMode
 from repetrel_host.pump import Listener, Pump, Run
-from repetrel_host.testing.simulator import (
-    ControllerSettings,
-    ControllerSimulator,
-    Faults,
-    Overflow,
-)
+from repetrel_host.testing.simulator import ControllerSettings, ControllerSimulator, Faults
 
 # The smallest step of simulated time when nothing is scheduled.
 _TICK = 0.0005
@@ -86,14 +81,11 @@ def run_loopback(
     now = 0.0
     stuck = 0
     wire = bytearray(pump.start(now))  # written by the host, not yet taken by the controller
-    block = controller.settings.overflow is Overflow.BLOCK
     while now < time_limit and not run.finished:
         pump.timeout(now)
         sent = pump.poke(now)
         wire += sent
-        taken = min(len(wire), controller.room()) if block else len(wire)
-        controller.receive(bytes(wire[:taken]), now)
-        del wire[:taken]
+        controller.receive_from(wire, now)
         controller.advance(now)
         received = controller.take_output(now)
         pump.receive(received, now)

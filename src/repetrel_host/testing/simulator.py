@@ -212,6 +212,16 @@ class ControllerSimulator:
         free = self.settings.rx_buffer - 1 - len(self._rx)
         return max(0, free + self._wire_capacity - self._inbound_bytes)
 
+    def receive_from(self, wire: bytearray, now: float) -> None:
+        """Take from ``wire`` (written, not yet taken) what the link lets through at ``now``:
+        all of it, or with back-pressure what there is :meth:`room` for; the rest stays."""
+        if not wire:
+            return
+        blocked = self.settings.overflow is Overflow.BLOCK
+        taken = min(len(wire), self.room()) if blocked else len(wire)
+        self.receive(bytes(wire[:taken]), now)
+        del wire[:taken]
+
     def receive(self, data: bytes, now: float) -> None:
         """Bytes the host wrote at ``now``; they reach the receive buffer after the wire's delay.
 
