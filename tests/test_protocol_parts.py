@@ -27,13 +27,13 @@ def line(number: int, command: str = "G1 X1") -> Line:
 
 def test_history_numbers_from_the_reset_line_and_prunes_behind_acknowledgements() -> None:
     history = History(margin=2)
-    history.restart(Line(5, "M110 N5", None, b"", True, True, is_host_line=True))
+    history.restart(Line(5, "M110 N5", None, b"", True, is_reset=True, is_host_line=True))
     assert (history.floor, history.cursor, history.next_number) == (5, 5, 6)
-    assert history.resending  # the reset line has yet to go
+    assert history.cursor < history.next_number  # the reset line has yet to go
     for number in range(6, 12):
         history.append(line(number))
     history.cursor = history.next_number
-    assert not history.resending and history.held() == "5..11"
+    assert history.cursor == history.next_number and history.held() == "5..11"
     history.prune(acknowledged_through=10)
     assert history.floor == 8 and history.get(7) is None and history.get(8) is not None
 

@@ -51,10 +51,6 @@ class History:
     def get(self, number: int) -> Line | None:
         return self.lines.get(number)
 
-    @property
-    def resending(self) -> bool:
-        return self.cursor < self.next_number
-
     def prune(self, acknowledged_through: int) -> None:
         """Forget lines far enough behind the last acknowledged one."""
         floor = acknowledged_through - self.margin

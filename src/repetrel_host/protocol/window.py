@@ -61,22 +61,21 @@ class Window:
 
     def drop(self, transmission: Transmission) -> None:
         self.in_flight.remove(transmission)
-        self.bytes -= len(transmission.wire)
-        if transmission.stale:
-            self.stale_bytes -= len(transmission.wire)
-        elif transmission.line is not None:
-            self.live -= 1
+        self._uncount(transmission)
 
     def pop_oldest(self) -> Transmission:
         """Drop the oldest transmission (the one a reply answers) and return it."""
         transmission = self.in_flight.popleft()
+        self._uncount(transmission)
+        return transmission
+
+    def _uncount(self, transmission: Transmission) -> None:
         size = len(transmission.wire)
         self.bytes -= size
         if transmission.stale:
             self.stale_bytes -= size
         elif transmission.line is not None:
             self.live -= 1
-        return transmission
 
     def discard(self, transmission: Transmission) -> None:
         """Drop ``transmission`` if an answer has not dropped it already."""

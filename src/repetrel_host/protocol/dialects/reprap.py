@@ -746,17 +746,16 @@ class RepRapDialect:
         base = self._greeting_attempts
         self._greeting_attempts += 1
         command = reset_command(base)
-        reset = Line(base, command, None, frame(base, command), True, True, is_host_line=True)
+        wire = frame(base, command)
+        reset = Line(base, command, None, wire, True, is_reset=True, is_host_line=True)
         self._history.restart(reset)
         self._probing.superseded()
 
     def _next_line_to_transmit(self) -> Line | None:
         history = self._history
-        if self._phase is Phase.GREETING:
-            return history.lines[history.cursor] if history.cursor < history.next_number else None
         if history.cursor < history.next_number:
             return history.lines[history.cursor]
-        if not self._pending:
+        if self._phase is Phase.GREETING or not self._pending:
             return None
         if history.next_number > self.line_number_limit:
             # Renumber only once the controller confirmed every line: no resend
@@ -810,7 +809,14 @@ class RepRapDialect:
             number = history.next_number
             wire = frame(number, PROBE_COMMAND)
             line = Line(
-                number, PROBE_COMMAND, None, wire, False, False, True, True, is_host_line=True
+                number,
+                PROBE_COMMAND,
+                None,
+                wire,
+                False,
+                is_probe=True,
+                transmitted=True,  # it goes out now, below
+                is_host_line=True,
             )
             history.append(line)
             history.cursor = number + 1
