@@ -6,6 +6,7 @@ import os
 import subprocess
 import sys
 import time
+from collections.abc import Iterable
 from pathlib import Path
 
 from repetrel_host.job import Job
@@ -20,11 +21,16 @@ def job_commands(path: Path) -> list[str]:
 
 
 def executed(log: Path) -> list[str]:
-    """The fake controller's log without the host's own lines: M110, and the M115 a
-    session asks right after it (who are you?)."""
+    """The fake controller's log without the host's own lines (see :func:`without_greetings`)."""
+    return without_greetings(log.read_text().splitlines())
+
+
+def without_greetings(executed: Iterable[str]) -> list[str]:
+    """Executed commands without the host's own lines: M110, and the M115 a session asks
+    right after it (who are you?)."""
     commands: list[str] = []
     greeting = False
-    for command in log.read_text().splitlines():
+    for command in executed:
         if command.startswith("M110"):
             greeting = True
         elif not (greeting and command == "M115"):

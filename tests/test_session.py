@@ -14,7 +14,7 @@ import pytest
 import repetrel_host as rh
 from repetrel_host.links import SimLink
 from repetrel_host.testing.simulator import ControllerSettings, ControllerSimulator, Faults
-from tests.helpers import EXAMPLE, job_commands
+from tests.helpers import EXAMPLE, job_commands, without_greetings
 
 pytestmark = pytest.mark.timeout(60)
 MARLIN_SAFE_STOP = ["M107", "M104 S0", "M140 S0", "G91", "G0 Z10", "G90", "M84"]
@@ -53,16 +53,7 @@ class Rig:
             commands = list(simulator.executed)
         else:
             commands = self.log.read_text().splitlines() if self.log.exists() else []
-        kept, greeting = [], False
-        for command in commands:
-            if command.startswith("M110"):
-                greeting = True
-            elif greeting and command == "M115":
-                greeting = False
-            else:
-                greeting = False
-                kept.append(command)
-        return kept
+        return without_greetings(commands)
 
 
 @pytest.fixture(params=["sim", "fake"])
