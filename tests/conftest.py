@@ -4,6 +4,8 @@ import pytest
 
 from tests.helpers import CONE, job_commands
 
+pytest_plugins = ["pytester"]  # the pytest plugin's own tests run pytest inside
+
 
 @pytest.fixture(scope="session")
 def cone_commands() -> list[str]:

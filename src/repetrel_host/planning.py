@@ -148,20 +148,34 @@ def plan_job(
     library = library or load_library(user)
     loadout = load_loadout(find_loadout(loadout_path), library) if loadout_path else None
     job = Job(path)
-    profile = _profile(job, library, loadout, machine_name, firmware, request, user)
+    profile = _profile(job, library, loadout, machine_name, firmware, request)
     machine = profile.machine
     job.pause_sync = machine.pause_sync if machine else "M400"
     header = [
         JobLine(0, 0, command, 0, origin)
         for command, origin in (header_commands(loadout) if loadout and request.header else [])
     ]
-    if machine is None:
-        safe_stop = safe_stop_commands("v5")
-    else:
-        safe_stop = machine.safe_stop or safe_stop_commands(machine.firmware)
+    return JobPlan(job, profile, loadout, header, safe_stop(machine, user))
+
+
+def safe_stop(machine: Machine | None, user: UserConfig) -> list[str]:
+    """The safe-stop sequence: the configuration's, else the machine's, else the reference's."""
     if user.host.safe_stop is not None:
-        safe_stop = user.host.safe_stop
-    return JobPlan(job, profile, loadout, header, [clean_line(c) for c in safe_stop])
+        commands = user.host.safe_stop
+    elif machine is None:
+        commands = safe_stop_commands("v5")
+    else:
+        commands = machine.safe_stop or safe_stop_commands(machine.firmware)
+    return [clean_line(c) for c in commands]
+
+
+def controller_profile(request: JobRequest, user: UserConfig, firmware: Firmware | None) -> Profile:
+    """The profile for what is not a job (commands, a test rig's safe stop): as
+    :func:`plan_job` chooses it, without a slicer's hint."""
+    loadout_path, machine_name = _chosen(request, user)
+    library = load_library(user)
+    loadout = load_loadout(find_loadout(loadout_path), library) if loadout_path else None
+    return _known_profile(library, loadout, machine_name, firmware, request)
 
 
 def _chosen(request: JobRequest, user: UserConfig) -> tuple[Path | None, str | None]:
@@ -178,7 +192,21 @@ def _profile(
     machine_name: str | None,
     firmware: Firmware | None,
     request: JobRequest,
-    user: UserConfig,
+) -> Profile:
+    if machine_name is None and loadout is None and firmware is None:
+        slicer = marlin_slicer(job.path)
+        if slicer is not None:
+            machine = _machine(library, MARLIN_PROFILE)
+            return Profile(MARLIN_PROFILE, machine, f"from the slicer: {slicer}", False)
+    return _known_profile(library, loadout, machine_name, firmware, request)
+
+
+def _known_profile(
+    library: Library,
+    loadout: Loadout | None,
+    machine_name: str | None,
+    firmware: Firmware | None,
+    request: JobRequest,
 ) -> Profile:
     if machine_name is not None:
         if loadout is not None and machine_name != loadout.machine_name:
@@ -192,11 +220,6 @@ def _profile(
     if firmware is not None:
         name = HYREL_PROFILE if is_hyrel_firmware(firmware.identity) else MARLIN_PROFILE
         return Profile(name, _machine(library, name), f"from the firmware: {firmware.name}", False)
-    slicer = marlin_slicer(job.path)
-    if slicer is not None:
-        return Profile(
-            MARLIN_PROFILE, _machine(library, MARLIN_PROFILE), f"from the slicer: {slicer}", False
-        )
     return Profile(
         HYREL_PROFILE, _machine(library, HYREL_PROFILE), "default: no machine given", False
     )

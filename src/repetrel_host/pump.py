@@ -124,6 +124,7 @@ class Run:
         self.offset = 0
         self.last: JobLine | None = None
         self.safe_stop_acknowledged = 0
+        self.header_acknowledged = 0
         self.outcome: Outcome | None = None
         self.summary: Summary | None = None
         self.finished = False
@@ -344,6 +345,8 @@ class Pump:
             run.last = line
         elif line.source == SAFE_STOP_SOURCE:
             run.safe_stop_acknowledged += 1
+        elif line.index == 0:
+            run.header_acknowledged += 1
         self.listener.acknowledged(line)
 
     def _settle(self, now: float) -> bool:

@@ -234,6 +234,11 @@ class PrintJob:
         return self._run.last
 
     @property
+    def header_lines(self) -> int:
+        """Lines of the header (the plan's) the controller acknowledged."""
+        return self._run.header_acknowledged
+
+    @property
     def done(self) -> bool:
         return self._done.done()
 
@@ -351,6 +356,7 @@ class Printer:
         self._last_data_at = 0.0
         # The safe stop a job that failed (the link, the controller) could not send.
         self._owed_safe_stop: list[str] = []
+        self._wire_taps: list[Callable[[bool, bytes], None]] = []
 
     @property
     def port(self) -> str:
@@ -368,6 +374,12 @@ class Printer:
     async def wait_for(self, *states: State, timeout: float | None = None) -> None:
         """Wait until the session is in one of ``states``."""
         await asyncio.wait_for(self._until(lambda: self.state in states), timeout)
+
+    def tap_wire(self, callback: Callable[[bool, bytes], None]) -> Callable[[], None]:
+        """Call ``callback(sent, data)`` with every piece of data written (``sent``) or
+        received, as it goes; returns what removes the tap. For logs and test reports."""
+        self._wire_taps.append(callback)
+        return lambda: self._wire_taps.remove(callback)
 
     # --- commands ---------------------------------------------------------------
 
@@ -422,6 +434,7 @@ class Printer:
         self,
         job: Path | str | JobPlan,
         *,
+        header: bool = True,
         force: bool = False,
         history: Path | str | bool = True,
         on_action: ActionHandler | None = None,
@@ -429,17 +442,18 @@ class Printer:
     ) -> PrintJob:
         """Start streaming ``job`` (a path, or a plan from :meth:`plan`); returns at once.
 
-        A path is checked first (over 4 MB, as it streams): an error refuses the job
-        unless ``force``; a plan was checked by whoever made it (a big one is still
-        checked as it streams). ``history``: keep the stream as transmitted (True, the
-        default: in the configured history folder; a path: that file; False: none).
+        A path gets the loadout's header (unless ``header=False``) and is checked first
+        (over 4 MB, as it streams): an error refuses the job unless ``force``; a plan was
+        checked by whoever made it (a big one is still checked as it streams).
+        ``history``: keep the stream as transmitted (True, the default: in the configured
+        history folder; a path: that file; False: none).
         ``on_action`` performs M792's SAY, BEEP, SHELL... and an M0's; M0 pauses the job
         until :meth:`resume`. Warnings go to ``on_warning``, else to the events.
         """
         if self._job is not None or self.state is State.PRINTING or self.state is State.PAUSED:
             raise UsageError("a job is already running on this printer")
         self._check_can_command()
-        plan = job if isinstance(job, JobPlan) else self.plan(job)
+        plan = job if isinstance(job, JobPlan) else self.plan(job, header=header)
         warn = on_warning or self._warn
         checker = None
         if plan.checked_as_it_streams:
@@ -658,6 +672,8 @@ class Printer:
         if connection is not self._connection:
             return
         log.debug("received %r", data)
+        for tap in self._wire_taps:
+            tap(False, data)
         self._last_data_at = now = self._loop.time()
         pump = self._pump
         if pump is not None:  # none between a failure and the next greeting: let it drain
@@ -712,6 +728,8 @@ class Printer:
         if not data or connection is None or connection.transport is None:
             return
         log.debug("sending %r", data)
+        for tap in self._wire_taps:
+            tap(True, data)
         connection.transport.write(data)
         if self._wire_log is not None:
             self._wire_log.write(data)

@@ -5,6 +5,9 @@ serial port. Once the pty is ready the process prints ``ready <path>`` on
 stdout. ``--log FILE`` writes every executed command, one a line, in order;
 ``--stats FILE`` writes the link counters as JSON when the process ends
 (times on ``time.monotonic()``'s clock, which other processes share).
+``--control`` takes requests on stdin, one a line, and answers each with one line
+of JSON on stdout (see :meth:`PtyController.control`); the fake stops when stdin
+closes, so it never outlives whoever started it.
 
 :class:`BuiltInFake` runs it in a subprocess for the ``fake`` port: the whole path
 (process, pty, termios, pyserial) is the real one.
@@ -29,7 +32,7 @@ import time
 import tty
 from collections.abc import Sequence
 from pathlib import Path
-from typing import BinaryIO, TextIO
+from typing import Any, BinaryIO, TextIO
 
 from repetrel_host.errors import LinkError
 from repetrel_host.testing.simulator import (
@@ -54,8 +57,11 @@ class PtyController:
         link: Path | None = None,
         log: TextIO | None = None,
         received: BinaryIO | None = None,
+        control: tuple[BinaryIO, TextIO] | None = None,
     ) -> None:
         self.link = link
+        self._control = control
+        self._requests = bytearray()
         self._open_pty()
         self._log = log
         self._received = received
@@ -66,6 +72,11 @@ class PtyController:
         self._to_write = bytearray()
         self._poll_until = 0.0
         self._stopping = False
+        # stop() comes from a signal handler: select() would sleep on after it (PEP 475
+        # retries it), so it also writes here to wake the loop at once.
+        self._wake_read, self._wake_write = os.pipe()
+        for fd in (self._wake_read, self._wake_write):
+            os.set_blocking(fd, False)
 
     def _open_pty(self) -> None:
         self._master, self._slave = pty.openpty()
@@ -104,12 +115,17 @@ class PtyController:
 
     def stop(self) -> None:
         self._stopping = True
+        with contextlib.suppress(OSError):
+            os.write(self._wake_write, b"\0")
 
     def run(self) -> None:
         # select(2) takes its timeout in microseconds; epoll and poll round it up to a
         # whole millisecond, which would add up to 1 ms to every emulated delay.
         selector = selectors.SelectSelector()
         selector.register(self._master, selectors.EVENT_READ)
+        selector.register(self._wake_read, selectors.EVENT_READ)
+        if self._control is not None:
+            selector.register(self._control[0], selectors.EVENT_READ)
         blocked = self.simulator.settings.overflow is Overflow.BLOCK
         try:
             while not self._stopping:
@@ -126,8 +142,12 @@ class PtyController:
                     time.sleep(min(self._timeout(now), 0.05))
                     ready = []
                 now = time.monotonic()
-                for _key, mask in ready:
-                    if mask & selectors.EVENT_READ:
+                for key, mask in ready:
+                    if key.fileobj == self._wake_read:
+                        continue  # stop() was called
+                    if self._control is not None and key.fileobj is self._control[0]:
+                        self._read_requests(now)
+                    elif mask & selectors.EVENT_READ:
                         self._read(now, blocked)
                     if mask & selectors.EVENT_WRITE:
                         self._flush_writes()
@@ -177,6 +197,42 @@ class PtyController:
             self._received.write(data)
             self._unflushed = True
 
+    def _read_requests(self, now: float) -> None:
+        assert self._control is not None
+        data = os.read(self._control[0].fileno(), READ_SIZE)
+        if not data:
+            self.stop()  # whoever started us is gone
+            return
+        self._requests += data
+        while (end := self._requests.find(b"\n")) >= 0:
+            request = self._requests[:end].decode("ascii", errors="replace")
+            del self._requests[: end + 1]
+            self.simulator.advance(now)
+            answer = self.control(request, now)
+            self._flush_logs()  # what was executed is in the log before the answer
+            self._control[1].write(json.dumps(answer) + "\n")
+            self._control[1].flush()
+
+    def control(self, request: str, now: float) -> dict[str, object]:
+        """A request from the ``--control`` channel: ``status`` (temperatures, fault
+        switches and counts, commands executed), or what :meth:`ControllerSimulator.control`
+        takes. The answer says ``ok``, or why not in ``error``."""
+        simulator = self.simulator
+        if request.strip() != "status":
+            try:
+                simulator.control(request, now)
+            except ValueError as exc:
+                return {"ok": False, "error": str(exc)}
+            return {"ok": True}
+        return {
+            "ok": True,
+            "temperatures": simulator.temperatures(now),
+            "faults": dataclasses.asdict(simulator.faults),
+            "counts": dataclasses.asdict(simulator.counts),
+            "commands": simulator.link.commands,
+            "hung": simulator.hung,
+        }
+
     def _flush_writes(self) -> None:
         if not self._to_write:
             return
@@ -195,6 +251,9 @@ class PtyController:
     def close(self) -> None:
         self._flush_logs()
         self._close_pty()
+        for fd in (self._wake_read, self._wake_write):
+            with contextlib.suppress(OSError):
+                os.close(fd)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -234,6 +293,12 @@ def build_parser() -> argparse.ArgumentParser:
         "wait (default: targets are reached at once)",
     )
     parser.add_argument("--stats", type=Path, help="write the link counters here as JSON at exit")
+    parser.add_argument(
+        "--control",
+        action="store_true",
+        help="take requests on stdin (status, set FAULTS, reset, hang, link_drop S, "
+        "heat_rate R), answer each with a line of JSON; stop when stdin closes",
+    )
     parser.add_argument(
         "--faults",
         default="",
@@ -283,7 +348,10 @@ def main(argv: list[str] | None = None) -> int:
         )
         return 2
     try:
-        controller = PtyController(settings, link=args.link, log=log, received=received)
+        control = (sys.stdin.buffer, sys.stdout) if args.control else None
+        controller = PtyController(
+            settings, link=args.link, log=log, received=received, control=control
+        )
     except FileExistsError:
         print(f"hyrel-fake-controller: {args.link} exists and is not a link", file=sys.stderr)
         return 2
@@ -313,14 +381,17 @@ class BuiltInFake:
     when the fake unplugs and replugs it (``!!DEBUG:link_drop``).
     """
 
-    def __init__(self, log_path: Path | None = None, extra_args: Sequence[str] = ()) -> None:
+    def __init__(
+        self, log_path: Path | None = None, extra_args: Sequence[str] = (), control: bool = False
+    ) -> None:
         if log_path is None:
             # Kept after the run: it is the proof of what the fake executed.
             fd, name = tempfile.mkstemp(prefix="hyrel-fake-", suffix=".log")
             os.close(fd)
             log_path = Path(name)
         self.log_path = log_path
-        self.extra_args = list(extra_args)
+        self.extra_args = [*extra_args, "--control"] if control else list(extra_args)
+        self.control = control
         self.port = ""
         self.process: subprocess.Popen[bytes] | None = None
         self._folder: str | None = None
@@ -340,7 +411,10 @@ class BuiltInFake:
             *self.extra_args,
         ]
         self.process = subprocess.Popen(
-            command, stdout=subprocess.PIPE, stdin=subprocess.DEVNULL, start_new_session=True
+            command,
+            stdout=subprocess.PIPE,
+            stdin=subprocess.PIPE if self.control else subprocess.DEVNULL,
+            start_new_session=True,
         )
         assert self.process.stdout is not None
         line = _read_line(self.process.stdout.fileno(), FAKE_START_TIMEOUT)
@@ -349,6 +423,22 @@ class BuiltInFake:
             raise LinkError("the built-in fake controller did not start")
         self.port = line.split(" ", 1)[1]
         return self.port
+
+    def request(self, text: str, timeout: float = 10.0) -> dict[str, Any]:
+        """Send one ``--control`` request and return its answer (started with ``control``)."""
+        process = self.process
+        if process is None or process.stdin is None or process.stdout is None:
+            raise LinkError("the fake controller is not running with --control")
+        try:
+            process.stdin.write(text.encode("ascii") + b"\n")
+            process.stdin.flush()
+        except BrokenPipeError:
+            raise LinkError("the fake controller has stopped") from None
+        line = _read_line(process.stdout.fileno(), timeout)
+        if not line:
+            raise LinkError(f"the fake controller did not answer '{text}'")
+        answer: dict[str, Any] = json.loads(line)
+        return answer
 
     def stop(self) -> None:
         """Stop the fake; its log is complete once this returns."""
@@ -359,8 +449,11 @@ class BuiltInFake:
             except subprocess.TimeoutExpired:
                 self.process.kill()
                 self.process.wait()
-        if self.process is not None and self.process.stdout is not None:
-            self.process.stdout.close()
+        if self.process is not None:
+            for stream in (self.process.stdin, self.process.stdout):
+                if stream is not None:
+                    with contextlib.suppress(OSError):
+                        stream.close()
         self.process = None
         if self._folder is not None:
             shutil.rmtree(self._folder, ignore_errors=True)

@@ -470,6 +470,18 @@ class ControllerSimulator:
         self._ok(b"ok\n", now)
 
     def _debug(self, text: str, now: float) -> None:
+        """A ``!!DEBUG:`` line of the job: acts as :meth:`control`, answered with an ok."""
+        try:
+            self.control(text, now)
+        except ValueError as exc:
+            self._reply(f"echo:{DEBUG_PREFIX} {exc}\n".encode(), now)
+        if not self.hung and not text.strip().startswith("reset"):
+            self._ok(b"ok\n", now)
+
+    def control(self, text: str, now: float) -> None:
+        """Switch something from outside the wire (the fake's ``--control`` channel, and
+        ``!!DEBUG:`` lines): ``set corrupt=0.02 ...``, ``reset``, ``hang``, ``link_drop S``,
+        ``heat_rate R`` (degrees a second; ``none``: at once). ValueError on bad input."""
         verb, _, argument = text.strip().partition(" ")
         if verb == "set":
             self.faults = Faults.parse(argument, self.faults)
@@ -477,13 +489,23 @@ class ControllerSimulator:
             self.protocol.counted_resend = self.faults.counted_resend
         elif verb == "reset":
             self._reboot(now)
-            return
         elif verb == "hang":
             self.hung = True
-            return
         elif verb == "link_drop":
-            self.link_drop_requested = float(argument or 1.0)
-        self._ok(b"ok\n", now)
+            self.link_drop_requested = _number(argument or "1", "link_drop")
+        elif verb == "heat_rate":
+            for name in self.heaters:
+                self._heat(name, now)  # up to now at the old rate
+            rate = None if argument.strip() in ("", "none") else _number(argument, "heat_rate")
+            self.settings = replace(self.settings, heat_rate=rate)
+        else:
+            raise ValueError(
+                f"unknown control '{verb}' (known: set, reset, hang, link_drop, heat_rate)"
+            )
+
+    def temperatures(self, now: float) -> dict[str, tuple[float, float]]:
+        """Each heater's (current, target) at ``now``."""
+        return {name: (self._heat(name, now)[0], self.heaters[name][1]) for name in self.heaters}
 
     def _new_protocol(self) -> ControllerProtocol:
         faults = self.faults
@@ -587,3 +609,10 @@ class ControllerSimulator:
     def _wire_time(self, size: int) -> float:
         bandwidth = self.settings.bandwidth
         return 0.0 if bandwidth is None else size / bandwidth
+
+
+def _number(text: str, name: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        raise ValueError(f"{name}: '{text}' is not a number") from None

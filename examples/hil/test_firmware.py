@@ -1,0 +1,16 @@
+"""The controller says who it is."""
+
+import repetrel_host as rh
+from repetrel_host.planning import is_hyrel_firmware
+
+
+def test_the_controller_answers_m115_with_its_name(hyrel_printer, hyrel_controller):
+    reply = hyrel_printer.command("M115")
+    firmware = rh.Firmware.parse([*reply.lines, reply.ok])
+    assert firmware is not None, f"M115 named no firmware: {reply.lines}"
+    if hyrel_controller.is_fake:
+        assert firmware.name == "repetrel-host fake controller (Marlin replies)"
+    else:
+        assert is_hyrel_firmware(firmware.identity), f"not a Hyrel controller: {firmware.name}"
+    # The session asked the same question when it connected.
+    assert hyrel_printer.firmware == firmware

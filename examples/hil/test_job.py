@@ -1,0 +1,25 @@
+"""A small job streams, and runs exactly once, even over a noisy link."""
+
+import pytest
+
+SQUARE = """\
+G28 ; home
+G90
+G1 Z5 F600
+G1 X10 Y10 F3000
+G1 X30 Y10
+G1 X30 Y30
+G1 X10 Y30
+G1 X10 Y10
+G1 Z10 F600
+"""
+
+
+@pytest.mark.hyrel_fake(faults="corrupt=0.05 drop_ok=0.05 seed=11")  # the fake's noise
+def test_a_small_job_runs_exactly_once(hyrel_printer, hyrel_controller, hyrel_job):
+    job = hyrel_job(SQUARE, header=False)
+    before = len(hyrel_controller.executed) if hyrel_controller.is_fake else 0
+    result = hyrel_printer.print(job)
+    assert result.acknowledged == job.commands
+    if hyrel_controller.is_fake:  # only the fake can tell what it executed
+        assert hyrel_controller.executed[before:] == job.commands

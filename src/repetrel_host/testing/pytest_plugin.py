@@ -1,0 +1,898 @@
+"""The pytest plugin: the same test on the fake controller and on the printer on the bench.
+
+Installed with the package (the ``pytest11`` entry point ``hyrel``; ``-p no:hyrel``
+turns it off). Without ``--hyrel-port`` every test gets the built-in fake controller on a
+fresh pty, started for that test alone; with it, one session on the real port serves the
+whole test run, as a printer is one physical thing. Fixtures:
+
+- ``hyrel_printer``: a READY printer session behind a synchronous facade
+  (:class:`HyrelPrinter`); ``hyrel_aprinter``: the same, awaitable (:class:`AsyncHyrelPrinter`),
+  from any event loop (pytest-asyncio, anyio);
+- ``hyrel_controller``: what the test talks to (:class:`HyrelController`): its port, and
+  on the fake its executed commands, fault switches and heaters;
+- ``hyrel_job``: jobs from text or a file (:class:`HyrelJob`).
+
+Markers: ``hyrel_hardware``, ``hyrel_fake_only``, ``hyrel_machine(NAME...)``,
+``hyrel_fake(heat_rate=..., faults=...)``. A failed test's report gets the last lines
+exchanged on the wire and the controller's messages. Teardown leaves the machine safe:
+a job still running is cancelled (the safe stop first), and after a failed test the
+safe-stop sequence is sent. Models: pytest-embedded (options in a group, a DUT fixture,
+its log in the report), labgrid's pytest plugin (the same test on a board or an emulator).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import io
+import os
+import shlex
+import threading
+import time
+from collections import deque
+from collections.abc import AsyncIterator, Awaitable, Callable, Coroutine, Generator, Iterator
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Literal, TypeVar
+
+import pytest
+
+if TYPE_CHECKING:
+    import repetrel_host as rh
+    from repetrel_host.events import PrinterEvent
+    from repetrel_host.job import JobLine
+    from repetrel_host.testing.fake_controller import BuiltInFake
+
+FAKE = "fake"
+# Each option: its name after --hyrel-, and its help (with the default it has without it).
+_OPTIONS = {
+    "port": "serial port of a real printer (also HYREL_PORT); default: the built-in fake "
+    "controller, fresh for each test",
+    "machine": "machine profile, e.g. hydra-16a (also HYREL_MACHINE); default: the loadout's, "
+    "else what the controller's M115 says (hyrel or marlin)",
+    "loadout": "loadout file or shipped name, whose header jobs get (also HYREL_LOADOUT); "
+    "default: none",
+    "flow": "flow control, buffered or unbuffered (also HYREL_FLOW); default: the machine "
+    "profile's",
+    "baud": "baud rate (also HYREL_BAUD); default: the machine profile's (115200)",
+}
+# Seconds a session on real hardware may take to be READY again before a test.
+READY_TIMEOUT = 30.0
+# Temperatures are asked for (or reported) this often, so that tests see them move.
+POLL_INTERVAL = 1.0
+WIRE_LINES = 2000  # kept for the report of a failed test
+REPORT_LINES = 100  # shown in it
+T = TypeVar("T")
+
+_options_key = pytest.StashKey["HyrelOptions"]()
+_reports = pytest.StashKey[dict[str, pytest.TestReport]]()
+_recorders = pytest.StashKey["WireRecorder"]()
+
+
+# --- options and markers --------------------------------------------------------
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    group = parser.getgroup("hyrel", "Hyrel printers (repetrel-host)")
+    for name, text in _OPTIONS.items():
+        group.addoption(f"--hyrel-{name}", dest=f"hyrel_{name}", metavar=name.upper(), help=text)
+        parser.addini(f"hyrel_{name}", f"--hyrel-{name}: {text}", default="")
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    options = config.stash[_options_key] = HyrelOptions.from_config(config)  # bad values stop
+    args = list(config.invocation_params.args)
+    port = options.port
+    if port in args[1:] and args[args.index(port) - 1] == "--hyrel-port" and Path(port).exists():
+        # pytest looks for the project's configuration from the paths among its arguments
+        # before it knows which are option values.
+        config.issue_config_time_warning(
+            pytest.PytestConfigWarning(
+                f"--hyrel-port {port} made pytest look for its configuration from "
+                f"{Path(port).parent} (rootdir {config.rootpath}); write --hyrel-port={port}"
+            ),
+            stacklevel=2,
+        )
+    for line in (
+        "hyrel_hardware: runs only on a real printer (--hyrel-port)",
+        "hyrel_fake_only: runs only on the fake controller (it needs fault injection)",
+        "hyrel_machine(*names): runs only when the machine profile is one of names",
+        "hyrel_fake(**settings): settings for the fake controller (heat_rate=20, "
+        "faults='drop_ok=0.05', advanced_ok=True...); ignored on a real printer",
+    ):
+        config.addinivalue_line("markers", line)
+
+
+@dataclass(frozen=True)
+class HyrelOptions:
+    """The plugin's options, each from the command line, else the environment
+    (``HYREL_PORT``...), else ``[tool.pytest.ini_options]`` (``hyrel_port``...)."""
+
+    port: str = FAKE
+    machine: str | None = None
+    loadout: str | None = None
+    flow: str | None = None
+    baud: int | None = None
+
+    @property
+    def hardware(self) -> bool:
+        """A real port was given: one session serves the whole run."""
+        return self.port != FAKE
+
+    @classmethod
+    def from_config(cls, config: pytest.Config) -> HyrelOptions:
+        values: dict[str, str | None] = {}
+        for name in _OPTIONS:
+            value = config.getoption(f"hyrel_{name}")
+            if value is None:
+                value = os.environ.get(f"HYREL_{name.upper()}") or None
+            if value is None:
+                value = str(config.getini(f"hyrel_{name}")) or None
+            values[name] = value
+        flow = values["flow"]
+        if flow is not None and flow not in ("buffered", "unbuffered"):
+            raise pytest.UsageError(f"--hyrel-flow: '{flow}' is not buffered or unbuffered")
+        baud = values["baud"]
+        if baud is not None and not (baud.isdigit() and int(baud) > 0):
+            raise pytest.UsageError(f"--hyrel-baud: '{baud}' is not a baud rate")
+        return cls(
+            port=values["port"] or FAKE,
+            machine=values["machine"],
+            loadout=values["loadout"],
+            flow=flow,
+            baud=int(baud) if baud is not None else None,
+        )
+
+
+def _options(config: pytest.Config) -> HyrelOptions:
+    return config.stash[_options_key]
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_runtest_setup(item: pytest.Item) -> None:
+    """Skip what this run cannot do, before any fixture starts a fake or opens a port."""
+    options = _options(item.config)
+    if item.get_closest_marker("hyrel_hardware") and not options.hardware:
+        pytest.skip("needs a real printer: give --hyrel-port PORT (or HYREL_PORT)")
+    if item.get_closest_marker("hyrel_fake_only") and options.hardware:
+        pytest.skip(f"needs the fake controller's fault injection; this run drives {options.port}")
+    marked = item.get_closest_marker("hyrel_machine") is not None
+    if marked and (options.machine is not None or options.loadout is not None):
+        _check_machine(item, _known_machine(options))
+
+
+def _known_machine(options: HyrelOptions) -> str:
+    from repetrel_host.config import load_user_config
+    from repetrel_host.planning import JobRequest, controller_profile
+
+    loadout = Path(options.loadout) if options.loadout else None
+    request = JobRequest(loadout, options.machine)
+    profile = controller_profile(request, load_user_config(None), None)
+    return profile.describe()
+
+
+def _check_machine(item: pytest.Item, machine: str) -> None:
+    """Skip ``item`` when its ``hyrel_machine`` marker does not name ``machine``
+    (a profile as :meth:`Profile.describe` gives it: ``hydra-16a (--machine)``)."""
+    from repetrel_host.config import load_library, load_user_config
+
+    marker = item.get_closest_marker("hyrel_machine")
+    if marker is None:
+        return
+    known = load_library(load_user_config(None)).machines
+    unknown = [str(a) for a in marker.args if a not in known]
+    if unknown or not marker.args:
+        pytest.fail(
+            f"hyrel_machine({', '.join(map(repr, marker.args))}): name known machine profiles "
+            f"({', '.join(sorted(known))})",
+            pytrace=False,
+        )
+    name = machine.split(" ", 1)[0]
+    if name not in marker.args:
+        wanted = " or ".join(str(a) for a in marker.args)
+        pytest.skip(f"for machine {wanted}; this run's machine is {machine}")
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_makereport(
+    item: pytest.Item, call: pytest.CallInfo[None]
+) -> Generator[None, pytest.TestReport, pytest.TestReport]:
+    report = yield
+    item.stash.setdefault(_reports, {})[report.when] = report
+    recorder = item.stash.get(_recorders, None)
+    if report.failed and recorder is not None:
+        for title, text in recorder.sections(item):
+            report.sections.append((title, text))
+    return report
+
+
+def _failed(item: pytest.Item) -> bool:
+    return any(r.failed for r in item.stash.get(_reports, {}).values())
+
+
+# --- the event loop the session lives on ----------------------------------------
+
+
+class Portal:
+    """An event loop in its own thread, which the session lives on, so that plain
+    synchronous tests can use it and async tests on any loop can await it."""
+
+    def __init__(self) -> None:
+        self.loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(
+            target=self.loop.run_forever, name="hyrel-session", daemon=True
+        )
+        self._thread.start()
+
+    def call(self, coroutine: Coroutine[Any, Any, T], timeout: float | None = None) -> T:
+        """Run ``coroutine`` on the portal's loop and wait for its result."""
+        future = asyncio.run_coroutine_threadsafe(coroutine, self.loop)
+        try:
+            return future.result(timeout)
+        except BaseException:  # a timeout, Ctrl-C: it stops there too
+            future.cancel()
+            raise
+
+    async def acall(self, coroutine: Coroutine[Any, Any, T]) -> T:
+        """The same, awaited from another event loop."""
+        return await asyncio.wrap_future(asyncio.run_coroutine_threadsafe(coroutine, self.loop))
+
+    def close(self) -> None:
+        async def cancel_the_rest() -> None:
+            tasks = [t for t in asyncio.all_tasks() if t is not asyncio.current_task()]
+            for task in tasks:
+                task.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+
+        with contextlib.suppress(Exception):
+            self.call(cancel_the_rest(), 10)
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self._thread.join(10)
+        if not self._thread.is_alive():
+            self.loop.close()
+
+
+# --- what was said ----------------------------------------------------------------
+
+
+class WireRecorder:
+    """The last lines each way on the wire, and the session's messages and state changes,
+    for the report of a failed test."""
+
+    def __init__(self) -> None:
+        self._started = time.monotonic()
+        self._lock = threading.Lock()
+        self._partial = {True: bytearray(), False: bytearray()}
+        self.wire: deque[tuple[int, str]] = deque(maxlen=WIRE_LINES)
+        self.messages: deque[tuple[int, str]] = deque(maxlen=WIRE_LINES)
+        self._count = 0  # lines and messages so far, to tell what came during a test
+
+    def tap(self, sent: bool, data: bytes) -> None:
+        partial = self._partial[sent]
+        partial += data
+        *lines, rest = partial.split(b"\n")
+        partial[:] = rest
+        for raw in lines:
+            text = raw.rstrip(b"\r").decode("ascii", errors="backslashreplace")
+            self._add(self.wire, f"{'>' if sent else '<'} {text}")
+
+    def note(self, text: str) -> None:
+        self._add(self.messages, text)
+
+    def _add(self, kept: deque[tuple[int, str]], text: str) -> None:
+        with self._lock:
+            self._count += 1
+            kept.append((self._count, f"{time.monotonic() - self._started:9.3f} {text}"))
+
+    def mark(self) -> int:
+        with self._lock:
+            return self._count
+
+    def since(self, kept: deque[tuple[int, str]], mark: int) -> list[str]:
+        with self._lock:
+            return [text for count, text in kept if count > mark]
+
+    def sections(self, item: pytest.Item) -> list[tuple[str, str]]:
+        mark = item.stash.get(_marks, 0)
+        wire = self.since(self.wire, mark)
+        shown = wire[-REPORT_LINES:]
+        skipped = (
+            f"({len(wire) - len(shown)} earlier lines not shown)\n" if wire[:-REPORT_LINES] else ""
+        )
+        messages = self.since(self.messages, mark)
+        return [
+            (
+                "hyrel: last lines on the wire (> sent, < received)",
+                skipped + "\n".join(shown) or "(none)",
+            ),
+            ("hyrel: controller messages and session states", "\n".join(messages) or "(none)"),
+        ]
+
+
+_marks = pytest.StashKey[int]()
+
+
+async def _record_events(printer: rh.Printer, recorder: WireRecorder) -> None:
+    import repetrel_host as rh
+
+    async for event in printer.events():
+        if isinstance(event, rh.StateChanged):
+            why = f" ({event.reason})" if event.reason else ""
+            recorder.note(f"state: {event.state.value}{why}")
+        elif isinstance(event, rh.Message | rh.Notice):
+            recorder.note(f"{type(event).__name__.lower()}: {event.text}")
+
+
+# --- jobs -------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class HyrelJob:
+    """A job for :meth:`HyrelPrinter.print`: a G-code file, with the loadout's header or not."""
+
+    path: Path
+    header: bool = True
+    history: Path | None = None  # where the stream as transmitted is kept
+
+    @cached_property
+    def commands(self) -> list[str]:
+        """The job's commands (the header not included), as they go on the wire."""
+        from repetrel_host.job import Job
+
+        return [line.command for line in Job(self.path).lines()]
+
+
+@dataclass(frozen=True)
+class PrintResult:
+    """How a job went: which of its lines the controller acknowledged, and how it ended."""
+
+    job: HyrelJob
+    header: list[str]  # the header the job was sent with
+    header_acknowledged: list[str]
+    commands: list[str]  # the job's lines as sent (an M0 becomes the machine's pause_sync)
+    acknowledged: list[str]  # those the controller acknowledged, in order
+    last_line: int  # the file line of the last acknowledged command; 0: none
+    summary: rh.Summary | None  # None when it failed
+    error: rh.HostError | None
+    safe_stop_missing: list[str] = field(default_factory=list)
+
+    @property
+    def completed(self) -> bool:
+        """Every line was acknowledged and the job was not cancelled."""
+        from repetrel_host.pump import Outcome
+
+        return self.summary is not None and self.summary.outcome is Outcome.COMPLETED
+
+
+def _result(
+    job: HyrelJob, running: rh.PrintJob, summary: rh.Summary | None, error: rh.HostError | None
+) -> PrintResult:
+    plan = running.plan
+    lines: list[JobLine] = list(plan.job.lines())
+    acknowledged = [line for line in lines if line.index <= running.lines]
+    header = [line.command for line in plan.header]
+    return PrintResult(
+        job,
+        header,
+        header[: running.header_lines],
+        [line.command for line in lines],
+        [line.command for line in acknowledged],
+        acknowledged[-1].source_line if acknowledged else 0,
+        summary,
+        error,
+        running.safe_stop_missing,
+    )
+
+
+def _as_job(job: HyrelJob | Path | str) -> HyrelJob:
+    return job if isinstance(job, HyrelJob) else HyrelJob(Path(job))
+
+
+# --- the session, as tests use it -------------------------------------------------
+
+
+class _Session:
+    """One printer session on the portal, and how to leave the machine safe."""
+
+    def __init__(self, portal: Portal, printer: rh.Printer, recorder: WireRecorder) -> None:
+        self.portal = portal
+        self.printer = printer
+        self.recorder = recorder
+
+    async def start(self, job: HyrelJob, force: bool) -> rh.PrintJob:
+        history: Path | bool = job.history if job.history is not None else False
+        return await self.printer.print(job.path, header=job.header, force=force, history=history)
+
+    async def finish(self, job: HyrelJob, running: rh.PrintJob, check: bool) -> PrintResult:
+        import repetrel_host as rh
+
+        try:
+            result = _result(job, running, await running.wait(), None)
+        except rh.HostError as exc:
+            if check:
+                raise
+            result = _result(job, running, None, exc)
+        return result
+
+    async def wait_for_temperature(
+        self, sensor: str, target: float, tolerance: float, timeout: float
+    ) -> float:
+        import repetrel_host as rh
+
+        last: float | None = self.printer.temperatures.get(sensor, (None, None))[0]
+        try:
+            async with asyncio.timeout(timeout):
+                async for event in self.printer.events():
+                    if isinstance(event, rh.Temperatures) and sensor in event.readings:
+                        last = event.readings[sensor][0]
+                        if abs(last - target) <= tolerance:
+                            return last
+        except TimeoutError:
+            pass
+        raise AssertionError(
+            f"{sensor} did not reach {target:g} (within {tolerance:g}) in {timeout:g} s; "
+            f"last reading: {'none' if last is None else f'{last:g}'}"
+        )
+
+    async def leave_safe(self, failed: bool) -> None:
+        """Cancel a running job (its safe stop first); after a failure, send the safe stop."""
+        import repetrel_host as rh
+        from repetrel_host.planning import controller_profile, safe_stop
+
+        printer = self.printer
+        if printer.job is not None:
+            await printer.cancel()
+            return
+        if not failed or printer.state not in (rh.State.READY, rh.State.PAUSED):
+            return
+        settings = printer.settings
+        profile = controller_profile(settings.request, settings.user, printer.firmware)
+        for command in safe_stop(profile.machine, settings.user):
+            with contextlib.suppress(rh.HostError, TimeoutError):
+                await printer.command(command, timeout=30)
+
+    async def close(self, safe_stop: bool) -> None:
+        """Close the session; with ``safe_stop``, send the safe-stop sequence first."""
+        await self.leave_safe(failed=safe_stop)
+        await self.printer.close()
+
+    async def subscribe(self) -> AsyncIterator[PrinterEvent]:
+        """The session's events, subscribed to on its own loop (for another thread's use)."""
+        return self.printer.events()
+
+
+class HyrelPrinter:
+    """A READY printer session for synchronous tests: each call returns when done.
+
+    ``session`` is the :class:`repetrel_host.Printer` itself, for what this facade does
+    not offer (it lives on the plugin's own event loop: use :meth:`run`)."""
+
+    def __init__(self, session: _Session) -> None:
+        self._session = session
+        self.session = session.printer
+
+    @property
+    def state(self) -> rh.State:
+        return self.session.state
+
+    @property
+    def firmware(self) -> rh.Firmware | None:
+        """What the controller said to M115, if it answered."""
+        return self.session.firmware
+
+    @property
+    def temperatures(self) -> dict[str, tuple[float, float | None]]:
+        """The last reading of each sensor: (current, target)."""
+        return dict(self.session.temperatures)
+
+    @property
+    def port(self) -> str:
+        return self.session.port
+
+    def run(self, work: Callable[[rh.Printer], Awaitable[T]], timeout: float | None = None) -> T:
+        """``await work(session)`` on the session's event loop, and return its result."""
+
+        async def call() -> T:
+            return await work(self.session)
+
+        return self._session.portal.call(call(), timeout)
+
+    def command(self, line: str, *, timeout: float | None = None) -> rh.Reply:
+        """Send one command and return the controller's reply (``reply.lines``, ``reply.ok``)."""
+        return self._session.portal.call(self.session.command(line, timeout=timeout))
+
+    def print(
+        self,
+        job: HyrelJob | Path | str,
+        *,
+        force: bool = False,
+        check: bool = True,
+        timeout: float | None = None,
+    ) -> PrintResult:
+        """Stream ``job`` and return once the controller acknowledged all of it; raises
+        what ended it if it failed (``check=False``: the result tells, in ``error``)."""
+        return self.start(job, force=force).wait(check=check, timeout=timeout)
+
+    def start(self, job: HyrelJob | Path | str, *, force: bool = False) -> RunningJob:
+        """Start streaming ``job`` and return at once (to pause, cancel, watch it)."""
+        job = _as_job(job)
+        running = self._session.portal.call(self._session.start(job, force))
+        return RunningJob(self._session, job, running)
+
+    def pause(self) -> None:
+        """Pause the running job; returns once every line sent is confirmed."""
+        self._session.portal.call(self.session.pause())
+
+    def resume(self) -> None:
+        self._session.portal.call(self.session.resume())
+
+    def cancel(self) -> None:
+        """Stop the running job with the safe-stop sequence; returns once it went."""
+        self._session.portal.call(self.session.cancel())
+
+    def wait_for(self, *states: rh.State, timeout: float | None = None) -> None:
+        self._session.portal.call(self.session.wait_for(*states, timeout=timeout))
+
+    def wait_for_temperature(
+        self, sensor: str, target: float, *, tolerance: float = 2.0, timeout: float = 60.0
+    ) -> float:
+        """Wait until ``sensor`` (``T``, ``B``...) reads within ``tolerance`` of ``target``;
+        returns the reading, or fails the test after ``timeout`` seconds."""
+        work = self._session.wait_for_temperature(sensor, target, tolerance, timeout)
+        return self._session.portal.call(work)
+
+    def events(self, timeout: float) -> Iterator[PrinterEvent]:
+        """State changes (the current one first), temperatures and controller messages,
+        for ``timeout`` seconds (or until the session closes)."""
+        portal = self._session.portal
+        stream = portal.call(self._session.subscribe())
+        deadline = time.monotonic() + timeout
+        try:
+            while (left := deadline - time.monotonic()) > 0:
+                try:
+                    yield portal.call(anext(stream), left)  # type: ignore[arg-type]
+                except (StopAsyncIteration, TimeoutError):
+                    return
+        finally:
+            with contextlib.suppress(Exception):
+                portal.call(stream.aclose(), 5)  # type: ignore[attr-defined]
+
+
+class RunningJob:
+    """A job streaming from :meth:`HyrelPrinter.start`."""
+
+    def __init__(self, session: _Session, job: HyrelJob, running: rh.PrintJob) -> None:
+        self._session = session
+        self.job = job
+        self.print_job = running  # the session's rh.PrintJob
+
+    @property
+    def lines(self) -> int:
+        """Job lines the controller acknowledged so far."""
+        return self.print_job.lines
+
+    @property
+    def done(self) -> bool:
+        return self.print_job.done
+
+    def wait(self, *, check: bool = True, timeout: float | None = None) -> PrintResult:
+        """Wait for the end (see :meth:`HyrelPrinter.print`)."""
+        work = self._session.finish(self.job, self.print_job, check)
+        return self._session.portal.call(work, timeout)
+
+    def pause(self) -> None:
+        self._session.portal.call(self.print_job.pause())
+
+    def resume(self) -> None:
+        self._session.portal.call(self.print_job.resume())
+
+    def cancel(self) -> PrintResult:
+        """Stop with the safe-stop sequence first; returns how far the job got."""
+        self._session.portal.call(self.print_job.cancel())
+        return self.wait(check=False)
+
+
+class AsyncHyrelPrinter:
+    """:class:`HyrelPrinter` for async tests: the same calls, awaited, from any event loop."""
+
+    def __init__(self, session: _Session) -> None:
+        self._session = session
+        self.session = session.printer
+
+    state = HyrelPrinter.state
+    firmware = HyrelPrinter.firmware
+    temperatures = HyrelPrinter.temperatures
+    port = HyrelPrinter.port
+
+    async def command(self, line: str, *, timeout: float | None = None) -> rh.Reply:
+        return await self._session.portal.acall(self.session.command(line, timeout=timeout))
+
+    async def print(
+        self, job: HyrelJob | Path | str, *, force: bool = False, check: bool = True
+    ) -> PrintResult:
+        job = _as_job(job)
+        session = self._session
+
+        async def work() -> PrintResult:
+            return await session.finish(job, await session.start(job, force), check)
+
+        return await session.portal.acall(work())
+
+    async def pause(self) -> None:
+        await self._session.portal.acall(self.session.pause())
+
+    async def resume(self) -> None:
+        await self._session.portal.acall(self.session.resume())
+
+    async def cancel(self) -> None:
+        await self._session.portal.acall(self.session.cancel())
+
+    async def wait_for_temperature(
+        self, sensor: str, target: float, *, tolerance: float = 2.0, timeout: float = 60.0
+    ) -> float:
+        work = self._session.wait_for_temperature(sensor, target, tolerance, timeout)
+        return await self._session.portal.acall(work)
+
+    async def events(self) -> AsyncIterator[PrinterEvent]:
+        """State changes (the current one first), temperatures and controller messages."""
+        portal = self._session.portal
+        stream = await portal.acall(self._session.subscribe())
+        try:
+            while True:
+                try:
+                    yield await portal.acall(anext(stream))  # type: ignore[arg-type]
+                except StopAsyncIteration:
+                    return
+        finally:
+            with contextlib.suppress(Exception):
+                await portal.acall(stream.aclose())  # type: ignore[attr-defined]
+
+
+# --- the controller -----------------------------------------------------------------
+
+
+class HyrelController:
+    """What the tests talk to: a real printer's port, or the fake controller.
+
+    The fake-only parts (executed commands, faults, heaters) skip the test on real hardware."""
+
+    def __init__(self, port: str, fake: BuiltInFake | None = None) -> None:
+        self.port = port
+        self.fake = fake
+
+    @property
+    def is_fake(self) -> bool:
+        return self.fake is not None
+
+    def _fake(self, what: str) -> BuiltInFake:
+        if self.fake is None:
+            pytest.skip(f"{what} needs the fake controller; this run drives {self.port}")
+        return self.fake
+
+    def _request(self, what: str, text: str) -> dict[str, Any]:
+        answer = self._fake(what).request(text)
+        if not answer.get("ok"):
+            raise ValueError(f"the fake controller refused '{text}': {answer.get('error')}")
+        return answer
+
+    @property
+    def log_path(self) -> Path:
+        """The fake's log of executed commands (kept after the test)."""
+        return self._fake("the executed-command log").log_path
+
+    @property
+    def executed(self) -> list[str]:
+        """Every command the fake executed, in order (the session's greeting included)."""
+        self._request("the executed-command log", "status")  # flushes the log first
+        return self.log_path.read_text(encoding="ascii", errors="replace").splitlines()
+
+    @property
+    def temperatures(self) -> dict[str, tuple[float, float]]:
+        """The fake's heaters: (current, target) of ``T`` and ``B``."""
+        readings = self._request("simulated temperatures", "status")["temperatures"]
+        return {name: (float(now), float(target)) for name, (now, target) in readings.items()}
+
+    @property
+    def fault_counts(self) -> dict[str, int]:
+        """How many of each fault the fake injected (corrupted_lines, dropped_oks...)."""
+        counts: dict[str, int] = self._request("fault counts", "status")["counts"]
+        return counts
+
+    def set_faults(self, faults: str) -> None:
+        """Switch faults from now on: ``"corrupt=0.02 drop_ok=0.05 seed=3"`` (the fake's
+        ``--faults``: corrupt, garble, drop_ok, duplicate_ok, spurious_resend,
+        resend_without_ok, flush_on_error, drop_duplicates, counted_resend,
+        drop_with_error, busy_interval, seed)."""
+        self._request("fault injection", f"set {faults}")
+
+    def set_heat_rate(self, degrees_per_second: float | None) -> None:
+        """How fast the fake's heaters move (None: at once, the default)."""
+        rate = "none" if degrees_per_second is None else str(degrees_per_second)
+        self._request("simulated heaters", f"heat_rate {rate}")
+
+    def reset(self) -> None:
+        """Reboot the fake: it says ``start``, as a controller does after a reset."""
+        self._request("a controller reset", "reset")
+
+    def hang(self) -> None:
+        """The fake stops answering for good."""
+        self._request("a hung controller", "hang")
+
+    def unplug(self, seconds: float = 1.0) -> None:
+        """Pull the cable: the pty vanishes, and comes back at the same path after ``seconds``."""
+        self._request("an unplug", f"link_drop {seconds}")
+
+
+def _fake_arguments(item: pytest.Item) -> list[str]:
+    """The fake's command-line settings from the test's ``hyrel_fake`` markers."""
+    arguments: list[str] = []
+    for marker in reversed(list(item.iter_markers("hyrel_fake"))):
+        for name, value in marker.kwargs.items():
+            option = "--" + name.replace("_", "-")
+            if value is True:
+                arguments.append(option)
+            elif value is not False and value is not None:
+                arguments += [option, str(value)]
+    from repetrel_host.testing.fake_controller import build_parser, settings_from_args
+
+    parser = build_parser()
+    parser.allow_abbrev = False  # heat_rat=5 is a typo, not --heat-rate
+    errors = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(errors):
+            settings_from_args(parser.parse_args(arguments))
+    except SystemExit as exc:
+        message = errors.getvalue().strip().splitlines()[-1:] or [str(exc.code)]
+        pytest.fail(f"hyrel_fake({shlex.join(arguments)}): {message[0]}", pytrace=False)
+    return arguments
+
+
+# --- fixtures ---------------------------------------------------------------------
+
+
+def _scope(fixture_name: str, config: pytest.Config) -> Literal["session", "function"]:
+    """A real printer is opened once for the whole run; the fake is fresh for each test."""
+    return "session" if _options(config).hardware else "function"
+
+
+@pytest.fixture(scope="session")
+def hyrel_options(pytestconfig: pytest.Config) -> HyrelOptions:
+    """The plugin's options for this run."""
+    return _options(pytestconfig)
+
+
+@pytest.fixture(scope=_scope)
+def hyrel_controller(
+    request: pytest.FixtureRequest,
+    hyrel_options: HyrelOptions,
+    tmp_path_factory: pytest.TempPathFactory,
+) -> Iterator[HyrelController]:
+    """The controller under test: the real port, or a fake started for this test."""
+    if hyrel_options.hardware:
+        yield HyrelController(hyrel_options.port)
+        return
+    from repetrel_host.testing.fake_controller import BuiltInFake
+
+    baud, _ = _link(hyrel_options)
+    arguments = ["--bandwidth", str(baud / 10), "--latency", "0.001"]
+    arguments += _fake_arguments(request.node)
+    log = tmp_path_factory.mktemp("hyrel-fake") / "executed.log"
+    fake = BuiltInFake(log, arguments, control=True)
+    fake.start()
+    try:
+        yield HyrelController(fake.port, fake)
+    finally:
+        fake.stop()
+
+
+def _link(options: HyrelOptions) -> tuple[int, rh.FlowControl]:
+    from repetrel_host.config import load_user_config
+    from repetrel_host.planning import JobRequest, LinkRequest, explicit_machine, link_settings
+    from repetrel_host.protocol.flow import FlowMode
+
+    loadout = Path(options.loadout) if options.loadout else None
+    machine = explicit_machine(JobRequest(loadout, options.machine), load_user_config(None))
+    flow = FlowMode(options.flow) if options.flow else None
+    return link_settings(LinkRequest(baud=options.baud, flow=flow), machine)
+
+
+@pytest.fixture(scope=_scope)
+def _hyrel_session(
+    hyrel_options: HyrelOptions, hyrel_controller: HyrelController
+) -> Iterator[_Session]:
+    import repetrel_host as rh
+
+    portal = Portal()
+    recorder = WireRecorder()
+    options = hyrel_options
+
+    async def open_session() -> _Session:
+        baud, flow = _link(options)
+        printer = await rh.connect(
+            hyrel_controller.port,
+            machine=options.machine,
+            loadout=options.loadout,
+            flow=flow,
+            baud=baud,
+            poll_interval=POLL_INTERVAL,
+        )
+        printer.tap_wire(recorder.tap)
+        asyncio.get_running_loop().create_task(_record_events(printer, recorder))
+        return _Session(portal, printer, recorder)
+
+    try:
+        session = portal.call(open_session())
+    except rh.HostError as exc:
+        portal.close()
+        pytest.fail(f"hyrel: no printer session on {hyrel_controller.port}: {exc}", pytrace=False)
+    try:
+        yield session
+    finally:
+        with contextlib.suppress(Exception):
+            # The bench's printer is left safe at the end of the run; the fake just goes.
+            portal.call(session.close(safe_stop=options.hardware), 120)
+        portal.close()
+
+
+def _facade(
+    request: pytest.FixtureRequest, session: _Session, facade: Callable[[_Session], T]
+) -> Iterator[T]:
+    """Before the test: a READY session, the machine it needs, the report's starting
+    point. After: the machine left safe."""
+    import repetrel_host as rh
+
+    item = request.node
+    printer = session.printer
+    try:
+        session.portal.call(printer.wait_for(rh.State.READY, timeout=READY_TIMEOUT))
+    except TimeoutError:
+        pytest.fail(
+            f"hyrel: the printer on {printer.port} is not ready ({printer.state.value})",
+            pytrace=False,
+        )
+    if item.get_closest_marker("hyrel_machine"):
+        settings = printer.settings
+        from repetrel_host.planning import controller_profile
+
+        profile = controller_profile(settings.request, settings.user, printer.firmware)
+        _check_machine(item, profile.describe())
+    item.stash[_recorders] = session.recorder
+    item.stash[_marks] = session.recorder.mark()
+    yield facade(session)
+    session.portal.call(session.leave_safe(_failed(item)), 120)
+
+
+@pytest.fixture
+def hyrel_printer(
+    request: pytest.FixtureRequest, _hyrel_session: _Session
+) -> Iterator[HyrelPrinter]:
+    """A READY printer session, for synchronous tests (see :class:`HyrelPrinter`)."""
+    yield from _facade(request, _hyrel_session, HyrelPrinter)
+
+
+@pytest.fixture
+def hyrel_aprinter(
+    request: pytest.FixtureRequest, _hyrel_session: _Session
+) -> Iterator[AsyncHyrelPrinter]:
+    """A READY printer session, awaited from async tests on any event loop."""
+    yield from _facade(request, _hyrel_session, AsyncHyrelPrinter)
+
+
+@pytest.fixture
+def hyrel_job(tmp_path: Path) -> Callable[..., HyrelJob]:
+    """``hyrel_job("G28\\nG1 X10\\n")`` or ``hyrel_job(path)``: a job to print, with the
+    loadout's header unless ``header=False``; its stream is kept in the test's tmp_path."""
+    count = 0
+
+    def make(source: str | Path, *, header: bool = True) -> HyrelJob:
+        nonlocal count
+        count += 1
+        if isinstance(source, Path):
+            path = source
+        else:
+            path = tmp_path / f"job{count}.gcode"
+            path.write_text(source)
+        return HyrelJob(path, header, tmp_path / f"job{count}-sent.gcode")
+
+    return make

@@ -1,0 +1,361 @@
+"""The pytest plugin, through pytest itself: each case runs pytest in a subprocess on a
+small test file (pytester), as a lab's project would, with the plugin found through the
+installed package's entry point."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from repetrel_host.testing.fake_controller import BuiltInFake
+
+ROOT = Path(__file__).parent.parent
+MARLIN_SAFE_STOP = ["M107", "M104 S0", "M140 S0", "G91", "G0 Z10", "G90", "M84"]
+
+pytestmark = pytest.mark.timeout(180)
+
+
+@pytest.fixture(autouse=True)
+def no_printer_in_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    for name in ("PORT", "MACHINE", "LOADOUT", "FLOW", "BAUD"):
+        monkeypatch.delenv(f"HYREL_{name}", raising=False)
+
+
+def run(pytester: pytest.Pytester, *args: str) -> pytest.RunResult:
+    return pytester.runpytest_subprocess(
+        "-p", "no:cacheprovider", "--timeout=60", *args, timeout=150
+    )
+
+
+def one_line(text: str) -> str:
+    return " ".join(text.split())
+
+
+def test_help_lists_the_options_in_a_hyrel_group_with_their_defaults(
+    pytester: pytest.Pytester,
+) -> None:
+    result = run(pytester, "--help")
+    assert result.ret == 0
+    text = result.stdout.str()
+    group = one_line(text[text.index("Hyrel printers (repetrel-host):") :])
+    for option in ("PORT", "MACHINE", "LOADOUT", "FLOW", "BAUD"):
+        assert f"--hyrel-{option.lower()}={option}" in group
+        assert f"HYREL_{option}" in group
+        assert f"hyrel_{option.lower()} (string)" in group  # the ini key
+    assert "default: the built-in fake controller, fresh for each test" in group
+    assert "default: the machine profile's (115200)" in group
+
+
+def test_options_come_from_the_command_line_then_the_environment_then_the_ini_file(
+    pytester: pytest.Pytester, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    pytester.makepyprojecttoml(
+        """
+        [tool.pytest.ini_options]
+        hyrel_machine = "marlin"
+        hyrel_flow = "buffered"
+        hyrel_baud = "9600"
+        """
+    )
+    pytester.makepyfile(
+        """
+        def test_options(hyrel_options):
+            assert hyrel_options.port == "fake" and not hyrel_options.hardware
+            assert hyrel_options.machine == "marlin"  # the ini file
+            assert hyrel_options.flow == "unbuffered"  # the environment over the ini file
+            assert hyrel_options.baud == 250000  # the command line over both
+            assert hyrel_options.loadout is None
+        """
+    )
+    monkeypatch.setenv("HYREL_FLOW", "unbuffered")
+    monkeypatch.setenv("HYREL_BAUD", "57600")
+    run(pytester, "--hyrel-baud", "250000").assert_outcomes(passed=1)
+
+    result = run(pytester, "--hyrel-flow", "sideways")
+    assert result.ret == pytest.ExitCode.USAGE_ERROR
+    assert "--hyrel-flow: 'sideways' is not buffered or unbuffered" in result.stderr.str()
+    assert "Traceback" not in result.stderr.str() + result.stdout.str()
+
+
+def test_markers_are_registered_and_skip_with_their_reasons(pytester: pytest.Pytester) -> None:
+    pytester.makepyfile(
+        """
+        import pytest
+
+        @pytest.mark.hyrel_hardware
+        def test_on_the_bench():
+            raise AssertionError("must not run on the fake")
+
+        @pytest.mark.hyrel_fake_only
+        def test_with_faults():
+            pass
+
+        @pytest.mark.hyrel_machine("30m")
+        def test_for_a_30m(hyrel_printer):
+            raise AssertionError("must not run on another machine")
+
+        @pytest.mark.hyrel_machine("marlin", "hyrel")
+        def test_for_marlin(hyrel_printer):
+            assert hyrel_printer.firmware is not None
+
+        @pytest.mark.hyrel_fake(heat_rate=5, faults="drop_ok=0.01")
+        def test_with_fake_settings(hyrel_printer):
+            assert hyrel_printer.command("M105").ok.startswith("ok")
+        """
+    )
+    result = run(pytester, "--strict-markers", "-rs")
+    result.assert_outcomes(passed=3, skipped=2)
+    report = one_line(result.stdout.str())
+    assert "needs a real printer: give --hyrel-port PORT (or HYREL_PORT)" in report
+    assert (
+        "for machine 30m; this run's machine is marlin "
+        "(from the firmware: repetrel-host fake controller (Marlin replies))" in report
+    )
+    markers = one_line(run(pytester, "--markers").stdout.str())
+    for marker in ("hyrel_hardware:", "hyrel_fake_only:", "hyrel_machine(*names):", "hyrel_fake("):
+        assert f"@pytest.mark.{marker}" in markers
+
+    # --hyrel-machine decides without a printer; a mistyped name is an error, not a skip.
+    run(pytester, "--hyrel-machine", "30m", "-k", "30m").assert_outcomes(failed=1)
+    pytester.makepyfile(
+        """
+        import pytest
+
+        @pytest.mark.hyrel_machine("hyrel30m")
+        def test_typo(hyrel_printer):
+            pass
+
+        @pytest.mark.hyrel_fake(heat_rat=5)
+        def test_bad_setting(hyrel_printer):
+            pass
+        """
+    )
+    result = run(pytester)
+    result.assert_outcomes(errors=2)
+    report = one_line(result.stdout.str())
+    assert "hyrel_machine('hyrel30m'): name known machine profiles (30m, ehr," in report
+    assert "hyrel_fake(--heat-rat 5): " in report and "unrecognized arguments" in report
+
+
+def test_sync_fixtures_command_print_and_drive_the_fake(pytester: pytest.Pytester) -> None:
+    pytester.makepyfile(
+        """
+        import time
+        import pytest
+        import repetrel_host as rh
+
+        def test_command(hyrel_printer):
+            reply = hyrel_printer.command("M115")
+            assert reply.lines[0].startswith("FIRMWARE_NAME:repetrel-host fake controller")
+            assert hyrel_printer.firmware.name.startswith("repetrel-host fake controller")
+            assert hyrel_printer.state is rh.State.READY
+
+        def test_a_job_runs_exactly_once_under_faults(
+            hyrel_printer, hyrel_controller, hyrel_job
+        ):
+            job = hyrel_job("G28\\n" + "".join(f"G1 X{i} F3000\\n" for i in range(300)))
+            before = len(hyrel_controller.executed)
+            hyrel_controller.set_faults("corrupt=0.05 drop_ok=0.05 seed=4")
+            result = hyrel_printer.print(job)
+            assert result.completed and result.summary.resends > 0
+            assert result.acknowledged == result.commands == job.commands
+            assert result.last_line == 301
+            assert hyrel_controller.executed[before:] == job.commands
+            counts = hyrel_controller.fault_counts
+            assert counts["corrupted_lines"] > 0 and counts["dropped_oks"] > 0
+
+        @pytest.mark.hyrel_fake(heat_rate=100)
+        def test_heating_takes_time(hyrel_printer, hyrel_controller):
+            hyrel_printer.command("M104 S80")
+            assert hyrel_controller.temperatures["T"][0] < 60
+            assert abs(hyrel_printer.wait_for_temperature("T", 80, timeout=10) - 80) <= 2
+            with pytest.raises(AssertionError, match="T did not reach 300 .* in 0.5 s"):
+                hyrel_printer.wait_for_temperature("T", 300, timeout=0.5)
+
+        @pytest.mark.hyrel_fake(faults="counted_resend=1")
+        def test_an_interop_switch_from_the_start(hyrel_printer, hyrel_job):
+            result = hyrel_printer.print(hyrel_job("G1 X1\\nG1 X2\\n"))
+            assert result.completed
+            assert hyrel_printer.session.probe is rh.ProbeKind.COMMAND
+
+        def test_unplug_and_reconnect(hyrel_printer, hyrel_controller):
+            hyrel_controller.unplug(0.5)
+            states = []
+            for event in hyrel_printer.events(timeout=10):
+                if isinstance(event, rh.StateChanged):
+                    states.append(event.state)
+                    if event.state is rh.State.READY and len(states) > 1:
+                        break
+            assert states[:2] == [rh.State.READY, rh.State.DISCONNECTED]
+            assert states[-1] is rh.State.READY
+            assert hyrel_printer.command("M105").ok.startswith("ok T:")
+
+        @pytest.mark.hyrel_fake(move_time=0.005)
+        def test_a_failing_job_says_where_it_stopped(hyrel_printer, hyrel_job, hyrel_controller):
+            running = hyrel_printer.start(hyrel_job("G1 X1\\n" * 200))
+            while running.lines < 10:
+                time.sleep(0.01)
+            hyrel_controller.reset()
+            result = running.wait(check=False)
+            assert isinstance(result.error, rh.ControllerError)
+            assert len(result.acknowledged) < 200
+            assert f"job1.gcode:{result.last_line}" in str(result.error)
+        """
+    )
+    run(pytester).assert_outcomes(passed=6)
+
+
+def test_async_fixture_from_pytest_asyncio_and_from_asyncio_run(pytester: pytest.Pytester) -> None:
+    pytester.makepyfile(
+        """
+        import asyncio
+        import pytest
+        import repetrel_host as rh
+
+        @pytest.mark.asyncio
+        async def test_with_pytest_asyncio(hyrel_aprinter, hyrel_job):
+            reply = await hyrel_aprinter.command("M105")
+            assert reply.ok.startswith("ok T:")
+            result = await hyrel_aprinter.print(hyrel_job("G28\\nG1 X5\\n"))
+            assert result.acknowledged == ["G28", "G1 X5"]
+            async for event in hyrel_aprinter.events():
+                assert event == rh.StateChanged(rh.State.READY, None)
+                break
+
+        def test_on_a_loop_of_its_own(hyrel_aprinter):
+            async def main():
+                return await hyrel_aprinter.command("M115")
+            assert asyncio.run(main()).lines[0].startswith("FIRMWARE_NAME:")
+        """
+    )
+    run(pytester, "-W", "ignore::pytest.PytestDeprecationWarning").assert_outcomes(passed=2)
+
+
+def test_a_failing_test_reports_the_wire_and_leaves_the_fake_safe(
+    pytester: pytest.Pytester,
+) -> None:
+    pytester.makepyfile(
+        """
+        import time
+        from pathlib import Path
+        import pytest
+
+        @pytest.mark.hyrel_fake(move_time=0.01)
+        def test_fails_mid_job(hyrel_printer, hyrel_controller, hyrel_job):
+            Path("mid-job.log").write_text(str(hyrel_controller.log_path))
+            running = hyrel_printer.start(hyrel_job("G28\\n" + "G1 X1\\nG1 X2\\n" * 250))
+            while running.lines < 20:
+                time.sleep(0.01)
+            assert running.lines > 10_000, "the bench says no"
+
+        def test_fails_with_a_heater_on(hyrel_printer, hyrel_controller):
+            Path("heater.log").write_text(str(hyrel_controller.log_path))
+            hyrel_printer.command("M104 S200")
+            assert False, "the nozzle looks wrong"
+        """
+    )
+    result = run(pytester)
+    result.assert_outcomes(failed=2)
+    out = result.stdout.str()
+    assert "hyrel: last lines on the wire (> sent, < received)" in out
+    assert "> N3 G28*" in out and "< ok" in out
+    assert "hyrel: controller messages and session states" in out
+    assert "state: printing (job1.gcode)" in out
+    mid_job = Path((pytester.path / "mid-job.log").read_text()).read_text().splitlines()
+    assert mid_job[-len(MARLIN_SAFE_STOP) :] == MARLIN_SAFE_STOP
+    assert mid_job.count("G1 X1") < 250  # stopped, not streamed to the end
+    heater = Path((pytester.path / "heater.log").read_text()).read_text().splitlines()
+    assert heater[-len(MARLIN_SAFE_STOP) - 1 :] == ["M104 S200", *MARLIN_SAFE_STOP]
+
+
+def test_an_interrupted_run_stops_the_job_safely(pytester: pytest.Pytester) -> None:
+    pytester.makepyfile(
+        """
+        import time
+        from pathlib import Path
+        import pytest
+
+        @pytest.mark.hyrel_fake(move_time=0.01)
+        def test_interrupted(hyrel_printer, hyrel_controller, hyrel_job):
+            Path("log.txt").write_text(str(hyrel_controller.log_path))
+            running = hyrel_printer.start(hyrel_job("G1 X1\\nG1 X2\\n" * 250))
+            while running.lines < 20:
+                time.sleep(0.01)
+            raise KeyboardInterrupt  # as Ctrl-C would
+        """
+    )
+    result = run(pytester)
+    assert result.ret == pytest.ExitCode.INTERRUPTED
+    executed = Path((pytester.path / "log.txt").read_text()).read_text().splitlines()
+    assert executed[-len(MARLIN_SAFE_STOP) :] == MARLIN_SAFE_STOP
+    assert executed.count("G1 X1") < 250
+
+
+def test_a_pty_given_as_the_port_stands_for_the_bench(
+    pytester: pytest.Pytester, tmp_path: Path
+) -> None:
+    pytester.makepyfile(
+        """
+        import pytest
+
+        @pytest.mark.hyrel_hardware
+        def test_bench_only(hyrel_printer, hyrel_controller):
+            assert not hyrel_controller.is_fake
+            assert hyrel_printer.port == hyrel_controller.port
+            hyrel_printer.command("M140 S50")
+
+        @pytest.mark.hyrel_fake_only
+        def test_fake_only(hyrel_printer):
+            raise AssertionError("must not run on the bench")
+
+        def test_the_fake_parts_skip(hyrel_printer, hyrel_controller, hyrel_job):
+            assert hyrel_printer.print(hyrel_job("G1 X3\\n")).completed
+            hyrel_controller.set_faults("drop_ok=0.5")
+
+        def test_same_session(hyrel_printer):
+            assert hyrel_printer.command("M105").ok.startswith("ok T:")
+        """
+    )
+    log = tmp_path / "bench.log"
+    with BuiltInFake(log) as bench:
+        result = run(pytester, f"--hyrel-port={bench.port}", "-rs")
+    result.assert_outcomes(passed=2, skipped=2)
+    report = one_line(result.stdout.str())
+    assert f"needs the fake controller's fault injection; this run drives {bench.port}" in report
+    assert f"fault injection needs the fake controller; this run drives {bench.port}" in report
+    executed = log.read_text().splitlines()
+    assert sum(c.startswith("M110") for c in executed) == 1  # one session for the whole run
+    assert executed[-len(MARLIN_SAFE_STOP) :] == MARLIN_SAFE_STOP  # left safe at the end
+    assert "M140 S50" in executed and "G1 X3" in executed
+
+
+def test_the_hil_examples_pass_on_the_fake() -> None:
+    result = subprocess.run(
+        [sys.executable, "-m", "pytest", "examples/hil", "-p", "no:cacheprovider", "-q"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=150,
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert " passed" in result.stdout and "failed" not in result.stdout
+
+
+def test_each_test_gets_a_fresh_fake(pytester: pytest.Pytester) -> None:
+    pytester.makepyfile(
+        """
+        ports = []
+
+        def test_one(hyrel_controller):
+            ports.append(hyrel_controller.port)
+            hyrel_controller.set_faults("drop_ok=1")
+
+        def test_two(hyrel_controller, hyrel_printer):
+            assert hyrel_controller.port not in ports  # a new fake: no faults carried over
+            assert hyrel_printer.command("M105").ok.startswith("ok")
+        """
+    )
+    run(pytester).assert_outcomes(passed=2)
