@@ -74,10 +74,29 @@ def test_options_come_from_the_command_line_then_the_environment_then_the_ini_fi
     monkeypatch.setenv("HYREL_BAUD", "57600")
     run(pytester, "--hyrel-baud", "250000").assert_outcomes(passed=1)
 
-    result = run(pytester, "--hyrel-flow", "sideways")
-    assert result.ret == pytest.ExitCode.USAGE_ERROR
-    assert "--hyrel-flow: 'sideways' is not buffered or unbuffered" in result.stderr.str()
-    assert "Traceback" not in result.stderr.str() + result.stdout.str()
+    for args, message in (
+        (["--hyrel-flow", "sideways"], "--hyrel-flow: 'sideways' is not buffered or unbuffered"),
+        (["--hyrel-machine", "nosuch"], "hyrel: unknown machine 'nosuch' (known: 30m, ehr,"),
+        (["--hyrel-loadout", "nosuch"], "hyrel: "),
+    ):
+        result = run(pytester, *args)
+        assert result.ret == pytest.ExitCode.USAGE_ERROR
+        assert message in result.stderr.str()
+        assert "Traceback" not in result.stderr.str() + result.stdout.str()
+    monkeypatch.setenv("HYREL_FLOW", "fast")
+    result = run(pytester)
+    assert "HYREL_FLOW: 'fast' is not buffered or unbuffered" in result.stderr.str()
+    assert run(pytester, "--help").ret == 0  # help whatever the options say
+
+
+def test_a_port_given_after_a_space_is_warned_about(pytester: pytest.Pytester) -> None:
+    pytester.makepyfile("def test_nothing():\n    pass\n")
+    result = run(pytester, "--hyrel-port", "/dev/null")
+    result.assert_outcomes(passed=1, warnings=1)
+    assert (
+        "--hyrel-port /dev/null made pytest look for its configuration from /dev "
+        "(rootdir /dev); write --hyrel-port=/dev/null" in one_line(result.stdout.str())
+    )
 
 
 def test_markers_are_registered_and_skip_with_their_reasons(pytester: pytest.Pytester) -> None:
@@ -109,7 +128,7 @@ def test_markers_are_registered_and_skip_with_their_reasons(pytester: pytest.Pyt
     result = run(pytester, "--strict-markers", "-rs")
     result.assert_outcomes(passed=3, skipped=2)
     report = one_line(result.stdout.str())
-    assert "needs a real printer: give --hyrel-port PORT (or HYREL_PORT)" in report
+    assert "needs a real printer: give --hyrel-port=PORT (or HYREL_PORT)" in report
     assert (
         "for machine 30m; this run's machine is marlin "
         "(from the firmware: repetrel-host fake controller (Marlin replies))" in report
@@ -131,13 +150,28 @@ def test_markers_are_registered_and_skip_with_their_reasons(pytester: pytest.Pyt
         @pytest.mark.hyrel_fake(heat_rat=5)
         def test_bad_setting(hyrel_printer):
             pass
+
+        @pytest.mark.hyrel_fake("heat_rate=5")
+        def test_unnamed_setting(hyrel_printer):
+            pass
+
+        @pytest.mark.hyrel_fake(log="mine.log")
+        def test_the_plugins_setting(hyrel_printer):
+            pass
+
+        @pytest.mark.hyrel_machine("30m")
+        def test_machine_without_a_session():
+            pass
         """
     )
     result = run(pytester)
-    result.assert_outcomes(errors=2)
+    result.assert_outcomes(errors=5)
     report = one_line(result.stdout.str())
     assert "hyrel_machine('hyrel30m'): name known machine profiles (30m, ehr," in report
     assert "hyrel_fake(--heat-rat 5): " in report and "unrecognized arguments" in report
+    assert "hyrel_fake: name each setting (as in hyrel_fake(heat_rate=20))" in report
+    assert "hyrel_fake: log is the plugin's" in report
+    assert "hyrel_machine: this test's machine is known from --hyrel-machine" in report
 
 
 def test_sync_fixtures_command_print_and_drive_the_fake(pytester: pytest.Pytester) -> None:
@@ -161,11 +195,22 @@ def test_sync_fixtures_command_print_and_drive_the_fake(pytester: pytest.Pyteste
             hyrel_controller.set_faults("corrupt=0.05 drop_ok=0.05 seed=4")
             result = hyrel_printer.print(job)
             assert result.completed and result.summary.resends > 0
-            assert result.acknowledged == result.commands == job.commands
+            assert result.acknowledged == result.commands
+            assert result.commands[:2] == ["G28", "G1 X0 F3000"] and len(result.commands) == 301
             assert result.last_line == 301
-            assert hyrel_controller.executed[before:] == job.commands
+            assert hyrel_controller.executed[before:] == result.commands
             counts = hyrel_controller.fault_counts
             assert counts["corrupted_lines"] > 0 and counts["dropped_oks"] > 0
+
+        def test_text_and_paths_are_not_confused(hyrel_printer, hyrel_job, tmp_path):
+            with pytest.raises(ValueError, match=r"for a file, hyrel_job\\(Path\\('part."):
+                hyrel_job("part.gcode")
+            with pytest.raises(ValueError, match=r"for G-code text, use hyrel_job\\(text\\)"):
+                hyrel_printer.print("G28\\nG1 X1\\n")
+            part = tmp_path / "part.gcode"
+            part.write_text("G1 X7\\n")
+            assert hyrel_printer.print(part).acknowledged == ["G1 X7"]
+            assert hyrel_printer.print(hyrel_job(part)).acknowledged == ["G1 X7"]
 
         @pytest.mark.hyrel_fake(heat_rate=100)
         def test_heating_takes_time(hyrel_printer, hyrel_controller):
@@ -205,7 +250,7 @@ def test_sync_fixtures_command_print_and_drive_the_fake(pytester: pytest.Pyteste
             assert f"job1.gcode:{result.last_line}" in str(result.error)
         """
     )
-    run(pytester).assert_outcomes(passed=6)
+    run(pytester).assert_outcomes(passed=7)
 
 
 def test_async_fixture_from_pytest_asyncio_and_from_asyncio_run(pytester: pytest.Pytester) -> None:
@@ -221,6 +266,10 @@ def test_async_fixture_from_pytest_asyncio_and_from_asyncio_run(pytester: pytest
             assert reply.ok.startswith("ok T:")
             result = await hyrel_aprinter.print(hyrel_job("G28\\nG1 X5\\n"))
             assert result.acknowledged == ["G28", "G1 X5"]
+            running = await hyrel_aprinter.start(hyrel_job("G1 X1\\n" * 5000))
+            cancelled = await running.cancel()
+            assert not cancelled.completed and cancelled.error is None
+            assert cancelled.safe_stop_missing == [] and len(cancelled.acknowledged) < 5000
             async for event in hyrel_aprinter.events():
                 assert event == rh.StateChanged(rh.State.READY, None)
                 break
@@ -255,10 +304,25 @@ def test_a_failing_test_reports_the_wire_and_leaves_the_fake_safe(
             Path("heater.log").write_text(str(hyrel_controller.log_path))
             hyrel_printer.command("M104 S200")
             assert False, "the nozzle looks wrong"
+
+        @pytest.mark.hyrel_fake(heat_rate=1)
+        def test_fails_while_heating(hyrel_printer, hyrel_controller):
+            Path("heating.log").write_text(str(hyrel_controller.log_path))
+            hyrel_printer.command("M109 S250", timeout=0.5)  # 229 s to go
+
+        @pytest.mark.xfail(strict=True)
+        def test_known_to_fail(hyrel_printer, hyrel_controller):
+            Path("xfail.log").write_text(str(hyrel_controller.log_path))
+            hyrel_printer.command("M140 S90")
+            assert False
+
+        def test_fails_on_a_hung_controller(hyrel_printer, hyrel_controller):
+            hyrel_controller.hang()
+            assert False
         """
     )
     result = run(pytester)
-    result.assert_outcomes(failed=2)
+    result.assert_outcomes(failed=4, xfailed=1, errors=1)
     out = result.stdout.str()
     assert "hyrel: last lines on the wire (> sent, < received)" in out
     assert "> N3 G28*" in out and "< ok" in out
@@ -269,6 +333,17 @@ def test_a_failing_test_reports_the_wire_and_leaves_the_fake_safe(
     assert mid_job.count("G1 X1") < 250  # stopped, not streamed to the end
     heater = Path((pytester.path / "heater.log").read_text()).read_text().splitlines()
     assert heater[-len(MARLIN_SAFE_STOP) - 1 :] == ["M104 S200", *MARLIN_SAFE_STOP]
+    # M108 ends the heat wait the test left behind, so the safe stop does not wait for it.
+    assert "TimeoutError: M109 S250: no reply within 0.5 s" in out
+    heating = Path((pytester.path / "heating.log").read_text()).read_text().splitlines()
+    assert heating[-len(MARLIN_SAFE_STOP) - 1 :] == ["M109 S250", *MARLIN_SAFE_STOP]
+    xfail = Path((pytester.path / "xfail.log").read_text()).read_text().splitlines()
+    assert xfail[-len(MARLIN_SAFE_STOP) - 1 :] == ["M140 S90", *MARLIN_SAFE_STOP]
+    assert (
+        "hyrel: after the test, the safe stop was not confirmed within 10 s (missing: M107, "
+        "M104 S0, M140 S0, G91, G0 Z10, G90, M84); sent M112 (emergency stop): check the machine"
+        in one_line(out)
+    )
 
 
 def test_an_interrupted_run_stops_the_job_safely(pytester: pytest.Pytester) -> None:

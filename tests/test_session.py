@@ -269,6 +269,22 @@ def test_m112_goes_out_at_once_and_ends_the_job(rig: Rig, tmp_path: Path) -> Non
     run(scenario)
 
 
+def test_m108_goes_out_at_once_and_ends_a_heat_wait() -> None:
+    async def scenario() -> None:
+        settings = ControllerSettings(heat_rate=1.0)  # 229 s from ambient to 250
+        async with rh.connect("sim", sim=settings, poll_interval=None) as printer:
+            heating = asyncio.create_task(printer.command("M109 S250"))
+            await asyncio.sleep(0.2)
+            assert not heating.done() and printer.pending == ["M109 S250"]
+            assert await printer.command("M108") == rh.Reply("M108", [], "")
+            reply = await asyncio.wait_for(heating, 2)
+            assert reply.ok == "ok" and printer.pending == []
+            executed = without_greetings(printer.link.controller.simulator.executed)  # type: ignore[attr-defined]
+            assert executed == ["M109 S250"]  # M108 itself is the emergency parser's
+
+    run(scenario)
+
+
 # --- losing the link, resets -----------------------------------------------------------
 
 

@@ -20,6 +20,8 @@ def test_a_small_job_runs_exactly_once(hyrel_printer, hyrel_controller, hyrel_jo
     job = hyrel_job(SQUARE, header=False)
     before = len(hyrel_controller.executed) if hyrel_controller.is_fake else 0
     result = hyrel_printer.print(job)
-    assert result.acknowledged == job.commands
+    assert result.completed
+    assert result.acknowledged == result.commands  # every line, in order
+    assert len(result.commands) == 9
     if hyrel_controller.is_fake:  # only the fake can tell what it executed
-        assert hyrel_controller.executed[before:] == job.commands
+        assert hyrel_controller.executed[before:] == result.commands

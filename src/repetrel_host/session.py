@@ -385,10 +385,15 @@ class Printer:
 
     async def command(self, line: str, *, timeout: float | None = None) -> Reply:
         """Send one command through the numbered, checksummed, resend-safe path and
-        return the controller's reply. M112 goes out at once, unnumbered, and stops a job."""
+        return the controller's reply. M112 goes out at once, unnumbered, and stops a job;
+        M108 goes out at once too (Marlin's emergency parser ends a heat wait with it)."""
         command = _clean_command(line)
-        if command_word(command) == "M112":
+        word = command_word(command)
+        if word == "M112":
             self._emergency_stop()
+            return Reply(command, [], "")
+        if word == "M108":
+            self._urgent(command)
             return Reply(command, [], "")
         self._check_can_command()
         async with self._lock:
@@ -415,13 +420,24 @@ class Printer:
         if state is not State.READY and state is not State.PAUSED:
             raise LinkError(f"{self.port} is not connected (the session is {state.value})")
 
-    def _emergency_stop(self) -> None:
+    @property
+    def pending(self) -> list[str]:
+        """Commands sent or queued that still wait for their reply (an M109 heating...)."""
+        return [pending.command for pending in self._commands]
+
+    def _urgent(self, command: str) -> None:
         pump = self._pump
         if pump is None:
             raise LinkError(f"{self.port} is not connected")
-        pump.dialect.send_urgent("M112")  # as emergency parsers read it, whatever was typed
-        pump.abort(self._loop.time(), ControllerError("stopped by an emergency stop (M112)"))
+        pump.dialect.send_urgent(command_word(command))  # as emergency parsers read it
         self._poke()
+
+    def _emergency_stop(self) -> None:
+        self._urgent("M112")
+        if self._pump is not None:
+            error = ControllerError("stopped by an emergency stop (M112)")
+            self._pump.abort(self._loop.time(), error)
+            self._poke()
 
     # --- jobs -------------------------------------------------------------------
 

@@ -7,7 +7,7 @@ whole test run, as a printer is one physical thing. Fixtures:
 
 - ``hyrel_printer``: a READY printer session behind a synchronous facade
   (:class:`HyrelPrinter`); ``hyrel_aprinter``: the same, awaitable (:class:`AsyncHyrelPrinter`),
-  from any event loop (pytest-asyncio, anyio);
+  from any asyncio event loop (pytest-asyncio, anyio on asyncio, ``asyncio.run``);
 - ``hyrel_controller``: what the test talks to (:class:`HyrelController`): its port, and
   on the fake its executed commands, fault switches and heaters;
 - ``hyrel_job``: jobs from text or a file (:class:`HyrelJob`).
@@ -31,8 +31,9 @@ import threading
 import time
 from collections import deque
 from collections.abc import AsyncIterator, Awaitable, Callable, Coroutine, Generator, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import cached_property
+from itertools import islice
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, TypeVar
 
@@ -41,7 +42,6 @@ import pytest
 if TYPE_CHECKING:
     import repetrel_host as rh
     from repetrel_host.events import PrinterEvent
-    from repetrel_host.job import JobLine
     from repetrel_host.testing.fake_controller import BuiltInFake
 
 FAKE = "fake"
@@ -59,6 +59,10 @@ _OPTIONS = {
 }
 # Seconds a session on real hardware may take to be READY again before a test.
 READY_TIMEOUT = 30.0
+# Seconds the safe stop may take to be confirmed after a test, before M112 (where the
+# firmware reads it at once) and an error: on the bench, and on the fake.
+SAFE_STOP_DEADLINE = 60.0
+FAKE_SAFE_STOP_DEADLINE = 10.0
 # Temperatures are asked for (or reported) this often, so that tests see them move.
 POLL_INTERVAL = 1.0
 WIRE_LINES = 2000  # kept for the report of a failed test
@@ -81,7 +85,24 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 
 
 def pytest_configure(config: pytest.Config) -> None:
-    options = config.stash[_options_key] = HyrelOptions.from_config(config)  # bad values stop
+    for line in (
+        "hyrel_hardware: runs only on a real printer (--hyrel-port)",
+        "hyrel_fake_only: runs only on the fake controller (it needs fault injection)",
+        "hyrel_machine(*names): runs only when the machine profile is one of names",
+        "hyrel_fake(**settings): settings for the fake controller (heat_rate=20, "
+        "faults='drop_ok=0.05', advanced_ok=True...); ignored on a real printer",
+    ):
+        config.addinivalue_line("markers", line)
+    if config.option.help:
+        return  # help is given whatever the options say
+    # Bad values stop the run here, in one sentence, not in every test.
+    options = config.stash[_options_key] = HyrelOptions.from_config(config)
+    try:
+        _link(options)
+        if options.machine or options.loadout:
+            _known_machine(options)  # reads the loadout too, and checks it fits the machine
+    except Exception as exc:  # ConfigError, and whatever a loadout file holds
+        raise pytest.UsageError(f"hyrel: {exc}") from None
     args = list(config.invocation_params.args)
     port = options.port
     if port in args[1:] and args[args.index(port) - 1] == "--hyrel-port" and Path(port).exists():
@@ -94,14 +115,6 @@ def pytest_configure(config: pytest.Config) -> None:
             ),
             stacklevel=2,
         )
-    for line in (
-        "hyrel_hardware: runs only on a real printer (--hyrel-port)",
-        "hyrel_fake_only: runs only on the fake controller (it needs fault injection)",
-        "hyrel_machine(*names): runs only when the machine profile is one of names",
-        "hyrel_fake(**settings): settings for the fake controller (heat_rate=20, "
-        "faults='drop_ok=0.05', advanced_ok=True...); ignored on a real printer",
-    ):
-        config.addinivalue_line("markers", line)
 
 
 @dataclass(frozen=True)
@@ -122,26 +135,36 @@ class HyrelOptions:
 
     @classmethod
     def from_config(cls, config: pytest.Config) -> HyrelOptions:
-        values: dict[str, str | None] = {}
+        values: dict[str, tuple[str, str] | None] = {}  # name: (value, where it came from)
         for name in _OPTIONS:
-            value = config.getoption(f"hyrel_{name}")
-            if value is None:
-                value = os.environ.get(f"HYREL_{name.upper()}") or None
-            if value is None:
-                value = str(config.getini(f"hyrel_{name}")) or None
-            values[name] = value
-        flow = values["flow"]
-        if flow is not None and flow not in ("buffered", "unbuffered"):
-            raise pytest.UsageError(f"--hyrel-flow: '{flow}' is not buffered or unbuffered")
-        baud = values["baud"]
-        if baud is not None and not (baud.isdigit() and int(baud) > 0):
-            raise pytest.UsageError(f"--hyrel-baud: '{baud}' is not a baud rate")
+            option = config.getoption(f"hyrel_{name}")
+            variable = os.environ.get(f"HYREL_{name.upper()}")
+            ini = str(config.getini(f"hyrel_{name}"))
+            values[name] = (
+                (option, f"--hyrel-{name}")
+                if option is not None
+                else (variable, f"HYREL_{name.upper()}")
+                if variable
+                else (ini, f"hyrel_{name} in {config.inipath}")
+                if ini
+                else None
+            )
+        flow, baud = values["flow"], values["baud"]
+        if flow is not None and flow[0] not in ("buffered", "unbuffered"):
+            raise pytest.UsageError(f"{flow[1]}: '{flow[0]}' is not buffered or unbuffered")
+        if baud is not None and not (baud[0].isdigit() and int(baud[0]) > 0):
+            raise pytest.UsageError(f"{baud[1]}: '{baud[0]}' is not a baud rate")
+
+        def value(name: str) -> str | None:
+            given = values[name]
+            return given[0] if given is not None else None
+
         return cls(
-            port=values["port"] or FAKE,
-            machine=values["machine"],
-            loadout=values["loadout"],
-            flow=flow,
-            baud=int(baud) if baud is not None else None,
+            port=value("port") or FAKE,
+            machine=value("machine"),
+            loadout=value("loadout"),
+            flow=value("flow"),
+            baud=int(baud[0]) if baud is not None else None,
         )
 
 
@@ -149,17 +172,63 @@ def _options(config: pytest.Config) -> HyrelOptions:
     return config.stash[_options_key]
 
 
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Skip what this run cannot do (before any fixture starts a fake or opens a port)."""
+    options = config.stash.get(_options_key, None)
+    if options is None:
+        return
+    machine = _known_machine(options) if options.machine or options.loadout else None
+    known = _known_machines() if machine is not None else set()
+    for item in items:
+        if item.get_closest_marker("hyrel_hardware") and not options.hardware:
+            reason = "needs a real printer: give --hyrel-port=PORT (or HYREL_PORT)"
+            item.add_marker(pytest.mark.skip(reason=reason))
+        if item.get_closest_marker("hyrel_fake_only") and options.hardware:
+            reason = f"needs the fake controller's fault injection; this run drives {options.port}"
+            item.add_marker(pytest.mark.skip(reason=reason))
+        wanted = _marker_machines(item)
+        if machine and wanted and set(wanted) <= known and machine.split()[0] not in wanted:
+            reason = f"for machine {' or '.join(wanted)}; this run's machine is {machine}"
+            item.add_marker(pytest.mark.skip(reason=reason))
+
+
 @pytest.hookimpl(tryfirst=True)
 def pytest_runtest_setup(item: pytest.Item) -> None:
-    """Skip what this run cannot do, before any fixture starts a fake or opens a port."""
+    wanted = _wanted_machines(item)
     options = _options(item.config)
-    if item.get_closest_marker("hyrel_hardware") and not options.hardware:
-        pytest.skip("needs a real printer: give --hyrel-port PORT (or HYREL_PORT)")
-    if item.get_closest_marker("hyrel_fake_only") and options.hardware:
-        pytest.skip(f"needs the fake controller's fault injection; this run drives {options.port}")
-    marked = item.get_closest_marker("hyrel_machine") is not None
-    if marked and (options.machine is not None or options.loadout is not None):
-        _check_machine(item, _known_machine(options))
+    uses_session = {"hyrel_printer", "hyrel_aprinter"} & set(getattr(item, "fixturenames", ()))
+    if wanted and not (options.machine or options.loadout or uses_session):
+        pytest.fail(
+            "hyrel_machine: this test's machine is known from --hyrel-machine or "
+            "--hyrel-loadout, or from the controller once the test uses hyrel_printer",
+            pytrace=False,
+        )
+
+
+def _known_machines() -> set[str]:
+    from repetrel_host.config import load_library, load_user_config
+
+    return set(load_library(load_user_config(None)).machines)
+
+
+def _marker_machines(item: pytest.Item) -> list[str]:
+    marker = item.get_closest_marker("hyrel_machine")
+    return [str(name) for name in marker.args] if marker is not None else []
+
+
+def _wanted_machines(item: pytest.Item) -> list[str]:
+    """The machine profiles a ``hyrel_machine`` marker names (a mistyped one fails)."""
+    marker = item.get_closest_marker("hyrel_machine")
+    if marker is None:
+        return []
+    known = _known_machines()
+    if not marker.args or any(name not in known for name in marker.args):
+        pytest.fail(
+            f"hyrel_machine({', '.join(map(repr, marker.args))}): name known machine profiles "
+            f"({', '.join(sorted(known))})",
+            pytrace=False,
+        )
+    return [str(name) for name in marker.args]
 
 
 def _known_machine(options: HyrelOptions) -> str:
@@ -170,28 +239,6 @@ def _known_machine(options: HyrelOptions) -> str:
     request = JobRequest(loadout, options.machine)
     profile = controller_profile(request, load_user_config(None), None)
     return profile.describe()
-
-
-def _check_machine(item: pytest.Item, machine: str) -> None:
-    """Skip ``item`` when its ``hyrel_machine`` marker does not name ``machine``
-    (a profile as :meth:`Profile.describe` gives it: ``hydra-16a (--machine)``)."""
-    from repetrel_host.config import load_library, load_user_config
-
-    marker = item.get_closest_marker("hyrel_machine")
-    if marker is None:
-        return
-    known = load_library(load_user_config(None)).machines
-    unknown = [str(a) for a in marker.args if a not in known]
-    if unknown or not marker.args:
-        pytest.fail(
-            f"hyrel_machine({', '.join(map(repr, marker.args))}): name known machine profiles "
-            f"({', '.join(sorted(known))})",
-            pytrace=False,
-        )
-    name = machine.split(" ", 1)[0]
-    if name not in marker.args:
-        wanted = " or ".join(str(a) for a in marker.args)
-        pytest.skip(f"for machine {wanted}; this run's machine is {machine}")
 
 
 @pytest.hookimpl(wrapper=True)
@@ -208,7 +255,9 @@ def pytest_runtest_makereport(
 
 
 def _failed(item: pytest.Item) -> bool:
-    return any(r.failed for r in item.stash.get(_reports, {}).values())
+    """The test failed (an expected failure too: the machine may be in any state)."""
+    reports = item.stash.get(_reports, {}).values()
+    return any(r.failed or hasattr(r, "wasxfail") for r in reports)
 
 
 # --- the event loop the session lives on ----------------------------------------
@@ -326,6 +375,8 @@ async def _record_events(printer: rh.Printer, recorder: WireRecorder) -> None:
 
 # --- jobs -------------------------------------------------------------------------
 
+_FILE_SUFFIXES = (".gcode", ".gco", ".g", ".nc")
+
 
 @dataclass(frozen=True)
 class HyrelJob:
@@ -335,27 +386,39 @@ class HyrelJob:
     header: bool = True
     history: Path | None = None  # where the stream as transmitted is kept
 
-    @cached_property
-    def commands(self) -> list[str]:
-        """The job's commands (the header not included), as they go on the wire."""
-        from repetrel_host.job import Job
 
-        return [line.command for line in Job(self.path).lines()]
+def _as_job(job: HyrelJob | Path | str) -> HyrelJob:
+    if isinstance(job, HyrelJob):
+        return job
+    if isinstance(job, str) and "\n" in job:
+        raise ValueError(
+            "print() takes hyrel_job(...) or a file's path; for G-code text, use hyrel_job(text)"
+        )
+    return HyrelJob(Path(job))
 
 
-@dataclass(frozen=True)
 class PrintResult:
     """How a job went: which of its lines the controller acknowledged, and how it ended."""
 
-    job: HyrelJob
-    header: list[str]  # the header the job was sent with
-    header_acknowledged: list[str]
-    commands: list[str]  # the job's lines as sent (an M0 becomes the machine's pause_sync)
-    acknowledged: list[str]  # those the controller acknowledged, in order
-    last_line: int  # the file line of the last acknowledged command; 0: none
-    summary: rh.Summary | None  # None when it failed
-    error: rh.HostError | None
-    safe_stop_missing: list[str] = field(default_factory=list)
+    def __init__(
+        self,
+        job: HyrelJob,
+        running: rh.PrintJob,
+        summary: rh.Summary | None,
+        error: rh.HostError | None,
+    ) -> None:
+        self.job = job
+        self.summary = summary  # None when it failed
+        self.error = error
+        plan = running.plan
+        self.header = [line.command for line in plan.header]  # the header it was sent with
+        self.header_acknowledged = self.header[: running.header_lines]
+        last = running.last
+        self.last_line = last.source_line if last is not None else 0  # file line; 0: none
+        # Safe-stop commands not confirmed, when the job was stopped.
+        self.safe_stop_missing = running.safe_stop_missing if running.stopping else []
+        self._file = plan.job  # read with the machine's own pause command for M0
+        self._count = running.lines
 
     @property
     def completed(self) -> bool:
@@ -364,29 +427,19 @@ class PrintResult:
 
         return self.summary is not None and self.summary.outcome is Outcome.COMPLETED
 
+    @cached_property
+    def commands(self) -> list[str]:
+        """The job's lines as sent (an M0 becomes the machine's pause command)."""
+        return [line.command for line in self._file.lines()]
 
-def _result(
-    job: HyrelJob, running: rh.PrintJob, summary: rh.Summary | None, error: rh.HostError | None
-) -> PrintResult:
-    plan = running.plan
-    lines: list[JobLine] = list(plan.job.lines())
-    acknowledged = [line for line in lines if line.index <= running.lines]
-    header = [line.command for line in plan.header]
-    return PrintResult(
-        job,
-        header,
-        header[: running.header_lines],
-        [line.command for line in lines],
-        [line.command for line in acknowledged],
-        acknowledged[-1].source_line if acknowledged else 0,
-        summary,
-        error,
-        running.safe_stop_missing,
-    )
+    @cached_property
+    def acknowledged(self) -> list[str]:
+        """Those the controller acknowledged, in order (they go and are confirmed in order)."""
+        return [line.command for line in islice(self._file.lines(), self._count)]
 
-
-def _as_job(job: HyrelJob | Path | str) -> HyrelJob:
-    return job if isinstance(job, HyrelJob) else HyrelJob(Path(job))
+    def __repr__(self) -> str:
+        how = "completed" if self.completed else f"ended ({self.error or 'cancelled'})"
+        return f"<PrintResult {self.job.path.name}: {how}; {self._count} lines acknowledged>"
 
 
 # --- the session, as tests use it -------------------------------------------------
@@ -395,10 +448,13 @@ def _as_job(job: HyrelJob | Path | str) -> HyrelJob:
 class _Session:
     """One printer session on the portal, and how to leave the machine safe."""
 
-    def __init__(self, portal: Portal, printer: rh.Printer, recorder: WireRecorder) -> None:
+    def __init__(
+        self, portal: Portal, printer: rh.Printer, recorder: WireRecorder, deadline: float
+    ) -> None:
         self.portal = portal
         self.printer = printer
         self.recorder = recorder
+        self.deadline = deadline  # for the safe stop after a test
 
     async def start(self, job: HyrelJob, force: bool) -> rh.PrintJob:
         history: Path | bool = job.history if job.history is not None else False
@@ -408,12 +464,22 @@ class _Session:
         import repetrel_host as rh
 
         try:
-            result = _result(job, running, await running.wait(), None)
+            return PrintResult(job, running, await running.wait(), None)
         except rh.HostError as exc:
             if check:
                 raise
-            result = _result(job, running, None, exc)
-        return result
+            return PrintResult(job, running, None, exc)
+
+    async def cancel(self, job: HyrelJob, running: rh.PrintJob) -> PrintResult:
+        if not running.done and not running.stopping:
+            running.stop()  # this job only, should another be running
+        return await self.finish(job, running, check=False)
+
+    async def command(self, line: str, timeout: float | None) -> rh.Reply:
+        try:
+            return await self.printer.command(line, timeout=timeout)
+        except TimeoutError:
+            raise TimeoutError(f"{line}: no reply within {timeout:g} s") from None
 
     async def wait_for_temperature(
         self, sensor: str, target: float, tolerance: float, timeout: float
@@ -421,55 +487,97 @@ class _Session:
         import repetrel_host as rh
 
         last: float | None = self.printer.temperatures.get(sensor, (None, None))[0]
-        try:
+        with contextlib.suppress(TimeoutError):
             async with asyncio.timeout(timeout):
                 async for event in self.printer.events():
                     if isinstance(event, rh.Temperatures) and sensor in event.readings:
                         last = event.readings[sensor][0]
                         if abs(last - target) <= tolerance:
                             return last
-        except TimeoutError:
-            pass
         raise AssertionError(
             f"{sensor} did not reach {target:g} (within {tolerance:g}) in {timeout:g} s; "
             f"last reading: {'none' if last is None else f'{last:g}'}"
         )
 
-    async def leave_safe(self, failed: bool) -> None:
-        """Cancel a running job (its safe stop first); after a failure, send the safe stop."""
+    async def subscribe(self) -> AsyncIterator[PrinterEvent]:
+        """The session's events, subscribed to on its own loop (for another thread's use)."""
+        return self.printer.events()
+
+    async def leave_safe(self, failed: bool) -> str | None:
+        """Cancel a running job (its safe stop first); after a failure, send the safe stop.
+        Returns what went wrong, or None once the machine is safe."""
+        import repetrel_host as rh
+
+        printer = self.printer
+        job = printer.job
+        if job is None and not failed:
+            return None
+        firmware = printer.firmware
+        emergency = firmware is not None and firmware.can("EMERGENCY_PARSER")
+        connected = printer.state in (rh.State.READY, rh.State.PAUSED, rh.State.PRINTING)
+        if emergency and connected and (job is not None or printer.pending):
+            await printer.command("M108")  # a heat wait must not hold the safe stop back
+        missing: list[str] = []
+        if job is not None:
+            if not job.stopping:
+                job.stop()
+            try:
+                await asyncio.wait_for(job.wait(), self.deadline)
+            except TimeoutError:
+                job.stop()  # abandoned: what was not confirmed is missing
+            except rh.HostError:
+                pass
+            missing = job.safe_stop_missing if job.stopping else []
+        if failed and (job is None or not job.stopping):
+            missing = await self._send_safe_stop()
+        if not missing:
+            return None
+        problem = f"the safe stop was not confirmed within {self.deadline:g} s (missing: "
+        problem += f"{', '.join(missing)})"
+        if emergency and printer.state is not rh.State.CLOSED:
+            with contextlib.suppress(rh.HostError):
+                await printer.command("M112")
+                problem += "; sent M112 (emergency stop)"
+        return problem + ": check the machine"
+
+    async def _send_safe_stop(self) -> list[str]:
+        """Send the machine's safe-stop sequence; returns the commands not confirmed."""
         import repetrel_host as rh
         from repetrel_host.planning import controller_profile, safe_stop
 
         printer = self.printer
-        if printer.job is not None:
-            await printer.cancel()
-            return
-        if not failed or printer.state not in (rh.State.READY, rh.State.PAUSED):
-            return
         settings = printer.settings
         profile = controller_profile(settings.request, settings.user, printer.firmware)
-        for command in safe_stop(profile.machine, settings.user):
-            with contextlib.suppress(rh.HostError, TimeoutError):
-                await printer.command(command, timeout=30)
+        commands = safe_stop(profile.machine, settings.user)
+        loop = asyncio.get_running_loop()
+        end = loop.time() + self.deadline
+        try:
+            await printer.wait_for(rh.State.READY, rh.State.PAUSED, timeout=self.deadline)
+            for done, command in enumerate(commands):
+                try:
+                    await printer.command(command, timeout=max(0.001, end - loop.time()))
+                except (rh.HostError, TimeoutError):
+                    return commands[done:]
+        except TimeoutError:
+            return commands
+        return []
 
-    async def close(self, safe_stop: bool) -> None:
+    async def close(self, safe_stop: bool) -> str | None:
         """Close the session; with ``safe_stop``, send the safe-stop sequence first."""
-        await self.leave_safe(failed=safe_stop)
+        problem = await self.leave_safe(failed=safe_stop)
         await self.printer.close()
-
-    async def subscribe(self) -> AsyncIterator[PrinterEvent]:
-        """The session's events, subscribed to on its own loop (for another thread's use)."""
-        return self.printer.events()
+        return problem
 
 
 class HyrelPrinter:
     """A READY printer session for synchronous tests: each call returns when done.
 
-    ``session`` is the :class:`repetrel_host.Printer` itself, for what this facade does
-    not offer (it lives on the plugin's own event loop: use :meth:`run`)."""
+    ``session`` is the :class:`repetrel_host.Printer` itself. It lives on the plugin's
+    own event loop, in another thread: run its coroutines with :meth:`run`."""
 
     def __init__(self, session: _Session) -> None:
         self._session = session
+        self._portal = session.portal
         self.session = session.printer
 
     @property
@@ -496,11 +604,11 @@ class HyrelPrinter:
         async def call() -> T:
             return await work(self.session)
 
-        return self._session.portal.call(call(), timeout)
+        return self._portal.call(call(), timeout)
 
     def command(self, line: str, *, timeout: float | None = None) -> rh.Reply:
         """Send one command and return the controller's reply (``reply.lines``, ``reply.ok``)."""
-        return self._session.portal.call(self.session.command(line, timeout=timeout))
+        return self._portal.call(self._session.command(line, timeout))
 
     def print(
         self,
@@ -517,22 +625,23 @@ class HyrelPrinter:
     def start(self, job: HyrelJob | Path | str, *, force: bool = False) -> RunningJob:
         """Start streaming ``job`` and return at once (to pause, cancel, watch it)."""
         job = _as_job(job)
-        running = self._session.portal.call(self._session.start(job, force))
+        running = self._portal.call(self._session.start(job, force))
         return RunningJob(self._session, job, running)
 
     def pause(self) -> None:
         """Pause the running job; returns once every line sent is confirmed."""
-        self._session.portal.call(self.session.pause())
+        self._portal.call(self.session.pause())
 
     def resume(self) -> None:
-        self._session.portal.call(self.session.resume())
+        self._portal.call(self.session.resume())
 
     def cancel(self) -> None:
         """Stop the running job with the safe-stop sequence; returns once it went."""
-        self._session.portal.call(self.session.cancel())
+        self._portal.call(self.session.cancel())
 
     def wait_for(self, *states: rh.State, timeout: float | None = None) -> None:
-        self._session.portal.call(self.session.wait_for(*states, timeout=timeout))
+        """Wait until the session is in one of ``states`` (READY after a reset, an unplug)."""
+        self._portal.call(self.session.wait_for(*states, timeout=timeout))
 
     def wait_for_temperature(
         self, sensor: str, target: float, *, tolerance: float = 2.0, timeout: float = 60.0
@@ -540,12 +649,12 @@ class HyrelPrinter:
         """Wait until ``sensor`` (``T``, ``B``...) reads within ``tolerance`` of ``target``;
         returns the reading, or fails the test after ``timeout`` seconds."""
         work = self._session.wait_for_temperature(sensor, target, tolerance, timeout)
-        return self._session.portal.call(work)
+        return self._portal.call(work)
 
     def events(self, timeout: float) -> Iterator[PrinterEvent]:
         """State changes (the current one first), temperatures and controller messages,
         for ``timeout`` seconds (or until the session closes)."""
-        portal = self._session.portal
+        portal = self._portal
         stream = portal.call(self._session.subscribe())
         deadline = time.monotonic() + timeout
         try:
@@ -588,16 +697,16 @@ class RunningJob:
         self._session.portal.call(self.print_job.resume())
 
     def cancel(self) -> PrintResult:
-        """Stop with the safe-stop sequence first; returns how far the job got."""
-        self._session.portal.call(self.print_job.cancel())
-        return self.wait(check=False)
+        """Stop this job with the safe-stop sequence first; returns how far it got."""
+        return self._session.portal.call(self._session.cancel(self.job, self.print_job))
 
 
 class AsyncHyrelPrinter:
-    """:class:`HyrelPrinter` for async tests: the same calls, awaited, from any event loop."""
+    """:class:`HyrelPrinter` for async tests: the same calls, awaited, from any asyncio loop."""
 
     def __init__(self, session: _Session) -> None:
         self._session = session
+        self._portal = session.portal
         self.session = session.printer
 
     state = HyrelPrinter.state
@@ -605,38 +714,46 @@ class AsyncHyrelPrinter:
     temperatures = HyrelPrinter.temperatures
     port = HyrelPrinter.port
 
+    async def run(self, work: Callable[[rh.Printer], Awaitable[T]]) -> T:
+        async def call() -> T:
+            return await work(self.session)
+
+        return await self._portal.acall(call())
+
     async def command(self, line: str, *, timeout: float | None = None) -> rh.Reply:
-        return await self._session.portal.acall(self.session.command(line, timeout=timeout))
+        return await self._portal.acall(self._session.command(line, timeout))
 
     async def print(
         self, job: HyrelJob | Path | str, *, force: bool = False, check: bool = True
     ) -> PrintResult:
+        return await (await self.start(job, force=force)).wait(check=check)
+
+    async def start(self, job: HyrelJob | Path | str, *, force: bool = False) -> AsyncRunningJob:
         job = _as_job(job)
-        session = self._session
-
-        async def work() -> PrintResult:
-            return await session.finish(job, await session.start(job, force), check)
-
-        return await session.portal.acall(work())
+        running = await self._portal.acall(self._session.start(job, force))
+        return AsyncRunningJob(self._session, job, running)
 
     async def pause(self) -> None:
-        await self._session.portal.acall(self.session.pause())
+        await self._portal.acall(self.session.pause())
 
     async def resume(self) -> None:
-        await self._session.portal.acall(self.session.resume())
+        await self._portal.acall(self.session.resume())
 
     async def cancel(self) -> None:
-        await self._session.portal.acall(self.session.cancel())
+        await self._portal.acall(self.session.cancel())
+
+    async def wait_for(self, *states: rh.State, timeout: float | None = None) -> None:
+        await self._portal.acall(self.session.wait_for(*states, timeout=timeout))
 
     async def wait_for_temperature(
         self, sensor: str, target: float, *, tolerance: float = 2.0, timeout: float = 60.0
     ) -> float:
         work = self._session.wait_for_temperature(sensor, target, tolerance, timeout)
-        return await self._session.portal.acall(work)
+        return await self._portal.acall(work)
 
     async def events(self) -> AsyncIterator[PrinterEvent]:
         """State changes (the current one first), temperatures and controller messages."""
-        portal = self._session.portal
+        portal = self._portal
         stream = await portal.acall(self._session.subscribe())
         try:
             while True:
@@ -649,13 +766,35 @@ class AsyncHyrelPrinter:
                 await portal.acall(stream.aclose())  # type: ignore[attr-defined]
 
 
+class AsyncRunningJob(RunningJob):
+    """A job streaming from :meth:`AsyncHyrelPrinter.start`: the same calls, awaited."""
+
+    async def wait(  # type: ignore[override]
+        self, *, check: bool = True
+    ) -> PrintResult:
+        return await self._session.portal.acall(
+            self._session.finish(self.job, self.print_job, check)
+        )
+
+    async def pause(self) -> None:  # type: ignore[override]
+        await self._session.portal.acall(self.print_job.pause())
+
+    async def resume(self) -> None:  # type: ignore[override]
+        await self._session.portal.acall(self.print_job.resume())
+
+    async def cancel(self) -> PrintResult:  # type: ignore[override]
+        return await self._session.portal.acall(self._session.cancel(self.job, self.print_job))
+
+
 # --- the controller -----------------------------------------------------------------
 
 
 class HyrelController:
     """What the tests talk to: a real printer's port, or the fake controller.
 
-    The fake-only parts (executed commands, faults, heaters) skip the test on real hardware."""
+    The fake-only parts (executed commands, faults, heaters) skip the test on real
+    hardware. After :meth:`reset` or :meth:`unplug` the session greets the controller
+    again: ``hyrel_printer.wait_for(rh.State.READY)`` before the next command."""
 
     def __init__(self, port: str, fake: BuiltInFake | None = None) -> None:
         self.port = port
@@ -724,10 +863,18 @@ class HyrelController:
         self._request("an unplug", f"link_drop {seconds}")
 
 
+# The fake's options a test may not set: the plugin sets them itself.
+_PLUGIN_OWNED = frozenset({"link", "log", "received", "stats", "control"})
+
+
 def _fake_arguments(item: pytest.Item) -> list[str]:
     """The fake's command-line settings from the test's ``hyrel_fake`` markers."""
     arguments: list[str] = []
     for marker in reversed(list(item.iter_markers("hyrel_fake"))):
+        owned = _PLUGIN_OWNED & set(marker.kwargs)
+        if marker.args or owned:
+            what = f"{', '.join(sorted(owned))} is the plugin's" if owned else "name each setting"
+            pytest.fail(f"hyrel_fake: {what} (as in hyrel_fake(heat_rate=20))", pytrace=False)
         for name, value in marker.kwargs.items():
             option = "--" + name.replace("_", "-")
             if value is True:
@@ -803,9 +950,10 @@ def _hyrel_session(
 ) -> Iterator[_Session]:
     import repetrel_host as rh
 
+    options = hyrel_options
     portal = Portal()
     recorder = WireRecorder()
-    options = hyrel_options
+    deadline = SAFE_STOP_DEADLINE if options.hardware else FAKE_SAFE_STOP_DEADLINE
 
     async def open_session() -> _Session:
         baud, flow = _link(options)
@@ -819,20 +967,28 @@ def _hyrel_session(
         )
         printer.tap_wire(recorder.tap)
         asyncio.get_running_loop().create_task(_record_events(printer, recorder))
-        return _Session(portal, printer, recorder)
+        return _Session(portal, printer, recorder, deadline)
 
+    failure: str | None = None
     try:
         session = portal.call(open_session())
-    except rh.HostError as exc:
+    except BaseException as exc:
         portal.close()
-        pytest.fail(f"hyrel: no printer session on {hyrel_controller.port}: {exc}", pytrace=False)
+        if not isinstance(exc, rh.HostError):
+            raise
+        failure = f"hyrel: no printer session on {hyrel_controller.port}: {exc}"
+    if failure is not None:
+        pytest.fail(failure, pytrace=False)  # outside the except: no chained traceback
     try:
         yield session
     finally:
-        with contextlib.suppress(Exception):
+        try:
             # The bench's printer is left safe at the end of the run; the fake just goes.
-            portal.call(session.close(safe_stop=options.hardware), 120)
-        portal.close()
+            problem = portal.call(session.close(safe_stop=options.hardware), 4 * deadline)
+        finally:
+            portal.close()
+    if problem is not None:
+        pytest.fail(f"hyrel: at the end of the run, {problem}", pytrace=False)
 
 
 def _facade(
@@ -841,26 +997,28 @@ def _facade(
     """Before the test: a READY session, the machine it needs, the report's starting
     point. After: the machine left safe."""
     import repetrel_host as rh
+    from repetrel_host.planning import controller_profile
 
     item = request.node
     printer = session.printer
     try:
         session.portal.call(printer.wait_for(rh.State.READY, timeout=READY_TIMEOUT))
     except TimeoutError:
-        pytest.fail(
-            f"hyrel: the printer on {printer.port} is not ready ({printer.state.value})",
-            pytrace=False,
-        )
-    if item.get_closest_marker("hyrel_machine"):
+        state = printer.state.value
+        pytest.fail(f"hyrel: the printer on {printer.port} is not ready ({state})", pytrace=False)
+    wanted = _wanted_machines(item)
+    if wanted:
         settings = printer.settings
-        from repetrel_host.planning import controller_profile
-
         profile = controller_profile(settings.request, settings.user, printer.firmware)
-        _check_machine(item, profile.describe())
+        if profile.name not in wanted:
+            machine = profile.describe()
+            pytest.skip(f"for machine {' or '.join(wanted)}; this run's machine is {machine}")
     item.stash[_recorders] = session.recorder
     item.stash[_marks] = session.recorder.mark()
     yield facade(session)
-    session.portal.call(session.leave_safe(_failed(item)), 120)
+    problem = session.portal.call(session.leave_safe(_failed(item)), 4 * session.deadline)
+    if problem is not None:
+        pytest.fail(f"hyrel: after the test, {problem}", pytrace=False)
 
 
 @pytest.fixture
@@ -875,24 +1033,30 @@ def hyrel_printer(
 def hyrel_aprinter(
     request: pytest.FixtureRequest, _hyrel_session: _Session
 ) -> Iterator[AsyncHyrelPrinter]:
-    """A READY printer session, awaited from async tests on any event loop."""
+    """A READY printer session, awaited from async tests on any asyncio event loop."""
     yield from _facade(request, _hyrel_session, AsyncHyrelPrinter)
 
 
 @pytest.fixture
 def hyrel_job(tmp_path: Path) -> Callable[..., HyrelJob]:
-    """``hyrel_job("G28\\nG1 X10\\n")`` or ``hyrel_job(path)``: a job to print, with the
-    loadout's header unless ``header=False``; its stream is kept in the test's tmp_path."""
+    """``hyrel_job("G28\\nG1 X10\\n")`` (G-code text) or ``hyrel_job(Path("part.gcode"))``:
+    a job to print, with the loadout's header unless ``header=False``; the stream as
+    transmitted is kept in the test's tmp_path."""
     count = 0
 
-    def make(source: str | Path, *, header: bool = True) -> HyrelJob:
+    def make(source: str | os.PathLike[str], *, header: bool = True) -> HyrelJob:
         nonlocal count
         count += 1
-        if isinstance(source, Path):
-            path = source
-        else:
+        if isinstance(source, str):
+            if "\n" not in source and source.lower().endswith(_FILE_SUFFIXES):
+                raise ValueError(
+                    f"hyrel_job({source!r}) takes G-code text; for a file, "
+                    f"hyrel_job(Path({source!r}))"
+                )
             path = tmp_path / f"job{count}.gcode"
             path.write_text(source)
+        else:
+            path = Path(source)
         return HyrelJob(path, header, tmp_path / f"job{count}-sent.gcode")
 
     return make

@@ -341,8 +341,12 @@ class ControllerSimulator:
         if len(data) > free:
             link.bytes_dropped += len(data) - free
             data = data[:free]
-        if b"M112" in data and data.lstrip().startswith(b"M112"):
-            self._kill(now)  # Marlin's emergency parser acts as the bytes arrive
+        # Marlin's emergency parser acts on these as the bytes arrive.
+        if data.lstrip().startswith(b"M112"):
+            self._kill(now)
+            return
+        if data.lstrip().startswith(b"M108"):
+            self._break_heat_wait(now)
             return
         self._rx += data
         if len(self._rx) > link.peak_rx_buffer:
@@ -542,6 +546,12 @@ class ControllerSimulator:
     def _temperatures(self, now: float) -> str:
         hotend, bed = self._heat("T", now), self._heat("B", now)
         return f"T:{hotend[0]:.1f} /{hotend[1]:.1f} B:{bed[0]:.1f} /{bed[1]:.1f} @:0 B@:0"
+
+    def _break_heat_wait(self, now: float) -> None:
+        """M108: an M109 or M190 waiting for its heater stops waiting (its ok goes now)."""
+        head = self._queue[0] if self._queue else None
+        if head is not None and head.started and _HEATERS.get(head.word, ("", False))[1]:
+            self._busy_until = min(self._busy_until, now)
 
     def _kill(self, now: float) -> None:
         """M112: Marlin's kill(): heaters off, nothing more until a reset."""
