@@ -434,3 +434,18 @@ def test_each_test_gets_a_fresh_fake(pytester: pytest.Pytester) -> None:
         """
     )
     run(pytester).assert_outcomes(passed=2)
+
+
+def test_the_wire_recorder_joins_lines_split_across_reads_and_caps_noise() -> None:
+    from repetrel_host.testing.pytest_plugin import WIRE_LINE_MAX, WireRecorder
+
+    recorder = WireRecorder()
+    recorder.tap(True, b"N1 G28*18\nN2 G1")
+    recorder.tap(False, b"o")
+    mark = recorder.mark()
+    recorder.tap(True, b" X1*99\n")
+    recorder.tap(False, b"k\r\n" + b"\xff" * (WIRE_LINE_MAX + 1))
+    lines = [text.split(maxsplit=1)[1] for _, text in recorder.wire]  # without the time
+    assert lines[:3] == ["> N1 G28*18", "> N2 G1 X1*99", "< ok"]
+    assert lines[3] == "< " + "\\xff" * (WIRE_LINE_MAX + 1)  # shown, not held back
+    assert len(recorder.since(recorder.wire, mark)) == 3  # what came after the mark

@@ -15,9 +15,12 @@ whole test run, as a printer is one physical thing. Fixtures:
 Markers: ``hyrel_hardware``, ``hyrel_fake_only``, ``hyrel_machine(NAME...)``,
 ``hyrel_fake(heat_rate=..., faults=...)``. A failed test's report gets the last lines
 exchanged on the wire and the controller's messages. Teardown leaves the machine safe:
-a job still running is cancelled (the safe stop first), and after a failed test the
-safe-stop sequence is sent. Models: pytest-embedded (options in a group, a DUT fixture,
-its log in the report), labgrid's pytest plugin (the same test on a board or an emulator).
+a job still running is cancelled (the safe stop first); after a failed test and at the
+end of a bench run the safe-stop sequence is sent (a heat wait ended first with M108),
+and a safe stop not confirmed in time fails the teardown.
+
+Models: pytest-embedded (options in a group, a DUT fixture, its log in the report),
+labgrid's pytest plugin (the same test on a board or on an emulator).
 """
 
 from __future__ import annotations
@@ -67,6 +70,7 @@ FAKE_SAFE_STOP_DEADLINE = 10.0
 POLL_INTERVAL = 1.0
 WIRE_LINES = 2000  # kept for the report of a failed test
 REPORT_LINES = 100  # shown in it
+WIRE_LINE_MAX = 4096
 T = TypeVar("T")
 
 _options_key = pytest.StashKey["HyrelOptions"]()
@@ -321,6 +325,9 @@ class WireRecorder:
         partial = self._partial[sent]
         partial += data
         *lines, rest = partial.split(b"\n")
+        if len(rest) > WIRE_LINE_MAX:  # noise without line ends: shown, not hoarded
+            lines.append(rest[:])
+            rest.clear()
         partial[:] = rest
         for raw in lines:
             text = raw.rstrip(b"\r").decode("ascii", errors="backslashreplace")
