@@ -1,0 +1,1 @@
+"""The print server: a daemon that owns the printers (``hyrel-server``)."""

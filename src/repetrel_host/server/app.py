@@ -1,0 +1,675 @@
+"""The print server's HTTP API: native endpoints under ``/v1``, and the part of
+OctoPrint's API that slicers and farm tools use, at ``/api`` (the default printer) and
+``/printers/NAME/api`` (each printer, so a farm tool sees one OctoPrint per printer).
+
+Every request that changes something needs the API key (``X-Api-Key``, or ``apikey``
+in the query, as OctoPrint takes it). Errors are 4xx answers with a JSON body.
+Models: OctoPrint's REST API (``/api/files/local``, ``/api/job``, ``/api/printer``) as
+PrusaSlicer's ``OctoPrint.cpp`` uses it; Moonraker's queue endpoints.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import hmac
+import logging
+import os
+import re
+import shutil
+import time
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from pathlib import Path
+from typing import Annotated, Any
+
+from fastapi import (
+    APIRouter,
+    Depends,
+    FastAPI,
+    File,
+    Form,
+    Header,
+    HTTPException,
+    Query,
+    Request,
+    UploadFile,
+)
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse, Response
+from pydantic import BaseModel
+
+import repetrel_host as rh
+from repetrel_host.config import UserConfig
+from repetrel_host.planning import JobRequest, plan_job
+from repetrel_host.server.printers import PrinterService
+from repetrel_host.server.store import JobRecord, JobState, Store
+
+log = logging.getLogger("repetrel_host.server")
+
+# What /api/version says: PrusaSlicer checks that "text" starts with "OctoPrint".
+OCTOPRINT_VERSION = "1.10.0"
+G_CODE_SUFFIXES = (".gcode", ".gco", ".g")
+_SAFE_NAME = re.compile(r"[^A-Za-z0-9._ ()+-]")
+
+
+class PrintServer:
+    """The printers, their store and the data folder; started and stopped with the app."""
+
+    def __init__(
+        self,
+        data_dir: Path,
+        printers: dict[str, str],
+        api_key: str,
+        max_upload: int,
+        user: UserConfig | None = None,
+    ) -> None:
+        self.data_dir = data_dir
+        self.files = data_dir / "files"
+        self.files.mkdir(parents=True, exist_ok=True)
+        self.api_key = api_key
+        self.max_upload = max_upload
+        self.user = user or UserConfig()
+        self.store = Store(data_dir / "jobs.sqlite")
+        self.services = {
+            name: PrinterService(name, port, self.store, data_dir, self.user)
+            for name, port in printers.items()
+        }
+        self.default = next(iter(self.services))
+        for record in self.store.interrupt_active():
+            log.warning(
+                "job %d (%s) on printer %s was interrupted: acknowledged through at least "
+                "line %d; its safe stop goes first",
+                record.id,
+                record.name,
+                record.printer,
+                record.last_line,
+            )
+            service = self.services.get(record.printer)
+            if service is not None:
+                service.owed_safe_stop = True
+        # After an interrupted job nothing starts by itself: a part may be on the bed.
+        for service in self.services.values():
+            last = self.store.last_started(service.name)
+            if last is not None and last.state is JobState.INTERRUPTED:
+                service.held = True
+                log.warning(
+                    "printer %s: the queue is held after interrupted job %d "
+                    "(POST /v1/printers/%s/release, or OctoPrint's job start, releases it)",
+                    service.name,
+                    last.id,
+                    service.name,
+                )
+
+    async def start(self) -> None:
+        for service in self.services.values():
+            service.start()
+
+    async def stop(self) -> None:
+        await asyncio.gather(*(service.stop() for service in self.services.values()))
+        self.store.close()
+
+    def service(self, name: str | None) -> PrinterService:
+        service = self.services.get(name or self.default)
+        if service is None:
+            raise HTTPException(404, f"no printer '{name}' (printers: {', '.join(self.services)})")
+        return service
+
+
+# --- helpers ------------------------------------------------------------------------
+
+
+def _server(request: Request) -> PrintServer:
+    server: PrintServer = request.app.state.server
+    return server
+
+
+def require_key(
+    request: Request,
+    x_api_key: Annotated[str | None, Header()] = None,
+    apikey: Annotated[str | None, Query()] = None,
+) -> None:
+    """State-changing requests carry the API key."""
+    given = x_api_key or apikey or ""
+    if not hmac.compare_digest(given.encode(), _server(request).api_key.encode()):
+        raise HTTPException(403, "a valid API key is needed (the X-Api-Key header)")
+
+
+Keyed = Depends(require_key)
+
+
+def _job_json(record: JobRecord) -> dict[str, Any]:
+    return {
+        "id": record.id,
+        "printer": record.printer,
+        "name": record.name,
+        "state": record.state.value,
+        "submitted": record.submitted,
+        "started": record.started,
+        "ended": record.ended,
+        "lines": record.lines,
+        "last_line": record.last_line,
+        "total_lines": record.total_lines,
+        "error": record.error,
+    }
+
+
+def _printer_json(service: PrinterService) -> dict[str, Any]:
+    printer = service.printer
+    running = service.running
+    return {
+        "name": service.name,
+        "port": service.port,
+        "state": service.state,
+        "held": service.held,
+        "error": service.last_error or None,
+        "firmware": printer.firmware.name if printer and printer.firmware else None,
+        "temperatures": {
+            sensor: {"actual": actual, "target": target}
+            for sensor, (actual, target) in (printer.temperatures if printer else {}).items()
+        },
+        "job": _running_json(service) if running is not None else None,
+    }
+
+
+def _running_json(service: PrinterService) -> dict[str, Any]:
+    running = service.running
+    assert running is not None
+    job = running.job
+    record = running.record
+    last = job.last
+    return {
+        **_job_json(record),
+        "state": "paused" if service.state == "paused" else "printing",
+        "lines": job.lines,
+        "last_line": last.source_line if last else 0,
+        "bytes": job.offset,
+        "size": job.size,
+    }
+
+
+def safe_file_name(name: str) -> str:
+    """The upload's own name, without folders, in safe characters; 400 if nothing is left
+    or it is not a G-code file."""
+    base = name.replace("\\", "/").rsplit("/", 1)[-1].strip()
+    cleaned = _SAFE_NAME.sub("_", base).lstrip(".")
+    if not cleaned or not cleaned.lower().endswith(G_CODE_SUFFIXES):
+        raise HTTPException(400, f"'{name}' is not a G-code file name (.gcode, .gco, .g)")
+    return cleaned
+
+
+def _safe_folder(path: str) -> Path:
+    """OctoPrint's ``path`` field: a folder below the uploads; no '..', no absolute path."""
+    parts = [part for part in path.replace("\\", "/").split("/") if part not in ("", ".")]
+    if any(part == ".." for part in parts) or path.startswith(("/", "\\")):
+        raise HTTPException(400, f"path '{path}' leaves the upload folder")
+    return Path(*(_SAFE_NAME.sub("_", part) for part in parts)) if parts else Path()
+
+
+async def _save_upload(
+    server: PrintServer, printer: str, upload: UploadFile, folder: str = ""
+) -> tuple[Path, list[str], int]:
+    """Write the upload into the data folder (a new name if taken, never over another
+    file), and check it: the stored path, the lint's findings, its number of commands.
+    A file with errors is removed and refused (400, with the findings)."""
+    name = safe_file_name(upload.filename or "")
+    target_dir = server.files / _safe_folder(folder)
+    target_dir.mkdir(parents=True, exist_ok=True)
+    target = target_dir / name
+    stem, suffix = target.stem, target.suffix
+    number = 1
+    while target.exists():  # a queued job may point at it
+        number += 1
+        target = target_dir / f"{stem}-{number}{suffix}"
+    size = 0
+    try:
+        with target.open("xb") as out:
+            while chunk := await upload.read(1 << 20):
+                size += len(chunk)
+                if size > server.max_upload:
+                    raise HTTPException(413, f"the upload is over {server.max_upload} bytes")
+                out.write(chunk)
+            out.flush()
+            os.fsync(out.fileno())  # on disk before the client hears it is there
+        findings, commands = _check(server, printer, target)
+        errors = [f for f in findings if f.startswith("error")]
+        if errors:
+            raise HTTPException(
+                400, {"error": f"{name}: refused ({len(errors)} errors)", "findings": findings}
+            )
+    except BaseException:
+        target.unlink(missing_ok=True)
+        raise
+    return target, findings, commands
+
+
+def _queue(server: PrintServer, printer: str, path: Path, commands: int) -> JobRecord:
+    record = server.store.submit(printer, path.name, _relative(server, path), commands)
+    log.info("job %d (%s) queued on printer %s", record.id, path.name, printer)
+    server.services[printer].wake()
+    return record
+
+
+def _relative(server: PrintServer, path: Path) -> str:
+    return path.relative_to(server.data_dir).as_posix()
+
+
+def _check(server: PrintServer, printer: str, path: Path) -> tuple[list[str], int]:
+    """The job lint's findings (``error: file:line: ...``) and the number of commands."""
+    session = server.services[printer].printer
+    firmware = session.firmware if session is not None else None
+    try:
+        plan = plan_job(path, JobRequest(), server.user, firmware)
+        findings = plan.check()
+    except rh.HostError as exc:
+        return [f"error: {exc}"], 0
+    commands = sum(1 for _ in plan.job.commands())
+    return [f"{f.severity}: {f.format(path.name)}" for f in findings], commands
+
+
+# --- request bodies -----------------------------------------------------------------
+
+
+class Move(BaseModel):
+    before: int | None = None  # a queued job's id; None: to the end
+
+
+class Command(BaseModel):
+    command: str
+
+
+class JobCommand(BaseModel):
+    command: str
+    action: str | None = None
+
+
+class PrinterCommand(BaseModel):
+    command: str | None = None
+    commands: list[str] | None = None
+
+
+class ConnectionCommand(BaseModel):
+    command: str
+
+
+# --- the app --------------------------------------------------------------------------
+
+
+def create_app(server: PrintServer) -> FastAPI:
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        await server.start()
+        try:
+            yield
+        finally:
+            await server.stop()  # SIGTERM: running jobs stop with their safe stop
+
+    app = FastAPI(title="repetrel-host print server", version=rh.__version__, lifespan=lifespan)
+    app.state.server = server
+
+    @app.exception_handler(RequestValidationError)
+    async def bad_request(request: Request, exc: RequestValidationError) -> JSONResponse:
+        problems = "; ".join(
+            f"{'.'.join(str(p) for p in error['loc'])}: {error['msg']}" for error in exc.errors()
+        )
+        return JSONResponse(status_code=400, content={"detail": f"bad request: {problems}"})
+
+    @app.middleware("http")
+    async def upload_limit(request: Request, call_next: Any) -> Response:
+        length = request.headers.get("content-length")
+        if length is not None and length.isdigit() and int(length) > server.max_upload + 65536:
+            return JSONResponse(
+                status_code=413, content={"detail": f"the upload is over {server.max_upload} bytes"}
+            )
+        response: Response = await call_next(request)
+        return response
+
+    app.include_router(_native_router())
+    octoprint = _octoprint_router()
+    app.include_router(octoprint)
+    app.include_router(octoprint, prefix="/printers/{printer}")
+    return app
+
+
+def _native_router() -> APIRouter:
+    router = APIRouter(prefix="/v1")
+
+    @router.get("/printers")
+    async def printers(request: Request) -> list[dict[str, Any]]:
+        return [_printer_json(s) for s in _server(request).services.values()]
+
+    @router.get("/printers/{name}")
+    async def printer(request: Request, name: str) -> dict[str, Any]:
+        return _printer_json(_server(request).service(name))
+
+    @router.get("/printers/{name}/jobs")
+    async def printer_jobs(request: Request, name: str) -> list[dict[str, Any]]:
+        server = _server(request)
+        server.service(name)
+        return [_job_json(r) for r in server.store.jobs(name)]
+
+    @router.post("/printers/{name}/jobs", status_code=201, dependencies=[Keyed])
+    async def submit(
+        request: Request, name: str, file: Annotated[UploadFile, File()]
+    ) -> dict[str, Any]:
+        server = _server(request)
+        service = server.service(name)
+        path, findings, commands = await _save_upload(server, service.name, file)
+        return {**_job_json(_queue(server, service.name, path, commands)), "findings": findings}
+
+    @router.get("/jobs/{job_id}")
+    async def job(request: Request, job_id: int) -> dict[str, Any]:
+        record = _server(request).store.job(job_id)
+        if record is None:
+            raise HTTPException(404, f"no job {job_id}")
+        return _job_json(record)
+
+    @router.delete("/jobs/{job_id}", dependencies=[Keyed])
+    async def cancel_job(request: Request, job_id: int) -> dict[str, Any]:
+        server = _server(request)
+        record = server.store.job(job_id)
+        if record is None:
+            raise HTTPException(404, f"no job {job_id}")
+        if not await server.service(record.printer).cancel(job_id):
+            raise HTTPException(409, f"job {job_id} is {record.state.value}: nothing to cancel")
+        ended = server.store.job(job_id)
+        assert ended is not None
+        return _job_json(ended)
+
+    @router.post("/jobs/{job_id}/move", dependencies=[Keyed])
+    async def move(request: Request, job_id: int, move: Move) -> list[dict[str, Any]]:
+        server = _server(request)
+        record = server.store.job(job_id)
+        if record is None or not server.store.move(job_id, move.before):
+            raise HTTPException(409, f"job {job_id} is not queued")
+        return [_job_json(r) for r in server.store.jobs(record.printer)]
+
+    @router.post("/printers/{name}/command", dependencies=[Keyed])
+    async def command(request: Request, name: str, body: Command) -> dict[str, Any]:
+        reply = await _command(_server(request).service(name), body.command)
+        return {"command": reply.command, "lines": reply.lines, "ok": reply.ok}
+
+    @router.post("/printers/{name}/{action}", status_code=204, dependencies=[Keyed])
+    async def control(request: Request, name: str, action: str) -> Response:
+        service = _server(request).service(name)
+        await _control(service, action)
+        return Response(status_code=204)
+
+    return router
+
+
+async def _control(service: PrinterService, action: str) -> None:
+    printer = service.printer
+    try:
+        if action == "release":
+            service.release()
+        elif action == "cancel":
+            if not await service.cancel():
+                raise HTTPException(409, f"printer {service.name} has no job to cancel")
+        elif action in ("pause", "resume"):
+            if printer is None:
+                raise HTTPException(409, f"printer {service.name} is not connected")
+            await (printer.pause() if action == "pause" else printer.resume())
+        else:
+            raise HTTPException(404, f"no action '{action}' (pause, resume, cancel, release)")
+    except rh.UsageError as exc:
+        raise HTTPException(409, str(exc)) from None
+
+
+async def _command(service: PrinterService, line: str) -> rh.Reply:
+    printer = service.printer
+    if printer is None:
+        raise HTTPException(409, f"printer {service.name} is not connected")
+    try:
+        return await printer.command(line, timeout=60)
+    except rh.UsageError as exc:
+        raise HTTPException(409, str(exc)) from None
+    except rh.HostError as exc:
+        raise HTTPException(409, f"printer {service.name}: {exc}") from None
+    except TimeoutError:
+        raise HTTPException(504, f"{line}: no reply within 60 s") from None
+
+
+# --- OctoPrint -------------------------------------------------------------------------
+
+
+def _file_json(server: PrintServer, path: Path) -> dict[str, Any]:
+    return {
+        "name": path.name,
+        "display": path.name,
+        "path": path.relative_to(server.files).as_posix(),
+        "origin": "local",
+        "type": "machinecode",
+        "size": path.stat().st_size,
+        "date": int(path.stat().st_mtime),
+    }
+
+
+def _true(value: str) -> bool:
+    return value.strip().lower() in ("true", "1", "yes")
+
+
+def _octoprint_state(service: PrinterService) -> str:
+    return {
+        "ready": "Operational",
+        "printing": "Printing",
+        "paused": "Paused",
+        "connecting": "Connecting",
+    }.get(service.state, "Offline")
+
+
+def _service_for(request: Request) -> PrinterService:
+    """The printer in the path (``/printers/NAME/api/...``), else the default one."""
+    return _server(request).service(request.path_params.get("printer"))
+
+
+Printer = Annotated[PrinterService, Depends(_service_for)]
+
+
+def _octoprint_router() -> APIRouter:
+    router = APIRouter(prefix="/api")
+
+    @router.get("/version")
+    async def version() -> dict[str, str]:
+        return {
+            "api": "0.1",
+            "server": OCTOPRINT_VERSION,
+            "text": f"OctoPrint {OCTOPRINT_VERSION} (repetrel-host {rh.__version__})",
+        }
+
+    @router.get("/server")
+    async def server_info() -> dict[str, Any]:
+        return {"version": OCTOPRINT_VERSION, "safemode": None}
+
+    @router.post("/files/local", status_code=201, dependencies=[Keyed])
+    async def upload(
+        request: Request,
+        service: Printer,
+        file: Annotated[UploadFile, File()],
+        path: Annotated[str, Form()] = "",
+        select: Annotated[str, Form()] = "false",
+        print: Annotated[str, Form()] = "false",
+    ) -> dict[str, Any]:
+        server = _server(request)
+        stored, findings, commands = await _save_upload(server, service.name, file, path)
+        answer: dict[str, Any] = {"findings": findings}
+        if _true(print):
+            # Queued: it runs when the printer is free (OctoPrint answers 409 when it is
+            # busy; a queue is what this server is for).
+            answer["job"] = _job_json(_queue(server, service.name, stored, commands))
+        elif _true(select):
+            service.selected = stored
+        location = stored.relative_to(server.files).as_posix()
+        base = str(request.base_url).rstrip("/")
+        return {
+            "done": True,
+            "files": {
+                "local": {
+                    "name": stored.name,
+                    "display": stored.name,
+                    "path": location,
+                    "origin": "local",
+                    "refs": {"resource": f"{base}/api/files/local/{location}"},
+                }
+            },
+            **answer,
+        }
+
+    @router.get("/files")
+    async def files(request: Request) -> dict[str, Any]:
+        server = _server(request)
+        entries = [
+            _file_json(server, path) for path in sorted(server.files.rglob("*")) if path.is_file()
+        ]
+        return {"files": entries, "free": shutil.disk_usage(server.data_dir).free}
+
+    @router.get("/files/local/{location:path}")
+    async def file(request: Request, location: str) -> dict[str, Any]:
+        server = _server(request)
+        path = server.files / _safe_folder(location)
+        if not path.is_file():
+            raise HTTPException(404, f"no file '{location}'")
+        return _file_json(server, path)
+
+    @router.get("/job")
+    async def job(service: Printer) -> dict[str, Any]:
+        running = service.running
+        if running is None:
+            selected = service.selected
+            file: dict[str, Any] = {"name": None, "path": None, "origin": None, "size": None}
+            if selected is not None and selected.exists():
+                name = selected.name
+                file = {
+                    "name": name,
+                    "path": name,
+                    "origin": "local",
+                    "size": selected.stat().st_size,
+                }
+            return {
+                "job": {"file": file},
+                "progress": {"completion": None, "filepos": None, "printTime": None},
+                "state": _octoprint_state(service),
+            }
+        job = running.job
+        elapsed = time.time() - (running.record.started or time.time())
+        return {
+            "job": {
+                "file": {
+                    "name": running.record.name,
+                    "path": Path(running.record.file).relative_to("files").as_posix(),
+                    "display": running.record.name,
+                    "origin": "local",
+                    "size": job.size,
+                    "date": int(running.record.submitted),
+                },
+                "estimatedPrintTime": None,
+                "user": None,
+            },
+            "progress": {
+                "completion": 100.0 * job.offset / job.size if job.size else None,
+                "filepos": job.offset,
+                "printTime": int(elapsed),
+                "printTimeLeft": None,
+            },
+            "state": _octoprint_state(service),
+        }
+
+    @router.post("/job", status_code=204, dependencies=[Keyed])
+    async def job_command(request: Request, service: Printer, body: JobCommand) -> Response:
+        server = _server(request)
+        if body.command == "start":
+            selected, service.selected = service.selected, None
+            if selected is None and service.store.next_queued(service.name) is None:
+                raise HTTPException(409, f"printer {service.name}: no file selected, none queued")
+            if selected is not None:
+                _, commands = _check(server, service.name, selected)
+                _queue(server, service.name, selected, commands)
+            service.release()  # a held queue goes on too
+        elif body.command == "cancel":
+            await _control(service, "cancel")
+        elif body.command == "pause":
+            action = body.action or "toggle"
+            if action == "toggle":
+                action = "resume" if service.state == "paused" else "pause"
+            if action not in ("pause", "resume"):
+                raise HTTPException(400, f"action '{action}' is not pause, resume or toggle")
+            if service.running is None:
+                raise HTTPException(409, f"printer {service.name} is not printing")
+            await _control(service, action)
+        else:
+            raise HTTPException(400, f"command '{body.command}' is not start, cancel or pause")
+        return Response(status_code=204)
+
+    @router.get("/printer")
+    async def printer_state(service: Printer) -> dict[str, Any]:
+        state = _octoprint_state(service)
+        if state in ("Offline", "Connecting"):
+            raise HTTPException(409, "Printer is not operational")
+        printer = service.printer
+        assert printer is not None
+        temperatures = {}
+        for sensor, (actual, target) in printer.temperatures.items():
+            key = (
+                "bed"
+                if sensor == "B"
+                else f"tool{sensor[1:] or '0'}"
+                if sensor[0] == "T"
+                else sensor
+            )
+            temperatures[key] = {"actual": actual, "target": target, "offset": 0}
+        return {
+            "state": {
+                "text": state,
+                "flags": {
+                    "operational": True,
+                    "printing": state == "Printing",
+                    "paused": state == "Paused",
+                    "pausing": False,
+                    "cancelling": False,
+                    "ready": state == "Operational",
+                    "error": False,
+                    "closedOrError": False,
+                    "sdReady": False,
+                },
+            },
+            "temperature": temperatures,
+        }
+
+    @router.post("/printer/command", status_code=204, dependencies=[Keyed])
+    async def printer_command(service: Printer, body: PrinterCommand) -> Response:
+        lines = body.commands or ([body.command] if body.command else [])
+        if not lines:
+            raise HTTPException(400, "give 'command' or 'commands'")
+        for line in lines:
+            await _command(service, line)
+        return Response(status_code=204)
+
+    @router.get("/connection")
+    async def connection(request: Request, service: Printer) -> dict[str, Any]:
+        return {
+            "current": {
+                "state": _octoprint_state(service),
+                "port": service.port,
+                "baudrate": service.printer.settings.baud if service.printer else None,
+                "printerProfile": "_default",
+            },
+            "options": {
+                "ports": [service.port],
+                "baudrates": [],
+                "printerProfiles": [{"id": "_default", "name": service.name}],
+                "portPreference": service.port,
+                "baudratePreference": None,
+                "printerProfilePreference": "_default",
+                "autoconnect": True,
+            },
+        }
+
+    @router.post("/connection", status_code=204, dependencies=[Keyed])
+    async def connection_command(service: Printer, body: ConnectionCommand) -> Response:
+        # The server keeps every printer connected (and reconnects by itself).
+        if body.command not in ("connect", "disconnect", "fake_ack"):
+            raise HTTPException(400, f"command '{body.command}' is not connect or disconnect")
+        if body.command == "disconnect":
+            raise HTTPException(409, "the server keeps its printers connected")
+        return Response(status_code=204)
+
+    return router

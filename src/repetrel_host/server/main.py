@@ -1,0 +1,179 @@
+"""``hyrel-server``: the print server's command line.
+
+``hyrel-server --data-dir DIR --printer NAME=PORT [--printer ...] [--bind HOST:PORT]``, or
+the same in a TOML file (``--config server.toml``: ``data_dir``, ``bind``, ``api_key``,
+``max_upload_mb``, and a ``[printers]`` table of ``name = "port"``). Logs go to stderr,
+one line each, without times (journald adds them). SIGTERM or Ctrl-C stops feeding, runs
+the safe stop on a printing machine, and exits.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+import secrets
+import signal
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from repetrel_host import __version__
+from repetrel_host.config import read_toml
+from repetrel_host.errors import ConfigError
+
+DEFAULT_BIND = "127.0.0.1:8765"
+API_KEY_FILE = "api-key"
+_NAME = re.compile(r"^[A-Za-z0-9_-]+$")
+
+app = typer.Typer(add_completion=False, pretty_exceptions_enable=False, rich_markup_mode=None)
+
+
+class ServerSettings(BaseModel):
+    """What the server runs with: the command line's options over the TOML file's."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    data_dir: Path
+    bind: str = DEFAULT_BIND
+    printers: dict[str, str] = Field(min_length=1)
+    api_key: str | None = None
+    max_upload_mb: int = Field(default=1024, gt=0)
+
+
+def _fail(message: str) -> None:
+    typer.echo(f"hyrel-server: {message}", err=True)
+    raise typer.Exit(2)
+
+
+def _settings(
+    config: Path | None,
+    data_dir: Path | None,
+    bind: str | None,
+    printer: list[str],
+    api_key: str | None,
+    max_upload_mb: int | None,
+) -> ServerSettings:
+    values: dict[str, object] = {}
+    if config is not None:
+        try:
+            values = read_toml(config)
+        except ConfigError as exc:
+            _fail(str(exc))
+    printers = dict(values.get("printers") or {})  # type: ignore[call-overload]
+    for entry in printer:
+        name, sep, port = entry.partition("=")
+        if not sep or not name or not port:
+            _fail(f"--printer {entry}: give NAME=PORT (e.g. left=/dev/ttyUSB0, or demo=fake)")
+        printers[name] = port
+    given = {
+        "data_dir": data_dir,
+        "bind": bind,
+        "api_key": api_key,
+        "max_upload_mb": max_upload_mb,
+        "printers": printers,
+    }
+    values.update({key: value for key, value in given.items() if value is not None})
+    if not printers:
+        _fail("no printer: give --printer NAME=PORT (PORT as hyrel-send --port takes it)")
+    if "data_dir" not in values:
+        _fail("give --data-dir DIR (the queue, the uploads and the history live there)")
+    try:
+        settings = ServerSettings.model_validate(values)
+    except ValidationError as exc:
+        where = f"{config}: " if config is not None else ""
+        problems = "; ".join(
+            f"{'.'.join(str(p) for p in error['loc']) or 'settings'}: {error['msg']}"
+            for error in exc.errors()
+        )
+        _fail(f"{where}{problems}")
+        raise  # not reached
+    for name in settings.printers:
+        if not _NAME.match(name):
+            _fail(f"printer name '{name}': use letters, digits, '-' and '_'")
+    return settings
+
+
+def _api_key(settings: ServerSettings) -> str:
+    """The key given, else the one kept in the data folder, else a new one (kept, 0600)."""
+    if settings.api_key:
+        return settings.api_key
+    path = settings.data_dir / API_KEY_FILE
+    if path.exists():
+        return path.read_text().strip()
+    key = secrets.token_urlsafe(24)
+    descriptor = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(descriptor, "w") as handle:
+        handle.write(key + "\n")
+    print(f"hyrel-server: a new API key (kept in {path}): {key}", file=sys.stderr, flush=True)
+    return key
+
+
+def _bind(text: str) -> tuple[str, int]:
+    host, _, port = text.rpartition(":")
+    if not host or not port.isdigit():
+        _fail(f"--bind {text}: give HOST:PORT (e.g. {DEFAULT_BIND})")
+    return host.strip("[]"), int(port)
+
+
+@app.command()
+def serve(
+    data_dir: Annotated[
+        Path | None, typer.Option(help="Folder of the queue, uploads, history and API key.")
+    ] = None,
+    printer: Annotated[
+        list[str] | None,
+        typer.Option(help="NAME=PORT, PORT as hyrel-send --port takes it (fake too); repeat."),
+    ] = None,
+    bind: Annotated[
+        str | None, typer.Option(help=f"HOST:PORT to listen on (default {DEFAULT_BIND}).")
+    ] = None,
+    api_key: Annotated[
+        str | None, typer.Option(help="The API key (default: kept in the data folder).")
+    ] = None,
+    max_upload_mb: Annotated[
+        int | None, typer.Option(help="Largest upload, in MB (default 1024).", min=1)
+    ] = None,
+    config: Annotated[Path | None, typer.Option(help="A TOML file with these settings.")] = None,
+    version: Annotated[bool, typer.Option("--version", help="Print the version.")] = False,
+) -> None:
+    """Serve the printers: a job queue each, an HTTP API (OctoPrint's too)."""
+    if version:
+        typer.echo(f"hyrel-server (repetrel-host) {__version__}")
+        return
+    settings = _settings(config, data_dir, bind, printer or [], api_key, max_upload_mb)
+    host, port = _bind(settings.bind)
+    logging.basicConfig(
+        stream=sys.stderr, level=logging.INFO, format="%(levelname)s %(name)s: %(message)s"
+    )
+    try:
+        settings.data_dir.mkdir(parents=True, exist_ok=True)
+        key = _api_key(settings)
+    except OSError as exc:
+        _fail(f"cannot use the data folder {settings.data_dir}: {exc.strerror}")
+        raise  # not reached
+
+    import uvicorn
+
+    from repetrel_host.server.app import PrintServer, create_app
+
+    server = PrintServer(
+        settings.data_dir, settings.printers, key, settings.max_upload_mb * 1024 * 1024
+    )
+    # uvicorn shuts down gracefully on SIGTERM and SIGINT, then raises the signal again
+    # with the handlers found before it started: these, so that a stop asked for exits
+    # 0 (130 for Ctrl-C) once the printers are safe, not as if killed.
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
+    signal.signal(signal.SIGINT, lambda *_: sys.exit(130))
+    uvicorn.run(create_app(server), host=host, port=port, log_level="info", access_log=False)
+
+
+def main() -> None:
+    app()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,227 @@
+"""One printer of the print server: its long-lived session and its queue.
+
+The service connects (and, when the port is not there, keeps trying with backoff:
+the server never stops because a printer vanished), and whenever the session is READY
+and the queue holds a job, prints the next one, recording how it goes in the store. It
+never starts a job by itself after an interrupted one: the queue is held until someone
+releases it, and the interrupted job's safe stop is sent as soon as the printer answers.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import repetrel_host as rh
+from repetrel_host.config import UserConfig
+from repetrel_host.planning import controller_profile, safe_stop
+from repetrel_host.server.store import PROGRESS_INTERVAL, JobRecord, JobState, Store
+
+log = logging.getLogger("repetrel_host.server")
+
+RECONNECT_FIRST = 0.5
+RECONNECT_MAX = 10.0
+POLL_INTERVAL = 2.0  # temperatures, for the API and the page
+SAFE_STOP_TIMEOUT = 30.0
+SERVER_STOPPED = "the server was stopped: the job was stopped with its safe stop"
+
+
+@dataclass
+class Running:
+    """The job streaming now."""
+
+    record: JobRecord
+    job: rh.PrintJob
+
+
+class PrinterService:
+    """A printer's session, and the loop that feeds it its queue."""
+
+    def __init__(
+        self,
+        name: str,
+        port: str,
+        store: Store,
+        data_dir: Path,
+        user: UserConfig,
+        on_change: Callable[[str], None] = lambda name: None,
+    ) -> None:
+        self.name = name
+        self.port = port
+        self.store = store
+        self.data_dir = data_dir
+        self.user = user
+        self.on_change = on_change
+        self.printer: rh.Printer | None = None
+        self.running: Running | None = None
+        self.held = False  # the queue waits for a release (after an interrupted job)
+        self.owed_safe_stop = False
+        self.selected: Path | None = None  # OctoPrint's selected file, started by "start"
+        self.last_error = ""
+        self._wake = asyncio.Event()
+        self._task: asyncio.Task[None] | None = None
+        self._stopping = False
+        self._paused = False
+
+    # --- lifecycle ---------------------------------------------------------------
+
+    def start(self) -> None:
+        self._task = asyncio.get_running_loop().create_task(self._run(), name=self.name)
+
+    async def stop(self) -> None:
+        """Stop feeding; a running job is stopped with its safe stop first (and recorded as
+        interrupted); the port is closed."""
+        self._stopping = True
+        self._wake.set()
+        running = self.running
+        if running is not None and not running.job.done:
+            running.job.stop(rh.JobError(SERVER_STOPPED))
+            with contextlib.suppress(rh.HostError, TimeoutError):
+                await asyncio.wait_for(running.job.wait(), SAFE_STOP_TIMEOUT + 5)
+        if self._task is not None:
+            # The loop records how the job ended, then sees it is stopping.
+            done, _ = await asyncio.wait([self._task], timeout=2.0)
+            if not done:
+                self._task.cancel()
+                with contextlib.suppress(asyncio.CancelledError, Exception):
+                    await self._task
+        if self.printer is not None:
+            await self.printer.close()
+
+    def wake(self) -> None:
+        """Something changed (a job queued, the queue released): look again."""
+        self._wake.set()
+
+    @property
+    def state(self) -> str:
+        printer = self.printer
+        return printer.state.value if printer is not None else "disconnected"
+
+    # --- the loop -------------------------------------------------------------------
+
+    async def _run(self) -> None:
+        await self._connect()
+        while not self._stopping:
+            printer = self.printer
+            assert printer is not None
+            if self.owed_safe_stop and printer.state is rh.State.READY:
+                await self._send_safe_stop()
+            record = None
+            if printer.state is rh.State.READY and not self.held:
+                record = self.store.next_queued(self.name)
+            if record is None:
+                self._wake.clear()
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(self._wake.wait(), 1.0)  # or a state change
+                continue
+            await self._print(record)
+
+    async def _connect(self) -> None:
+        delay = RECONNECT_FIRST
+        while not self._stopping:
+            try:
+                self.printer = await rh.connect(
+                    self.port, config=self.user, poll_interval=POLL_INTERVAL
+                )
+            except rh.HostError as exc:
+                if str(exc) != self.last_error:
+                    log.warning("printer %s: %s (trying again)", self.name, exc)
+                self.last_error = str(exc)
+                await asyncio.sleep(delay)
+                delay = min(delay * 2, RECONNECT_MAX)
+                continue
+            log.info("printer %s: connected on %s", self.name, self.port)
+            self.last_error = ""
+            self.on_change(self.name)
+            return
+
+    async def _send_safe_stop(self) -> None:
+        printer = self.printer
+        assert printer is not None
+        profile = controller_profile(printer.settings.request, self.user, printer.firmware)
+        commands = safe_stop(profile.machine, self.user)
+        log.warning("printer %s: sending the interrupted job's safe stop %s", self.name, commands)
+        try:
+            for command in commands:
+                await printer.command(command, timeout=SAFE_STOP_TIMEOUT)
+        except (rh.HostError, TimeoutError) as exc:
+            log.warning("printer %s: the safe stop did not go: %s", self.name, exc)
+            return
+        self.owed_safe_stop = False
+
+    async def _print(self, record: JobRecord) -> None:
+        printer = self.printer
+        assert printer is not None
+        path = self.data_dir / record.file
+        history = self.data_dir / "history" / f"{record.id}-{Path(record.name).stem}.gcode"
+        try:
+            job = await printer.print(path, history=history)
+        except rh.HostError as exc:  # refused (a check), or the printer went meanwhile
+            if printer.state is not rh.State.READY and not isinstance(exc, rh.JobError):
+                return  # not the job's fault: it stays queued
+            self.store.set_state(record.id, JobState.FAILED, str(exc))
+            log.warning("printer %s: job %d refused: %s", self.name, record.id, exc)
+            self.on_change(self.name)
+            return
+        self.running = Running(record, job)
+        self._paused = False
+        self.store.set_state(record.id, JobState.PRINTING)
+        log.info("printer %s: printing job %d (%s)", self.name, record.id, record.name)
+        self.on_change(self.name)
+        state, error = JobState.COMPLETED, None
+        try:
+            while not job.done:
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(asyncio.shield(job.wait()), PROGRESS_INTERVAL)
+                self._record_progress(record, job)
+            summary = await job.wait()
+            if summary.outcome is rh.Outcome.CANCELLED:
+                state = JobState.CANCELLED
+        except rh.HostError as exc:
+            state, error = JobState.FAILED, str(exc)
+            if self._stopping:
+                state = JobState.INTERRUPTED
+        finally:
+            self._record_progress(record, job)
+            self.running = None
+        self.store.set_state(record.id, state, error)
+        log.info(
+            "printer %s: job %d %s%s", self.name, record.id, state, f": {error}" if error else ""
+        )
+        self.on_change(self.name)
+
+    def _record_progress(self, record: JobRecord, job: rh.PrintJob) -> None:
+        last = job.last
+        self.store.progress(record.id, job.lines, last.source_line if last else 0)
+        paused = self.printer is not None and self.printer.state is rh.State.PAUSED
+        if paused != self._paused and not job.done:
+            self._paused = paused
+            self.store.set_state(record.id, JobState.PAUSED if paused else JobState.PRINTING)
+            self.on_change(self.name)
+
+    # --- control ----------------------------------------------------------------------
+
+    def release(self) -> None:
+        """Let the queue run again (after an interrupted job was looked at)."""
+        self.held = False
+        self.wake()
+        self.on_change(self.name)
+
+    async def cancel(self, job_id: int | None = None) -> bool:
+        """Cancel the running job (``job_id``, or whichever runs) with its safe stop first,
+        or a queued one. False when there is no such job."""
+        running = self.running
+        if running is not None and job_id in (None, running.record.id):
+            if not running.job.stopping:
+                running.job.stop()
+            with contextlib.suppress(rh.HostError):
+                await running.job.wait()
+            return True
+        if job_id is not None and self.store.cancel_queued(job_id):
+            self.on_change(self.name)
+            return True
+        return False

@@ -1,0 +1,223 @@
+"""The print server's queue and history: one SQLite file in the data folder.
+
+Written so that a ``kill -9`` at any moment loses nothing a client was told: WAL
+journal, one transaction per change, committed before the answer goes out (WAL with
+``synchronous=NORMAL`` survives a crash of the process; ``FULL`` also a power cut, and
+is used here: a queue changes a few times a minute). Progress is written every
+:data:`PROGRESS_INTERVAL` seconds while a job streams, so after a crash a job knows it
+was acknowledged through at least its recorded line.
+"""
+
+from __future__ import annotations
+
+import sqlite3
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from enum import StrEnum
+from pathlib import Path
+
+PROGRESS_INTERVAL = 0.5  # seconds between progress records of a streaming job
+CRASHED = "the server ended while the job was streaming (its safe stop was not sent)"
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS jobs (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    printer TEXT NOT NULL,
+    name TEXT NOT NULL,           -- as uploaded
+    file TEXT NOT NULL,           -- stored file, relative to the data folder
+    state TEXT NOT NULL,
+    position REAL NOT NULL,       -- queue order among queued jobs
+    submitted REAL NOT NULL,
+    started REAL,
+    ended REAL,
+    lines INTEGER NOT NULL DEFAULT 0,      -- job lines acknowledged (at least)
+    last_line INTEGER NOT NULL DEFAULT 0,  -- file line of the last acknowledged one
+    total_lines INTEGER NOT NULL DEFAULT 0,
+    error TEXT
+);
+CREATE INDEX IF NOT EXISTS jobs_by_printer ON jobs (printer, state, position);
+"""
+
+
+class JobState(StrEnum):
+    QUEUED = "queued"
+    PRINTING = "printing"
+    PAUSED = "paused"
+    COMPLETED = "completed"
+    CANCELLED = "cancelled"
+    FAILED = "failed"
+    INTERRUPTED = "interrupted"  # the server stopped (a crash, a kill) while it streamed
+
+
+ACTIVE = (JobState.PRINTING, JobState.PAUSED)
+ENDED = (JobState.COMPLETED, JobState.CANCELLED, JobState.FAILED, JobState.INTERRUPTED)
+
+
+@dataclass(frozen=True)
+class JobRecord:
+    id: int
+    printer: str
+    name: str
+    file: str
+    state: JobState
+    position: float
+    submitted: float
+    started: float | None
+    ended: float | None
+    lines: int
+    last_line: int
+    total_lines: int
+    error: str | None
+
+
+class Store:
+    """The jobs of every printer. Each method is one transaction."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        # One connection, used from the server's event loop only.
+        self._db = sqlite3.connect(path, isolation_level=None, check_same_thread=False)
+        self._db.row_factory = sqlite3.Row
+        self._db.execute("PRAGMA journal_mode=WAL")
+        self._db.execute("PRAGMA synchronous=FULL")
+        self._db.executescript(_SCHEMA)
+
+    def close(self) -> None:
+        self._db.close()
+
+    @contextmanager
+    def _transaction(self) -> Iterator[sqlite3.Connection]:
+        self._db.execute("BEGIN IMMEDIATE")
+        try:
+            yield self._db
+        except BaseException:
+            self._db.execute("ROLLBACK")
+            raise
+        self._db.execute("COMMIT")
+
+    # --- reading ----------------------------------------------------------------
+
+    def job(self, job_id: int) -> JobRecord | None:
+        row = self._db.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
+        return _record(row) if row is not None else None
+
+    def jobs(self, printer: str | None = None) -> list[JobRecord]:
+        """Queued jobs in queue order first, then the others, newest first."""
+        where, args = ("WHERE printer = ?", (printer,)) if printer is not None else ("", ())
+        rows = self._db.execute(
+            f"SELECT * FROM jobs {where} ORDER BY state != 'queued', "
+            "CASE state WHEN 'queued' THEN position ELSE -id END",
+            args,
+        ).fetchall()
+        return [_record(row) for row in rows]
+
+    def next_queued(self, printer: str) -> JobRecord | None:
+        row = self._db.execute(
+            "SELECT * FROM jobs WHERE printer = ? AND state = 'queued' ORDER BY position LIMIT 1",
+            (printer,),
+        ).fetchone()
+        return _record(row) if row is not None else None
+
+    # --- changing -----------------------------------------------------------------
+
+    def submit(self, printer: str, name: str, file: str, total_lines: int) -> JobRecord:
+        """Queue a job at the end of its printer's queue."""
+        with self._transaction() as db:
+            (last,) = db.execute(
+                "SELECT COALESCE(MAX(position), 0) FROM jobs WHERE printer = ?", (printer,)
+            ).fetchone()
+            cursor = db.execute(
+                "INSERT INTO jobs (printer, name, file, state, position, submitted, total_lines)"
+                " VALUES (?, ?, ?, 'queued', ?, ?, ?)",
+                (printer, name, file, last + 1, time.time(), total_lines),
+            )
+            job_id = cursor.lastrowid
+        assert job_id is not None
+        record = self.job(job_id)
+        assert record is not None
+        return record
+
+    def move(self, job_id: int, before: int | None) -> bool:
+        """Move a queued job before another queued job of its printer (None: to the end)."""
+        with self._transaction() as db:
+            job = db.execute(
+                "SELECT printer FROM jobs WHERE id = ? AND state = 'queued'", (job_id,)
+            ).fetchone()
+            if job is None:
+                return False
+            queue = [
+                row[0]
+                for row in db.execute(
+                    "SELECT id FROM jobs WHERE printer = ? AND state = 'queued' AND id != ?"
+                    " ORDER BY position",
+                    (job["printer"], job_id),
+                )
+            ]
+            index = queue.index(before) if before in queue else len(queue)
+            queue.insert(index, job_id)
+            db.executemany(
+                "UPDATE jobs SET position = ? WHERE id = ?",
+                [(number, queued) for number, queued in enumerate(queue, start=1)],
+            )
+        return True
+
+    def set_state(self, job_id: int, state: JobState, error: str | None = None) -> None:
+        now = time.time()
+        with self._transaction() as db:
+            if state in ACTIVE:
+                db.execute(
+                    "UPDATE jobs SET state = ?, started = COALESCE(started, ?) WHERE id = ?",
+                    (state.value, now, job_id),
+                )
+            elif state in ENDED:
+                db.execute(
+                    "UPDATE jobs SET state = ?, ended = ?, error = ? WHERE id = ?",
+                    (state.value, now, error, job_id),
+                )
+            else:
+                db.execute("UPDATE jobs SET state = ? WHERE id = ?", (state.value, job_id))
+
+    def cancel_queued(self, job_id: int) -> bool:
+        """Cancel a job that has not started; False if it is not queued."""
+        with self._transaction() as db:
+            cursor = db.execute(
+                "UPDATE jobs SET state = 'cancelled', ended = ? WHERE id = ? AND state = 'queued'",
+                (time.time(), job_id),
+            )
+            return cursor.rowcount == 1
+
+    def progress(self, job_id: int, lines: int, last_line: int) -> None:
+        with self._transaction() as db:
+            db.execute(
+                "UPDATE jobs SET lines = ?, last_line = ? WHERE id = ?", (lines, last_line, job_id)
+            )
+
+    def last_started(self, printer: str) -> JobRecord | None:
+        """The printer's most recently started job."""
+        row = self._db.execute(
+            "SELECT * FROM jobs WHERE printer = ? AND started IS NOT NULL "
+            "ORDER BY started DESC LIMIT 1",
+            (printer,),
+        ).fetchone()
+        return _record(row) if row is not None else None
+
+    def interrupt_active(self) -> list[JobRecord]:
+        """At start: jobs that were streaming when the server stopped become interrupted."""
+        with self._transaction() as db:
+            rows = db.execute(
+                "SELECT id FROM jobs WHERE state IN ('printing', 'paused')"
+            ).fetchall()
+            db.execute(
+                "UPDATE jobs SET state = 'interrupted', ended = ?, error = ? "
+                "WHERE state IN ('printing', 'paused')",
+                (time.time(), CRASHED),
+            )
+        return [record for row in rows if (record := self.job(row[0])) is not None]
+
+
+def _record(row: sqlite3.Row) -> JobRecord:
+    values = dict(row)
+    values["state"] = JobState(values["state"])
+    return JobRecord(**values)

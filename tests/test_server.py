@@ -1,0 +1,361 @@
+"""The print server, for real: a hyrel-server process, HTTP over loopback, the fake
+controller on a pty (started here, so that its executed log tells what ran)."""
+
+from __future__ import annotations
+
+import signal
+import socket
+import stat
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+
+from repetrel_host.testing.fake_controller import BuiltInFake
+from tests.helpers import executed
+
+KEY = "test-key"
+MARLIN_SAFE_STOP = ["M107", "M104 S0", "M140 S0", "G91", "G0 Z10", "G90", "M84"]
+
+pytestmark = pytest.mark.timeout(120)
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
+
+
+class Server:
+    """A hyrel-server process on a free port."""
+
+    def __init__(self, data_dir: Path, printers: dict[str, str], *args: str) -> None:
+        self.data_dir = data_dir
+        self.printers = printers
+        self.args = list(args)
+        self.port = free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.process: subprocess.Popen[str] | None = None
+        self.stderr = data_dir.parent / f"server-{self.port}.log"
+
+    def start(self) -> Server:
+        command = [sys.executable, "-m", "repetrel_host.server.main"]
+        command += ["--data-dir", str(self.data_dir), "--bind", f"127.0.0.1:{self.port}"]
+        for name, port in self.printers.items():
+            command += ["--printer", f"{name}={port}"]
+        with self.stderr.open("a") as log:
+            self.process = subprocess.Popen(
+                [*command, *self.args], stdout=log, stderr=log, stdin=subprocess.DEVNULL, text=True
+            )
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            assert self.process.poll() is None, self.stderr.read_text()
+            try:
+                httpx.get(f"{self.url}/api/version", timeout=1)
+                return self
+            except httpx.TransportError:
+                time.sleep(0.1)
+        raise AssertionError(f"the server did not start: {self.stderr.read_text()}")
+
+    def client(self, key: str | None = KEY) -> httpx.Client:
+        headers = {"X-Api-Key": key} if key is not None else {}
+        return httpx.Client(base_url=self.url, headers=headers, timeout=30)
+
+    def stop(self, signum: int = signal.SIGTERM) -> int:
+        assert self.process is not None
+        if self.process.poll() is None:
+            self.process.send_signal(signum)
+        return self.process.wait(timeout=60)
+
+
+@pytest.fixture
+def bench(tmp_path: Path) -> Iterator[Callable[..., BuiltInFake]]:
+    """Fake controllers started by the test: ``bench(*fake_args)``."""
+    fakes: list[BuiltInFake] = []
+
+    def start(*args: str) -> BuiltInFake:
+        fake = BuiltInFake(tmp_path / f"executed-{len(fakes)}.log", args, control=True)
+        fakes.append(fake)
+        fake.start()
+        return fake
+
+    yield start
+    for fake in fakes:
+        fake.stop()
+
+
+@pytest.fixture
+def servers(tmp_path: Path) -> Iterator[Callable[..., Server]]:
+    started: list[Server] = []
+
+    def start(printers: dict[str, str], *args: str, key: bool = True) -> Server:
+        server = Server(tmp_path / "data", printers, *(["--api-key", KEY] if key else []), *args)
+        started.append(server.start())
+        return server
+
+    yield start
+    for server in started:
+        if server.process is not None and server.process.poll() is None:
+            server.stop(signal.SIGKILL)
+
+
+def gcode(count: int, *, start: int = 0) -> str:
+    return "G28\n" + "".join(f"G1 X{(start + i) % 200} F3000\n" for i in range(count))
+
+
+def commands_of(text: str) -> list[str]:
+    return [line for line in text.splitlines() if line]
+
+
+def wait_for(condition: Callable[[], Any], timeout: float = 30, what: str = "") -> Any:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        result = condition()
+        if result:
+            return result
+        time.sleep(0.1)
+    raise AssertionError(f"timed out waiting for {what or condition}")
+
+
+def job_state(client: httpx.Client, job_id: int) -> dict[str, Any]:
+    answer: dict[str, Any] = client.get(f"/v1/jobs/{job_id}").json()
+    return answer
+
+
+# --- as a slicer uses it -----------------------------------------------------------------
+
+
+def test_an_upload_made_as_prusaslicer_makes_it_is_printed_exactly_once(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
+) -> None:
+    fake = bench()
+    server = servers({"bench": fake.port})
+    text = gcode(400)
+    with server.client() as client:
+        # PrusaSlicer's "Test": GET api/version, an "api" field and text "OctoPrint...".
+        version = client.get("/api/version").json()
+        assert version["api"] and version["text"].startswith("OctoPrint")
+        # Its "Upload and Print": print, path, then the file, multipart, with the key.
+        answer = client.post(
+            "/api/files/local",
+            data={"print": "true", "path": ""},
+            files={"file": ("cube.gcode", text.encode(), "application/octet-stream")},
+        )
+        assert answer.status_code == 201, answer.text
+        body = answer.json()
+        assert body["done"] is True and body["files"]["local"]["name"] == "cube.gcode"
+        job_id = body["job"]["id"]
+        done = wait_for(lambda: job_state(client, job_id)["state"] == "completed", what="the job")
+        assert done
+        record = job_state(client, job_id)
+        assert record["lines"] == 401 and record["last_line"] == 401 and record["error"] is None
+        listed = client.get("/api/files").json()["files"]
+        assert [f["name"] for f in listed] == ["cube.gcode"]
+        resource = client.get(body["files"]["local"]["refs"]["resource"]).json()
+        assert resource["size"] == len(text)
+        assert client.get("/api/job").json()["state"] == "Operational"
+    fake.request("status")  # the log is complete
+    assert executed(fake.log_path)[-401:] == commands_of(text)
+    assert executed(fake.log_path).count("G28") == 1
+
+
+def test_upload_without_print_waits_until_selected_and_started(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
+) -> None:
+    fake = bench()
+    server = servers({"bench": fake.port})
+    with server.client() as client:
+        answer = client.post(
+            "/printers/bench/api/files/local",
+            data={"select": "true", "print": "false"},
+            files={"file": ("part.gcode", b"G28\nG1 X5\n")},
+        )
+        assert answer.status_code == 201 and "job" not in answer.json()
+        assert client.get("/v1/printers/bench/jobs").json() == []
+        assert client.get("/api/job").json()["job"]["file"]["name"] == "part.gcode"
+        assert client.post("/api/job", json={"command": "start"}).status_code == 204
+        jobs = wait_for(
+            lambda: [
+                j for j in client.get("/v1/printers/bench/jobs").json() if j["state"] == "completed"
+            ],
+            what="the started job",
+        )
+        assert jobs[0]["name"] == "part.gcode"
+        refused = client.post("/api/job", json={"command": "start"})
+        assert refused.status_code == 409 and "no file selected" in refused.json()["detail"]
+
+
+# --- never losing anything -----------------------------------------------------------------
+
+
+def test_kill_9_mid_job_keeps_the_queue_and_marks_the_job_interrupted(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
+) -> None:
+    fake = bench("--move-time", "0.004")
+    server = servers({"bench": fake.port})
+    with server.client() as client:
+        first = client.post("/v1/printers/bench/jobs", files={"file": ("long.gcode", gcode(3000))})
+        second = client.post("/v1/printers/bench/jobs", files={"file": ("next.gcode", gcode(5))})
+        assert first.status_code == second.status_code == 201
+        first_id, second_id = first.json()["id"], second.json()["id"]
+        wait_for(lambda: job_state(client, first_id)["lines"] > 200, what="progress on record")
+    server.stop(signal.SIGKILL)
+    fake.request("status")
+    ran = executed(fake.log_path)
+
+    restarted = servers({"bench": fake.port})
+    with restarted.client() as client:
+        record = job_state(client, first_id)
+        assert record["state"] == "interrupted"
+        assert "its safe stop was not sent" in record["error"]
+        # Acknowledged through at least the line on record: it did run.
+        assert 200 < record["last_line"] <= len(ran)
+        assert job_state(client, second_id)["state"] == "queued"
+        printer = client.get("/v1/printers/bench").json()
+        assert printer["held"] is True
+        # The interrupted job's safe stop goes first, then nothing starts by itself.
+        wait_for(lambda: executed(fake.log_path)[-7:] == MARLIN_SAFE_STOP, what="the safe stop")
+        time.sleep(1.0)
+        assert job_state(client, second_id)["state"] == "queued"
+        assert client.post("/v1/printers/bench/release").status_code == 204
+        wait_for(lambda: job_state(client, second_id)["state"] == "completed", what="job 2")
+    assert executed(fake.log_path)[-6:] == commands_of(gcode(5))
+
+
+def test_sigterm_stops_the_job_with_its_safe_stop_and_exits(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
+) -> None:
+    fake = bench("--move-time", "0.004")
+    server = servers({"bench": fake.port})
+    with server.client() as client:
+        job_id = client.post(
+            "/v1/printers/bench/jobs", files={"file": ("long.gcode", gcode(3000))}
+        ).json()["id"]
+        wait_for(lambda: client.get("/v1/printers/bench").json()["job"], what="the job")
+        wait_for(lambda: client.get("/v1/printers/bench").json()["job"]["lines"] > 100)
+    assert server.stop(signal.SIGTERM) == 0
+    fake.request("status")
+    ran = executed(fake.log_path)
+    assert ran[-7:] == MARLIN_SAFE_STOP and len(ran) < 3000
+    restarted = servers({"bench": fake.port})
+    with restarted.client() as client:
+        record = job_state(client, job_id)
+        assert record["state"] == "interrupted" and "safe stop" in record["error"]
+        assert client.get("/v1/printers/bench").json()["held"] is True
+
+
+def test_a_vanished_link_comes_back_and_the_next_job_runs(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
+) -> None:
+    fake = bench()
+    server = servers({"bench": fake.port})
+    with server.client() as client:
+        wait_for(lambda: client.get("/v1/printers/bench").json()["state"] == "ready")
+        fake.request("link_drop 1.5")
+        wait_for(lambda: client.get("/v1/printers/bench").json()["state"] != "ready", 10)
+        job_id = client.post(
+            "/v1/printers/bench/jobs", files={"file": ("after.gcode", gcode(20))}
+        ).json()["id"]
+        wait_for(lambda: job_state(client, job_id)["state"] == "completed", what="the job")
+        assert client.post("/api/printer/command", json={"command": "M105"}).status_code == 204
+
+
+def test_a_printer_that_is_not_there_does_not_stop_the_server(
+    servers: Callable[..., Server], tmp_path: Path
+) -> None:
+    server = servers({"gone": str(tmp_path / "no-such-tty"), "demo": "fake"})
+    with server.client() as client:
+        printers = {p["name"]: p for p in client.get("/v1/printers").json()}
+        assert printers["gone"]["state"] == "disconnected"
+        job = client.post("/v1/printers/gone/jobs", files={"file": ("a.gcode", gcode(3))})
+        assert job.status_code == 201 and job.json()["state"] == "queued"  # kept for later
+        refused = client.post("/v1/printers/gone/command", json={"command": "M105"})
+        assert refused.status_code == 409 and "not connected" in refused.json()["detail"]
+        wait_for(lambda: client.get("/v1/printers/demo").json()["state"] == "ready")
+        assert client.get("/printers/demo/api/printer").json()["state"]["text"] == "Operational"
+        assert client.get("/printers/gone/api/printer").status_code == 409
+        assert client.get("/printers/nope/api/job").status_code == 404
+
+
+# --- security ----------------------------------------------------------------------------
+
+
+def test_requests_without_the_key_are_refused_and_bad_uploads_too(
+    servers: Callable[..., Server],
+) -> None:
+    server = servers({"demo": "fake"})
+    data_dir = server.data_dir
+    upload = {"file": ("a.gcode", b"G28\n")}
+    with server.client(key=None) as anonymous, server.client("wrong") as wrong:
+        for client in (anonymous, wrong):
+            answer = client.post("/api/files/local", files=upload)
+            assert answer.status_code == 403 and "API key" in answer.json()["detail"]
+            assert (
+                client.post("/v1/printers/demo/command", json={"command": "M105"}).status_code
+                == 403
+            )
+        assert anonymous.get("/api/version").status_code == 200  # reading needs no key
+    with server.client() as client:
+        escape = client.post("/api/files/local", data={"path": "../.."}, files=upload)
+        assert escape.status_code == 400 and "leaves the upload folder" in escape.json()["detail"]
+        named = client.post("/api/files/local", files={"file": ("../../evil.gcode", b"G28\n")})
+        assert named.status_code == 201
+        assert named.json()["files"]["local"]["path"] == "evil.gcode"
+        assert (data_dir / "files" / "evil.gcode").exists()
+        assert not (data_dir.parent / "evil.gcode").exists()
+        not_gcode = client.post("/api/files/local", files={"file": ("run.sh", b"rm -rf /\n")})
+        assert not_gcode.status_code == 400 and "not a G-code file" in not_gcode.json()["detail"]
+        long_line = "G1 X1 " + "Y1 " * 40 + "\n"
+        refused = client.post(
+            "/api/files/local", files={"file": ("long.gcode", long_line.encode())}
+        )
+        assert refused.status_code == 400
+        assert refused.json()["detail"]["error"] == "long.gcode: refused (1 errors)"
+        assert not (data_dir / "files" / "long.gcode").exists()
+        bad_json = client.post("/api/job", json={"nothing": 1})
+        assert bad_json.status_code == 400 and bad_json.json()["detail"].startswith("bad request")
+
+
+def test_a_new_server_makes_a_key_kept_private_and_an_upload_limit(
+    servers: Callable[..., Server],
+) -> None:
+    server = servers({"demo": "fake"}, "--max-upload-mb", "1", key=False)
+    key_file = server.data_dir / "api-key"
+    key = key_file.read_text().strip()
+    assert stat.S_IMODE(key_file.stat().st_mode) == 0o600
+    assert f"a new API key (kept in {key_file}): {key}" in server.stderr.read_text()
+    with server.client(key) as client:
+        big = b"G1 X1\n" * 200_000  # 1.2 MB
+        answer = client.post("/api/files/local", files={"file": ("big.gcode", big)})
+        assert answer.status_code == 413 and "over 1048576 bytes" in answer.json()["detail"]
+        assert client.post("/v1/printers/demo/release").status_code == 204
+
+
+def test_bad_server_settings_get_one_sentence(tmp_path: Path) -> None:
+    def run(*args: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run(
+            [sys.executable, "-m", "repetrel_host.server.main", *args],
+            capture_output=True,
+            text=True,
+            timeout=30,
+        )
+
+    for args, message in (
+        (["--data-dir", str(tmp_path)], "no printer: give --printer NAME=PORT"),
+        (["--printer", "a=fake"], "give --data-dir DIR"),
+        (["--data-dir", str(tmp_path), "--printer", "afake"], "--printer afake: give NAME=PORT"),
+        (["--data-dir", str(tmp_path), "--printer", "a/b=fake"], "printer name 'a/b'"),
+        (["--data-dir", str(tmp_path), "--printer", "a=fake", "--bind", "nowhere"], "HOST:PORT"),
+    ):
+        result = run(*args)
+        assert result.returncode == 2, result.stderr
+        assert message in result.stderr and "Traceback" not in result.stderr
+    config = tmp_path / "server.toml"
+    config.write_text('data_dir = "x"\nmax_upload_mb = "lots"\n[printers]\na = "fake"\n')
+    result = run("--config", str(config))
+    assert result.returncode == 2 and f"{config}: max_upload_mb:" in result.stderr
