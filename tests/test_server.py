@@ -3,6 +3,7 @@ controller on a pty (started here, so that its executed log tells what ran)."""
 
 from __future__ import annotations
 
+import json
 import signal
 import socket
 import stat
@@ -17,7 +18,7 @@ import httpx
 import pytest
 
 from repetrel_host.testing.fake_controller import BuiltInFake
-from tests.helpers import executed
+from tests.helpers import executed, hyrel_send
 
 KEY = "test-key"
 MARLIN_SAFE_STOP = ["M107", "M104 S0", "M140 S0", "G91", "G0 Z10", "G90", "M84"]
@@ -190,6 +191,64 @@ def test_upload_without_print_waits_until_selected_and_started(
         assert refused.status_code == 409 and "no file selected" in refused.json()["detail"]
 
 
+def test_the_event_stream_tells_states_jobs_progress_and_temperatures(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
+) -> None:
+    fake = bench("--move-time", "0.002")
+    server = servers({"bench": fake.port})
+    seen: list[dict[str, Any]] = []
+    completed = False
+    with server.client() as client:
+        wait_for(lambda: client.get("/v1/printers/bench").json()["state"] == "ready")
+        with client.stream("GET", "/v1/events", params={"printer": "bench"}) as stream:
+            lines = stream.iter_lines()
+            job_id = client.post(
+                "/v1/printers/bench/jobs", files={"file": ("seen.gcode", gcode(600))}
+            ).json()["id"]
+            for line in lines:
+                if line.startswith("data: "):
+                    seen.append(json.loads(line[len("data: ") :]))
+                    event = seen[-1]
+                    completed |= event["type"] == "job" and event["job"]["state"] == "completed"
+                    if completed and any(e["type"] == "temperatures" for e in seen):
+                        break  # temperatures come every 2 s
+    first = seen[0]
+    assert first["type"] == "printer" and first["name"] == "bench" and first["state"] == "ready"
+    jobs = [e["job"]["state"] for e in seen if e["type"] == "job" and e["job"]["id"] == job_id]
+    assert jobs == ["queued", "printing", "completed"]
+    progress = [e["lines"] for e in seen if e["type"] == "progress"]
+    assert progress and progress == sorted(progress) and progress[-1] == 601
+    states = [e["state"] for e in seen if e["type"] == "printer"]
+    assert "printing" in states and states[-1] == "ready"
+    assert any(e["type"] == "temperatures" and "T" in e["readings"] for e in seen)
+
+
+def test_hyrel_send_submits_to_the_server_follows_lists_and_cancels(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server], tmp_path: Path
+) -> None:
+    fake = bench("--move-time", "0.002")
+    server = servers({"bench": fake.port})
+    job = tmp_path / "part.gcode"
+    job.write_text(gcode(300))
+
+    def send(*args: str, key: str = KEY) -> subprocess.CompletedProcess[str]:
+        return hyrel_send(*args, "--server", server.url, env={"HYREL_API_KEY": key})
+
+    sent = send(str(job))
+    assert sent.returncode == 0, sent.stderr
+    assert "part.gcode: queued on printer bench (ready)" in sent.stdout
+    assert "part.gcode: completed: 301 lines (to line 301)" in sent.stdout
+    listed = send("--list", "--printer", "bench")
+    assert listed.returncode == 0 and "completed" in listed.stdout and "part.gcode" in listed.stdout
+    again = send("--cancel", "1")
+    assert again.returncode == 2 and "job 1 is completed: nothing to cancel" in again.stderr
+    refused = send(str(job), key="wrong")
+    assert refused.returncode == 2 and "a valid API key is needed" in refused.stderr
+    nobody = hyrel_send("--list", "--server", "127.0.0.1:9")
+    assert nobody.returncode == 3 and "cannot reach the print server" in nobody.stderr
+    assert executed(fake.log_path).count("G28") == 1
+
+
 # --- never losing anything -----------------------------------------------------------------
 
 
@@ -359,3 +418,14 @@ def test_bad_server_settings_get_one_sentence(tmp_path: Path) -> None:
     config.write_text('data_dir = "x"\nmax_upload_mb = "lots"\n[printers]\na = "fake"\n')
     result = run("--config", str(config))
     assert result.returncode == 2 and f"{config}: max_upload_mb:" in result.stderr
+
+
+def test_the_contrib_settings_and_unit_fit_the_server() -> None:
+    from repetrel_host.config import read_toml
+    from repetrel_host.server.main import ServerSettings
+
+    contrib = Path(__file__).parent.parent / "contrib"
+    settings = ServerSettings.model_validate(read_toml(contrib / "hyrel-server.toml"))
+    assert settings.printers["demo"] == "fake" and settings.bind == "127.0.0.1:8765"
+    unit = (contrib / "hyrel-server.service").read_text()
+    assert "ExecStart=/opt/repetrel-host/bin/hyrel-server --config /etc/hyrel-server.toml" in unit

@@ -111,8 +111,9 @@ def _version(value: bool) -> None:
 @app.command()
 def send(
     job: Annotated[
-        Path, typer.Argument(help="G-code file to stream.", readable=False, metavar="JOB")
-    ],
+        Path | None,
+        typer.Argument(help="G-code file to stream.", readable=False, metavar="JOB"),
+    ] = None,
     port: Annotated[
         str | None,
         typer.Option(
@@ -197,6 +198,28 @@ def send(
             help="Where the built-in fake writes the commands it executed.", metavar="FILE"
         ),
     ] = None,
+    server: Annotated[
+        str | None,
+        typer.Option(
+            metavar="URL",
+            help="Send JOB to a print server (hyrel-server) and follow it, instead of a port.",
+        ),
+    ] = None,
+    printer: Annotated[
+        str | None,
+        typer.Option(metavar="NAME", help="With --server: which printer (default: its first)."),
+    ] = None,
+    api_key: Annotated[
+        str | None,
+        typer.Option(metavar="KEY", help="With --server: its API key (default: $HYREL_API_KEY)."),
+    ] = None,
+    list_jobs: Annotated[
+        bool, typer.Option("--list", help="With --server: list the printer's jobs.")
+    ] = False,
+    cancel: Annotated[
+        int | None,
+        typer.Option(metavar="ID", help="With --server: cancel a job (the safe stop first)."),
+    ] = None,
     version: Annotated[
         bool,
         typer.Option(
@@ -207,6 +230,13 @@ def send(
     """Stream JOB to a Hyrel (or Marlin-style) controller and show progress."""
     console, errors = Out(), Out(stderr=True)
     try:
+        if server is not None:
+            code = _with_server(console, errors, server, printer, api_key, job, list_jobs, cancel)
+            raise typer.Exit(code)
+        if list_jobs or cancel is not None or printer or api_key:
+            raise UsageError("--list, --cancel, --printer and --api-key go with --server URL")
+        if job is None:
+            raise UsageError("give the JOB to send (a G-code file)")
         if framed and not dry_run:
             raise UsageError("--framed shows the wire of a dry run: add --dry-run")
         user = load_user_config(config)
@@ -246,6 +276,56 @@ def send(
         errors.print(f"controller error: {exc}", markup=False)
         code = EXIT_CONTROLLER_ERROR
     raise typer.Exit(code)
+
+
+def _with_server(
+    console: Out,
+    errors: Out,
+    url: str,
+    printer: str | None,
+    api_key: str | None,
+    job: Path | None,
+    list_jobs: bool,
+    cancel: int | None,
+) -> int:
+    """hyrel-send --server: submit and follow a job, list jobs, or cancel one."""
+    from repetrel_host.server import client
+
+    server = client.ServerClient(url, api_key)
+    if cancel is not None:
+        ended = client.cancel(server, cancel)
+        console.print(f"job {cancel} ({ended['name']}): {ended['state']}", markup=False)
+        return EXIT_OK
+    name = server.printer(printer)
+    if list_jobs:
+        for line in client.list_jobs(server, name):
+            console.print(line, markup=False)
+        return EXIT_OK
+    if job is None:
+        raise UsageError("give the JOB to send to the server (or --list, --cancel ID)")
+    from rich.markup import escape
+    from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn
+
+    progress = Progress(
+        TextColumn(f"[bold]{escape(job.name)}"),
+        BarColumn(),
+        TaskProgressColumn(),
+        TextColumn("{task.fields[lines]} lines"),
+        console=console.console,
+    )
+    task = progress.add_task(job.name, total=1, lines=0)
+
+    def update(done: int, size: int, lines: int) -> None:
+        progress.start()
+        progress.update(task, completed=done, total=max(size, 1), lines=lines)
+
+    def show(text: str) -> None:
+        console.print(text, markup=False)
+
+    try:
+        return client.follow(server, name, job, show, update)
+    finally:
+        progress.stop()
 
 
 def _check(plan: JobPlan, errors: Out) -> list[Finding]:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import hmac
+import json
 import logging
 import os
 import re
@@ -35,12 +36,13 @@ from fastapi import (
     UploadFile,
 )
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse, Response
+from fastapi.responses import JSONResponse, Response, StreamingResponse
 from pydantic import BaseModel
 
 import repetrel_host as rh
 from repetrel_host.config import UserConfig
 from repetrel_host.planning import JobRequest, plan_job
+from repetrel_host.server.events import EventHub
 from repetrel_host.server.printers import PrinterService
 from repetrel_host.server.store import JobRecord, JobState, Store
 
@@ -49,6 +51,7 @@ log = logging.getLogger("repetrel_host.server")
 # What /api/version says: PrusaSlicer checks that "text" starts with "OctoPrint".
 OCTOPRINT_VERSION = "1.10.0"
 G_CODE_SUFFIXES = (".gcode", ".gco", ".g")
+KEEPALIVE = 15.0  # seconds of quiet before the event stream says it is alive
 _SAFE_NAME = re.compile(r"[^A-Za-z0-9._ ()+-]")
 
 
@@ -70,8 +73,9 @@ class PrintServer:
         self.max_upload = max_upload
         self.user = user or UserConfig()
         self.store = Store(data_dir / "jobs.sqlite")
+        self.events = EventHub()
         self.services = {
-            name: PrinterService(name, port, self.store, data_dir, self.user)
+            name: PrinterService(name, port, self.store, data_dir, self.user, self.events.publish)
             for name, port in printers.items()
         }
         self.default = next(iter(self.services))
@@ -138,19 +142,7 @@ Keyed = Depends(require_key)
 
 
 def _job_json(record: JobRecord) -> dict[str, Any]:
-    return {
-        "id": record.id,
-        "printer": record.printer,
-        "name": record.name,
-        "state": record.state.value,
-        "submitted": record.submitted,
-        "started": record.started,
-        "ended": record.ended,
-        "lines": record.lines,
-        "last_line": record.last_line,
-        "total_lines": record.total_lines,
-        "error": record.error,
-    }
+    return record.as_json()
 
 
 def _printer_json(service: PrinterService) -> dict[str, Any]:
@@ -185,6 +177,10 @@ def _running_json(service: PrinterService) -> dict[str, Any]:
         "bytes": job.offset,
         "size": job.size,
     }
+
+
+def _sse(event: dict[str, Any]) -> str:
+    return f"event: {event['type']}\ndata: {json.dumps(event)}\n\n"
 
 
 def safe_file_name(name: str) -> str:
@@ -245,7 +241,9 @@ async def _save_upload(
 def _queue(server: PrintServer, printer: str, path: Path, commands: int) -> JobRecord:
     record = server.store.submit(printer, path.name, _relative(server, path), commands)
     log.info("job %d (%s) queued on printer %s", record.id, path.name, printer)
-    server.services[printer].wake()
+    service = server.services[printer]
+    service.job_changed(record.id)
+    service.wake()
     return record
 
 
@@ -355,6 +353,33 @@ def _native_router() -> APIRouter:
         service = server.service(name)
         path, findings, commands = await _save_upload(server, service.name, file)
         return {**_job_json(_queue(server, service.name, path, commands)), "findings": findings}
+
+    @router.get("/events")
+    async def events(request: Request, printer: str | None = None) -> StreamingResponse:
+        """Server-sent events: each printer as it stands first, then printer states, jobs,
+        progress, temperatures and controller messages as they come (JSON data)."""
+        server = _server(request)
+        names = [server.service(printer).name] if printer else list(server.services)
+
+        async def stream() -> AsyncIterator[str]:
+            async with server.events.subscribe() as queue:
+                for name in names:
+                    now = {
+                        "type": "printer",
+                        "printer": name,
+                        **_printer_json(server.services[name]),
+                    }
+                    yield _sse(now)
+                while True:
+                    try:
+                        event = await asyncio.wait_for(queue.get(), KEEPALIVE)
+                    except TimeoutError:
+                        yield ": keepalive\n\n"  # proxies keep the stream open
+                        continue
+                    if event.get("printer") in names:
+                        yield _sse(event)
+
+        return StreamingResponse(stream(), media_type="text/event-stream")
 
     @router.get("/jobs/{job_id}")
     async def job(request: Request, job_id: int) -> dict[str, Any]:

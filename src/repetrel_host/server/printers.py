@@ -19,6 +19,7 @@ from pathlib import Path
 import repetrel_host as rh
 from repetrel_host.config import UserConfig
 from repetrel_host.planning import controller_profile, safe_stop
+from repetrel_host.server.events import Event
 from repetrel_host.server.store import PROGRESS_INTERVAL, JobRecord, JobState, Store
 
 log = logging.getLogger("repetrel_host.server")
@@ -48,14 +49,14 @@ class PrinterService:
         store: Store,
         data_dir: Path,
         user: UserConfig,
-        on_change: Callable[[str], None] = lambda name: None,
+        publish: Callable[[Event], None] = lambda event: None,
     ) -> None:
         self.name = name
         self.port = port
         self.store = store
         self.data_dir = data_dir
         self.user = user
-        self.on_change = on_change
+        self.publish = publish  # the server's events
         self.printer: rh.Printer | None = None
         self.running: Running | None = None
         self.held = False  # the queue waits for a release (after an interrupted job)
@@ -66,6 +67,7 @@ class PrinterService:
         self._task: asyncio.Task[None] | None = None
         self._stopping = False
         self._paused = False
+        self._forwarding: asyncio.Task[None] | None = None
 
     # --- lifecycle ---------------------------------------------------------------
 
@@ -136,7 +138,7 @@ class PrinterService:
                 continue
             log.info("printer %s: connected on %s", self.name, self.port)
             self.last_error = ""
-            self.on_change(self.name)
+            self._forwarding = asyncio.get_running_loop().create_task(self._forward(self.printer))
             return
 
     async def _send_safe_stop(self) -> None:
@@ -165,13 +167,13 @@ class PrinterService:
                 return  # not the job's fault: it stays queued
             self.store.set_state(record.id, JobState.FAILED, str(exc))
             log.warning("printer %s: job %d refused: %s", self.name, record.id, exc)
-            self.on_change(self.name)
+            self.job_changed(record.id)
             return
         self.running = Running(record, job)
         self._paused = False
         self.store.set_state(record.id, JobState.PRINTING)
         log.info("printer %s: printing job %d (%s)", self.name, record.id, record.name)
-        self.on_change(self.name)
+        self.job_changed(record.id)
         state, error = JobState.COMPLETED, None
         try:
             while not job.done:
@@ -192,16 +194,51 @@ class PrinterService:
         log.info(
             "printer %s: job %d %s%s", self.name, record.id, state, f": {error}" if error else ""
         )
-        self.on_change(self.name)
+        self.job_changed(record.id)
 
     def _record_progress(self, record: JobRecord, job: rh.PrintJob) -> None:
         last = job.last
-        self.store.progress(record.id, job.lines, last.source_line if last else 0)
+        last_line = last.source_line if last else 0
+        self.store.progress(record.id, job.lines, last_line)
+        self.publish(
+            {
+                "type": "progress",
+                "printer": self.name,
+                "job": record.id,
+                "lines": job.lines,
+                "last_line": last_line,
+                "bytes": job.offset,
+                "size": job.size,
+            }
+        )
         paused = self.printer is not None and self.printer.state is rh.State.PAUSED
         if paused != self._paused and not job.done:
             self._paused = paused
             self.store.set_state(record.id, JobState.PAUSED if paused else JobState.PRINTING)
-            self.on_change(self.name)
+            self.job_changed(record.id)
+
+    # --- events -----------------------------------------------------------------------
+
+    def job_changed(self, job_id: int) -> None:
+        record = self.store.job(job_id)
+        if record is not None:
+            self.publish({"type": "job", "printer": self.name, "job": record.as_json()})
+
+    async def _forward(self, printer: rh.Printer) -> None:
+        """The session's states, temperatures and messages, as the server's events."""
+        name = self.name
+        async for event in printer.events():
+            if isinstance(event, rh.StateChanged):
+                state = event.state.value
+                self.publish(
+                    {"type": "printer", "printer": name, "state": state, "held": self.held}
+                )
+                self.wake()  # READY again: the queue may go on
+            elif isinstance(event, rh.Temperatures):
+                readings = {sensor: list(value) for sensor, value in event.readings.items()}
+                self.publish({"type": "temperatures", "printer": name, "readings": readings})
+            else:
+                self.publish({"type": "message", "printer": name, "text": event.text})
 
     # --- control ----------------------------------------------------------------------
 
@@ -209,7 +246,7 @@ class PrinterService:
         """Let the queue run again (after an interrupted job was looked at)."""
         self.held = False
         self.wake()
-        self.on_change(self.name)
+        self.publish({"type": "printer", "printer": self.name, "state": self.state, "held": False})
 
     async def cancel(self, job_id: int | None = None) -> bool:
         """Cancel the running job (``job_id``, or whichever runs) with its safe stop first,
@@ -222,6 +259,6 @@ class PrinterService:
                 await running.job.wait()
             return True
         if job_id is not None and self.store.cancel_queued(job_id):
-            self.on_change(self.name)
+            self.job_changed(job_id)
             return True
         return False

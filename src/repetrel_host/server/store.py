@@ -71,6 +71,21 @@ class JobRecord:
     total_lines: int
     error: str | None
 
+    def as_json(self) -> dict[str, object]:
+        return {
+            "id": self.id,
+            "printer": self.printer,
+            "name": self.name,
+            "state": self.state.value,
+            "submitted": self.submitted,
+            "started": self.started,
+            "ended": self.ended,
+            "lines": self.lines,
+            "last_line": self.last_line,
+            "total_lines": self.total_lines,
+            "error": self.error,
+        }
+
 
 class Store:
     """The jobs of every printer. Each method is one transaction."""

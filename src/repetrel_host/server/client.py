@@ -1,0 +1,177 @@
+"""``hyrel-send --server URL``: the print server from the command line (the standard
+library's HTTP client: nothing more to install). Submits a job and follows it through
+the server's event stream, lists a printer's queue, cancels a job."""
+
+from __future__ import annotations
+
+import json
+import os
+import uuid
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+from urllib.error import HTTPError, URLError
+from urllib.parse import quote, urlencode
+from urllib.request import Request, urlopen
+
+from repetrel_host.errors import JobError, LinkError, UsageError
+
+API_KEY_ENV = "HYREL_API_KEY"
+TIMEOUT = 30.0
+# How a job's end maps to hyrel-send's exit codes.
+ENDED = {"completed": 0, "cancelled": 130, "failed": 4, "interrupted": 4}
+
+
+class ServerClient:
+    """Requests to one print server; every failure is one sentence (a HostError)."""
+
+    def __init__(self, url: str, api_key: str | None = None) -> None:
+        if not url.startswith(("http://", "https://")):
+            url = f"http://{url}"
+        self.url = url.rstrip("/")
+        self.api_key = api_key or os.environ.get(API_KEY_ENV)
+
+    def request(
+        self, method: str, path: str, body: bytes | None = None, content_type: str = ""
+    ) -> Any:
+        headers = {"Accept": "application/json"}
+        if content_type:
+            headers["Content-Type"] = content_type
+        if self.api_key:
+            headers["X-Api-Key"] = self.api_key
+        request = Request(f"{self.url}{path}", data=body, headers=headers, method=method)
+        try:
+            with urlopen(request, timeout=TIMEOUT) as response:
+                data = response.read()
+        except HTTPError as exc:
+            raise _refused(exc) from None
+        except (URLError, OSError) as exc:
+            reason = getattr(exc, "reason", exc)
+            raise LinkError(f"cannot reach the print server at {self.url}: {reason}") from None
+        return json.loads(data) if data else None
+
+    def printer(self, name: str | None) -> str:
+        """The printer named, or the server's first."""
+        printers = [p["name"] for p in self.request("GET", "/v1/printers")]
+        if name is None:
+            return str(printers[0])
+        if name not in printers:
+            raise UsageError(f"the server has no printer '{name}' (it has {', '.join(printers)})")
+        return name
+
+    def submit(self, printer: str, path: Path) -> dict[str, Any]:
+        boundary = uuid.uuid4().hex
+        try:
+            content = path.read_bytes()
+        except OSError as exc:
+            raise JobError(f"{path}: cannot be read ({exc.strerror})") from None
+        body = (
+            (
+                f'--{boundary}\r\nContent-Disposition: form-data; name="file"; '
+                f'filename="{path.name}"\r\nContent-Type: application/octet-stream\r\n\r\n'
+            ).encode()
+            + content
+            + f"\r\n--{boundary}--\r\n".encode()
+        )
+        job: dict[str, Any] = self.request(
+            "POST",
+            f"/v1/printers/{quote(printer)}/jobs",
+            body,
+            f"multipart/form-data; boundary={boundary}",
+        )
+        return job
+
+    def events(self, printer: str) -> Iterator[dict[str, Any]]:
+        """The server's events for ``printer``, as they come."""
+        query = urlencode({"printer": printer})
+        request = Request(f"{self.url}/v1/events?{query}", headers={"Accept": "text/event-stream"})
+        try:
+            response = urlopen(request, timeout=None)
+        except HTTPError as exc:
+            raise _refused(exc) from None
+        except (URLError, OSError) as exc:
+            raise LinkError(f"cannot reach the print server at {self.url}: {exc}") from None
+        with response:
+            for raw in response:
+                line = raw.decode("utf-8", errors="replace").rstrip("\r\n")
+                if line.startswith("data: "):
+                    yield json.loads(line[len("data: ") :])
+
+
+def _refused(exc: HTTPError) -> Exception:
+    try:
+        detail = json.loads(exc.read()).get("detail", exc.reason)
+    except (ValueError, AttributeError):
+        detail = exc.reason
+    if isinstance(detail, dict):  # a refused job: the lint's findings
+        detail = "; ".join([str(detail.get("error")), *detail.get("findings", [])])
+    message = f"the print server refused: {detail} (HTTP {exc.code})"
+    return JobError(message) if exc.code in (400, 404, 409, 413) else UsageError(message)
+
+
+def follow(
+    client: ServerClient,
+    printer: str,
+    path: Path,
+    show: Callable[[str], None],
+    progress: Callable[[int, int, int], None],
+) -> int:
+    """Submit ``path`` and follow it to its end; returns hyrel-send's exit code."""
+    events = client.events(printer)  # subscribed before the job exists: nothing missed
+    first = next(events)  # the printer as it stands
+    job = client.submit(printer, path)
+    job_id = job["id"]
+    for finding in job.get("findings", []):
+        show(finding)
+    where = f"printer {printer} ({first.get('state')})"
+    show(f"{path.name}: queued on {where} of {client.url} as job {job_id}")
+    try:
+        return _follow(events, job_id, path, show, progress, client.url)
+    except KeyboardInterrupt:
+        show(
+            f"no longer following job {job_id}: it goes on on the server "
+            f"(hyrel-send --server {client.url} --cancel {job_id} stops it)"
+        )
+        return 130
+
+
+def _follow(
+    events: Iterator[dict[str, Any]],
+    job_id: int,
+    path: Path,
+    show: Callable[[str], None],
+    progress: Callable[[int, int, int], None],
+    url: str,
+) -> int:
+    for event in events:
+        kind = event["type"]
+        if kind == "progress" and event["job"] == job_id:
+            progress(event["bytes"], event["size"], event["lines"])
+        elif kind == "message":
+            show(f"controller: {event['text']}")
+        elif kind == "job" and event["job"]["id"] == job_id:
+            record = event["job"]
+            state = record["state"]
+            if state in ENDED:
+                line = record["last_line"]
+                summary = f"{path.name}: {state}: {record['lines']} lines (to line {line})"
+                show(f"{summary}: {record['error']}" if record["error"] else summary)
+                return ENDED[state]
+            if state != "queued":  # said already
+                show(f"{path.name}: {state}")
+    raise LinkError(f"the print server at {url} closed its event stream")
+
+
+def list_jobs(client: ServerClient, printer: str) -> list[str]:
+    """The printer's queue and history, a line each."""
+    lines = []
+    for job in client.request("GET", f"/v1/printers/{quote(printer)}/jobs"):
+        done = f"{job['lines']}/{job['total_lines']} lines"
+        error = f"  {job['error']}" if job["error"] else ""
+        lines.append(f"{job['id']:>5}  {job['state']:<11}  {done:<18}  {job['name']}{error}")
+    return lines
+
+
+def cancel(client: ServerClient, job_id: int) -> dict[str, Any]:
+    job: dict[str, Any] = client.request("DELETE", f"/v1/jobs/{job_id}")
+    return job
