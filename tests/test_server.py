@@ -3,7 +3,10 @@ controller on a pty (started here, so that its executed log tells what ran)."""
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import json
+import shutil
 import signal
 import socket
 import stat
@@ -14,6 +17,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import aiomqtt
 import httpx
 import pytest
 
@@ -429,3 +433,111 @@ def test_the_contrib_settings_and_unit_fit_the_server() -> None:
     assert settings.printers["demo"] == "fake" and settings.bind == "127.0.0.1:8765"
     unit = (contrib / "hyrel-server.service").read_text()
     assert "ExecStart=/opt/repetrel-host/bin/hyrel-server --config /etc/hyrel-server.toml" in unit
+
+
+# --- MQTT ------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def broker(tmp_path: Path) -> Iterator[int]:
+    """An MQTT broker process on a free port: Debian's mosquitto, else amqtt's broker."""
+    port = free_port()
+    if shutil.which("mosquitto"):
+        command = ["mosquitto", "-p", str(port)]
+    else:
+        config = tmp_path / "amqtt.yaml"
+        config.write_text(
+            f"listeners:\n  default:\n    type: tcp\n    bind: 127.0.0.1:{port}\n"
+            "plugins:\n  amqtt.plugins.authentication.AnonymousAuthPlugin:\n"
+            "    allow_anonymous: true\n"
+        )
+        command = [str(Path(sys.executable).parent / "amqtt"), "-c", str(config)]
+    process = subprocess.Popen(
+        command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, stdin=subprocess.DEVNULL
+    )
+    try:
+        wait_for(lambda: _accepts(port), 15, "the MQTT broker")
+        yield port
+    finally:
+        process.terminate()
+        process.wait(timeout=10)
+
+
+def _accepts(port: int) -> bool:
+    with socket.socket() as probe:
+        return probe.connect_ex(("127.0.0.1", port)) == 0
+
+
+async def _mqtt_messages(
+    port: int, topic: str, until: Callable[[list[tuple[str, Any]]], bool], timeout: float = 30
+) -> list[tuple[str, Any]]:
+    """(topic, payload) of what arrives on ``topic`` until ``until(messages)``."""
+    messages: list[tuple[str, Any]] = []
+    async with aiomqtt.Client("127.0.0.1", port) as client:
+        await client.subscribe(topic, qos=1)
+        async with asyncio.timeout(timeout):
+            async for message in client.messages:
+                payload = bytes(message.payload).decode()  # type: ignore[arg-type]
+                with contextlib.suppress(ValueError):
+                    payload = json.loads(payload)
+                messages.append((str(message.topic), payload))
+                if until(messages):
+                    return messages
+    return messages
+
+
+def test_mqtt_publishes_states_jobs_progress_retained_and_takes_commands(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server], broker: int
+) -> None:
+    fake = bench("--move-time", "0.002")
+    server = servers({"bench": fake.port}, "--mqtt", f"127.0.0.1:{broker}", "--mqtt-commands")
+    with server.client() as client:
+        wait_for(lambda: client.get("/v1/printers/bench").json()["state"] == "ready")
+
+    async def scenario() -> None:
+        async def upload() -> None:
+            await asyncio.sleep(0.5)  # subscribed by then
+            async with httpx.AsyncClient(base_url=server.url, headers={"X-Api-Key": KEY}) as web:
+                files = {"file": ("farm.gcode", gcode(400))}
+                assert (await web.post("/v1/printers/bench/jobs", files=files)).status_code == 201
+
+        def completed(messages: list[tuple[str, Any]]) -> bool:
+            return any(
+                topic == "hyrel/bench/job" and payload["job"]["state"] == "completed"
+                for topic, payload in messages
+            )
+
+        uploading = asyncio.create_task(upload())
+        seen = await _mqtt_messages(broker, "hyrel/#", completed)
+        await uploading
+        topics = {topic for topic, _ in seen}
+        assert {"hyrel/server/online", "hyrel/bench/state", "hyrel/bench/progress"} <= topics
+        progress = [p["lines"] for t, p in seen if t == "hyrel/bench/progress"]
+        assert progress[-1] == 401
+        states = [p["state"] for t, p in seen if t == "hyrel/bench/state"]
+        assert "printing" in states
+
+        # A dashboard that starts later sees how things stand (retained).
+        late = await _mqtt_messages(broker, "hyrel/bench/+", lambda m: len(m) >= 3, 10)
+        retained = dict(late)
+        assert retained["hyrel/bench/state"]["state"] == "ready"
+        assert retained["hyrel/bench/job"]["job"]["state"] == "completed"
+
+        async with aiomqtt.Client("127.0.0.1", broker) as commander:
+            await commander.subscribe("hyrel/bench/reply", qos=1)
+            await commander.publish("hyrel/bench/command", b"M105", qos=1)
+            async with asyncio.timeout(10):
+                async for message in commander.messages:
+                    if str(message.topic) == "hyrel/bench/reply":
+                        reply = json.loads(bytes(message.payload))  # type: ignore[arg-type]
+                        break
+        assert reply["ok"] is True and reply["reply"].startswith("ok T:")
+
+    asyncio.run(scenario())
+    assert server.stop() == 0
+
+    async def after_stop() -> None:
+        online = await _mqtt_messages(broker, "hyrel/server/online", lambda m: True, 10)
+        assert online == [("hyrel/server/online", False)]
+
+    asyncio.run(after_stop())

@@ -43,6 +43,7 @@ import repetrel_host as rh
 from repetrel_host.config import UserConfig
 from repetrel_host.planning import JobRequest, plan_job
 from repetrel_host.server.events import EventHub
+from repetrel_host.server.mqtt import MqttSettings
 from repetrel_host.server.printers import PrinterService
 from repetrel_host.server.store import JobRecord, JobState, Store
 
@@ -65,6 +66,7 @@ class PrintServer:
         api_key: str,
         max_upload: int,
         user: UserConfig | None = None,
+        mqtt: MqttSettings | None = None,
     ) -> None:
         self.data_dir = data_dir
         self.files = data_dir / "files"
@@ -74,6 +76,8 @@ class PrintServer:
         self.user = user or UserConfig()
         self.store = Store(data_dir / "jobs.sqlite")
         self.events = EventHub()
+        self.mqtt = mqtt
+        self._bridge: asyncio.Task[None] | None = None
         self.services = {
             name: PrinterService(name, port, self.store, data_dir, self.user, self.events.publish)
             for name, port in printers.items()
@@ -107,9 +111,18 @@ class PrintServer:
     async def start(self) -> None:
         for service in self.services.values():
             service.start()
+        if self.mqtt is not None:
+            from repetrel_host.server.mqtt import MqttBridge
+
+            bridge = MqttBridge(self, self.mqtt)
+            self._bridge = asyncio.get_running_loop().create_task(bridge.run(), name="mqtt")
 
     async def stop(self) -> None:
         await asyncio.gather(*(service.stop() for service in self.services.values()))
+        if self._bridge is not None:  # after the printers: their last events go out
+            await asyncio.sleep(0.2)
+            self._bridge.cancel()
+            await asyncio.gather(self._bridge, return_exceptions=True)
         self.store.close()
 
     def service(self, name: str | None) -> PrinterService:

@@ -24,6 +24,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from repetrel_host import __version__
 from repetrel_host.config import read_toml
 from repetrel_host.errors import ConfigError
+from repetrel_host.server.mqtt import MqttSettings
 
 DEFAULT_BIND = "127.0.0.1:8765"
 API_KEY_FILE = "api-key"
@@ -42,6 +43,11 @@ class ServerSettings(BaseModel):
     printers: dict[str, str] = Field(min_length=1)
     api_key: str | None = None
     max_upload_mb: int = Field(default=1024, gt=0)
+    mqtt: str | None = None  # HOST[:PORT] of a broker
+    mqtt_prefix: str = "hyrel"
+    mqtt_commands: bool = False
+    mqtt_username: str | None = None
+    mqtt_password: str | None = None
 
 
 def _fail(message: str) -> None:
@@ -56,6 +62,7 @@ def _settings(
     printer: list[str],
     api_key: str | None,
     max_upload_mb: int | None,
+    mqtt: tuple[str | None, str | None, bool],
 ) -> ServerSettings:
     values: dict[str, object] = {}
     if config is not None:
@@ -75,6 +82,9 @@ def _settings(
         "api_key": api_key,
         "max_upload_mb": max_upload_mb,
         "printers": printers,
+        "mqtt": mqtt[0],
+        "mqtt_prefix": mqtt[1],
+        "mqtt_commands": mqtt[2] or None,
     }
     values.update({key: value for key, value in given.items() if value is not None})
     if not printers:
@@ -112,6 +122,29 @@ def _api_key(settings: ServerSettings) -> str:
     return key
 
 
+def _mqtt(settings: ServerSettings) -> MqttSettings | None:
+    if settings.mqtt is None:
+        return None
+    host, port = _address(settings.mqtt, 1883, "--mqtt")
+    return MqttSettings(
+        host,
+        port,
+        settings.mqtt_prefix,
+        settings.mqtt_commands,
+        settings.mqtt_username,
+        settings.mqtt_password,
+    )
+
+
+def _address(text: str, default_port: int | None, option: str) -> tuple[str, int]:
+    host, sep, port = text.rpartition(":")
+    if not sep and default_port is not None:
+        return text, default_port
+    if not host or not port.isdigit():
+        _fail(f"{option} {text}: give HOST:PORT")
+    return host.strip("[]"), int(port)
+
+
 def _bind(text: str) -> tuple[str, int]:
     host, _, port = text.rpartition(":")
     if not host or not port.isdigit():
@@ -137,6 +170,19 @@ def serve(
     max_upload_mb: Annotated[
         int | None, typer.Option(help="Largest upload, in MB (default 1024).", min=1)
     ] = None,
+    mqtt: Annotated[
+        str | None, typer.Option(metavar="HOST[:PORT]", help="Publish to this MQTT broker.")
+    ] = None,
+    mqtt_prefix: Annotated[
+        str | None, typer.Option(help="Topic prefix (default hyrel): PREFIX/PRINTER/state...")
+    ] = None,
+    mqtt_commands: Annotated[
+        bool,
+        typer.Option(
+            "--mqtt-commands",
+            help="Take commands on PREFIX/PRINTER/command (off: MQTT topics have no secret).",
+        ),
+    ] = False,
     config: Annotated[Path | None, typer.Option(help="A TOML file with these settings.")] = None,
     version: Annotated[bool, typer.Option("--version", help="Print the version.")] = False,
 ) -> None:
@@ -144,7 +190,15 @@ def serve(
     if version:
         typer.echo(f"hyrel-server (repetrel-host) {__version__}")
         return
-    settings = _settings(config, data_dir, bind, printer or [], api_key, max_upload_mb)
+    settings = _settings(
+        config,
+        data_dir,
+        bind,
+        printer or [],
+        api_key,
+        max_upload_mb,
+        (mqtt, mqtt_prefix, mqtt_commands),
+    )
     host, port = _bind(settings.bind)
     logging.basicConfig(
         stream=sys.stderr, level=logging.INFO, format="%(levelname)s %(name)s: %(message)s"
@@ -161,7 +215,11 @@ def serve(
     from repetrel_host.server.app import PrintServer, create_app
 
     server = PrintServer(
-        settings.data_dir, settings.printers, key, settings.max_upload_mb * 1024 * 1024
+        settings.data_dir,
+        settings.printers,
+        key,
+        settings.max_upload_mb * 1024 * 1024,
+        mqtt=_mqtt(settings),
     )
     # uvicorn shuts down gracefully on SIGTERM and SIGINT, then raises the signal again
     # with the handlers found before it started: these, so that a stop asked for exits

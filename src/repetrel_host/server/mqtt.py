@@ -1,0 +1,149 @@
+"""MQTT for farms: the server's events published under ``<prefix>/<printer>/...``.
+
+- ``state`` (retained): ``{"state": "ready", "held": false}``
+- ``job`` (retained): the printer's current or last job
+- ``progress`` (retained): lines, the file line, bytes of the running job
+- ``temperatures`` (retained): ``{"T": [actual, target], "B": [...]}``
+- ``message``: the controller's messages
+- ``<prefix>/server/online`` (retained): ``true``, and ``false`` as the will (the broker says
+  it when the server vanishes).
+
+Retained, so a dashboard that starts later sees how things stand. Commands are taken on
+``<prefix>/<printer>/command`` only when allowed (MQTT has no per-topic secret unless the
+broker enforces one): ``pause``, ``resume``, ``cancel``, ``release``, or one G-code line,
+answered on ``<prefix>/<printer>/reply``. The broker may come and go: the bridge connects
+again with backoff and never stops the server.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import aiomqtt
+
+import repetrel_host as rh
+
+if TYPE_CHECKING:
+    from repetrel_host.server.app import PrintServer
+    from repetrel_host.server.events import Event
+
+log = logging.getLogger("repetrel_host.server")
+
+RECONNECT_FIRST = 1.0
+RECONNECT_MAX = 30.0
+ACTIONS = ("pause", "resume", "cancel", "release")
+# Event types and whether their topic is retained.
+_TOPICS = {"printer": True, "job": True, "progress": True, "temperatures": True, "message": False}
+
+
+@dataclass(frozen=True)
+class MqttSettings:
+    host: str
+    port: int = 1883
+    prefix: str = "hyrel"
+    commands: bool = False
+    username: str | None = None
+    password: str | None = None
+
+
+class MqttBridge:
+    """Publishes the server's events to a broker; takes commands when allowed."""
+
+    def __init__(self, server: PrintServer, settings: MqttSettings) -> None:
+        self.server = server
+        self.settings = settings
+        self.prefix = settings.prefix.rstrip("/")
+
+    async def run(self) -> None:
+        delay = RECONNECT_FIRST
+        settings = self.settings
+        online = f"{self.prefix}/server/online"
+        while True:
+            try:
+                async with aiomqtt.Client(
+                    settings.host,
+                    settings.port,
+                    username=settings.username,
+                    password=settings.password,
+                    will=aiomqtt.Will(online, b"false", qos=1, retain=True),
+                ) as client:
+                    log.info("mqtt: connected to %s:%d", settings.host, settings.port)
+                    delay = RECONNECT_FIRST
+                    await self._session(client, online)
+            except aiomqtt.MqttError as exc:
+                log.warning("mqtt: %s (trying again in %.0f s)", exc, delay)
+                await asyncio.sleep(delay)
+                delay = min(delay * 2, RECONNECT_MAX)
+
+    async def _session(self, client: aiomqtt.Client, online: str) -> None:
+        try:
+            await self._forward(client, online)
+        finally:  # the server stopping: say so (the will says it for a crash)
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(client.publish(online, b"false", qos=1, retain=True), 2)
+
+    async def _forward(self, client: aiomqtt.Client, online: str) -> None:
+        async with self.server.events.subscribe() as queue:  # before the snapshot: none lost
+            await client.publish(online, b"true", qos=1, retain=True)
+            for service in self.server.services.values():
+                await self._publish(client, self._printer_event(service.name))
+                last = self.server.store.last_started(service.name)
+                if last is not None:
+                    await self._publish(
+                        client, {"type": "job", "printer": service.name, "job": last.as_json()}
+                    )
+            if self.settings.commands:
+                await client.subscribe(f"{self.prefix}/+/command", qos=1)
+            async with asyncio.TaskGroup() as group:
+                group.create_task(self._commands(client))
+                while True:
+                    await self._publish(client, await queue.get())
+
+    def _printer_event(self, name: str) -> Event:
+        service = self.server.services[name]
+        return {"type": "printer", "printer": name, "state": service.state, "held": service.held}
+
+    async def _publish(self, client: aiomqtt.Client, event: Event) -> None:
+        kind = event["type"]
+        retain = _TOPICS.get(kind)
+        if retain is None:
+            return
+        topic = "state" if kind == "printer" else kind
+        fields = {k: v for k, v in event.items() if k not in ("type", "printer")}
+        text = str(event["text"]) if kind == "message" else json.dumps(fields)
+        data = text.encode()  # a message is the controller's line itself
+        await client.publish(f"{self.prefix}/{event['printer']}/{topic}", data, 1, retain)
+
+    async def _commands(self, client: aiomqtt.Client) -> None:
+        async for message in client.messages:
+            parts = str(message.topic).split("/")
+            name = parts[-2] if len(parts) >= 2 else ""
+            service = self.server.services.get(name)
+            if service is None or not isinstance(message.payload, bytes | bytearray):
+                continue
+            text = bytes(message.payload).decode("utf-8", errors="replace").strip()
+            answer = await self._command(name, text)
+            await client.publish(f"{self.prefix}/{name}/reply", json.dumps(answer).encode(), 1)
+
+    async def _command(self, name: str, text: str) -> dict[str, Any]:
+        from fastapi import HTTPException
+
+        from repetrel_host.server.app import _command, _control
+
+        service = self.server.services[name]
+        log.info("mqtt: printer %s: %s", name, text)
+        try:
+            if text.lower() in ACTIONS:
+                await _control(service, text.lower())
+                return {"command": text, "ok": True}
+            reply = await _command(service, text)
+        except HTTPException as exc:
+            return {"command": text, "ok": False, "error": str(exc.detail)}
+        except rh.HostError as exc:
+            return {"command": text, "ok": False, "error": str(exc)}
+        return {"command": text, "ok": True, "lines": reply.lines, "reply": reply.ok}
