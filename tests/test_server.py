@@ -541,3 +541,67 @@ def test_mqtt_publishes_states_jobs_progress_retained_and_takes_commands(
         assert online == [("hyrel/server/online", False)]
 
     asyncio.run(after_stop())
+
+
+# --- the status page -----------------------------------------------------------------------
+
+CHROMIUM, CHROMEDRIVER = shutil.which("chromium"), shutil.which("chromedriver")
+
+
+@pytest.mark.skipif(
+    CHROMIUM is None or CHROMEDRIVER is None,
+    reason="needs Debian's chromium and chromium-driver (.ci/run installs them)",
+)
+def test_the_status_page_shows_a_job_live_and_its_buttons_work(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server], tmp_path: Path
+) -> None:
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.common.keys import Keys
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    fake = bench("--move-time", "0.004", "--heat-rate", "20")
+    server = servers({"bench": fake.port})
+    job = tmp_path / "layers.gcode"
+    job.write_text(
+        "".join(f";LAYER_CHANGE\nG1 Z{z / 5}\n" + gcode(300, start=z) for z in range(1, 5))
+    )
+    options = webdriver.ChromeOptions()
+    options.binary_location = str(CHROMIUM)
+    for argument in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage"):
+        options.add_argument(argument)
+    browser = webdriver.Chrome(service=Service(str(CHROMEDRIVER)), options=options)
+    try:
+        wait = WebDriverWait(browser, 30)
+        browser.get(f"{server.url}/")
+
+        def text(selector: str) -> str:
+            return str(
+                browser.find_element(By.CSS_SELECTOR, f"[data-printer=bench] {selector}").text
+            )
+
+        wait.until(lambda _: text(".state") == "ready")
+        # Without the key, a button says why it did nothing.
+        browser.find_element(By.CSS_SELECTOR, "[data-printer=bench] [data-action=cancel]").click()
+        wait.until(lambda _: "API key" in browser.find_element(By.ID, "notice").text)
+        key = browser.find_element(By.ID, "key")
+        key.send_keys(KEY, Keys.TAB)
+        upload = browser.find_element(By.CSS_SELECTOR, "[data-printer=bench] input[type=file]")
+        upload.send_keys(str(job))
+        browser.find_element(By.CSS_SELECTOR, "[data-printer=bench] form button").click()
+        wait.until(lambda _: "printing" in text(".job") and "layer" in text(".numbers"))
+        assert "of 1208 lines" in text(".numbers")
+        browser.find_element(By.CSS_SELECTOR, "[data-printer=bench] [data-action=pause]").click()
+        wait.until(lambda _: text(".state") == "paused")
+        browser.find_element(By.CSS_SELECTOR, "[data-printer=bench] [data-action=resume]").click()
+        wait.until(lambda _: text(".state") == "printing")
+        wait.until(lambda _: "completed" in text(".job"))
+        assert "layers.gcode: completed" in text(".queue")
+        assert "T 21.0°" in text(".temperatures")
+        assert browser.find_elements(By.CSS_SELECTOR, "[data-printer=bench] svg polyline")
+        assert browser.find_element(By.ID, "notice").text == ""
+    finally:
+        browser.quit()
+    ran = executed(fake.log_path)
+    assert ran.count("G28") == 4 and len([c for c in ran if c.startswith("G1 X")]) == 1200

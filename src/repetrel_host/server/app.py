@@ -20,6 +20,7 @@ import shutil
 import time
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from importlib import resources
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -36,7 +37,7 @@ from fastapi import (
     UploadFile,
 )
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse, Response, StreamingResponse
+from fastapi.responses import HTMLResponse, JSONResponse, Response, StreamingResponse
 from pydantic import BaseModel
 
 import repetrel_host as rh
@@ -189,6 +190,8 @@ def _running_json(service: PrinterService) -> dict[str, Any]:
         "last_line": last.source_line if last else 0,
         "bytes": job.offset,
         "size": job.size,
+        "layer": running.layer,
+        "layers": len(running.layers),
     }
 
 
@@ -333,6 +336,13 @@ def create_app(server: PrintServer) -> FastAPI:
             )
         response: Response = await call_next(request)
         return response
+
+    page = resources.files("repetrel_host.server").joinpath("page.html").read_text()
+
+    @app.get("/", include_in_schema=False)
+    async def status_page() -> HTMLResponse:
+        """The status page: printers, queues, progress, temperatures, live."""
+        return HTMLResponse(page)
 
     app.include_router(_native_router())
     octoprint = _octoprint_router()

@@ -10,10 +10,11 @@ releases it, and the interrupted job's safe stop is sent as soon as the printer 
 from __future__ import annotations
 
 import asyncio
+import bisect
 import contextlib
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import repetrel_host as rh
@@ -37,6 +38,28 @@ class Running:
 
     record: JobRecord
     job: rh.PrintJob
+    layers: list[int] = field(default_factory=list)  # byte offsets where layers begin
+
+    @property
+    def layer(self) -> int:
+        """The layer the acknowledged lines have reached (0: before the first marker)."""
+        return bisect.bisect_right(self.layers, self.job.offset)
+
+
+# How slicers mark a new layer: PrusaSlicer and its kin, Cura, and Hyrel's M790.
+_LAYER_MARKS = (b";LAYER_CHANGE", b";LAYER:", b"M790")
+
+
+def layer_offsets(path: Path) -> list[int]:
+    """Byte offsets of the lines that mark a new layer in ``path``."""
+    offsets: list[int] = []
+    offset = 0
+    with path.open("rb") as handle:
+        for line in handle:
+            if line.lstrip().startswith(_LAYER_MARKS):
+                offsets.append(offset)
+            offset += len(line)
+    return offsets
 
 
 class PrinterService:
@@ -169,7 +192,7 @@ class PrinterService:
             log.warning("printer %s: job %d refused: %s", self.name, record.id, exc)
             self.job_changed(record.id)
             return
-        self.running = Running(record, job)
+        self.running = Running(record, job, await asyncio.to_thread(layer_offsets, path))
         self._paused = False
         self.store.set_state(record.id, JobState.PRINTING)
         log.info("printer %s: printing job %d (%s)", self.name, record.id, record.name)
@@ -209,6 +232,8 @@ class PrinterService:
                 "last_line": last_line,
                 "bytes": job.offset,
                 "size": job.size,
+                "layer": self.running.layer if self.running else 0,
+                "layers": len(self.running.layers) if self.running else 0,
             }
         )
         paused = self.printer is not None and self.printer.state is rh.State.PAUSED
