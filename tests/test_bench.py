@@ -50,3 +50,27 @@ def test_speed_bench_prints_every_figure_against_printcore() -> None:
         if figures["link"].startswith("uart"):
             assert figures["dropped B"] == "0"
     assert "first job line on the wire" in result.stdout
+
+
+SERVER = Path(__file__).parent.parent / "bench" / "server.py"
+
+
+@pytest.mark.timeout(180)
+def test_server_bench_streams_to_four_printers_and_reports_each() -> None:
+    result = subprocess.run(
+        [sys.executable, str(SERVER), "--quick"],
+        capture_output=True,
+        text=True,
+        timeout=170,
+    )
+    assert result.returncode == 0, result.stderr
+    rows = [line.split("|")[1:-1] for line in result.stdout.splitlines() if line.startswith("| ")]
+    header, *table = [[cell.strip() for cell in row] for row in rows]
+    assert header[:5] == ["link", "printers", "printer", "lines", "lines/s"]
+    assert [(row[0], row[1], row[2]) for row in table] == [
+        (link, count, printer)
+        for link in ("uart", "usb")
+        for count, printer in [("1", "p0"), *[("4", f"p{i}") for i in range(4)]]
+    ]
+    assert all(float(row[4].replace(",", "")) > 0 for row in table)
+    assert float(table[0][6]) > 0  # the server's CPU per line

@@ -396,7 +396,17 @@ def test_a_new_server_makes_a_key_kept_private_and_an_upload_limit(
         big = b"G1 X1\n" * 200_000  # 1.2 MB
         answer = client.post("/api/files/local", files={"file": ("big.gcode", big)})
         assert answer.status_code == 413 and "over 1048576 bytes" in answer.json()["detail"]
+        # Held, the queue keeps its jobs; released, they run.
+        wait_for(lambda: client.get("/v1/printers/demo").json()["state"] == "ready")
+        assert client.post("/v1/printers/demo/hold").status_code == 204
+        job_id = client.post("/v1/printers/demo/jobs", files={"file": ("h.gcode", gcode(3))})
+        job_id = job_id.json()["id"]
+        time.sleep(1.0)
+        assert job_state(client, job_id)["state"] == "queued"
+        assert client.get("/v1/printers/demo").json()["held"] is True
         assert client.post("/v1/printers/demo/release").status_code == 204
+        wait_for(lambda: job_state(client, job_id)["state"] == "completed", what="the job")
+        assert client.post("/v1/printers/demo/sideways").status_code == 404
 
 
 def test_bad_server_settings_get_one_sentence(tmp_path: Path) -> None:

@@ -45,7 +45,7 @@ from repetrel_host.config import UserConfig
 from repetrel_host.planning import JobRequest, plan_job
 from repetrel_host.server.events import EventHub
 from repetrel_host.server.mqtt import MqttSettings
-from repetrel_host.server.printers import PrinterService
+from repetrel_host.server.printers import PrinterConfig, PrinterService
 from repetrel_host.server.store import JobRecord, JobState, Store
 
 log = logging.getLogger("repetrel_host.server")
@@ -63,7 +63,7 @@ class PrintServer:
     def __init__(
         self,
         data_dir: Path,
-        printers: dict[str, str],
+        printers: dict[str, PrinterConfig],
         api_key: str,
         max_upload: int,
         user: UserConfig | None = None,
@@ -80,8 +80,8 @@ class PrintServer:
         self.mqtt = mqtt
         self._bridge: asyncio.Task[None] | None = None
         self.services = {
-            name: PrinterService(name, port, self.store, data_dir, self.user, self.events.publish)
-            for name, port in printers.items()
+            name: PrinterService(name, config, self.store, data_dir, self.user, self.events.publish)
+            for name, config in printers.items()
         }
         self.default = next(iter(self.services))
         for record in self.store.interrupt_active():
@@ -450,6 +450,8 @@ async def _control(service: PrinterService, action: str) -> None:
     try:
         if action == "release":
             service.release()
+        elif action == "hold":
+            service.hold()
         elif action == "cancel":
             if not await service.cancel():
                 raise HTTPException(409, f"printer {service.name} has no job to cancel")
@@ -458,7 +460,7 @@ async def _control(service: PrinterService, action: str) -> None:
                 raise HTTPException(409, f"printer {service.name} is not connected")
             await (printer.pause() if action == "pause" else printer.resume())
         else:
-            raise HTTPException(404, f"no action '{action}' (pause, resume, cancel, release)")
+            raise HTTPException(404, f"no action '{action}' (pause, resume, cancel, hold, release)")
     except rh.UsageError as exc:
         raise HTTPException(409, str(exc)) from None
 

@@ -16,7 +16,7 @@ import secrets
 import signal
 import sys
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 import typer
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
@@ -25,12 +25,27 @@ from repetrel_host import __version__
 from repetrel_host.config import read_toml
 from repetrel_host.errors import ConfigError
 from repetrel_host.server.mqtt import MqttSettings
+from repetrel_host.server.printers import PrinterConfig
 
 DEFAULT_BIND = "127.0.0.1:8765"
 API_KEY_FILE = "api-key"
 _NAME = re.compile(r"^[A-Za-z0-9_-]+$")
 
 app = typer.Typer(add_completion=False, pretty_exceptions_enable=False, rich_markup_mode=None)
+
+
+class PrinterSettings(BaseModel):
+    """A printer in the TOML file, when it needs more than its port."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    port: str
+    machine: str | None = None
+    loadout: str | None = None
+    flow: Literal["buffered", "unbuffered"] | None = None
+    rx_buffer: int | None = Field(default=None, ge=2)
+    max_lines: int | None = Field(default=None, ge=1)
+    baud: int | None = Field(default=None, gt=0)
 
 
 class ServerSettings(BaseModel):
@@ -40,7 +55,7 @@ class ServerSettings(BaseModel):
 
     data_dir: Path
     bind: str = DEFAULT_BIND
-    printers: dict[str, str] = Field(min_length=1)
+    printers: dict[str, str | PrinterSettings] = Field(min_length=1)
     api_key: str | None = None
     max_upload_mb: int = Field(default=1024, gt=0)
     mqtt: str | None = None  # HOST[:PORT] of a broker
@@ -214,9 +229,15 @@ def serve(
 
     from repetrel_host.server.app import PrintServer, create_app
 
+    printers = {
+        name: PrinterConfig(entry)
+        if isinstance(entry, str)
+        else PrinterConfig(**entry.model_dump())
+        for name, entry in settings.printers.items()
+    }
     server = PrintServer(
         settings.data_dir,
-        settings.printers,
+        printers,
         key,
         settings.max_upload_mb * 1024 * 1024,
         mqtt=_mqtt(settings),

@@ -16,6 +16,7 @@ import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import repetrel_host as rh
 from repetrel_host.config import UserConfig
@@ -30,6 +31,39 @@ RECONNECT_MAX = 10.0
 POLL_INTERVAL = 2.0  # temperatures, for the API and the page
 SAFE_STOP_TIMEOUT = 30.0
 SERVER_STOPPED = "the server was stopped: the job was stopped with its safe stop"
+
+
+@dataclass(frozen=True)
+class PrinterConfig:
+    """One printer of the server: its port, and what ``hyrel-send`` would take for it."""
+
+    port: str
+    machine: str | None = None
+    loadout: str | None = None
+    flow: str | None = None  # buffered, unbuffered
+    rx_buffer: int | None = None
+    max_lines: int | None = None
+    baud: int | None = None
+
+    def connect(self, user: UserConfig) -> Any:
+        """``rh.connect(...)`` for this printer."""
+        flow: rh.FlowControl | str | None = self.flow
+        if self.rx_buffer is not None or self.max_lines is not None:
+            defaults = rh.FlowControl()
+            flow = rh.FlowControl(
+                rh.FlowMode(self.flow or defaults.mode.value),
+                rx_buffer=self.rx_buffer or defaults.rx_buffer,
+                max_lines=self.max_lines or defaults.max_lines,
+            )
+        return rh.connect(
+            self.port,
+            machine=self.machine,
+            loadout=self.loadout,
+            flow=flow,
+            config=user,
+            baud=self.baud,
+            poll_interval=POLL_INTERVAL,
+        )
 
 
 @dataclass
@@ -68,14 +102,15 @@ class PrinterService:
     def __init__(
         self,
         name: str,
-        port: str,
+        config: PrinterConfig,
         store: Store,
         data_dir: Path,
         user: UserConfig,
         publish: Callable[[Event], None] = lambda event: None,
     ) -> None:
         self.name = name
-        self.port = port
+        self.config = config
+        self.port = config.port
         self.store = store
         self.data_dir = data_dir
         self.user = user
@@ -149,9 +184,7 @@ class PrinterService:
         delay = RECONNECT_FIRST
         while not self._stopping:
             try:
-                self.printer = await rh.connect(
-                    self.port, config=self.user, poll_interval=POLL_INTERVAL
-                )
+                self.printer = await self.config.connect(self.user)
             except rh.HostError as exc:
                 if str(exc) != self.last_error:
                     log.warning("printer %s: %s (trying again)", self.name, exc)
@@ -266,6 +299,11 @@ class PrinterService:
                 self.publish({"type": "message", "printer": name, "text": event.text})
 
     # --- control ----------------------------------------------------------------------
+
+    def hold(self) -> None:
+        """Start no more jobs (the running one goes on) until :meth:`release`."""
+        self.held = True
+        self.publish({"type": "printer", "printer": self.name, "state": self.state, "held": True})
 
     def release(self) -> None:
         """Let the queue run again (after an interrupted job was looked at)."""

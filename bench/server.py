@@ -1,0 +1,149 @@
+"""Several printers, one small PC: the print server streams to N fake printers at once.
+
+A ``hyrel-server`` process serves four fake controllers (``bench/run.py``'s links, each
+fake its own process and pty), each printer sent the same slicer job; then one printer
+alone, the same way. ``uart`` is what a printer on a 115200-baud serial link asks;
+``usb`` a link as fast as the fake goes, where the fakes' own CPU competes with the
+server's on this 2-core machine. It prints each printer's lines/s beside the single-printer figure
+(target: each at >= 90 % of it) and the server's CPU per streamed line (its own
+process's user + system time while the jobs stream, over all their lines).
+
+    .venv/bin/python bench/server.py [--profile uart|usb] [--printers 4] [--quick]
+
+Jobs are queued while the printers are held, then released together, so the CPU counted
+is the streaming's (the uploads' checks come before).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).parent.parent))
+
+from bench.run import PROFILES, Profile, job_file, start_fake, stop_fake
+
+from repetrel_host.server.client import ServerClient
+
+KEY = "bench"
+
+
+@dataclass
+class Run:
+    printers: int
+    rates: list[float]  # lines/s of each printer
+    lines: int  # per printer
+    cpu_seconds: float  # the server's, while the jobs streamed
+
+    @property
+    def cpu_per_line(self) -> float:
+        return self.cpu_seconds / (self.lines * self.printers)
+
+
+def cpu_seconds(pid: int) -> float:
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def free_port() -> int:
+    import socket
+
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
+
+
+def run(profile: Profile, count: int, job: Path, lines: int, folder: Path) -> Run:
+    fakes = [start_fake(profile, folder, f"{profile.name}-{count}-{i}") for i in range(count)]
+    window = dict(zip(profile.options[::2], profile.options[1::2], strict=True))
+    port = free_port()
+    data = folder / f"data-{count}"
+    config = folder / f"server-{count}.toml"
+    link = "".join(
+        f"{option[2:].replace('-', '_')} = {value}\n" for option, value in window.items()
+    )
+    printers = "".join(
+        f'[printers.p{i}]\nport = "{tty}"\n{link}' for i, (_, tty) in enumerate(fakes)
+    )
+    config.write_text(
+        f'data_dir = "{data}"\nbind = "127.0.0.1:{port}"\napi_key = "{KEY}"\n{printers}'
+    )
+    server = subprocess.Popen(
+        [sys.executable, "-m", "repetrel_host.server.main", "--config", str(config)],
+        stdout=subprocess.DEVNULL,
+        stderr=(folder / f"server-{count}.log").open("w"),
+    )
+    client = ServerClient(f"127.0.0.1:{port}", KEY)
+    try:
+        names = [f"p{i}" for i in range(count)]
+        deadline = time.monotonic() + 30
+        while True:
+            try:
+                states = [p["state"] for p in client.request("GET", "/v1/printers")]
+                if states == ["ready"] * count:
+                    break
+            except Exception:  # not listening yet
+                pass
+            if time.monotonic() > deadline:
+                raise SystemExit("bench: the server's printers did not get ready")
+            time.sleep(0.1)
+        for name in names:
+            client.request("POST", f"/v1/printers/{name}/hold")
+        jobs = [client.submit(name, job)["id"] for name in names]
+        before = cpu_seconds(server.pid)
+        for name in names:
+            client.request("POST", f"/v1/printers/{name}/release")
+        records = []
+        for job_id in jobs:
+            while (record := client.request("GET", f"/v1/jobs/{job_id}"))["state"] in (
+                "queued",
+                "printing",
+            ):
+                time.sleep(0.2)
+            if record["state"] != "completed" or record["lines"] != lines:
+                raise SystemExit(f"bench: job {job_id} ended {record}")
+            records.append(record)
+        cpu = cpu_seconds(server.pid) - before
+        rates = [lines / (r["ended"] - r["started"]) for r in records]
+        return Run(count, rates, lines, cpu)
+    finally:
+        server.send_signal(signal.SIGTERM)
+        server.wait(timeout=60)
+        for fake, _ in fakes:
+            stop_fake(fake)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--profile", action="append", choices=["uart", "usb"])
+    parser.add_argument("--printers", type=int, default=4)
+    parser.add_argument("--quick", action="store_true", help="small inputs: checks that it runs")
+    args = parser.parse_args()
+    print("| link | printers | printer | lines | lines/s | % of alone | server CPU µs/line |")
+    print("|---|---|---|---|---|---|---|")
+    for profile in (p for p in PROFILES if p.name in (args.profile or ["uart", "usb"])):
+        lines = 300 if args.quick else profile.lines
+        with tempfile.TemporaryDirectory(prefix="hyrel-bench-server-") as name:
+            folder = Path(name)
+            job, _ = job_file(lines, folder)
+            single = run(profile, 1, job, lines, folder)
+            several = run(profile, args.printers, job, lines, folder)
+        alone = single.rates[0]
+        cpu = single.cpu_per_line * 1e6
+        print(f"| {profile.name} | 1 | p0 | {lines} | {alone:,.0f} | 100 | {cpu:.1f} |")
+        for i, rate in enumerate(several.rates):
+            cpu_text = f"{several.cpu_per_line * 1e6:.1f}" if i == 0 else ""
+            row = f"| {profile.name} | {several.printers} | p{i} | {lines} | {rate:,.0f}"
+            print(f"{row} | {100 * rate / alone:.0f} | {cpu_text} |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
