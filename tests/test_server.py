@@ -159,6 +159,8 @@ def test_an_upload_made_as_prusaslicer_makes_it_is_printed_exactly_once(
         assert done
         record = job_state(client, job_id)
         assert record["lines"] == 401 and record["last_line"] == 401 and record["error"] is None
+        # The part is on the bed: nothing more starts until someone says so.
+        assert client.get("/v1/printers/bench").json()["held"] is True
         listed = client.get("/api/files").json()["files"]
         assert [f["name"] for f in listed] == ["cube.gcode"]
         resource = client.get(body["files"]["local"]["refs"]["resource"]).json()
@@ -253,6 +255,36 @@ def test_hyrel_send_submits_to_the_server_follows_lists_and_cancels(
     assert executed(fake.log_path).count("G28") == 1
 
 
+def test_an_m0_pauses_until_resume_and_the_queue_can_be_reordered(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
+) -> None:
+    fake = bench()
+    server = servers({"bench": fake.port}, "--automatic-transition")
+
+    def submit(client: httpx.Client, name: str, text: str) -> int:
+        answer = client.post("/v1/printers/bench/jobs", files={"file": (name, text)})
+        return int(answer.json()["id"])
+
+    with server.client() as client:
+        wait_for(lambda: client.get("/v1/printers/bench").json()["state"] == "ready")
+        assert client.post("/v1/printers/bench/hold").status_code == 204
+        first = submit(client, "first.gcode", "G28\nM0 ; look at the first layer\nG1 X5\n")
+        second = submit(client, "second.gcode", "G1 X2\n")
+        third = submit(client, "third.gcode", "G1 X3\n")
+        moved = client.post(f"/v1/jobs/{third}/move", json={"before": second}).json()
+        assert [j["id"] for j in moved if j["state"] == "queued"] == [first, third, second]
+        assert client.post(f"/v1/jobs/{first}/move", json={"before": 999}).status_code == 409
+        assert client.post("/v1/printers/bench/release").status_code == 204
+        wait_for(lambda: job_state(client, first)["state"] == "paused", what="the M0")
+        assert client.get("/v1/printers/bench").json()["state"] == "paused"
+        assert client.get("/api/job").json()["state"] == "Paused"
+        assert client.post("/v1/printers/bench/resume").status_code == 204
+        wait_for(lambda: job_state(client, second)["state"] == "completed", what="the queue")
+        assert [job_state(client, j)["state"] for j in (first, third)] == ["completed"] * 2
+        assert client.post(f"/v1/jobs/{first}/move", json={}).status_code == 409
+    assert executed(fake.log_path)[-5:] == ["G28", "M400", "G1 X5", "G1 X3", "G1 X2"]
+
+
 # --- never losing anything -----------------------------------------------------------------
 
 
@@ -301,7 +333,10 @@ def test_sigterm_stops_the_job_with_its_safe_stop_and_exits(
         ).json()["id"]
         wait_for(lambda: client.get("/v1/printers/bench").json()["job"], what="the job")
         wait_for(lambda: client.get("/v1/printers/bench").json()["job"]["lines"] > 100)
-    assert server.stop(signal.SIGTERM) == 0
+        with client.stream("GET", "/v1/events"):  # a page left open must not hold the stop
+            started = time.monotonic()
+            assert server.stop(signal.SIGTERM) == 0
+            assert time.monotonic() - started < 20
     fake.request("status")
     ran = executed(fake.log_path)
     assert ran[-7:] == MARLIN_SAFE_STOP and len(ran) < 3000
@@ -384,6 +419,42 @@ def test_requests_without_the_key_are_refused_and_bad_uploads_too(
         assert bad_json.status_code == 400 and bad_json.json()["detail"].startswith("bad request")
 
 
+def test_bodies_are_refused_before_they_are_read(servers: Callable[..., Server]) -> None:
+    server = servers({"demo": "fake"}, "--max-upload-mb", "1")
+
+    def body() -> Iterator[bytes]:
+        yield b'--x\r\nContent-Disposition: form-data; name="file"; filename="big.gcode"\r\n\r\n'
+        for _ in range(16):  # 16 MB, chunked: no Content-Length to look at
+            yield b"G1 X1\n" * 174_763
+
+    headers = {"Content-Type": "multipart/form-data; boundary=x"}
+    with server.client(key=None) as anonymous:
+        answer = anonymous.post("/api/files/local", content=body(), headers=headers)
+        assert answer.status_code == 403
+    with server.client() as client:
+        answer = client.post("/api/files/local", content=body(), headers=headers)
+        assert answer.status_code == 413 and "over 1048576 bytes" in answer.json()["detail"]
+    assert not list((server.data_dir / "files").iterdir())
+
+
+def test_a_second_server_on_the_same_data_folder_is_refused(
+    servers: Callable[..., Server],
+) -> None:
+    first = servers({"demo": "fake"})
+    second = subprocess.run(
+        [
+            *(sys.executable, "-m", "repetrel_host.server.main"),
+            *("--data-dir", str(first.data_dir), "--printer", "demo=fake"),
+            *("--bind", f"127.0.0.1:{free_port()}"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
+    assert second.returncode == 2
+    assert f"another hyrel-server uses the data folder {first.data_dir}" in second.stderr
+
+
 def test_a_new_server_makes_a_key_kept_private_and_an_upload_limit(
     servers: Callable[..., Server],
 ) -> None:
@@ -440,7 +511,7 @@ def test_the_contrib_settings_and_unit_fit_the_server() -> None:
 
     contrib = Path(__file__).parent.parent / "contrib"
     settings = ServerSettings.model_validate(read_toml(contrib / "hyrel-server.toml"))
-    assert settings.printers["demo"] == "fake" and settings.bind == "127.0.0.1:8765"
+    assert "hydra" in settings.printers and settings.bind == "127.0.0.1:8765"
     unit = (contrib / "hyrel-server.service").read_text()
     assert "ExecStart=/opt/repetrel-host/bin/hyrel-server --config /etc/hyrel-server.toml" in unit
 

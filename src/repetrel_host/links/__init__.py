@@ -68,7 +68,8 @@ class FakeLink:
         self.baudrate = baudrate
         # 10 bits on the wire per byte, and a millisecond each way, as a USB adapter.
         args = ["--bandwidth", str(baudrate / 10), "--latency", "0.001", *extra_args]
-        self.fake = BuiltInFake(log_path, args)
+        # Its control channel on stdin also ends it should this process die.
+        self.fake = BuiltInFake(log_path, args, control=True)
         self.device = ""
 
     @property

@@ -23,6 +23,7 @@ from contextlib import asynccontextmanager
 from importlib import resources
 from pathlib import Path
 from typing import Annotated, Any
+from urllib.parse import parse_qsl
 
 from fastapi import (
     APIRouter,
@@ -68,6 +69,7 @@ class PrintServer:
         max_upload: int,
         user: UserConfig | None = None,
         mqtt: MqttSettings | None = None,
+        automatic_transition: bool = False,
     ) -> None:
         self.data_dir = data_dir
         self.files = data_dir / "files"
@@ -83,6 +85,8 @@ class PrintServer:
             name: PrinterService(name, config, self.store, data_dir, self.user, self.events.publish)
             for name, config in printers.items()
         }
+        for service in self.services.values():
+            service.automatic_transition = automatic_transition
         self.default = next(iter(self.services))
         for record in self.store.interrupt_active():
             log.warning(
@@ -93,9 +97,9 @@ class PrintServer:
                 record.printer,
                 record.last_line,
             )
-            service = self.services.get(record.printer)
-            if service is not None:
-                service.owed_safe_stop = True
+            owner = self.services.get(record.printer)
+            if owner is not None:
+                owner.owed_safe_stop = True
         # After an interrupted job nothing starts by itself: a part may be on the bed.
         for service in self.services.values():
             last = self.store.last_started(service.name)
@@ -241,8 +245,10 @@ async def _save_upload(
                     raise HTTPException(413, f"the upload is over {server.max_upload} bytes")
                 out.write(chunk)
             out.flush()
-            os.fsync(out.fileno())  # on disk before the client hears it is there
-        findings, commands = _check(server, printer, target)
+            # On disk before the client hears it is there; checked in a thread: a big file
+            # must not hold the event loop (and every printer's stream) up.
+            await asyncio.to_thread(os.fsync, out.fileno())
+        findings, commands = await asyncio.to_thread(_check, server, printer, target)
         errors = [f for f in findings if f.startswith("error")]
         if errors:
             raise HTTPException(
@@ -274,10 +280,65 @@ def _check(server: PrintServer, printer: str, path: Path) -> tuple[list[str], in
     try:
         plan = plan_job(path, JobRequest(), server.user, firmware)
         findings = plan.check()
-    except rh.HostError as exc:
-        return [f"error: {exc}"], 0
+    except rh.HostError as exc:  # named by the file's name, not its place on the server
+        return [f"error: {str(exc).replace(str(path), path.name)}"], 0
     commands = sum(1 for _ in plan.job.commands())
     return [f"{f.severity}: {f.format(path.name)}" for f in findings], commands
+
+
+class RequestGuard:
+    """Before any body is read: a request that changes something needs the key (403), and
+    a body over the upload limit is refused (413), chunked or not. FastAPI's own checks
+    come after the body was parsed, which would let anyone fill the disk."""
+
+    def __init__(self, app: Any, server: PrintServer) -> None:
+        self.app = app
+        self.server = server
+
+    async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
+        if scope["type"] != "http" or scope["method"] in ("GET", "HEAD", "OPTIONS"):
+            await self.app(scope, receive, send)
+            return
+        server = self.server
+        limit = server.max_upload + 65536  # the form's own bytes
+        headers = {key.decode("latin-1").lower(): value for key, value in scope["headers"]}
+        query = dict(parse_qsl(scope.get("query_string", b"").decode("latin-1")))
+        given = headers.get("x-api-key", b"").decode("latin-1") or query.get("apikey", "")
+        if not hmac.compare_digest(given.encode(), server.api_key.encode()):
+            detail = "a valid API key is needed (the X-Api-Key header)"
+            await JSONResponse({"detail": detail}, 403)(scope, receive, send)
+            return
+        length = headers.get("content-length", b"")
+        too_big = {"detail": f"the upload is over {server.max_upload} bytes"}
+        if length.isdigit() and int(length) > limit:
+            await JSONResponse(too_big, 413)(scope, receive, send)
+            return
+        received, over, started = 0, False, False
+
+        async def counted() -> Any:
+            nonlocal received, over
+            message = await receive()
+            if message["type"] == "http.request":
+                received += len(message.get("body", b""))
+                if received > limit:
+                    over = True
+                    return {"type": "http.disconnect"}  # the app stops reading
+            return message
+
+        async def watched(message: Any) -> None:
+            nonlocal started
+            if over:
+                return  # the app's answer to a body cut short: ours goes instead
+            started = started or message["type"] == "http.response.start"
+            await send(message)
+
+        try:
+            await self.app(scope, counted, watched)
+        except Exception:
+            if not over:
+                raise
+        if over and not started:
+            await JSONResponse(too_big, 413)(scope, receive, send)
 
 
 # --- request bodies -----------------------------------------------------------------
@@ -319,6 +380,7 @@ def create_app(server: PrintServer) -> FastAPI:
 
     app = FastAPI(title="repetrel-host print server", version=rh.__version__, lifespan=lifespan)
     app.state.server = server
+    app.add_middleware(RequestGuard, server=server)
 
     @app.exception_handler(RequestValidationError)
     async def bad_request(request: Request, exc: RequestValidationError) -> JSONResponse:
@@ -326,16 +388,6 @@ def create_app(server: PrintServer) -> FastAPI:
             f"{'.'.join(str(p) for p in error['loc'])}: {error['msg']}" for error in exc.errors()
         )
         return JSONResponse(status_code=400, content={"detail": f"bad request: {problems}"})
-
-    @app.middleware("http")
-    async def upload_limit(request: Request, call_next: Any) -> Response:
-        length = request.headers.get("content-length")
-        if length is not None and length.isdigit() and int(length) > server.max_upload + 65536:
-            return JSONResponse(
-                status_code=413, content={"detail": f"the upload is over {server.max_upload} bytes"}
-            )
-        response: Response = await call_next(request)
-        return response
 
     page = resources.files("repetrel_host.server").joinpath("page.html").read_text()
 
@@ -428,7 +480,8 @@ def _native_router() -> APIRouter:
         server = _server(request)
         record = server.store.job(job_id)
         if record is None or not server.store.move(job_id, move.before):
-            raise HTTPException(409, f"job {job_id} is not queued")
+            where = f" or job {move.before} is not" if move.before is not None else ""
+            raise HTTPException(409, f"job {job_id} is not queued{where}")
         return [_job_json(r) for r in server.store.jobs(record.printer)]
 
     @router.post("/printers/{name}/command", dependencies=[Keyed])

@@ -9,6 +9,7 @@ the safe stop on a printing machine, and exits.
 
 from __future__ import annotations
 
+import fcntl
 import logging
 import os
 import re
@@ -58,6 +59,7 @@ class ServerSettings(BaseModel):
     printers: dict[str, str | PrinterSettings] = Field(min_length=1)
     api_key: str | None = None
     max_upload_mb: int = Field(default=1024, gt=0)
+    automatic_transition: bool = False  # start the next job by itself after one ends
     mqtt: str | None = None  # HOST[:PORT] of a broker
     mqtt_prefix: str = "hyrel"
     mqtt_commands: bool = False
@@ -78,6 +80,7 @@ def _settings(
     api_key: str | None,
     max_upload_mb: int | None,
     mqtt: tuple[str | None, str | None, bool],
+    automatic_transition: bool,
 ) -> ServerSettings:
     values: dict[str, object] = {}
     if config is not None:
@@ -85,7 +88,11 @@ def _settings(
             values = read_toml(config)
         except ConfigError as exc:
             _fail(str(exc))
-    printers = dict(values.get("printers") or {})  # type: ignore[call-overload]
+    table = values.get("printers") or {}
+    if not isinstance(table, dict):
+        _fail(f'{config}: printers: a table of name = "port" (or [printers.NAME] tables)')
+        raise  # not reached
+    printers = dict(table)
     for entry in printer:
         name, sep, port = entry.partition("=")
         if not sep or not name or not port:
@@ -100,6 +107,7 @@ def _settings(
         "mqtt": mqtt[0],
         "mqtt_prefix": mqtt[1],
         "mqtt_commands": mqtt[2] or None,
+        "automatic_transition": automatic_transition or None,
     }
     values.update({key: value for key, value in given.items() if value is not None})
     if not printers:
@@ -198,6 +206,14 @@ def serve(
             help="Take commands on PREFIX/PRINTER/command (off: MQTT topics have no secret).",
         ),
     ] = False,
+    automatic_transition: Annotated[
+        bool,
+        typer.Option(
+            "--automatic-transition",
+            help="Start the next queued job by itself when one ends (default: the queue is "
+            "held until released, as the part is still on the bed).",
+        ),
+    ] = False,
     config: Annotated[Path | None, typer.Option(help="A TOML file with these settings.")] = None,
     version: Annotated[bool, typer.Option("--version", help="Print the version.")] = False,
 ) -> None:
@@ -213,6 +229,7 @@ def serve(
         api_key,
         max_upload_mb,
         (mqtt, mqtt_prefix, mqtt_commands),
+        automatic_transition,
     )
     host, port = _bind(settings.bind)
     logging.basicConfig(
@@ -220,6 +237,11 @@ def serve(
     )
     try:
         settings.data_dir.mkdir(parents=True, exist_ok=True)
+        lock = (settings.data_dir / "lock").open("w")
+        try:  # held until the process ends
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            _fail(f"another hyrel-server uses the data folder {settings.data_dir}")
         key = _api_key(settings)
     except OSError as exc:
         _fail(f"cannot use the data folder {settings.data_dir}: {exc.strerror}")
@@ -241,13 +263,23 @@ def serve(
         key,
         settings.max_upload_mb * 1024 * 1024,
         mqtt=_mqtt(settings),
+        automatic_transition=settings.automatic_transition,
     )
     # uvicorn shuts down gracefully on SIGTERM and SIGINT, then raises the signal again
     # with the handlers found before it started: these, so that a stop asked for exits
     # 0 (130 for Ctrl-C) once the printers are safe, not as if killed.
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
     signal.signal(signal.SIGINT, lambda *_: sys.exit(130))
-    uvicorn.run(create_app(server), host=host, port=port, log_level="info", access_log=False)
+    uvicorn.run(
+        create_app(server),
+        host=host,
+        port=port,
+        log_level="info",
+        access_log=False,
+        # Event streams never end by themselves: after this long they are closed, so that
+        # a stop reaches the printers' safe stop.
+        timeout_graceful_shutdown=3,
+    )
 
 
 def main() -> None:

@@ -126,6 +126,12 @@ class PrinterService:
         self._stopping = False
         self._paused = False
         self._forwarding: asyncio.Task[None] | None = None
+        self._starting: int | None = None  # the job being started
+        self._cancel_starting = False
+        self._ended = asyncio.Event()  # a job ended and was recorded
+        # After a job ends, start the next one by itself (a farm with an automatic bed
+        # change); else the queue is held until released (Moonraker's automatic_transition).
+        self.automatic_transition = False
 
     # --- lifecycle ---------------------------------------------------------------
 
@@ -166,19 +172,27 @@ class PrinterService:
     async def _run(self) -> None:
         await self._connect()
         while not self._stopping:
-            printer = self.printer
-            assert printer is not None
-            if self.owed_safe_stop and printer.state is rh.State.READY:
-                await self._send_safe_stop()
-            record = None
-            if printer.state is rh.State.READY and not self.held:
-                record = self.store.next_queued(self.name)
-            if record is None:
-                self._wake.clear()
-                with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(self._wake.wait(), 1.0)  # or a state change
-                continue
-            await self._print(record)
+            try:
+                await self._next()
+            except Exception:  # a store error, a bug: logged, and the printer goes on
+                log.exception("printer %s: the queue loop failed; going on in 1 s", self.name)
+                await asyncio.sleep(1.0)
+
+    async def _next(self) -> None:
+        """Print the next queued job if the printer is ready and the queue not held."""
+        printer = self.printer
+        assert printer is not None
+        if self.owed_safe_stop and printer.state is rh.State.READY:
+            await self._send_safe_stop()
+        record = None
+        if printer.state is rh.State.READY and not self.held:
+            record = self.store.next_queued(self.name)
+        if record is None:
+            self._wake.clear()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._wake.wait(), 1.0)  # or a state change
+            return
+        await self._print(record)
 
     async def _connect(self) -> None:
         delay = RECONNECT_FIRST
@@ -214,29 +228,39 @@ class PrinterService:
     async def _print(self, record: JobRecord) -> None:
         printer = self.printer
         assert printer is not None
+        claimed = self.store.claim(record.id)  # a cancel that came first wins
+        if claimed is None:
+            return
+        record = claimed
         path = self.data_dir / record.file
         history = self.data_dir / "history" / f"{record.id}-{Path(record.name).stem}.gcode"
+        self._starting, self._cancel_starting = record.id, False
         try:
             job = await printer.print(path, history=history)
         except rh.HostError as exc:  # refused (a check), or the printer went meanwhile
             if printer.state is not rh.State.READY and not isinstance(exc, rh.JobError):
-                return  # not the job's fault: it stays queued
+                self.store.set_state(record.id, JobState.QUEUED)  # not the job's fault
+                return
             self.store.set_state(record.id, JobState.FAILED, str(exc))
             log.warning("printer %s: job %d refused: %s", self.name, record.id, exc)
             self.job_changed(record.id)
             return
-        self.running = Running(record, job, await asyncio.to_thread(layer_offsets, path))
+        finally:
+            self._starting = None
+        running = self.running = Running(record, job)
+        if self._cancel_starting:
+            job.stop()
         self._paused = False
-        self.store.set_state(record.id, JobState.PRINTING)
         log.info("printer %s: printing job %d (%s)", self.name, record.id, record.name)
         self.job_changed(record.id)
+        running.layers = await asyncio.to_thread(layer_offsets, path)
         state, error = JobState.COMPLETED, None
+        ending = asyncio.ensure_future(job.wait())
         try:
-            while not job.done:
-                with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(asyncio.shield(job.wait()), PROGRESS_INTERVAL)
+            while not ending.done():
+                await asyncio.wait({ending}, timeout=PROGRESS_INTERVAL)
                 self._record_progress(record, job)
-            summary = await job.wait()
+            summary = ending.result()
             if summary.outcome is rh.Outcome.CANCELLED:
                 state = JobState.CANCELLED
         except rh.HostError as exc:
@@ -247,10 +271,16 @@ class PrinterService:
             self._record_progress(record, job)
             self.running = None
         self.store.set_state(record.id, state, error)
-        log.info(
-            "printer %s: job %d %s%s", self.name, record.id, state, f": {error}" if error else ""
-        )
+        why = f": {error}" if error else ""
+        log.info("printer %s: job %d %s%s", self.name, record.id, state, why)
+        if not self.automatic_transition:
+            # The part is still on the bed: the next job waits for someone to say so.
+            self.held = True
         self.job_changed(record.id)
+        self.publish(
+            {"type": "printer", "printer": self.name, "state": self.state, "held": self.held}
+        )
+        self._ended.set()
 
     def _record_progress(self, record: JobRecord, job: rh.PrintJob) -> None:
         last = job.last
@@ -272,6 +302,9 @@ class PrinterService:
         paused = self.printer is not None and self.printer.state is rh.State.PAUSED
         if paused != self._paused and not job.done:
             self._paused = paused
+            log.info(
+                "printer %s: job %d %s", self.name, record.id, "paused" if paused else "resumed"
+            )
             self.store.set_state(record.id, JobState.PAUSED if paused else JobState.PRINTING)
             self.job_changed(record.id)
 
@@ -313,13 +346,22 @@ class PrinterService:
 
     async def cancel(self, job_id: int | None = None) -> bool:
         """Cancel the running job (``job_id``, or whichever runs) with its safe stop first,
-        or a queued one. False when there is no such job."""
+        or a queued one. Returns once it is recorded; False when there is no such job."""
         running = self.running
         if running is not None and job_id in (None, running.record.id):
+            self._ended.clear()
             if not running.job.stopping:
                 running.job.stop()
-            with contextlib.suppress(rh.HostError):
-                await running.job.wait()
+                log.info(
+                    "printer %s: cancelling job %d: the safe stop goes first",
+                    self.name,
+                    running.record.id,
+                )
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._ended.wait(), SAFE_STOP_TIMEOUT + 10)
+            return True
+        if self._starting is not None and job_id in (None, self._starting):
+            self._cancel_starting = True  # stopped as soon as it exists
             return True
         if job_id is not None and self.store.cancel_queued(job_id):
             self.job_changed(job_id)

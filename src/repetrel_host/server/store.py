@@ -170,13 +170,26 @@ class Store:
                     (job["printer"], job_id),
                 )
             ]
-            index = queue.index(before) if before in queue else len(queue)
+            if before is not None and before not in queue:
+                return False
+            index = queue.index(before) if before is not None else len(queue)
             queue.insert(index, job_id)
             db.executemany(
                 "UPDATE jobs SET position = ? WHERE id = ?",
                 [(number, queued) for number, queued in enumerate(queue, start=1)],
             )
         return True
+
+    def claim(self, job_id: int) -> JobRecord | None:
+        """A queued job starts printing; None if it is no longer queued (cancelled)."""
+        with self._transaction() as db:
+            cursor = db.execute(
+                "UPDATE jobs SET state = 'printing', started = ? WHERE id = ? AND state = 'queued'",
+                (time.time(), job_id),
+            )
+            if cursor.rowcount != 1:
+                return None
+        return self.job(job_id)
 
     def set_state(self, job_id: int, state: JobState, error: str | None = None) -> None:
         now = time.time()
