@@ -25,17 +25,20 @@ def test_soak_bench_runs_and_reports_exactly_once() -> None:
 RUN = Path(__file__).parent.parent / "bench" / "run.py"
 
 
-@pytest.mark.timeout(240)
-def test_speed_bench_prints_every_figure_against_printcore() -> None:
+def quick_table(script: Path, timeout: float) -> tuple[str, list[str], list[list[str]]]:
+    """Run a benchmark with --quick: its output, its table's header and rows."""
     result = subprocess.run(
-        [sys.executable, str(RUN), "--quick"],
-        capture_output=True,
-        text=True,
-        timeout=230,
+        [sys.executable, str(script), "--quick"], capture_output=True, text=True, timeout=timeout
     )
     assert result.returncode == 0, result.stderr
     rows = [line.split("|")[1:-1] for line in result.stdout.splitlines() if line.startswith("| ")]
     header, *table = [[cell.strip() for cell in row] for row in rows]
+    return result.stdout, header, table
+
+
+@pytest.mark.timeout(240)
+def test_speed_bench_prints_every_figure_against_printcore() -> None:
+    output, header, table = quick_table(RUN, 230)
     assert header[:4] == ["host", "link", "lines", "lines/s"]
     hosts = {(row[0], row[1]) for row in table}
     for link in ("uart", "usb"):
@@ -49,7 +52,7 @@ def test_speed_bench_prints_every_figure_against_printcore() -> None:
         assert float(figures["CPU µs/line"]) > 0 and float(figures["peak RSS MB"]) > 0
         if figures["link"].startswith("uart"):
             assert figures["dropped B"] == "0"
-    assert "first job line on the wire" in result.stdout
+    assert "first job line on the wire" in output
 
 
 SERVER = Path(__file__).parent.parent / "bench" / "server.py"
@@ -57,15 +60,7 @@ SERVER = Path(__file__).parent.parent / "bench" / "server.py"
 
 @pytest.mark.timeout(180)
 def test_server_bench_streams_to_four_printers_and_reports_each() -> None:
-    result = subprocess.run(
-        [sys.executable, str(SERVER), "--quick"],
-        capture_output=True,
-        text=True,
-        timeout=170,
-    )
-    assert result.returncode == 0, result.stderr
-    rows = [line.split("|")[1:-1] for line in result.stdout.splitlines() if line.startswith("| ")]
-    header, *table = [[cell.strip() for cell in row] for row in rows]
+    _, header, table = quick_table(SERVER, 170)
     assert header[:5] == ["link", "printers", "printer", "lines", "lines/s"]
     assert [(row[0], row[1], row[2]) for row in table] == [
         (link, count, printer)
