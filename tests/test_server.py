@@ -244,15 +244,19 @@ def test_hyrel_send_submits_to_the_server_follows_lists_and_cancels(
     assert sent.returncode == 0, sent.stderr
     assert "part.gcode: queued on printer bench (ready)" in sent.stdout
     assert "part.gcode: completed: 301 lines (to line 301)" in sent.stdout
+    # The queue is held now (the part is on the bed): --release says the bed is clear.
+    again = send(str(job), "--release")
+    assert again.returncode == 0, again.stderr
+    assert "part.gcode: completed: 301 lines (to line 301)" in again.stdout
     listed = send("--list", "--printer", "bench")
-    assert listed.returncode == 0 and "completed" in listed.stdout and "part.gcode" in listed.stdout
+    assert listed.returncode == 0 and listed.stdout.count("completed") == 2
     again = send("--cancel", "1")
     assert again.returncode == 2 and "job 1 is completed: nothing to cancel" in again.stderr
     refused = send(str(job), key="wrong")
     assert refused.returncode == 2 and "a valid API key is needed" in refused.stderr
     nobody = hyrel_send("--list", "--server", "127.0.0.1:9")
     assert nobody.returncode == 3 and "cannot reach the print server" in nobody.stderr
-    assert executed(fake.log_path).count("G28") == 1
+    assert executed(fake.log_path).count("G28") == 2  # each job once
 
 
 def test_an_m0_pauses_until_resume_and_the_queue_can_be_reordered(

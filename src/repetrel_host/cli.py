@@ -220,6 +220,13 @@ def send(
         int | None,
         typer.Option(metavar="ID", help="With --server: cancel a job (the safe stop first)."),
     ] = None,
+    release: Annotated[
+        bool,
+        typer.Option(
+            "--release",
+            help="With --server: the bed is clear, let the printer's held queue go on.",
+        ),
+    ] = False,
     version: Annotated[
         bool,
         typer.Option(
@@ -231,10 +238,13 @@ def send(
     console, errors = Out(), Out(stderr=True)
     try:
         if server is not None:
-            code = _with_server(console, errors, server, printer, api_key, job, list_jobs, cancel)
+            request = ServerRequest(printer, api_key, job, list_jobs, cancel, release)
+            code = _with_server(console, server, request)
             raise typer.Exit(code)
-        if list_jobs or cancel is not None or printer or api_key:
-            raise UsageError("--list, --cancel, --printer and --api-key go with --server URL")
+        if list_jobs or cancel is not None or printer or api_key or release:
+            raise UsageError(
+                "--list, --cancel, --release, --printer and --api-key go with --server URL"
+            )
         if job is None:
             raise UsageError("give the JOB to send (a G-code file)")
         if framed and not dry_run:
@@ -278,31 +288,39 @@ def send(
     raise typer.Exit(code)
 
 
-def _with_server(
-    console: Out,
-    errors: Out,
-    url: str,
-    printer: str | None,
-    api_key: str | None,
-    job: Path | None,
-    list_jobs: bool,
-    cancel: int | None,
-) -> int:
-    """hyrel-send --server: submit and follow a job, list jobs, or cancel one."""
+@dataclass(frozen=True)
+class ServerRequest:
+    """What hyrel-send --server was asked to do."""
+
+    printer: str | None
+    api_key: str | None
+    job: Path | None
+    list_jobs: bool
+    cancel: int | None
+    release: bool
+
+
+def _with_server(console: Out, url: str, request: ServerRequest) -> int:
+    """hyrel-send --server: submit and follow a job, list jobs, cancel one, release."""
     from repetrel_host.server import client
 
-    server = client.ServerClient(url, api_key)
-    if cancel is not None:
-        ended = client.cancel(server, cancel)
-        console.print(f"job {cancel} ({ended['name']}): {ended['state']}", markup=False)
+    server = client.ServerClient(url, request.api_key)
+    if request.cancel is not None:
+        ended = client.cancel(server, request.cancel)
+        console.print(f"job {request.cancel} ({ended['name']}): {ended['state']}", markup=False)
         return EXIT_OK
-    name = server.printer(printer)
-    if list_jobs:
+    name = server.printer(request.printer)
+    job = request.job
+    if job is None and request.release:
+        server.request("POST", f"/v1/printers/{name}/release")
+        console.print(f"printer {name}: the queue goes on", markup=False)
+    if request.list_jobs:
         for line in client.list_jobs(server, name):
             console.print(line, markup=False)
-        return EXIT_OK
     if job is None:
-        raise UsageError("give the JOB to send to the server (or --list, --cancel ID)")
+        if request.list_jobs or request.release:
+            return EXIT_OK
+        raise UsageError("give the JOB to send to the server (or --list, --cancel ID, --release)")
     from rich.markup import escape
     from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn
 
@@ -323,7 +341,7 @@ def _with_server(
         console.print(text, markup=False)
 
     try:
-        return client.follow(server, name, job, show, update)
+        return client.follow(server, name, job, show, update, request.release)
     finally:
         progress.stop()
 

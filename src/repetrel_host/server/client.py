@@ -115,8 +115,10 @@ def follow(
     path: Path,
     show: Callable[[str], None],
     progress: Callable[[int, int, int], None],
+    release: bool = False,
 ) -> int:
-    """Submit ``path`` and follow it to its end; returns hyrel-send's exit code."""
+    """Submit ``path`` and follow it to its end; returns hyrel-send's exit code.
+    ``release``: the bed is clear, a held queue may go on."""
     events = client.events(printer)  # subscribed before the job exists: nothing missed
     first = next(events)  # the printer as it stands
     job = client.submit(printer, path)
@@ -125,6 +127,13 @@ def follow(
         show(finding)
     where = f"printer {printer} ({first.get('state')})"
     show(f"{path.name}: queued on {where} of {client.url} as job {job_id}")
+    if release:
+        client.request("POST", f"/v1/printers/{quote(printer)}/release")
+    elif first.get("held"):
+        show(
+            f"the queue of printer {printer} is held (a job ended; its part may be on the bed): "
+            "release it once the bed is clear (--release, or the status page's button)"
+        )
     try:
         return _follow(events, job_id, path, show, progress, client.url)
     except KeyboardInterrupt:
