@@ -53,12 +53,15 @@ from repetrel_host.planning import (
     JobPlan,
     JobRequest,
     LinkRequest,
+    Profile,
+    controller_profile,
     explicit_machine,
     history_file,
     link_settings,
     plan_job,
     resolve_port,
 )
+from repetrel_host.planning import safe_stop as safe_stop_for
 from repetrel_host.protocol import replies
 from repetrel_host.protocol.dialects import create_dialect
 from repetrel_host.protocol.dialects.reprap import DEFAULT_REPLY_TIMEOUT
@@ -366,6 +369,17 @@ class Printer:
     def job(self) -> PrintJob | None:
         """The job streaming now, if any."""
         return self._job
+
+    @property
+    def profile(self) -> Profile:
+        """The machine profile of what is not a job (commands, a safe stop): the one asked
+        for, else the firmware's (M115), as :func:`plan_job` chooses without a slicer."""
+        return controller_profile(self.settings.request, self.settings.user, self.firmware)
+
+    @property
+    def safe_stop(self) -> list[str]:
+        """The profile's safe-stop sequence (fans, heaters, motors off; a lift)."""
+        return safe_stop_for(self.profile.machine, self.settings.user)
 
     def events(self) -> AsyncIterator[PrinterEvent]:
         """State changes (the current state first), temperatures, controller messages."""

@@ -159,10 +159,6 @@ def require_key(
 Keyed = Depends(require_key)
 
 
-def _job_json(record: JobRecord) -> dict[str, Any]:
-    return record.as_json()
-
-
 def _printer_json(service: PrinterService) -> dict[str, Any]:
     printer = service.printer
     running = service.running
@@ -188,7 +184,7 @@ def _running_json(service: PrinterService) -> dict[str, Any]:
     record = running.record
     last = job.last
     return {
-        **_job_json(record),
+        **record.as_json(),
         "state": "paused" if service.state == "paused" else "printing",
         "lines": job.lines,
         "last_line": last.source_line if last else 0,
@@ -418,7 +414,7 @@ def _native_router() -> APIRouter:
     async def printer_jobs(request: Request, name: str) -> list[dict[str, Any]]:
         server = _server(request)
         server.service(name)
-        return [_job_json(r) for r in server.store.jobs(name)]
+        return [r.as_json() for r in server.store.jobs(name)]
 
     @router.post("/printers/{name}/jobs", status_code=201, dependencies=[Keyed])
     async def submit(
@@ -427,7 +423,7 @@ def _native_router() -> APIRouter:
         server = _server(request)
         service = server.service(name)
         path, findings, commands = await _save_upload(server, service.name, file)
-        return {**_job_json(_queue(server, service.name, path, commands)), "findings": findings}
+        return {**_queue(server, service.name, path, commands).as_json(), "findings": findings}
 
     @router.get("/events")
     async def events(request: Request, printer: str | None = None) -> StreamingResponse:
@@ -461,7 +457,7 @@ def _native_router() -> APIRouter:
         record = _server(request).store.job(job_id)
         if record is None:
             raise HTTPException(404, f"no job {job_id}")
-        return _job_json(record)
+        return record.as_json()
 
     @router.delete("/jobs/{job_id}", dependencies=[Keyed])
     async def cancel_job(request: Request, job_id: int) -> dict[str, Any]:
@@ -473,7 +469,7 @@ def _native_router() -> APIRouter:
             raise HTTPException(409, f"job {job_id} is {record.state.value}: nothing to cancel")
         ended = server.store.job(job_id)
         assert ended is not None
-        return _job_json(ended)
+        return ended.as_json()
 
     @router.post("/jobs/{job_id}/move", dependencies=[Keyed])
     async def move(request: Request, job_id: int, move: Move) -> list[dict[str, Any]]:
@@ -482,7 +478,7 @@ def _native_router() -> APIRouter:
         if record is None or not server.store.move(job_id, move.before):
             where = f" or job {move.before} is not" if move.before is not None else ""
             raise HTTPException(409, f"job {job_id} is not queued{where}")
-        return [_job_json(r) for r in server.store.jobs(record.printer)]
+        return [r.as_json() for r in server.store.jobs(record.printer)]
 
     @router.post("/printers/{name}/command", dependencies=[Keyed])
     async def command(request: Request, name: str, body: Command) -> dict[str, Any]:
@@ -598,7 +594,7 @@ def _octoprint_router() -> APIRouter:
         if _true(print):
             # Queued: it runs when the printer is free (OctoPrint answers 409 when it is
             # busy; a queue is what this server is for).
-            answer["job"] = _job_json(_queue(server, service.name, stored, commands))
+            answer["job"] = _queue(server, service.name, stored, commands).as_json()
         elif _true(select):
             service.selected = stored
         location = stored.relative_to(server.files).as_posix()

@@ -8,6 +8,7 @@ import json
 import os
 import uuid
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 from urllib.error import HTTPError, URLError
@@ -40,15 +41,20 @@ class ServerClient:
         if self.api_key:
             headers["X-Api-Key"] = self.api_key
         request = Request(f"{self.url}{path}", data=body, headers=headers, method=method)
+        with self._reaching(), urlopen(request, timeout=TIMEOUT) as response:
+            data = response.read()
+        return json.loads(data) if data else None
+
+    @contextmanager
+    def _reaching(self) -> Iterator[None]:
+        """A refusal or an unreachable server, as one sentence (a HostError)."""
         try:
-            with urlopen(request, timeout=TIMEOUT) as response:
-                data = response.read()
+            yield
         except HTTPError as exc:
             raise _refused(exc) from None
         except (URLError, OSError) as exc:
             reason = getattr(exc, "reason", exc)
             raise LinkError(f"cannot reach the print server at {self.url}: {reason}") from None
-        return json.loads(data) if data else None
 
     def printer(self, name: str | None) -> str:
         """The printer named, or the server's first."""
@@ -85,12 +91,8 @@ class ServerClient:
         """The server's events for ``printer``, as they come."""
         query = urlencode({"printer": printer})
         request = Request(f"{self.url}/v1/events?{query}", headers={"Accept": "text/event-stream"})
-        try:
+        with self._reaching():
             response = urlopen(request, timeout=None)
-        except HTTPError as exc:
-            raise _refused(exc) from None
-        except (URLError, OSError) as exc:
-            raise LinkError(f"cannot reach the print server at {self.url}: {exc}") from None
         with response:
             for raw in response:
                 line = raw.decode("utf-8", errors="replace").rstrip("\r\n")

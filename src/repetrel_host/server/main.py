@@ -148,7 +148,7 @@ def _api_key(settings: ServerSettings) -> str:
 def _mqtt(settings: ServerSettings) -> MqttSettings | None:
     if settings.mqtt is None:
         return None
-    host, port = _address(settings.mqtt, 1883, "--mqtt")
+    host, port = _address(settings.mqtt, "--mqtt", 1883)
     return MqttSettings(
         host,
         port,
@@ -159,19 +159,15 @@ def _mqtt(settings: ServerSettings) -> MqttSettings | None:
     )
 
 
-def _address(text: str, default_port: int | None, option: str) -> tuple[str, int]:
+def _address(
+    text: str, option: str, default_port: int | None = None, example: str = ""
+) -> tuple[str, int]:
+    """HOST:PORT (or HOST alone, given a default port); one sentence if it is neither."""
     host, sep, port = text.rpartition(":")
     if not sep and default_port is not None:
         return text, default_port
     if not host or not port.isdigit():
-        _fail(f"{option} {text}: give HOST:PORT")
-    return host.strip("[]"), int(port)
-
-
-def _bind(text: str) -> tuple[str, int]:
-    host, _, port = text.rpartition(":")
-    if not host or not port.isdigit():
-        _fail(f"--bind {text}: give HOST:PORT (e.g. {DEFAULT_BIND})")
+        _fail(f"{option} {text}: give HOST:PORT" + (f" (e.g. {example})" if example else ""))
     return host.strip("[]"), int(port)
 
 
@@ -231,7 +227,7 @@ def serve(
         (mqtt, mqtt_prefix, mqtt_commands),
         automatic_transition,
     )
-    host, port = _bind(settings.bind)
+    host, port = _address(settings.bind, "--bind", example=DEFAULT_BIND)
     logging.basicConfig(
         stream=sys.stderr, level=logging.INFO, format="%(levelname)s %(name)s: %(message)s"
     )

@@ -20,7 +20,6 @@ from typing import Any
 
 import repetrel_host as rh
 from repetrel_host.config import UserConfig
-from repetrel_host.planning import controller_profile, safe_stop
 from repetrel_host.server.events import Event
 from repetrel_host.server.store import PROGRESS_INTERVAL, JobRecord, JobState, Store
 
@@ -214,8 +213,7 @@ class PrinterService:
     async def _send_safe_stop(self) -> None:
         printer = self.printer
         assert printer is not None
-        profile = controller_profile(printer.settings.request, self.user, printer.firmware)
-        commands = safe_stop(profile.machine, self.user)
+        commands = printer.safe_stop
         log.warning("printer %s: sending the interrupted job's safe stop %s", self.name, commands)
         try:
             for command in commands:

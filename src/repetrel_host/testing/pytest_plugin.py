@@ -222,17 +222,16 @@ def _marker_machines(item: pytest.Item) -> list[str]:
 
 def _wanted_machines(item: pytest.Item) -> list[str]:
     """The machine profiles a ``hyrel_machine`` marker names (a mistyped one fails)."""
-    marker = item.get_closest_marker("hyrel_machine")
-    if marker is None:
+    if item.get_closest_marker("hyrel_machine") is None:
         return []
-    known = _known_machines()
-    if not marker.args or any(name not in known for name in marker.args):
+    names, known = _marker_machines(item), _known_machines()
+    if not names or any(name not in known for name in names):
         pytest.fail(
-            f"hyrel_machine({', '.join(map(repr, marker.args))}): name known machine profiles "
+            f"hyrel_machine({', '.join(map(repr, names))}): name known machine profiles "
             f"({', '.join(sorted(known))})",
             pytrace=False,
         )
-    return [str(name) for name in marker.args]
+    return names
 
 
 def _known_machine(options: HyrelOptions) -> str:
@@ -550,12 +549,9 @@ class _Session:
     async def _send_safe_stop(self) -> list[str]:
         """Send the machine's safe-stop sequence; returns the commands not confirmed."""
         import repetrel_host as rh
-        from repetrel_host.planning import controller_profile, safe_stop
 
         printer = self.printer
-        settings = printer.settings
-        profile = controller_profile(settings.request, settings.user, printer.firmware)
-        commands = safe_stop(profile.machine, settings.user)
+        commands = printer.safe_stop
         loop = asyncio.get_running_loop()
         end = loop.time() + self.deadline
         try:
@@ -1004,7 +1000,6 @@ def _facade(
     """Before the test: a READY session, the machine it needs, the report's starting
     point. After: the machine left safe."""
     import repetrel_host as rh
-    from repetrel_host.planning import controller_profile
 
     item = request.node
     printer = session.printer
@@ -1015,8 +1010,7 @@ def _facade(
         pytest.fail(f"hyrel: the printer on {printer.port} is not ready ({state})", pytrace=False)
     wanted = _wanted_machines(item)
     if wanted:
-        settings = printer.settings
-        profile = controller_profile(settings.request, settings.user, printer.firmware)
+        profile = printer.profile
         if profile.name not in wanted:
             machine = profile.describe()
             pytest.skip(f"for machine {' or '.join(wanted)}; this run's machine is {machine}")
