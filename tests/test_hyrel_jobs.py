@@ -132,6 +132,42 @@ def test_m792_shell_is_refused_unless_allowed(tmp_path: Path) -> None:
     assert executed(log) == ["G1 X1", "G1 X2", "G1 X1", "G1 X2"]
 
 
+def test_m791_and_m790_take_snapshots_beside_the_stream(tmp_path: Path) -> None:
+    camera = f"{sys.executable} {Path(__file__).with_name('fake_camera.py')}"
+    job = tmp_path / "shots.gcode"
+    layers = "".join(f"M790\nG1 Z{z}\nG1 X{z}\n" for z in range(1, 4))
+    job.write_text(f"G28\n{layers}M791\nG1 X9\n")
+    history = tmp_path / "history"
+    log = tmp_path / "fake.log"
+    with BuiltInFake(log) as fake:
+        without = hyrel_send(str(job), "--port", fake.port, "--history", str(history))
+        assert without.returncode == 0, without.stderr
+        assert "no snapshot (shots.gcode:11): no camera is set" in without.stdout
+        assert not list(history.glob("*-snapshots"))  # M790 alone takes none
+        config = tmp_path / "config.toml"
+        config.write_text(f'[host]\ncamera = "{camera} {{path}}"\nlayer_snapshots = true\n')
+        taken = hyrel_send(
+            str(job), "--port", fake.port, "--history", str(history), "--config", str(config)
+        )
+    assert taken.returncode == 0, taken.stderr
+    (folder,) = history.glob("*-snapshots")
+    images = sorted(p.name for p in folder.iterdir())
+    # A layer's unless the last was still being taken; M791's waits its turn.
+    assert "0000002-layer1.png" in images and "0000011-layer3.png" in images
+    assert all(f"snapshot: {folder / name}" in taken.stdout for name in images)
+    # Neither code goes to the controller.
+    assert executed(log) == 2 * [
+        "G28",
+        "G1 Z1",
+        "G1 X1",
+        "G1 Z2",
+        "G1 X2",
+        "G1 Z3",
+        "G1 X3",
+        "G1 X9",
+    ]
+
+
 def test_m719_logs_the_controllers_reports_until_m718(tmp_path: Path) -> None:
     job = tmp_path / "logged.gcode"
     job.write_text("M115\nM719 P10 S1\nM115\nM718\nM115\n")

@@ -45,6 +45,13 @@ def test_logging_codes(tmp_path: Path) -> None:
     assert len(got) == 3
 
 
+def test_m790_and_m791_are_the_hosts_camera_codes(tmp_path: Path) -> None:
+    got = items(tmp_path, b"G1 Z0.2\nM790 ; new layer\nG1 X1\nM791\n")
+    assert got[1] == HostAction(ActionKind.LAYER, "", (), 2, "job.gcode")
+    assert got[3] == HostAction(ActionKind.SNAPSHOT, "", (), 4, "job.gcode")
+    assert [i.command for i in got if isinstance(i, JobLine)] == ["G1 Z0.2", "G1 X1"]
+
+
 def test_host_owned_lines_are_not_sent(tmp_path: Path) -> None:
     # M110 would desynchronise numbering; Hyrel's bare N14 only sets a logging number.
     got = items(tmp_path, b"N14 ; set line numbers\nM110 N0\nN7 G28*99\nG1 X1\n")

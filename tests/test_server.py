@@ -22,6 +22,7 @@ import httpx
 import pytest
 
 from repetrel_host.testing.fake_controller import BuiltInFake
+from tests.fake_camera import png
 from tests.helpers import executed, hyrel_send
 
 KEY = "test-key"
@@ -384,6 +385,153 @@ def test_a_printer_that_is_not_there_does_not_stop_the_server(
         assert client.get("/printers/nope/api/job").status_code == 404
 
 
+def test_uploaded_files_are_deleted_unless_a_job_still_needs_them(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
+) -> None:
+    fake = bench()
+    server = servers({"bench": fake.port}, "--automatic-transition")
+    with server.client() as client:
+        wait_for(lambda: client.get("/v1/printers/bench").json()["state"] == "ready")
+        client.post("/v1/printers/bench/hold")
+        kept = client.post("/v1/printers/bench/jobs", files={"file": ("kept.gcode", gcode(5))})
+        client.post("/api/files/local", files={"file": ("spare.gcode", gcode(5))})
+        client.post("/api/files/local", data={"path": "old"}, files={"file": ("x.gcode", b"G28\n")})
+        busy = client.delete("/api/files/local/kept.gcode")
+        assert busy.status_code == 409
+        assert (
+            busy.json()["detail"]
+            == f"'kept.gcode' is used by job {kept.json()['id']}: cancel it first"
+        )
+        assert server.client(key=None).delete("/v1/files/spare.gcode").status_code == 403
+        assert client.delete("/v1/files/spare.gcode").status_code == 204
+        assert client.delete("/api/files/local/old/x.gcode").status_code == 204
+        assert client.delete("/api/files/local/spare.gcode").status_code == 404
+        assert client.delete("/api/files/local/../jobs.sqlite").status_code in (400, 404)
+        assert [f["path"] for f in client.get("/v1/files").json()] == ["kept.gcode"]
+        client.post("/v1/printers/bench/release")
+        wait_for(lambda: job_state(client, kept.json()["id"])["state"] == "completed")
+        assert client.delete("/api/files/local/kept.gcode").status_code == 204  # done with it
+        assert client.get("/api/files").json()["files"] == []
+    assert (server.data_dir / "jobs.sqlite").exists()
+
+
+# --- camera snapshots --------------------------------------------------------------------
+
+CAMERA = f"{sys.executable} {Path(__file__).with_name('fake_camera.py')}"
+
+
+def camera_config(tmp_path: Path, printers: dict[str, str], **cameras: str) -> Path:
+    """A server TOML file with ``printers``, each with its camera command, if any."""
+    config = tmp_path / "server.toml"
+    text = ""
+    for name, port in printers.items():
+        text += f'[printers.{name}]\nport = "{port}"\n'
+        if name in cameras:
+            text += f"camera = {json.dumps(cameras[name])}\n"
+    config.write_text(text)
+    return config
+
+
+def test_m790_and_m791_take_snapshots_that_the_api_serves(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server], tmp_path: Path
+) -> None:
+    fake = bench("--move-time", "0.002")
+    ports = {"bench": fake.port, "blind": "fake"}
+    config = camera_config(tmp_path, ports, bench=f"{CAMERA} {{path}}")
+    server = servers({}, "--config", str(config))
+    layers = "".join(f"M790\nG1 Z{z}\n" + gcode(100, start=z) for z in range(1, 4))
+    with server.client() as client:
+        wait_for(lambda: client.get("/v1/printers/bench").json()["state"] == "ready")
+        assert client.get("/v1/printers/bench").json()["camera"] is True
+        job = client.post(
+            "/v1/printers/bench/jobs", files={"file": ("shots.gcode", f"{layers}M791\n")}
+        ).json()
+        wait_for(lambda: job_state(client, job["id"])["state"] == "completed", what="the job")
+        shots = wait_for(
+            lambda: [
+                s for s in client.get("/v1/printers/bench/snapshots").json() if "-job" in s["file"]
+            ],
+            what="the snapshots",
+        )
+        # M791 at the end: its snapshot waits its turn, so the finished part is always taken.
+        wait_for(
+            lambda: any(
+                "layer3" in s["file"] for s in client.get("/v1/printers/bench/snapshots").json()
+            )
+        )
+        assert any(f"job{job['id']}-layer1" in s["file"] for s in shots)
+        image = client.get(shots[0]["url"])
+        assert image.status_code == 200 and image.headers["content-type"] == "image/png"
+        assert image.content == png()
+        assert (
+            client.get("/v1/printers/bench")
+            .json()["snapshot"]
+            .startswith("/v1/printers/bench/snapshots/")
+        )
+        taken = client.post("/v1/printers/bench/snapshots")
+        assert taken.status_code == 201 and client.get(taken.json()["url"]).content == png()
+        missing = client.get("/v1/printers/bench/snapshots/..%2Fjobs.sqlite")
+        assert missing.status_code == 404
+        # A printer without a camera says so; M790/M791 did not reach either controller.
+        blind = client.post("/v1/printers/blind/snapshots")
+        assert blind.status_code == 409 and "has no camera" in blind.json()["detail"]
+        assert client.get("/v1/printers/blind").json()["camera"] is False
+    fake.request("status")
+    ran = executed(fake.log_path)
+    assert "M790" not in ran and "M791" not in ran and len(ran) >= 306
+
+
+def test_a_failing_camera_is_told_and_the_job_goes_on(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server], tmp_path: Path
+) -> None:
+    fake = bench()
+    config = camera_config(tmp_path, {"bench": fake.port}, bench=f"{CAMERA} --fail {{path}}")
+    server = servers({}, "--config", str(config))
+    with server.client() as client:
+        wait_for(lambda: client.get("/v1/printers/bench").json()["state"] == "ready")
+        failed = client.post("/v1/printers/bench/snapshots")
+        assert failed.status_code == 502
+        assert failed.json()["detail"] == (
+            "printer bench: the camera command failed (exit 3): /dev/video0: No such device"
+        )
+        with client.stream("GET", "/v1/events", params={"printer": "bench"}) as stream:
+            job = client.post(
+                "/v1/printers/bench/jobs", files={"file": ("a.gcode", "G28\nM791\nG1 X1\n")}
+            ).json()
+            told = ""
+            for line in stream.iter_lines():
+                event = json.loads(line[6:]) if line.startswith("data: ") else {}
+                if event.get("type") == "message" and "snapshot" in event["text"]:
+                    told = event["text"]
+                    break
+        assert (
+            told == "no snapshot: the camera command failed (exit 3): /dev/video0: No such device"
+        )
+        wait_for(lambda: job_state(client, job["id"])["state"] == "completed")
+        assert client.get("/v1/printers/bench/snapshots").json() == []
+
+
+def test_a_bad_camera_setting_gets_one_sentence(tmp_path: Path) -> None:
+    config = camera_config(tmp_path, {"demo": "fake"}, demo='fswebcam "unclosed')
+    result = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "repetrel_host.server.main",
+            "--config",
+            str(config),
+            "--data-dir",
+            str(tmp_path / "data"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
+    assert result.returncode == 2
+    assert "camera" in result.stderr and "cannot be split into words" in result.stderr
+    assert "Traceback" not in result.stderr
+
+
 # --- security ----------------------------------------------------------------------------
 
 
@@ -572,10 +720,12 @@ async def _mqtt_messages(
 
 
 def test_mqtt_publishes_states_jobs_progress_retained_and_takes_commands(
-    bench: Callable[..., BuiltInFake], servers: Callable[..., Server], broker: int
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server], broker: int, tmp_path: Path
 ) -> None:
     fake = bench("--move-time", "0.002")
-    server = servers({"bench": fake.port}, "--mqtt", f"127.0.0.1:{broker}", "--mqtt-commands")
+    config = camera_config(tmp_path, {"bench": fake.port}, bench=CAMERA)
+    mqtt = ["--mqtt", f"127.0.0.1:{broker}", "--mqtt-commands"]
+    server = servers({}, "--config", str(config), *mqtt)
     with server.client() as client:
         wait_for(lambda: client.get("/v1/printers/bench").json()["state"] == "ready")
 
@@ -583,14 +733,14 @@ def test_mqtt_publishes_states_jobs_progress_retained_and_takes_commands(
         async def upload() -> None:
             await asyncio.sleep(0.5)  # subscribed by then
             async with httpx.AsyncClient(base_url=server.url, headers={"X-Api-Key": KEY}) as web:
-                files = {"file": ("farm.gcode", gcode(400))}
+                files = {"file": ("farm.gcode", gcode(400) + "M791\n")}
                 assert (await web.post("/v1/printers/bench/jobs", files=files)).status_code == 201
 
         def completed(messages: list[tuple[str, Any]]) -> bool:
             return any(
                 topic == "hyrel/bench/job" and payload["job"]["state"] == "completed"
                 for topic, payload in messages
-            )
+            ) and any(topic == "hyrel/bench/snapshot" for topic, _ in messages)
 
         uploading = asyncio.create_task(upload())
         seen = await _mqtt_messages(broker, "hyrel/#", completed)
@@ -603,9 +753,13 @@ def test_mqtt_publishes_states_jobs_progress_retained_and_takes_commands(
         assert "printing" in states
 
         # A dashboard that starts later sees how things stand (retained).
-        late = await _mqtt_messages(broker, "hyrel/bench/+", lambda m: len(m) >= 3, 10)
+        wanted = {"hyrel/bench/state", "hyrel/bench/job", "hyrel/bench/snapshot"}
+        late = await _mqtt_messages(
+            broker, "hyrel/bench/+", lambda m: wanted <= {t for t, _ in m}, 10
+        )
         retained = dict(late)
         assert retained["hyrel/bench/state"]["state"] == "ready"
+        assert retained["hyrel/bench/snapshot"]["url"].startswith("/v1/printers/bench/snapshots/")
         assert retained["hyrel/bench/job"]["job"]["state"] == "completed"
 
         async with aiomqtt.Client("127.0.0.1", broker) as commander:
@@ -647,10 +801,12 @@ def test_the_status_page_shows_a_job_live_and_its_buttons_work(
     from selenium.webdriver.support.ui import WebDriverWait
 
     fake = bench("--move-time", "0.004", "--heat-rate", "20")
-    server = servers({"bench": fake.port})
+    config = camera_config(tmp_path, {"bench": fake.port}, bench=CAMERA)  # to its stdout
+    server = servers({}, "--config", str(config))
     job = tmp_path / "layers.gcode"
     job.write_text(
         "".join(f";LAYER_CHANGE\nG1 Z{z / 5}\n" + gcode(300, start=z) for z in range(1, 5))
+        + "M791 ; the finished part\n"
     )
     options = webdriver.ChromeOptions()
     options.binary_location = str(CHROMIUM)
@@ -685,6 +841,10 @@ def test_the_status_page_shows_a_job_live_and_its_buttons_work(
         assert "layers.gcode: completed" in text(".queue")
         assert "T 21.0°" in text(".temperatures")
         assert browser.find_elements(By.CSS_SELECTOR, "[data-printer=bench] svg polyline")
+        # M791's snapshot shows, loaded (an image that failed has no natural width).
+        image = browser.find_element(By.CSS_SELECTOR, "[data-printer=bench] img.snapshot")
+        wait.until(lambda _: image.get_attribute("naturalWidth") == "4")
+        assert "-job1-" in text(".camera figcaption")
         assert browser.find_element(By.ID, "notice").text == ""
     finally:
         browser.quit()

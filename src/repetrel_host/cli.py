@@ -451,7 +451,8 @@ async def _stream(
     stream_file = history_file(options.history, user, plan.job)
     history = None if options.no_history else stream_file
     reports = stream_file.with_name(f"{stream_file.stem}-reports.log")  # the same run's name
-    actions = ConsoleActions(console, user.host, reports)
+    snapshots = stream_file.with_name(f"{stream_file.stem}-snapshots")
+    actions = ConsoleActions(console, user.host, reports, snapshots)
     job = await printer.print(
         plan,
         force=options.force,
@@ -516,7 +517,7 @@ async def _stream(
         loop.remove_signal_handler(signal.SIGINT)
         _update(progress, task, job, started)
         progress.stop()
-        actions.close()
+        await actions.close()
     if summary.outcome is Outcome.COMPLETED:
         progress.update(task, completed=job.size)  # trailing comments count as sent
     return summary, history, job.where()

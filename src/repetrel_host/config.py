@@ -16,8 +16,17 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, TypeVar, get_args
 
-from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt, ValidationError
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StrictFloat,
+    StrictInt,
+    ValidationError,
+    field_validator,
+)
 
+from repetrel_host.camera import check_command
 from repetrel_host.errors import ConfigError
 from repetrel_host.gcode import addressing
 
@@ -50,6 +59,16 @@ class Machine(_Model):
     firmware: addressing.Firmware
     pause_sync: str = "M400"
     safe_stop: list[str] | None = None  # default: the standard footer's safe part
+    camera: str | None = None  # M791/M790 snapshots: a command line, {path} the image to write
+    layer_snapshots: bool = False  # a snapshot at every M790 (new layer) too
+
+    @field_validator("camera")
+    @classmethod
+    def _camera_command(cls, value: str | None) -> str | None:
+        if value is not None:
+            check_command(value)
+        return value
+
     link: LinkDefaults = LinkDefaults()
 
 
@@ -118,6 +137,15 @@ class HostSettings(_Model):
     allow_shell: bool = False  # M792 SHELL runs a program: off unless asked for
     speech_program: str | None = None  # M792 SAY; default: the first of espeak-ng, espeak, say
     safe_stop: list[str] | None = None  # default: the standard footer's safe part
+    camera: str | None = None  # M791/M790 snapshots: a command line, {path} the image to write
+    layer_snapshots: bool = False  # a snapshot at every M790 (new layer) too
+
+    @field_validator("camera")
+    @classmethod
+    def _camera_command(cls, value: str | None) -> str | None:
+        if value is not None:
+            check_command(value)
+        return value
 
 
 class UserConfig(_Model):

@@ -1,8 +1,9 @@
 """What ``hyrel-send`` does at a terminal for a job's host actions.
 
-Host actions (M792 actions, an M0's SAY..., M718/M719 report logging) run here,
-on the operator's machine. ``M792 SHELL`` runs a program only when the user's
-configuration says ``[host] allow_shell = true``.
+Host actions (M792 actions, an M0's SAY..., M718/M719 report logging, M791/M790
+snapshots) run here, on the operator's machine. ``M792 SHELL`` runs a program only when
+the user's configuration says ``[host] allow_shell = true``; the camera is
+``[host] camera``.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import shutil
 from pathlib import Path
 from typing import Protocol, TextIO
 
+from repetrel_host.camera import Camera
 from repetrel_host.config import HostSettings
 from repetrel_host.job import ActionKind, HostAction
 
@@ -30,11 +32,22 @@ class Terminal(Protocol):
 class ConsoleActions:
     """Carries out a job's host actions at a terminal, and keeps the report log."""
 
-    def __init__(self, console: Terminal, host: HostSettings, reports_path: Path) -> None:
+    def __init__(
+        self, console: Terminal, host: HostSettings, reports_path: Path, snapshots: Path
+    ) -> None:
         self.console = console
         self.host = host
         self.reports_path = reports_path
         self._reports: TextIO | None = None
+        self._layer = 0
+        self.camera: Camera | None = None
+        if host.camera is not None:
+            self.camera = Camera(
+                host.camera,
+                snapshots,
+                on_taken=lambda path: console.print(f"snapshot: {path}", markup=False),
+                on_failed=lambda why: console.print(f"no snapshot: {why}", markup=False),
+            )
 
     def log(self, text: str) -> None:
         """A controller line, kept while M719 asked for the reports."""
@@ -48,7 +61,13 @@ class ConsoleActions:
             self._start_reports()
             self.console.print(f"logging the controller's reports to {self.reports_path}")
         elif action.kind is ActionKind.LOG_STOP:
-            self.close()
+            self._stop_reports()
+        elif action.kind is ActionKind.LAYER:
+            self._layer += 1
+            if self.host.layer_snapshots:
+                self._snap(action)
+        elif action.kind is ActionKind.SNAPSHOT:
+            self._snap(action)
         else:
             for verb, argument in action.actions:
                 await self._act(verb, argument, action)
@@ -80,6 +99,23 @@ class ConsoleActions:
         else:  # PIC, VID, SEND: no display or aux port here, so say what was asked
             self.console.print(f"{verb.lower()} ({where}): {escape(argument)}")
 
+    def _snap(self, action: HostAction) -> None:
+        """A snapshot beside the stream: the job does not wait for the camera."""
+        if self.camera is None:
+            self.console.print(
+                f"no snapshot ({action.position}): no camera is set (camera = "
+                '"a command line" under [host] in your configuration)',
+                markup=False,
+            )
+        elif not self.camera.take(
+            f"{action.source_line:07d}-layer{self._layer}",
+            wait_turn=action.kind is ActionKind.SNAPSHOT,  # asked for: after the one being taken
+        ):
+            self.console.print(
+                f"no snapshot ({action.position}): the last one is still being taken",
+                markup=False,
+            )
+
     # --- report log ---------------------------------------------------------
 
     def _start_reports(self) -> None:
@@ -87,10 +123,16 @@ class ConsoleActions:
             self.reports_path.parent.mkdir(parents=True, exist_ok=True)
             self._reports = self.reports_path.open("a", encoding="utf-8")
 
-    def close(self) -> None:
+    def _stop_reports(self) -> None:
         if self._reports is not None:
             self._reports.close()
             self._reports = None
+
+    async def close(self) -> None:
+        """The job ended: the report log closed, the last snapshot taken."""
+        self._stop_reports()
+        if self.camera is not None:
+            await self.camera.close()
 
 
 async def _run(argv: list[str]) -> None:

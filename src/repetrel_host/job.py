@@ -11,6 +11,9 @@ Some codes are the host's, not the controller's (as in Repetrel):
 - ``M719``: forwarded (it tells the controller what to report), and the host starts
   logging the controller's reports to a file. ``M718``: the host stops logging; not
   forwarded.
+- ``M790`` (new layer) and ``M791`` (snap image): the host's camera takes a snapshot (at
+  every ``M790`` when the configuration says so). Not forwarded; they do not stop the
+  machine: the snapshot is taken once every line before them is acknowledged.
 - ``M110``: not forwarded; the host owns line numbers. A bare ``N14`` line sends nothing.
 """
 
@@ -53,6 +56,8 @@ class ActionKind(StrEnum):
     ACTIONS = "actions"  # M792: SAY, BEEP, SHELL...
     LOG_START = "log_start"  # M719: keep the controller's reports
     LOG_STOP = "log_stop"  # M718
+    LAYER = "layer"  # M790: a new layer (a snapshot when the camera takes one per layer)
+    SNAPSHOT = "snapshot"  # M791: a camera snapshot
 
 
 @dataclass(frozen=True, slots=True)
@@ -158,6 +163,8 @@ class Job:
             return [HostAction(ActionKind.LOG_STOP, "", (), number, name)]
         if word == "M719":
             return [command, HostAction(ActionKind.LOG_START, command, (), number, name)]
+        if word in _CAMERA_WORDS:
+            return [HostAction(_CAMERA_WORDS[word], "", (), number, name)]
         # M0, M1 and M792 carry their text after the command and after semicolons.
         text = raw.decode("utf-8", errors="replace")
         text = text.strip()[len(text.strip().split(None, 1)[0]) :]
@@ -167,7 +174,8 @@ class Job:
         return [self.pause_sync, HostAction(ActionKind.PAUSE, message, actions, number, name)]
 
 
-_HOST_WORDS = frozenset({"M0", "M1", "M110", "M718", "M719", "M792"})
+_CAMERA_WORDS = {"M790": ActionKind.LAYER, "M791": ActionKind.SNAPSHOT}
+_HOST_WORDS = frozenset({"M0", "M1", "M110", "M718", "M719", "M792", *_CAMERA_WORDS})
 _LINE = re.compile(rb"([^\r\n]*)(\r\n|\r|\n)")
 # Marlin's line buffer holds 96 bytes and Repetrel cuts lines at 100 characters: a
 # longer command would arrive cut, fail its checksum and be asked for forever.

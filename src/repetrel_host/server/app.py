@@ -38,7 +38,13 @@ from fastapi import (
     UploadFile,
 )
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import HTMLResponse, JSONResponse, Response, StreamingResponse
+from fastapi.responses import (
+    FileResponse,
+    HTMLResponse,
+    JSONResponse,
+    Response,
+    StreamingResponse,
+)
 from pydantic import BaseModel
 
 import repetrel_host as rh
@@ -46,7 +52,7 @@ from repetrel_host.config import UserConfig
 from repetrel_host.planning import JobRequest, plan_job
 from repetrel_host.server.events import EventHub
 from repetrel_host.server.mqtt import MqttSettings
-from repetrel_host.server.printers import PrinterConfig, PrinterService
+from repetrel_host.server.printers import PrinterConfig, PrinterService, Refused
 from repetrel_host.server.store import JobRecord, JobState, Store
 
 log = logging.getLogger("repetrel_host.server")
@@ -56,6 +62,7 @@ OCTOPRINT_VERSION = "1.10.0"
 G_CODE_SUFFIXES = (".gcode", ".gco", ".g")
 KEEPALIVE = 15.0  # seconds of quiet before the event stream says it is alive
 _SAFE_NAME = re.compile(r"[^A-Za-z0-9._ ()+-]")
+_SNAPSHOT = re.compile(r"^[A-Za-z0-9_-]+\.(jpg|png|gif|webp)$")
 
 
 class PrintServer:
@@ -174,7 +181,14 @@ def _printer_json(service: PrinterService) -> dict[str, Any]:
             for sensor, (actual, target) in (printer.temperatures if printer else {}).items()
         },
         "job": _running_json(service) if running is not None else None,
+        "camera": service.camera is not None,
+        "snapshot": _latest_snapshot(service),
     }
+
+
+def _latest_snapshot(service: PrinterService) -> str | None:
+    images = service.camera.images()[:1] if service.camera is not None else []
+    return service.url(images[0]) if images else None
 
 
 def _running_json(service: PrinterService) -> dict[str, Any]:
@@ -269,6 +283,28 @@ def _relative(server: PrintServer, path: Path) -> str:
     return path.relative_to(server.data_dir).as_posix()
 
 
+def _uploaded(server: PrintServer, location: str) -> Path:
+    """An uploaded file by its place below the uploads; 404 when there is none."""
+    path = server.files / _safe_folder(location)
+    if not path.is_file():
+        raise HTTPException(404, f"no file '{location}'")
+    return path
+
+
+def _delete_upload(server: PrintServer, location: str) -> None:
+    """Remove an uploaded file; 409 while a queued or running job prints it."""
+    path = _uploaded(server, location)
+    users = server.store.jobs_using(_relative(server, path))
+    if users:
+        jobs = ", ".join(str(job) for job in users)
+        raise HTTPException(409, f"'{location}' is used by job {jobs}: cancel it first")
+    path.unlink()
+    for service in server.services.values():
+        if service.selected == path:
+            service.selected = None
+    log.info("file %s deleted", location)
+
+
 def _check(server: PrintServer, printer: str, path: Path) -> tuple[list[str], int]:
     """The job lint's findings (``error: file:line: ...``) and the number of commands."""
     session = server.services[printer].printer
@@ -278,7 +314,7 @@ def _check(server: PrintServer, printer: str, path: Path) -> tuple[list[str], in
         findings = plan.check()
     except rh.HostError as exc:  # named by the file's name, not its place on the server
         return [f"error: {str(exc).replace(str(path), path.name)}"], 0
-    commands = sum(1 for _ in plan.job.commands())
+    commands = sum(1 for _ in plan.job.lines())  # what goes on the wire: host codes do not
     return [f"{f.severity}: {f.format(path.name)}" for f in findings], commands
 
 
@@ -425,6 +461,16 @@ def _native_router() -> APIRouter:
         path, findings, commands = await _save_upload(server, service.name, file)
         return {**_queue(server, service.name, path, commands).as_json(), "findings": findings}
 
+    @router.get("/files")
+    async def files(request: Request) -> list[dict[str, Any]]:
+        server = _server(request)
+        return [_file_json(server, p) for p in sorted(server.files.rglob("*")) if p.is_file()]
+
+    @router.delete("/files/{location:path}", status_code=204, dependencies=[Keyed])
+    async def delete_file(request: Request, location: str) -> Response:
+        _delete_upload(_server(request), location)
+        return Response(status_code=204)
+
     @router.get("/events")
     async def events(request: Request, printer: str | None = None) -> StreamingResponse:
         """Server-sent events: each printer as it stands first, then printer states, jobs,
@@ -480,6 +526,32 @@ def _native_router() -> APIRouter:
             raise HTTPException(409, f"job {job_id} is not queued{where}")
         return [r.as_json() for r in server.store.jobs(record.printer)]
 
+    @router.get("/printers/{name}/snapshots")
+    async def snapshots(request: Request, name: str) -> list[dict[str, Any]]:
+        """The printer's camera snapshots, newest first."""
+        service = _server(request).service(name)
+        images = service.camera.images() if service.camera is not None else []
+        return [{"file": path.name, "url": service.url(path)} for path in images]
+
+    @router.get("/printers/{name}/snapshots/{file}")
+    async def snapshot_image(request: Request, name: str, file: str) -> FileResponse:
+        service = _server(request).service(name)
+        camera = service.camera
+        path = camera.folder / file if camera is not None else None
+        if path is None or not _SNAPSHOT.match(file) or not path.is_file():
+            raise HTTPException(404, f"no snapshot '{file}' of printer {service.name}")
+        return FileResponse(path, headers={"Cache-Control": "max-age=86400, immutable"})
+
+    @router.post("/printers/{name}/snapshots", status_code=201, dependencies=[Keyed])
+    async def take_snapshot(request: Request, name: str) -> dict[str, Any]:
+        """A snapshot now (the camera's settings, tried out)."""
+        service = _server(request).service(name)
+        try:
+            path = await service.snapshot()
+        except Refused as exc:
+            raise HTTPException(exc.status, str(exc)) from None
+        return {"file": path.name, "url": service.url(path)}
+
     @router.post("/printers/{name}/command", dependencies=[Keyed])
     async def command(request: Request, name: str, body: Command) -> dict[str, Any]:
         reply = await _command(_server(request).service(name), body.command)
@@ -495,37 +567,17 @@ def _native_router() -> APIRouter:
 
 
 async def _control(service: PrinterService, action: str) -> None:
-    printer = service.printer
     try:
-        if action == "release":
-            service.release()
-        elif action == "hold":
-            service.hold()
-        elif action == "cancel":
-            if not await service.cancel():
-                raise HTTPException(409, f"printer {service.name} has no job to cancel")
-        elif action in ("pause", "resume"):
-            if printer is None:
-                raise HTTPException(409, f"printer {service.name} is not connected")
-            await (printer.pause() if action == "pause" else printer.resume())
-        else:
-            raise HTTPException(404, f"no action '{action}' (pause, resume, cancel, hold, release)")
-    except rh.UsageError as exc:
-        raise HTTPException(409, str(exc)) from None
+        await service.control(action)
+    except Refused as exc:
+        raise HTTPException(exc.status, str(exc)) from None
 
 
 async def _command(service: PrinterService, line: str) -> rh.Reply:
-    printer = service.printer
-    if printer is None:
-        raise HTTPException(409, f"printer {service.name} is not connected")
     try:
-        return await printer.command(line, timeout=60)
-    except rh.UsageError as exc:
-        raise HTTPException(409, str(exc)) from None
-    except rh.HostError as exc:
-        raise HTTPException(409, f"printer {service.name}: {exc}") from None
-    except TimeoutError:
-        raise HTTPException(504, f"{line}: no reply within 60 s") from None
+        return await service.command(line)
+    except Refused as exc:
+        raise HTTPException(exc.status, str(exc)) from None
 
 
 # --- OctoPrint -------------------------------------------------------------------------
@@ -616,18 +668,18 @@ def _octoprint_router() -> APIRouter:
     @router.get("/files")
     async def files(request: Request) -> dict[str, Any]:
         server = _server(request)
-        entries = [
-            _file_json(server, path) for path in sorted(server.files.rglob("*")) if path.is_file()
-        ]
+        entries = [_file_json(server, p) for p in sorted(server.files.rglob("*")) if p.is_file()]
         return {"files": entries, "free": shutil.disk_usage(server.data_dir).free}
 
     @router.get("/files/local/{location:path}")
     async def file(request: Request, location: str) -> dict[str, Any]:
         server = _server(request)
-        path = server.files / _safe_folder(location)
-        if not path.is_file():
-            raise HTTPException(404, f"no file '{location}'")
-        return _file_json(server, path)
+        return _file_json(server, _uploaded(server, location))
+
+    @router.delete("/files/local/{location:path}", status_code=204, dependencies=[Keyed])
+    async def delete_file(request: Request, location: str) -> Response:
+        _delete_upload(_server(request), location)
+        return Response(status_code=204)
 
     @router.get("/job")
     async def job(service: Printer) -> dict[str, Any]:

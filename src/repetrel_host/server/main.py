@@ -20,9 +20,10 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import typer
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from repetrel_host import __version__
+from repetrel_host.camera import check_command
 from repetrel_host.config import read_toml
 from repetrel_host.errors import ConfigError
 from repetrel_host.server.mqtt import MqttSettings
@@ -47,6 +48,16 @@ class PrinterSettings(BaseModel):
     rx_buffer: int | None = Field(default=None, ge=2)
     max_lines: int | None = Field(default=None, ge=1)
     baud: int | None = Field(default=None, gt=0)
+    camera: str | None = None  # M791/M790 snapshots: a command line, {path} the image
+    layer_snapshots: bool = True  # with a camera, a snapshot at every M790 (new layer)
+    snapshots_kept: int = Field(default=500, ge=1)
+
+    @field_validator("camera")
+    @classmethod
+    def _camera_command(cls, value: str | None) -> str | None:
+        if value is not None:
+            check_command(value)
+        return value
 
 
 class ServerSettings(BaseModel):

@@ -4,6 +4,7 @@
 - ``job`` (retained): the printer's current or last job
 - ``progress`` (retained): lines, the file line, bytes of the running job
 - ``temperatures`` (retained): ``{"T": [actual, target], "B": [...]}``
+- ``snapshot`` (retained): the camera's newest image, ``{"file": ..., "url": "/v1/..."}``
 - ``message``: the controller's messages
 - ``<prefix>/server/online`` (retained): ``true``, and ``false`` as the will (the broker says
   it when the server vanishes).
@@ -26,7 +27,7 @@ from typing import TYPE_CHECKING, Any
 
 import aiomqtt
 
-import repetrel_host as rh
+from repetrel_host.server.printers import Refused
 
 if TYPE_CHECKING:
     from repetrel_host.server.app import PrintServer
@@ -38,7 +39,14 @@ RECONNECT_FIRST = 1.0
 RECONNECT_MAX = 30.0
 ACTIONS = ("pause", "resume", "cancel", "release")
 # Event types and whether their topic is retained.
-_TOPICS = {"printer": True, "job": True, "progress": True, "temperatures": True, "message": False}
+_TOPICS = {
+    "printer": True,
+    "job": True,
+    "progress": True,
+    "temperatures": True,
+    "snapshot": True,
+    "message": False,
+}
 
 
 @dataclass(frozen=True)
@@ -131,19 +139,13 @@ class MqttBridge:
             await client.publish(f"{self.prefix}/{name}/reply", json.dumps(answer).encode(), 1)
 
     async def _command(self, name: str, text: str) -> dict[str, Any]:
-        from fastapi import HTTPException
-
-        from repetrel_host.server.app import _command, _control
-
         service = self.server.services[name]
         log.info("mqtt: printer %s: %s", name, text)
         try:
             if text.lower() in ACTIONS:
-                await _control(service, text.lower())
+                await service.control(text.lower())
                 return {"command": text, "ok": True}
-            reply = await _command(service, text)
-        except HTTPException as exc:
-            return {"command": text, "ok": False, "error": str(exc.detail)}
-        except rh.HostError as exc:
+            reply = await service.command(text)
+        except Refused as exc:
             return {"command": text, "ok": False, "error": str(exc)}
         return {"command": text, "ok": True, "lines": reply.lines, "reply": reply.ok}

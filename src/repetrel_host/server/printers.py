@@ -15,11 +15,14 @@ import contextlib
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
 import repetrel_host as rh
+from repetrel_host.camera import Camera, SnapshotFailed
 from repetrel_host.config import UserConfig
+from repetrel_host.job import ActionKind, HostAction
 from repetrel_host.server.events import Event
 from repetrel_host.server.store import PROGRESS_INTERVAL, JobRecord, JobState, Store
 
@@ -30,6 +33,16 @@ RECONNECT_MAX = 10.0
 POLL_INTERVAL = 2.0  # temperatures, for the API and the page
 SAFE_STOP_TIMEOUT = 30.0
 SERVER_STOPPED = "the server was stopped: the job was stopped with its safe stop"
+COMMAND_TIMEOUT = 60.0
+CONTROLS = ("pause", "resume", "cancel", "hold", "release")
+
+
+class Refused(Exception):
+    """A control or command the printer cannot take now; ``status`` is its HTTP status."""
+
+    def __init__(self, message: str, status: int = 409) -> None:
+        super().__init__(message)
+        self.status = status
 
 
 @dataclass(frozen=True)
@@ -43,6 +56,9 @@ class PrinterConfig:
     rx_buffer: int | None = None
     max_lines: int | None = None
     baud: int | None = None
+    camera: str | None = None  # a command line for M791/M790 snapshots ({path}: the image)
+    layer_snapshots: bool = True  # with a camera: a snapshot at every M790
+    snapshots_kept: int = 500
 
     def connect(self, user: UserConfig) -> Any:
         """``rh.connect(...)`` for this printer."""
@@ -83,15 +99,23 @@ class Running:
 _LAYER_MARKS = (b";LAYER_CHANGE", b";LAYER:", b"M790")
 
 
+def snapshot_name(tail: str) -> str:
+    """A snapshot's name without its suffix: the time first, so that names sort by it."""
+    return f"{datetime.now():%Y%m%d-%H%M%S-%f}{tail}"
+
+
 def layer_offsets(path: Path) -> list[int]:
     """Byte offsets of the lines that mark a new layer in ``path``."""
     offsets: list[int] = []
     offset = 0
-    with path.open("rb") as handle:
-        for line in handle:
-            if line.lstrip().startswith(_LAYER_MARKS):
-                offsets.append(offset)
-            offset += len(line)
+    try:
+        with path.open("rb") as handle:
+            for line in handle:
+                if line.lstrip().startswith(_LAYER_MARKS):
+                    offsets.append(offset)
+                offset += len(line)
+    except OSError as exc:
+        raise rh.JobError(f"{path.name}: cannot be read ({exc.strerror})") from None
     return offsets
 
 
@@ -131,6 +155,15 @@ class PrinterService:
         # After a job ends, start the next one by itself (a farm with an automatic bed
         # change); else the queue is held until released (Moonraker's automatic_transition).
         self.automatic_transition = False
+        self.camera: Camera | None = None
+        if config.camera is not None:
+            self.camera = Camera(
+                config.camera,
+                data_dir / "snapshots" / name,
+                config.snapshots_kept,
+                on_taken=self._snapshot_taken,
+                on_failed=lambda why: self._tell(f"no snapshot: {why}"),
+            )
 
     # --- lifecycle ---------------------------------------------------------------
 
@@ -156,6 +189,8 @@ class PrinterService:
                     await self._task
         if self.printer is not None:
             await self.printer.close()
+        if self.camera is not None:
+            await self.camera.close(2.0)
 
     def wake(self) -> None:
         """Something changed (a job queued, the queue released): look again."""
@@ -234,7 +269,8 @@ class PrinterService:
         history = self.data_dir / "history" / f"{record.id}-{Path(record.name).stem}.gcode"
         self._starting, self._cancel_starting = record.id, False
         try:
-            job = await printer.print(path, history=history)
+            layers = await asyncio.to_thread(layer_offsets, path)
+            job = await printer.print(path, history=history, on_action=self._perform)
         except rh.HostError as exc:  # refused (a check), or the printer went meanwhile
             if printer.state is not rh.State.READY and not isinstance(exc, rh.JobError):
                 self.store.set_state(record.id, JobState.QUEUED)  # not the job's fault
@@ -245,13 +281,12 @@ class PrinterService:
             return
         finally:
             self._starting = None
-        running = self.running = Running(record, job)
+        self.running = Running(record, job, layers)
         if self._cancel_starting:
             job.stop()
         self._paused = False
         log.info("printer %s: printing job %d (%s)", self.name, record.id, record.name)
         self.job_changed(record.id)
-        running.layers = await asyncio.to_thread(layer_offsets, path)
         state, error = JobState.COMPLETED, None
         ending = asyncio.ensure_future(job.wait())
         try:
@@ -306,6 +341,55 @@ class PrinterService:
             self.store.set_state(record.id, JobState.PAUSED if paused else JobState.PRINTING)
             self.job_changed(record.id)
 
+    # --- host actions ------------------------------------------------------------------
+
+    async def _perform(self, action: HostAction) -> bool:
+        """A job's host codes on the server: snapshots; M792's actions are told, not done
+        (the server speaks, shows and runs nothing: SHELL stays refused)."""
+        if action.kind is ActionKind.SNAPSHOT or (
+            action.kind is ActionKind.LAYER and self.config.layer_snapshots
+        ):
+            self._snap(action)
+        elif action.kind in (ActionKind.ACTIONS, ActionKind.PAUSE):
+            for verb, argument in action.actions:
+                done = "refused: the server runs no programs" if verb == "SHELL" else "not done"
+                self._tell(f"{action.position}: M792 {verb} {argument} ({done} on the server)")
+        return True
+
+    def _snap(self, action: HostAction) -> None:
+        running = self.running
+        if self.camera is None:
+            if action.kind is ActionKind.SNAPSHOT:
+                self._tell(f"{action.position}: M791, but printer {self.name} has no camera set")
+            return
+        job = f"-job{running.record.id}-layer{running.layer}" if running is not None else ""
+        if not self.camera.take(snapshot_name(job), wait_turn=action.kind is ActionKind.SNAPSHOT):
+            log.info(
+                "printer %s: %s: the last snapshot is still being taken", self.name, action.position
+            )
+
+    async def snapshot(self) -> Path:
+        """A snapshot now, awaited; :class:`Refused` without a camera or when it fails."""
+        if self.camera is None:
+            raise Refused(f"printer {self.name} has no camera (camera = ... in its settings)")
+        try:
+            return await self.camera.take_now(snapshot_name(""))
+        except SnapshotFailed as exc:
+            raise Refused(f"printer {self.name}: {exc}", 502) from None
+
+    def _snapshot_taken(self, path: Path) -> None:
+        log.info("printer %s: snapshot %s", self.name, path.name)
+        self.publish(
+            {"type": "snapshot", "printer": self.name, "file": path.name, "url": self.url(path)}
+        )
+
+    def url(self, snapshot: Path) -> str:
+        return f"/v1/printers/{self.name}/snapshots/{snapshot.name}"
+
+    def _tell(self, text: str) -> None:
+        log.info("printer %s: %s", self.name, text)
+        self.publish({"type": "message", "printer": self.name, "text": text})
+
     # --- events -----------------------------------------------------------------------
 
     def job_changed(self, job_id: int) -> None:
@@ -341,6 +425,41 @@ class PrinterService:
         self.held = False
         self.wake()
         self.publish({"type": "printer", "printer": self.name, "state": self.state, "held": False})
+
+    async def control(self, action: str) -> None:
+        """pause, resume, cancel (the running job), hold or release; :class:`Refused` when
+        the printer cannot do it now."""
+        printer = self.printer
+        try:
+            if action == "release":
+                self.release()
+            elif action == "hold":
+                self.hold()
+            elif action == "cancel":
+                if not await self.cancel():
+                    raise Refused(f"printer {self.name} has no job to cancel")
+            elif action in ("pause", "resume"):
+                if printer is None:
+                    raise Refused(f"printer {self.name} is not connected")
+                await (printer.pause() if action == "pause" else printer.resume())
+            else:
+                raise Refused(f"no action '{action}' ({', '.join(CONTROLS)})", 404)
+        except rh.UsageError as exc:
+            raise Refused(str(exc)) from None
+
+    async def command(self, line: str) -> rh.Reply:
+        """One G-code line to a printer that is not printing, with the controller's reply."""
+        printer = self.printer
+        if printer is None:
+            raise Refused(f"printer {self.name} is not connected")
+        try:
+            return await printer.command(line, timeout=COMMAND_TIMEOUT)
+        except rh.UsageError as exc:
+            raise Refused(str(exc)) from None
+        except rh.HostError as exc:
+            raise Refused(f"printer {self.name}: {exc}") from None
+        except TimeoutError:
+            raise Refused(f"{line}: no reply within {COMMAND_TIMEOUT:.0f} s", 504) from None
 
     async def cancel(self, job_id: int | None = None) -> bool:
         """Cancel the running job (``job_id``, or whichever runs) with its safe stop first,

@@ -128,6 +128,15 @@ class Store:
         ).fetchall()
         return [_record(row) for row in rows]
 
+    def jobs_using(self, file: str) -> list[int]:
+        """Jobs queued, printing or paused that print ``file`` (relative to the data folder)."""
+        rows = self._db.execute(
+            "SELECT id FROM jobs WHERE file = ? AND state IN ('queued', 'printing', 'paused') "
+            "ORDER BY id",
+            (file,),
+        ).fetchall()
+        return [row[0] for row in rows]
+
     def next_queued(self, printer: str) -> JobRecord | None:
         row = self._db.execute(
             "SELECT * FROM jobs WHERE printer = ? AND state = 'queued' ORDER BY position LIMIT 1",

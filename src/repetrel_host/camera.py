@@ -1,0 +1,181 @@
+"""Camera snapshots for ``M790`` (new layer) and ``M791`` (snap image), as Repetrel takes them.
+
+The camera is a command line from the configuration, run without a shell. ``{path}`` in it
+is replaced by the file to write (``fswebcam --no-banner -r 1280x720 {path}``); without
+it, the image is read from the command's standard output
+(``ffmpeg -loglevel error -f v4l2 -i /dev/video0 -frames:v 1 -f image2 -``). The image is
+kept as .jpg, .png, .gif or .webp, by what it holds.
+
+A snapshot never holds the job up: it runs beside the stream, one at a time per camera (a
+layer that comes while the last snapshot is still being taken gets none).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import shlex
+from collections.abc import Callable
+from pathlib import Path
+
+log = logging.getLogger("repetrel_host.camera")
+
+SNAPSHOT_TIMEOUT = 20.0
+IMAGE_SUFFIXES = (".jpg", ".png", ".gif", ".webp")
+_MAGIC = (
+    (b"\xff\xd8\xff", ".jpg"),
+    (b"\x89PNG\r\n\x1a\n", ".png"),
+    (b"GIF8", ".gif"),
+)
+
+
+class SnapshotFailed(Exception):
+    """The camera command did not give an image; the message says why, in one sentence."""
+
+
+def check_command(command: str) -> None:
+    """Raise ValueError when ``command`` is not a command line (for the settings' check)."""
+    try:
+        argv = shlex.split(command)
+    except ValueError as exc:
+        raise ValueError(f"the camera command cannot be split into words ({exc})") from None
+    if not argv:
+        raise ValueError("the camera command is empty")
+
+
+def image_suffix(data: bytes) -> str | None:
+    """.jpg, .png, .gif or .webp by the image's first bytes; None for anything else."""
+    for magic, suffix in _MAGIC:
+        if data.startswith(magic):
+            return suffix
+    if data[:4] == b"RIFF" and data[8:12] == b"WEBP":
+        return ".webp"
+    return None
+
+
+async def snapshot(command: str, target: Path, timeout: float = SNAPSHOT_TIMEOUT) -> Path:
+    """Run the camera command for ``target`` (a name without its suffix); the image's path."""
+    partial = target.with_name(target.name + ".part")
+    argv = [word.replace("{path}", str(partial)) for word in shlex.split(command)]
+    to_stdout = "{path}" not in command
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        with partial.open("wb") if to_stdout else contextlib.nullcontext() as out:
+            try:
+                process = await asyncio.create_subprocess_exec(
+                    *argv,
+                    stdin=asyncio.subprocess.DEVNULL,
+                    stdout=out if out is not None else asyncio.subprocess.DEVNULL,
+                    stderr=asyncio.subprocess.PIPE,
+                )
+            except OSError as exc:
+                raise SnapshotFailed(f"the camera command {argv[0]} cannot run: {exc}") from None
+            try:
+                _, errors = await asyncio.wait_for(process.communicate(), timeout)
+            except (TimeoutError, asyncio.CancelledError) as exc:
+                with contextlib.suppress(ProcessLookupError):
+                    process.kill()
+                await process.wait()
+                if isinstance(exc, asyncio.CancelledError):
+                    raise
+                raise SnapshotFailed(f"the camera command took over {timeout:g} s") from None
+        if process.returncode != 0:
+            said = errors.decode(errors="replace").strip().splitlines()
+            why = f": {said[-1]}" if said else ""
+            raise SnapshotFailed(f"the camera command failed (exit {process.returncode}){why}")
+        try:
+            with partial.open("rb") as image:
+                head = image.read(16)
+        except FileNotFoundError:
+            raise SnapshotFailed("the camera command wrote no image at {path}") from None
+        suffix = image_suffix(head)
+        if suffix is None:
+            what = "nothing" if not head else "no JPEG, PNG, GIF or WebP image"
+            raise SnapshotFailed(f"the camera command gave {what}")
+        final = target.with_name(target.name + suffix)
+        partial.replace(final)
+        return final
+    except OSError as exc:  # a full disk, a folder that cannot be made
+        raise SnapshotFailed(f"the snapshot cannot be kept in {target.parent}: {exc}") from None
+    finally:
+        partial.unlink(missing_ok=True)
+
+
+class Camera:
+    """A printer's camera: snapshots in the background, one at a time, the newest kept."""
+
+    def __init__(
+        self,
+        command: str,
+        folder: Path,
+        keep: int = 500,
+        on_taken: Callable[[Path], None] = lambda path: None,
+        on_failed: Callable[[str], None] = lambda message: None,
+    ) -> None:
+        self.command = command
+        self.folder = folder
+        self.keep = keep
+        self.on_taken = on_taken
+        self.on_failed = on_failed
+        self._task: asyncio.Task[Path | None] | None = None
+
+    @property
+    def busy(self) -> bool:
+        return self._task is not None and not self._task.done()
+
+    def take(self, name: str, wait_turn: bool = False) -> bool:
+        """Start a snapshot named ``name`` (no suffix) in the background. While one is being
+        taken: False (none taken), unless ``wait_turn``: then it is taken right after."""
+        if self.busy and not wait_turn:
+            return False
+        self._task = asyncio.get_running_loop().create_task(self._take(name, self._task))
+        return True
+
+    async def take_now(self, name: str) -> Path:
+        """A snapshot, awaited (after those being taken, if any)."""
+        await _settled(self._task)
+        path = await snapshot(self.command, self.folder / name)
+        self._taken(path)
+        return path
+
+    async def close(self, timeout: float = SNAPSHOT_TIMEOUT) -> None:
+        """Wait up to ``timeout`` for the snapshots being taken, then give them up."""
+        task = self._task
+        if task is not None and not task.done():
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(_settled(task), timeout)
+            task.cancel()
+            await _settled(task)
+
+    async def _take(self, name: str, previous: asyncio.Task[Path | None] | None) -> Path | None:
+        await _settled(previous)
+        try:
+            path = await snapshot(self.command, self.folder / name)
+        except SnapshotFailed as exc:
+            log.warning("%s", exc)
+            self.on_failed(str(exc))
+            return None
+        self._taken(path)
+        return path
+
+    def _taken(self, path: Path) -> None:
+        self._prune()
+        self.on_taken(path)
+
+    def images(self) -> list[Path]:
+        """The snapshots kept, newest first (their names begin with the time they were taken)."""
+        if not self.folder.is_dir():
+            return []
+        found = [p for p in self.folder.iterdir() if p.suffix in IMAGE_SUFFIXES]
+        return sorted(found, key=lambda p: p.name, reverse=True)
+
+    def _prune(self) -> None:
+        for old in self.images()[self.keep :]:
+            old.unlink(missing_ok=True)
+
+
+async def _settled(task: asyncio.Task[Path | None] | None) -> None:
+    """Wait for ``task`` to end, whichever way."""
+    if task is not None:
+        await asyncio.wait([task])  # neither raises its error nor cancels it
