@@ -41,10 +41,15 @@ class Run:
     rates: list[float]  # lines/s of each printer
     lines: int  # per printer
     cpu_seconds: float  # the server's, while the jobs streamed
+    fake_cpu_seconds: float  # the fakes' together, the same time
 
     @property
     def cpu_per_line(self) -> float:
         return self.cpu_seconds / (self.lines * self.printers)
+
+    @property
+    def fake_cpu_per_line(self) -> float:
+        return self.fake_cpu_seconds / (self.lines * self.printers)
 
 
 def cpu_seconds(pid: int) -> float:
@@ -98,6 +103,7 @@ def run(profile: Profile, count: int, job: Path, lines: int, folder: Path) -> Ru
             client.request("POST", f"/v1/printers/{name}/hold")
         jobs = [client.submit(name, job)["id"] for name in names]
         before = cpu_seconds(server.pid)
+        fakes_before = sum(cpu_seconds(fake.pid) for fake, _ in fakes)
         for name in names:
             client.request("POST", f"/v1/printers/{name}/release")
         records = []
@@ -111,8 +117,9 @@ def run(profile: Profile, count: int, job: Path, lines: int, folder: Path) -> Ru
                 raise SystemExit(f"bench: job {job_id} ended {record}")
             records.append(record)
         cpu = cpu_seconds(server.pid) - before
+        fake_cpu = sum(cpu_seconds(fake.pid) for fake, _ in fakes) - fakes_before
         rates = [lines / (r["ended"] - r["started"]) for r in records]
-        return Run(count, rates, lines, cpu)
+        return Run(count, rates, lines, cpu, fake_cpu)
     finally:
         server.send_signal(signal.SIGTERM)
         server.wait(timeout=60)
@@ -126,8 +133,11 @@ def main() -> int:
     parser.add_argument("--printers", type=int, default=4)
     parser.add_argument("--quick", action="store_true", help="small inputs: checks that it runs")
     args = parser.parse_args()
-    print("| link | printers | printer | lines | lines/s | % of alone | server CPU µs/line |")
-    print("|---|---|---|---|---|---|---|")
+    print(
+        "| link | printers | printer | lines | lines/s | % of alone | server CPU µs/line "
+        "| a fake's CPU µs/line |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
     for profile in (p for p in PROFILES if p.name in (args.profile or ["uart", "usb"])):
         lines = 300 if args.quick else profile.lines
         with tempfile.TemporaryDirectory(prefix="hyrel-bench-server-") as name:
@@ -136,12 +146,12 @@ def main() -> int:
             single = run(profile, 1, job, lines, folder)
             several = run(profile, args.printers, job, lines, folder)
         alone = single.rates[0]
-        cpu = single.cpu_per_line * 1e6
-        print(f"| {profile.name} | 1 | p0 | {lines} | {alone:,.0f} | 100 | {cpu:.1f} |")
+        cpu = f"{single.cpu_per_line * 1e6:.1f} | {single.fake_cpu_per_line * 1e6:.1f}"
+        print(f"| {profile.name} | 1 | p0 | {lines} | {alone:,.0f} | 100 | {cpu} |")
         for i, rate in enumerate(several.rates):
-            cpu_text = f"{several.cpu_per_line * 1e6:.1f}" if i == 0 else ""
+            cpu = f"{several.cpu_per_line * 1e6:.1f} | {several.fake_cpu_per_line * 1e6:.1f}"
             row = f"| {profile.name} | {several.printers} | p{i} | {lines} | {rate:,.0f}"
-            print(f"{row} | {100 * rate / alone:.0f} | {cpu_text} |")
+            print(f"{row} | {100 * rate / alone:.0f} | {cpu if i == 0 else ' | '} |")
     return 0
 
 

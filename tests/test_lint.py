@@ -1,5 +1,8 @@
 """Checks before sending, one finding per problem with its file line."""
 
+import pytest
+
+from repetrel_host.gcode.commands import command_word
 from repetrel_host.gcode.lint import Finding, Linter, Severity, lint
 
 
@@ -83,3 +86,23 @@ def test_streaming_linter_reports_each_problem_as_its_line_is_read() -> None:
     assert (
         linter.unknown_codes()[0].message == "M999 is not in Hyrel's code chart (and 1 more lines)"
     )
+
+
+@pytest.mark.parametrize(
+    ("command", "word"),
+    [
+        ("G1 X10.5 Y20 E0.5", "G1"),
+        ("G1X5", "G1"),
+        ("g01 x5", "G1"),
+        ("G01 X1", "G1"),
+        ("G00", "G0"),
+        ("G 1 X1", "G1"),
+        ("G1\tX1", "G1"),
+        ("G92.1 X0", "G92.1"),
+        ("M104 S200", "M104"),
+        ("T12", "T12"),
+        ("M", "M"),
+    ],
+)
+def test_command_word_normalises_the_first_word(command: str, word: str) -> None:
+    assert command_word(command) == word

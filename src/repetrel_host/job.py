@@ -34,10 +34,13 @@ from repetrel_host.protocol.framing import clean_line
 ACTION_VERBS = ("SAY", "PIC", "VID", "SEND", "BEEP", "SHELL")
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class JobLine:
     """One command to send. ``index`` counts the job's commands from 1 (0 outside the job);
-    ``end_offset`` is the byte offset just past the line, for progress by bytes."""
+    ``end_offset`` is the byte offset just past the line, for progress by bytes.
+
+    Not to be changed once made; not frozen, though: it is made for every line, and a
+    frozen dataclass costs four times as much to make."""
 
     index: int
     source_line: int  # 0 for lines the host adds (header, safe stop)

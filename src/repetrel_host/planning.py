@@ -88,13 +88,21 @@ class JobPlan:
         return chain(self.header, self.job.items(check))
 
     def linter(self, streaming: bool = False) -> Linter:
+        firmware, positions, loaded_tools, code_chart = self.lint_settings
+        return Linter(firmware, positions, loaded_tools, streaming, code_chart)
+
+    @property
+    def lint_settings(
+        self,
+    ) -> tuple[addressing.Firmware | None, int | None, frozenset[int] | None, bool]:
+        """What the check depends on besides the file: two plans with the same settings
+        find the same in the same file."""
         machine = self.machine
-        return Linter(
-            firmware=machine.firmware if machine else None,
-            positions=machine.yokes * addressing.ADDRESSES_PER_YOKE if machine else None,
-            loaded_tools=self.loadout.loaded_tools if self.loadout else None,
-            streaming=streaming,
-            code_chart=machine is None or machine.family == "hyrel",
+        return (
+            machine.firmware if machine else None,
+            machine.yokes * addressing.ADDRESSES_PER_YOKE if machine else None,
+            self.loadout.loaded_tools if self.loadout else None,
+            machine is None or machine.family == "hyrel",
         )
 
     def check(self) -> list[Finding]:

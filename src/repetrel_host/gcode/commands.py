@@ -32,6 +32,17 @@ UNBUFFERED = frozenset(
 
 def command_word(command: str) -> str:
     """The normalised first word: ``g01 x5`` and ``G1X5`` give ``G1``, ``T0`` gives ``T0``."""
+    # Slicer output is nearly all ``G1 X...``: a word already in its normal form is
+    # returned as it is (this runs twice for every streamed line).
+    head = command.split(" ", 1)[0]
+    digits = head[1:]
+    if (
+        digits.isdigit()
+        and digits.isascii()
+        and "A" <= head[0] <= "Z"
+        and (digits[0] != "0" or len(digits) == 1)
+    ):
+        return head
     match = _WORD.match(command)
     if match is None:
         return command.split(" ", 1)[0].upper()

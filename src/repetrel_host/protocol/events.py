@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from enum import Enum
+from typing import NamedTuple
 
 from repetrel_host.protocol import replies
 
@@ -37,9 +38,11 @@ class ControllerReady:
     probe: ProbeKind = ProbeKind.CHECKSUM
 
 
-@dataclass(frozen=True, slots=True)
-class LineAcknowledged:
-    """The controller acknowledged a line sent with ``send`` (once per line)."""
+class LineAcknowledged(NamedTuple):
+    """The controller acknowledged a line sent with ``send`` (once per line).
+
+    A named tuple, immutable as the other events: made for every line, it costs a
+    third of a frozen dataclass."""
 
     number: int
     command: str

@@ -23,6 +23,9 @@ class Transmission:
     retransmitted: bool = False
 
 
+REFILL_FRACTION = 8
+
+
 class Window:
     """What the controller has not answered yet, counted in lines and bytes.
 
@@ -31,6 +34,8 @@ class Window:
     """
 
     __slots__ = (
+        "batch_bytes",
+        "batch_lines",
         "byte_limit",
         "bytes",
         "in_flight",
@@ -44,6 +49,11 @@ class Window:
     def __init__(self, flow: FlowControl) -> None:
         self.line_limit = flow.line_limit  # read for every line: kept at hand
         self.byte_limit = flow.byte_limit
+        # A refill waits for room for an eighth of the window while lines are in flight:
+        # a line written for each ok would cost a write, and a wakeup of the controller's
+        # reader, per line (with a window of a few lines it changes nothing).
+        self.batch_lines = max(1, self.line_limit // REFILL_FRACTION)
+        self.batch_bytes = self.byte_limit // REFILL_FRACTION
         self.in_flight: deque[Transmission] = deque()
         self.bytes = 0
         self.live = 0  # transmissions neither stale nor probes
@@ -104,14 +114,20 @@ class Window:
         self.in_flight.clear()
         self.bytes = self.live = self.stale_bytes = 0
 
-    def has_room(self, size: int, now: float) -> bool:
+    def wants_refill(self, now: float) -> bool:
+        """Nothing live in flight (no ok is coming to wake the host), or room for a batch."""
+        if not self.live:
+            return True
+        return self.has_room(self.batch_bytes, now, self.batch_lines)
+
+    def has_room(self, size: int, now: float, lines_wanted: int = 1) -> bool:
         used = self.bytes
         lines = self.live
         if self.read_through >= 0:
             read_out_bytes, read_out_lines = self._read_out()
             used -= read_out_bytes
             lines -= read_out_lines
-        if lines >= self.line_limit:
+        if lines + lines_wanted > self.line_limit:
             return False
         if now >= self.stale_expire_at:
             used -= self.stale_bytes

@@ -49,7 +49,6 @@ from pydantic import BaseModel
 
 import repetrel_host as rh
 from repetrel_host.config import UserConfig
-from repetrel_host.planning import JobRequest, plan_job
 from repetrel_host.server.events import EventHub
 from repetrel_host.server.mqtt import MqttSettings
 from repetrel_host.server.printers import PrinterConfig, PrinterService, Refused
@@ -306,12 +305,9 @@ def _delete_upload(server: PrintServer, location: str) -> None:
 
 
 def _check(server: PrintServer, printer: str, path: Path) -> tuple[list[str], int]:
-    """The job lint's findings (``error: file:line: ...``) and the number of commands."""
-    session = server.services[printer].printer
-    firmware = session.firmware if session is not None else None
+    """The job lint's findings (``error: file:line: ...``) and the number of lines to send."""
     try:
-        plan = plan_job(path, JobRequest(), server.user, firmware)
-        findings = plan.check()
+        plan, findings = server.services[printer].check(path)
     except rh.HostError as exc:  # named by the file's name, not its place on the server
         return [f"error: {str(exc).replace(str(path), path.name)}"], 0
     commands = sum(1 for _ in plan.job.lines())  # what goes on the wire: host codes do not

@@ -22,7 +22,9 @@ from typing import Any
 import repetrel_host as rh
 from repetrel_host.camera import Camera, SnapshotFailed
 from repetrel_host.config import UserConfig
+from repetrel_host.gcode.lint import Finding, Severity
 from repetrel_host.job import ActionKind, HostAction
+from repetrel_host.planning import JobPlan, JobRequest, plan_job
 from repetrel_host.server.events import Event
 from repetrel_host.server.store import PROGRESS_INTERVAL, JobRecord, JobState, Store
 
@@ -155,6 +157,11 @@ class PrinterService:
         # After a job ends, start the next one by itself (a farm with an automatic bed
         # change); else the queue is held until released (Moonraker's automatic_transition).
         self.automatic_transition = False
+        loadout = Path(config.loadout) if config.loadout is not None else None
+        self.request = JobRequest(loadout, config.machine)  # as the session's
+        # Files checked for this printer (their size and the check's settings): a job is
+        # checked once, at its upload, not again (on the event loop) when it starts.
+        self._checked: dict[Path, tuple[object, ...]] = {}
         self.camera: Camera | None = None
         if config.camera is not None:
             self.camera = Camera(
@@ -270,7 +277,11 @@ class PrinterService:
         self._starting, self._cancel_starting = record.id, False
         try:
             layers = await asyncio.to_thread(layer_offsets, path)
-            job = await printer.print(path, history=history, on_action=self._perform)
+            plan = self.plan(path)
+            checked = self._checked.get(path) == (plan.job.size, plan.lint_settings)
+            job = await printer.print(
+                plan if checked else path, history=history, on_action=self._perform
+            )
         except rh.HostError as exc:  # refused (a check), or the printer went meanwhile
             if printer.state is not rh.State.READY and not isinstance(exc, rh.JobError):
                 self.store.set_state(record.id, JobState.QUEUED)  # not the job's fault
@@ -340,6 +351,22 @@ class PrinterService:
             )
             self.store.set_state(record.id, JobState.PAUSED if paused else JobState.PRINTING)
             self.job_changed(record.id)
+
+    # --- checks ------------------------------------------------------------------------
+
+    def plan(self, path: Path) -> JobPlan:
+        """What this printer would stream for ``path``: its machine, loadout and firmware."""
+        printer = self.printer
+        return plan_job(path, self.request, self.user, printer.firmware if printer else None)
+
+    def check(self, path: Path) -> tuple[JobPlan, list[Finding]]:
+        """The job lint for this printer (any thread); a file with no errors is remembered as
+        checked, so that its job starts without a second pass."""
+        plan = self.plan(path)
+        findings = plan.check()
+        if not any(f.severity is Severity.ERROR for f in findings):
+            self._checked[path] = (plan.job.size, plan.lint_settings)
+        return plan, findings
 
     # --- host actions ------------------------------------------------------------------
 

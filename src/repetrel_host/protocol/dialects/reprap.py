@@ -68,6 +68,7 @@ DEFAULT_LINE_NUMBER_LIMIT = 65535
 # Lines kept behind the last acknowledged one, for resend requests after oks that were
 # counted wrongly (duplicated). Far more than any window plus the drift between probes.
 DEFAULT_HISTORY_MARGIN = 1024
+PRUNE_STEP = 64  # lines forgotten at a time, past the margin
 # Silence that means the controller is gone, while a buffered command waits for its ok.
 DEFAULT_REPLY_TIMEOUT = 30.0
 # A command that waits for the machine (G28, M109...) may stay silent this long
@@ -262,9 +263,14 @@ class RepRapDialect:
 
     def data_to_send(self, now: float) -> bytes:
         """Bytes to write now: every line the window has room for, or a probe."""
+        # While lines are in flight and the window has room for less than a batch, the
+        # next ok calls again; what is already queued (a retransmission) still goes.
+        refill = self._phase is not Phase.RUNNING or self._window.wants_refill(now)
         while (
-            self._phase is Phase.RUNNING or self._phase is Phase.GREETING
-        ) and self._probing.current is None:
+            refill
+            and (self._phase is Phase.RUNNING or self._phase is Phase.GREETING)
+            and self._probing.current is None
+        ):
             line = self._next_line_to_transmit()
             if line is None:
                 if self._wants_probe():
@@ -709,8 +715,8 @@ class RepRapDialect:
             line.acknowledged = True
             self._events.append(LineAcknowledged(number, line.command, line.tag, data))
         history = self._history
-        if self._acked_through - history.margin > history.floor:
-            history.prune(self._acked_through)
+        if self._acked_through - history.margin > history.floor + PRUNE_STEP:
+            history.prune(self._acked_through)  # in steps: not a call for every line
 
     def _confirm_through(self, number: int) -> None:
         """The controller said its last accepted line is ``number``: acknowledge up to it."""
