@@ -135,11 +135,15 @@ def test_resend_guard_counts_echoes_rounds_and_unheld_requests() -> None:
 class Recorder(Listener):
     def __init__(self) -> None:
         self.actions: list[HostAction] = []
+        self.markers: list[HostAction] = []
         self.paused_count = 0
         self.runs: list[Run] = []
 
     def action_due(self, action: HostAction) -> None:
         self.actions.append(action)
+
+    def marker_reached(self, action: HostAction) -> None:
+        self.markers.append(action)
 
     def paused(self) -> None:
         self.paused_count += 1
@@ -187,6 +191,30 @@ def test_a_host_action_waits_until_every_line_before_it_is_confirmed() -> None:
     pump.poke(0.0)
     assert run.outcome is Outcome.COMPLETED and recorder.runs == [run]
     assert run.summary is not None and run.summary.lines == 3
+
+
+def test_a_marker_is_due_as_the_line_before_it_is_acknowledged_and_holds_nothing_up() -> None:
+    first = HostAction(ActionKind.SNAPSHOT, "", (), 1, "job.gcode")
+    layer = HostAction(ActionKind.LAYER, "", (), 3, "job.gcode")
+    items: list[JobItem] = [first, job_line(2), layer, job_line(4, "G1 X4")]
+    recorder = Recorder()
+    pump = Pump(RepRapDialect(FlowControl(), probe=ProbeKind.CHECKSUM), recorder)
+    run = Run(items, [])
+    pump.begin(run)
+    pump.start(0.0)
+    pump.receive(b"ok\nError:checksum mismatch, Last Line: 0\nResend: 1\nok\n", 0.0)
+    assert recorder.markers == [first]  # nothing of the job before it
+    # Both lines go at once: no probe, no wait for the marker between them.
+    assert pump.poke(0.0) == frame(1, "G1 X1") + frame(2, "G1 X4")
+    assert recorder.markers == [first]
+    pump.receive(b"ok\n", 0.0)
+    pump.poke(0.0)
+    assert recorder.markers == [first, layer] and recorder.actions == []
+    pump.receive(b"ok\n", 0.0)
+    pump.poke(0.0)
+    confirm(pump, 3)
+    pump.poke(0.0)
+    assert run.outcome is Outcome.COMPLETED and run.lines == 4
 
 
 def test_an_action_that_declines_sends_the_safe_stop_and_cancels() -> None:

@@ -454,10 +454,13 @@ def test_m790_and_m791_take_snapshots_that_the_api_serves(
             what="the snapshots",
         )
         # M791 at the end: its snapshot waits its turn, so the finished part is always taken.
+        last_line = 3 * 103 + 1  # each layer: M790, G1 Z, G28 and 100 moves
         wait_for(
             lambda: any(
-                "layer3" in s["file"] for s in client.get("/v1/printers/bench/snapshots").json()
-            )
+                f"job{job['id']}-line{last_line}" in s["file"]
+                for s in client.get("/v1/printers/bench/snapshots").json()
+            ),
+            what="M791's snapshot",
         )
         assert any(f"job{job['id']}-layer1" in s["file"] for s in shots)
         image = client.get(shots[0]["url"])

@@ -12,8 +12,8 @@ Some codes are the host's, not the controller's (as in Repetrel):
   logging the controller's reports to a file. ``M718``: the host stops logging; not
   forwarded.
 - ``M790`` (new layer) and ``M791`` (snap image): the host's camera takes a snapshot (at
-  every ``M790`` when the configuration says so). Not forwarded; they do not stop the
-  machine: the snapshot is taken once every line before them is acknowledged.
+  every ``M790`` when the configuration says so). Not forwarded. They hold nothing up:
+  they are markers, due as the line before them is acknowledged, while the job streams on.
 - ``M110``: not forwarded; the host owns line numbers. A bare ``N14`` line sends nothing.
 """
 
@@ -77,6 +77,14 @@ class HostAction:
     def position(self) -> str:
         return f"{self.source}:{self.source_line}"
 
+    @property
+    def is_marker(self) -> bool:
+        """Done beside the stream (a snapshot), not once it stopped and everything before it
+        was confirmed: it waits for nothing, and nothing waits for it."""
+        return self.kind in _MARKERS
+
+
+_MARKERS = frozenset({ActionKind.LAYER, ActionKind.SNAPSHOT})
 
 JobItem = JobLine | HostAction
 

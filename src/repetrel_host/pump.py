@@ -14,6 +14,7 @@ drops what is queued and sends the safe-stop sequence ahead of anything else.
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from enum import Enum
@@ -90,6 +91,10 @@ class Listener:
     def action_due(self, action: HostAction) -> None:
         """Every line before ``action`` is confirmed: do it, then call :meth:`Pump.action_done`."""
 
+    def marker_reached(self, action: HostAction) -> None:
+        """The line before a marker (:attr:`HostAction.is_marker`) was acknowledged; the
+        stream goes on meanwhile."""
+
     def paused(self) -> None:
         """A pause asked for is reached: every line sent so far is confirmed."""
 
@@ -114,6 +119,10 @@ class Run:
         self.error: HostError | None = None  # reported once the safe stop is acknowledged
         self.stopping = False  # no more job lines: cancelled, refused or failed
         self.barrier: HostAction | None = None  # waiting for every earlier line's ok
+        # Markers, each due once the job line with its index (the last one read before
+        # it) is acknowledged; ``fed`` is the index of the last job line read.
+        self.markers: deque[tuple[int, HostAction]] = deque()
+        self.fed = 0
         self.action_running = False
         self.pause_requested = False
         self.paused = False
@@ -299,10 +308,16 @@ class Pump:
                 run.error = JobError(f"the job could not be read on ({exc!r})")
                 run.exhausted = True
                 break
-            if isinstance(item, HostAction):
-                run.barrier = item
-            else:
+            if isinstance(item, JobLine):
+                if item.index:  # a job line (not the header's)
+                    run.fed = item.index
                 dialect.send(item.command, item)
+            elif not item.is_marker:
+                run.barrier = item
+            elif run.fed > run.lines:
+                run.markers.append((run.fed, item))
+            else:
+                self.listener.marker_reached(item)  # every job line before it is acknowledged
         if run.barrier is not None or run.exhausted or run.stopping or run.pause_requested:
             dialect.request_sync()  # nothing more for now: have the controller confirm it all
 
@@ -343,6 +358,9 @@ class Pump:
             run.lines = line.index
             run.offset = line.end_offset
             run.last = line
+            markers = run.markers
+            while markers and markers[0][0] <= line.index:
+                self.listener.marker_reached(markers.popleft()[1])
         elif line.source == SAFE_STOP_SOURCE:
             run.safe_stop_acknowledged += 1
         elif line.index == 0:

@@ -910,6 +910,12 @@ class _PumpListener(Listener):
         if job is not None:
             printer._spawn(_perform(printer, job, action))
 
+    def marker_reached(self, action: HostAction) -> None:
+        printer = self.printer
+        job = printer._job
+        if job is not None:
+            printer._spawn(_mark(job, action))
+
     def paused(self) -> None:
         printer = self.printer
         job = printer._job
@@ -975,6 +981,19 @@ async def _perform(printer: Printer, job: PrintJob, action: HostAction) -> None:
     if pump is not None and printer._job is job:
         pump.action_done(result)
         printer._poke()
+
+
+async def _mark(job: PrintJob, action: HostAction) -> None:
+    """Carry out a marker (a snapshot) beside the stream: its failure stops nothing."""
+    job._publish(Action(action.kind, action.message, action.actions, action.position))
+    if job.on_action is None:
+        return
+    try:
+        await job.on_action(action)
+    except asyncio.CancelledError:
+        return
+    except Exception as exc:
+        job._publish(Notice(f"{action.position}: the host action failed ({exc!r})"))
 
 
 def _clean_command(line: str) -> str:

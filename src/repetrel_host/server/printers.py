@@ -90,6 +90,7 @@ class Running:
     record: JobRecord
     job: rh.PrintJob
     layers: list[int] = field(default_factory=list)  # byte offsets where layers begin
+    new_layers: int = 0  # the M790s reached
 
     @property
     def layer(self) -> int:
@@ -373,6 +374,8 @@ class PrinterService:
     async def _perform(self, action: HostAction) -> bool:
         """A job's host codes on the server: snapshots; M792's actions are told, not done
         (the server speaks, shows and runs nothing: SHELL stays refused)."""
+        if action.kind is ActionKind.LAYER and self.running is not None:
+            self.running.new_layers += 1
         if action.kind is ActionKind.SNAPSHOT or (
             action.kind is ActionKind.LAYER and self.config.layer_snapshots
         ):
@@ -389,8 +392,12 @@ class PrinterService:
             if action.kind is ActionKind.SNAPSHOT:
                 self._tell(f"{action.position}: M791, but printer {self.name} has no camera set")
             return
-        job = f"-job{running.record.id}-layer{running.layer}" if running is not None else ""
-        if not self.camera.take(snapshot_name(job), wait_turn=action.kind is ActionKind.SNAPSHOT):
+        tail = ""
+        if running is not None:
+            layer = action.kind is ActionKind.LAYER
+            where = f"layer{running.new_layers}" if layer else f"line{action.source_line}"
+            tail = f"-job{running.record.id}-{where}"
+        if not self.camera.take(snapshot_name(tail), wait_turn=action.kind is ActionKind.SNAPSHOT):
             log.info(
                 "printer %s: %s: the last snapshot is still being taken", self.name, action.position
             )
