@@ -2,6 +2,7 @@
 
     python bench/soak.py                      # 1,000,000 lines, both flow modes, in memory
     python bench/soak.py --lines 100000 --engine pty
+    python bench/soak.py --rx-buffer 4096 --max-lines 96   # a USB link's window
 
 The job is the cone slicer file repeated to ``--lines``. The noise is issue 4's: 2 %
 of lines corrupted on the way in, 1 % of replies garbled, 1 % of oks dropped, 1 %
@@ -52,11 +53,13 @@ def cpu_seconds() -> float:
 
 
 def memory_run(
-    commands: list[str], mode: FlowMode, latency: float, faults: str
+    commands: list[str], mode: FlowMode, latency: float, faults: str, window: tuple[int, int]
 ) -> dict[str, object]:
-    settings = ControllerSettings(latency=latency, faults=Faults.parse(faults))
+    rx_buffer, max_lines = window
+    settings = ControllerSettings(latency=latency, faults=Faults.parse(faults), rx_buffer=rx_buffer)
     started = cpu_seconds()
-    result = run_loopback(commands, FlowControl(mode), settings, record=False)
+    flow = FlowControl(mode, rx_buffer=rx_buffer, max_lines=max_lines)
+    result = run_loopback(commands, flow, settings, record=False)
     stats, counts = result.host.stats, result.controller.counts
     return {
         "seconds": result.seconds,
@@ -74,18 +77,24 @@ def memory_run(
     }
 
 
-def pty_run(commands: list[str], mode: FlowMode, latency: float, faults: str) -> dict[str, object]:
+def pty_run(
+    commands: list[str], mode: FlowMode, latency: float, faults: str, window: tuple[int, int]
+) -> dict[str, object]:
+    rx_buffer, max_lines = (str(value) for value in window)
     with tempfile.TemporaryDirectory() as folder:
         job = Path(folder) / "soak.gcode"
         job.write_text("\n".join(commands) + "\n")
         log = Path(folder) / "executed.log"
-        fake = BuiltInFake(log, ["--latency", str(latency), "--faults", faults])
+        fake = BuiltInFake(
+            log, ["--latency", str(latency), "--faults", faults, "--rx-buffer", rx_buffer]
+        )
         fake.start()
         started, wall = cpu_seconds(), time.monotonic()
         try:
             result = subprocess.run(
                 [sys.executable, "-m", "repetrel_host.cli", str(job), "--port", fake.port,
-                 "--flow", mode.value, "--no-history"],
+                 "--flow", mode.value, "--no-history", "--rx-buffer", rx_buffer,
+                 "--max-lines", max_lines],
                 capture_output=True, text=True, check=False,
             )  # fmt: skip
         finally:
@@ -114,12 +123,18 @@ def main() -> int:
     parser.add_argument("--latency", type=float, default=0.001, help="one-way link delay, s")
     parser.add_argument("--engine", choices=["memory", "pty"], default="memory")
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--rx-buffer", type=int, default=128, help="the controller's, bytes")
+    parser.add_argument("--max-lines", type=int, default=8, help="the host's window, lines")
     args = parser.parse_args()
+    window = (args.rx_buffer, args.max_lines)
     commands = job_commands(args.lines)
     run = memory_run if args.engine == "memory" else pty_run
     modes = list(FlowMode) if args.flow == "both" else [FlowMode(args.flow)]
     noisy_faults = f"{NOISE} seed={args.seed}"
-    print(f"soak: {args.lines:,} lines, {args.engine}, {args.latency * 1000:g} ms each way")
+    print(
+        f"soak: {args.lines:,} lines, {args.engine}, {args.latency * 1000:g} ms each way, "
+        f"window {args.rx_buffer} bytes / {args.max_lines} lines"
+    )
     print(f"noise: {noisy_faults}")
     header = (
         f"{'mode':<11}{'lines':>10}{'resends':>9}{'stalls':>8}{'lost oks':>9}"
@@ -128,8 +143,8 @@ def main() -> int:
     print(header)
     verdicts = []
     for mode in modes:
-        clean = run(commands, mode, args.latency, "")
-        noisy = run(commands, mode, args.latency, noisy_faults)
+        clean = run(commands, mode, args.latency, "", window)
+        noisy = run(commands, mode, args.latency, noisy_faults, window)
         lost = int(noisy["lost_oks"])  # type: ignore[call-overload]
         extra = float(noisy["seconds"]) - float(clean["seconds"])  # type: ignore[arg-type]
         stall = f"{extra / lost:.3f}" if lost > 0 else "-"
