@@ -848,6 +848,10 @@ def test_the_status_page_shows_a_job_live_and_its_buttons_work(
         image = browser.find_element(By.CSS_SELECTOR, "[data-printer=bench] img.snapshot")
         wait.until(lambda _: image.get_attribute("naturalWidth") == "4")
         assert "-job1-" in text(".camera figcaption")
+        # Opened afresh, the page shows the queue and the last job as they stand.
+        browser.refresh()
+        wait.until(lambda _: "layers.gcode: completed" in text(".queue"))
+        assert text(".job") == "last: layers.gcode (completed)"
         assert browser.find_element(By.ID, "notice").text == ""
     finally:
         browser.quit()
