@@ -34,7 +34,7 @@ def main(args: list[str]) -> int:
         sys.stderr.write("Trying source module v4l2...\n/dev/video0: No such device\n")
         return 3
     data = b"not an image\n" if "--text" in args else png()
-    paths = [a for a in args if a.endswith(".part")]
+    paths = [a for a in args if a.endswith(".jpg")]
     if paths:
         with open(paths[0], "wb") as out:
             out.write(data)

@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import asyncio
 import sys
+import time
 from pathlib import Path
 
 import pytest
 
-from repetrel_host.camera import Camera, SnapshotFailed, check_command, snapshot
+from repetrel_host.camera import MAX_WAITING, Camera, SnapshotFailed, check_command, snapshot
 from tests.fake_camera import png
 
 CAMERA = f"{sys.executable} {Path(__file__).with_name('fake_camera.py')}"
@@ -16,12 +17,17 @@ CAMERA = f"{sys.executable} {Path(__file__).with_name('fake_camera.py')}"
 pytestmark = pytest.mark.timeout(30)
 
 
+def files(folder: Path) -> list[str]:
+    """What a folder of snapshots holds, the images being taken included."""
+    return sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*") if p.is_file())
+
+
 def test_an_image_written_to_the_path_or_to_standard_output_is_kept(tmp_path: Path) -> None:
     to_path = asyncio.run(snapshot(f"{CAMERA} {{path}}", tmp_path / "a"))
     to_stdout = asyncio.run(snapshot(CAMERA, tmp_path / "b"))
     assert to_path == tmp_path / "a.png" and to_stdout == tmp_path / "b.png"
     assert to_path.read_bytes() == png() == to_stdout.read_bytes()
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.png", "b.png"]  # no .part left
+    assert files(tmp_path) == ["a.png", "b.png"]  # nothing half written left
 
 
 @pytest.mark.parametrize(
@@ -37,7 +43,7 @@ def test_a_camera_that_fails_says_why_in_one_sentence_and_leaves_nothing(
 ) -> None:
     with pytest.raises(SnapshotFailed, match=said.replace("(", r"\(").replace(")", r"\)")):
         asyncio.run(snapshot(f"{CAMERA} {arguments} {{path}}", tmp_path / "x", timeout))
-    assert list(tmp_path.iterdir()) == []
+    assert files(tmp_path) == []
 
 
 def test_a_missing_program_or_a_bad_command_line_is_said(tmp_path: Path) -> None:
@@ -74,3 +80,21 @@ def test_the_camera_takes_one_at_a_time_in_the_background_and_keeps_the_newest(
     assert taken == ["0-first.png", "1-first.png", "2-first.png", "3-now.png"] and not failed
     kept = [p.name for p in Camera(CAMERA, tmp_path / "shots").images()]
     assert kept == ["3-now.png", "2-first.png"]  # newest first, two kept
+
+
+def test_snapshots_asked_for_wait_their_turn_and_close_gives_up_all_the_rest(
+    tmp_path: Path,
+) -> None:
+    async def scenario() -> list[str]:
+        camera = Camera(f"{CAMERA} --sleep 0.4 {{path}}", tmp_path)
+        assert camera.take("0")
+        assert all(camera.take(f"{n}", wait_turn=True) for n in range(1, 1 + MAX_WAITING))
+        assert not camera.take("late", wait_turn=True)  # enough are waiting
+        await camera.close(0.6)
+        assert not camera.busy
+        return files(tmp_path)
+
+    after_close = asyncio.run(scenario())
+    time.sleep(1.0)  # a camera process left running would write its image meanwhile
+    assert files(tmp_path) == after_close and len(after_close) <= 2
+    assert all(name.endswith(".png") for name in after_close)  # nothing half written

@@ -217,6 +217,48 @@ def test_a_marker_is_due_as_the_line_before_it_is_acknowledged_and_holds_nothing
     assert run.outcome is Outcome.COMPLETED and run.lines == 4
 
 
+def test_a_marker_after_the_header_waits_for_the_header_to_be_acknowledged() -> None:
+    header = JobLine(0, 0, "M104 S200", 0, "header: head T0")
+    marker = HostAction(ActionKind.SNAPSHOT, "", (), 1, "job.gcode")
+    recorder = Recorder()
+    pump = Pump(RepRapDialect(FlowControl(), probe=ProbeKind.CHECKSUM), recorder)
+    run = Run([header, marker, job_line(2)], [])
+    pump.begin(run)
+    pump.start(0.0)
+    pump.receive(b"ok\nError:checksum mismatch, Last Line: 0\nResend: 1\nok\n", 0.0)
+    assert pump.poke(0.0) == frame(1, "M104 S200") + frame(2, "G1 X1")
+    assert recorder.markers == []  # the header's line is not acknowledged yet
+    pump.receive(b"ok\n", 0.0)
+    pump.poke(0.0)
+    assert recorder.markers == [marker]
+
+
+def test_a_pause_after_the_file_was_read_to_its_end_still_sends_every_line() -> None:
+    # The last lines were read ahead, not yet sent, when the pause came: they must go
+    # after the resume, not be dropped with the job reported complete.
+    recorder = Recorder()
+    pump = Pump(RepRapDialect(FlowControl(), probe=ProbeKind.CHECKSUM), recorder)
+    run = Run([job_line(i, f"G1 X{i}") for i in range(1, 11)], ["M104 S0"])
+    pump.begin(run)
+    pump.start(0.0)
+    pump.receive(b"ok\nError:checksum mismatch, Last Line: 0\nResend: 1\nok\n", 0.0)
+    sent = pump.poke(0.0).count(b"\n")
+    assert run.exhausted and sent < 10
+    pump.pause()
+    pump.receive(b"ok\n" * sent, 0.0)
+    pump.poke(0.0)
+    confirm(pump, sent + 1)
+    assert pump.poke(0.0) == b"" and recorder.paused_count == 1 and run.outcome is None
+    pump.resume()
+    rest = pump.poke(0.0)
+    assert rest == b"".join(frame(i, f"G1 X{i}") for i in range(sent + 1, 11))
+    pump.receive(b"ok\n" * (10 - sent), 0.0)
+    pump.poke(0.0)
+    confirm(pump, 11)
+    pump.poke(0.0)
+    assert run.outcome is Outcome.COMPLETED and run.lines == 10
+
+
 def test_an_action_that_declines_sends_the_safe_stop_and_cancels() -> None:
     action = HostAction(ActionKind.PAUSE, "", (), 2, "job.gcode")
     pump, run, _ = greeted_pump([job_line(1), action, job_line(3)], ["M104 S0"])

@@ -390,6 +390,35 @@ def test_an_m0_pauses_until_resume(rig: Rig, tmp_path: Path) -> None:
     run(scenario)
 
 
+def test_snapshot_markers_are_told_before_done_and_hold_nothing_up(
+    rig: Rig, tmp_path: Path
+) -> None:
+    job_path = job_file(tmp_path, ["G28", "M790", "G1 X1", "M791", "G1 X2", "M791"])
+    performed: list[tuple[str, str]] = []
+
+    async def record(action: rh.job.HostAction) -> bool:
+        performed.append((action.kind.value, action.position))
+        if action.source_line == 4:
+            raise RuntimeError("the camera fell over")  # told, and the job goes on
+        return True
+
+    async def scenario() -> None:
+        async with rig.connect() as printer:
+            job = await printer.print(job_path, history=False, on_action=record)
+            told = [
+                (event.kind.value, event.position)
+                async for event in job.events()
+                if isinstance(event, rh.Action)
+            ]
+            assert (await job.wait()).outcome is rh.Outcome.COMPLETED
+            assert told == [("layer", "job.gcode:2"), ("snapshot", "job.gcode:4"),
+                            ("snapshot", "job.gcode:6")]  # fmt: skip
+            assert await settle(rig, printer, 3) == ["G28", "G1 X1", "G1 X2"]
+        assert performed == told
+
+    run(scenario)
+
+
 def test_an_action_that_declines_stops_the_job_safely(rig: Rig, tmp_path: Path) -> None:
     job_path = job_file(tmp_path, ["G28", "M792 ; BEEP", "G1 X1"])
 

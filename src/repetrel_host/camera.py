@@ -15,13 +15,16 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import os
 import shlex
+import signal
 from collections.abc import Callable
 from pathlib import Path
 
 log = logging.getLogger("repetrel_host.camera")
 
 SNAPSHOT_TIMEOUT = 20.0
+MAX_WAITING = 4  # snapshots asked for (M791) waiting behind the one being taken
 IMAGE_SUFFIXES = (".jpg", ".png", ".gif", ".webp")
 _MAGIC = (
     (b"\xff\xd8\xff", ".jpg"),
@@ -56,11 +59,13 @@ def image_suffix(data: bytes) -> str | None:
 
 async def snapshot(command: str, target: Path, timeout: float = SNAPSHOT_TIMEOUT) -> Path:
     """Run the camera command for ``target`` (a name without its suffix); the image's path."""
-    partial = target.with_name(target.name + ".part")
+    # Written aside under an image's name (ffmpeg picks its format by the name), then
+    # moved into place: a folder of snapshots never holds half an image.
+    partial = target.parent / ".taking" / f"{target.name}.jpg"
     argv = [word.replace("{path}", str(partial)) for word in shlex.split(command)]
     to_stdout = "{path}" not in command
     try:
-        target.parent.mkdir(parents=True, exist_ok=True)
+        partial.parent.mkdir(parents=True, exist_ok=True)
         with partial.open("wb") if to_stdout else contextlib.nullcontext() as out:
             try:
                 process = await asyncio.create_subprocess_exec(
@@ -68,6 +73,7 @@ async def snapshot(command: str, target: Path, timeout: float = SNAPSHOT_TIMEOUT
                     stdin=asyncio.subprocess.DEVNULL,
                     stdout=out if out is not None else asyncio.subprocess.DEVNULL,
                     stderr=asyncio.subprocess.PIPE,
+                    start_new_session=True,  # a wrapper script's children are stopped too
                 )
             except OSError as exc:
                 raise SnapshotFailed(f"the camera command {argv[0]} cannot run: {exc}") from None
@@ -75,7 +81,7 @@ async def snapshot(command: str, target: Path, timeout: float = SNAPSHOT_TIMEOUT
                 _, errors = await asyncio.wait_for(process.communicate(), timeout)
             except (TimeoutError, asyncio.CancelledError) as exc:
                 with contextlib.suppress(ProcessLookupError):
-                    process.kill()
+                    os.killpg(process.pid, signal.SIGKILL)
                 await process.wait()
                 if isinstance(exc, asyncio.CancelledError):
                     raise
@@ -118,41 +124,52 @@ class Camera:
         self.keep = keep
         self.on_taken = on_taken
         self.on_failed = on_failed
-        self._task: asyncio.Task[Path | None] | None = None
+        self._tasks: list[asyncio.Task[Path | None]] = []  # taking, then those waiting
 
     @property
     def busy(self) -> bool:
-        return self._task is not None and not self._task.done()
+        self._tasks = [task for task in self._tasks if not task.done()]
+        return bool(self._tasks)
 
     def take(self, name: str, wait_turn: bool = False) -> bool:
         """Start a snapshot named ``name`` (no suffix) in the background. While one is being
-        taken: False (none taken), unless ``wait_turn``: then it is taken right after."""
-        if self.busy and not wait_turn:
+        taken: False (none taken), unless ``wait_turn``: then it is taken after those before
+        it (up to :data:`MAX_WAITING` of them; False beyond)."""
+        if self.busy and (not wait_turn or len(self._tasks) > MAX_WAITING):
             return False
-        self._task = asyncio.get_running_loop().create_task(self._take(name, self._task))
+        self._queue(name, report=True)
         return True
 
     async def take_now(self, name: str) -> Path:
-        """A snapshot, awaited (after those being taken, if any)."""
-        await _settled(self._task)
-        path = await snapshot(self.command, self.folder / name)
-        self._taken(path)
+        """A snapshot, awaited (after those being taken); :class:`SnapshotFailed` says why not."""
+        path = await self._queue(name, report=False)
+        assert path is not None  # failures raise when not reported
         return path
 
     async def close(self, timeout: float = SNAPSHOT_TIMEOUT) -> None:
-        """Wait up to ``timeout`` for the snapshots being taken, then give them up."""
-        task = self._task
-        if task is not None and not task.done():
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(_settled(task), timeout)
-            task.cancel()
-            await _settled(task)
+        """Wait up to ``timeout`` for the snapshots being taken and waiting, then give up."""
+        if self.busy:
+            await asyncio.wait(self._tasks, timeout=timeout)
+            for task in self._tasks:
+                task.cancel()
+            await asyncio.wait(self._tasks)
 
-    async def _take(self, name: str, previous: asyncio.Task[Path | None] | None) -> Path | None:
-        await _settled(previous)
+    def _queue(self, name: str, report: bool) -> asyncio.Task[Path | None]:
+        before = self._tasks[-1] if self._tasks else None
+        task = asyncio.get_running_loop().create_task(self._take(name, before, report))
+        self._tasks.append(task)
+        return task
+
+    async def _take(
+        self, name: str, before: asyncio.Task[Path | None] | None, report: bool
+    ) -> Path | None:
+        if before is not None:
+            await asyncio.wait([before])  # neither raises its error nor cancels it
         try:
             path = await snapshot(self.command, self.folder / name)
         except SnapshotFailed as exc:
+            if not report:
+                raise
             log.warning("%s", exc)
             self.on_failed(str(exc))
             return None
@@ -173,9 +190,3 @@ class Camera:
     def _prune(self) -> None:
         for old in self.images()[self.keep :]:
             old.unlink(missing_ok=True)
-
-
-async def _settled(task: asyncio.Task[Path | None] | None) -> None:
-    """Wait for ``task`` to end, whichever way."""
-    if task is not None:
-        await asyncio.wait([task])  # neither raises its error nor cancels it

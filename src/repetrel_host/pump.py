@@ -119,10 +119,11 @@ class Run:
         self.error: HostError | None = None  # reported once the safe stop is acknowledged
         self.stopping = False  # no more job lines: cancelled, refused or failed
         self.barrier: HostAction | None = None  # waiting for every earlier line's ok
-        # Markers, each due once the job line with its index (the last one read before
-        # it) is acknowledged; ``fed`` is the index of the last job line read.
-        self.markers: deque[tuple[int, HostAction]] = deque()
+        # Markers, each due once the lines read before it are acknowledged: ``fed`` is
+        # the index of the last job line read, ``header_fed`` the header lines read.
+        self.markers: deque[tuple[int, int, HostAction]] = deque()
         self.fed = 0
+        self.header_fed = 0
         self.action_running = False
         self.pause_requested = False
         self.paused = False
@@ -227,12 +228,16 @@ class Pump:
         for command, tag in self.dialect.cancel_pending():
             if isinstance(tag, JobLine):
                 held.append(tag)
+                if tag.index == 0:
+                    run.header_fed -= 1  # read again on resume
             else:
                 self.dialect.send(command, tag)  # not the job's: it goes
         if run.barrier is not None and not run.action_running:
             held.append(run.barrier)  # after the lines before it, as in the file
             run.barrier = None
         run.items = chain(held, run.items)
+        if held:
+            run.exhausted = False  # the lines held back are still to be read
 
     def resume(self) -> None:
         run = self.run
@@ -309,15 +314,16 @@ class Pump:
                 run.exhausted = True
                 break
             if isinstance(item, JobLine):
-                if item.index:  # a job line (not the header's)
+                if item.index:
                     run.fed = item.index
+                else:
+                    run.header_fed += 1
                 dialect.send(item.command, item)
             elif not item.is_marker:
                 run.barrier = item
-            elif run.fed > run.lines:
-                run.markers.append((run.fed, item))
             else:
-                self.listener.marker_reached(item)  # every job line before it is acknowledged
+                run.markers.append((run.fed, run.header_fed, item))
+                self._markers_due(run)
         if run.barrier is not None or run.exhausted or run.stopping or run.pause_requested:
             dialect.request_sync()  # nothing more for now: have the controller confirm it all
 
@@ -358,14 +364,19 @@ class Pump:
             run.lines = line.index
             run.offset = line.end_offset
             run.last = line
-            markers = run.markers
-            while markers and markers[0][0] <= line.index:
-                self.listener.marker_reached(markers.popleft()[1])
         elif line.source == SAFE_STOP_SOURCE:
             run.safe_stop_acknowledged += 1
         elif line.index == 0:
             run.header_acknowledged += 1
         self.listener.acknowledged(line)
+        if run.markers:
+            self._markers_due(run)
+
+    def _markers_due(self, run: Run) -> None:
+        """Tell the markers whose lines before them are all acknowledged."""
+        markers = run.markers
+        while markers and markers[0][0] <= run.lines and markers[0][1] <= run.header_acknowledged:
+            self.listener.marker_reached(markers.popleft()[2])
 
     def _settle(self, now: float) -> bool:
         """Act once the controller confirmed everything; True when more was queued."""

@@ -914,7 +914,10 @@ class _PumpListener(Listener):
         printer = self.printer
         job = printer._job
         if job is not None:
-            printer._spawn(_mark(job, action))
+            # Told at once: a marker reached in the job's last exchange comes before Done.
+            job._publish(Action(action.kind, action.message, action.actions, action.position))
+            if job.on_action is not None:
+                printer._spawn(_mark(job, job.on_action, action))
 
     def paused(self) -> None:
         printer = self.printer
@@ -983,13 +986,10 @@ async def _perform(printer: Printer, job: PrintJob, action: HostAction) -> None:
         printer._poke()
 
 
-async def _mark(job: PrintJob, action: HostAction) -> None:
+async def _mark(job: PrintJob, on_action: ActionHandler, action: HostAction) -> None:
     """Carry out a marker (a snapshot) beside the stream: its failure stops nothing."""
-    job._publish(Action(action.kind, action.message, action.actions, action.position))
-    if job.on_action is None:
-        return
     try:
-        await job.on_action(action)
+        await on_action(action)
     except asyncio.CancelledError:
         return
     except Exception as exc:

@@ -61,7 +61,7 @@ OCTOPRINT_VERSION = "1.10.0"
 G_CODE_SUFFIXES = (".gcode", ".gco", ".g")
 KEEPALIVE = 15.0  # seconds of quiet before the event stream says it is alive
 _SAFE_NAME = re.compile(r"[^A-Za-z0-9._ ()+-]")
-_SNAPSHOT = re.compile(r"^[A-Za-z0-9_-]+\.(jpg|png|gif|webp)$")
+_SNAPSHOT = re.compile(r"[A-Za-z0-9_-]+\.(jpg|png|gif|webp)")
 
 
 class PrintServer:
@@ -299,6 +299,7 @@ def _delete_upload(server: PrintServer, location: str) -> None:
         raise HTTPException(409, f"'{location}' is used by job {jobs}: cancel it first")
     path.unlink()
     for service in server.services.values():
+        service.forget(path)
         if service.selected == path:
             service.selected = None
     log.info("file %s deleted", location)
@@ -534,7 +535,7 @@ def _native_router() -> APIRouter:
         service = _server(request).service(name)
         camera = service.camera
         path = camera.folder / file if camera is not None else None
-        if path is None or not _SNAPSHOT.match(file) or not path.is_file():
+        if path is None or not _SNAPSHOT.fullmatch(file) or not path.is_file():
             raise HTTPException(404, f"no snapshot '{file}' of printer {service.name}")
         return FileResponse(path, headers={"Cache-Control": "max-age=86400, immutable"})
 
@@ -728,7 +729,7 @@ def _octoprint_router() -> APIRouter:
             if selected is None and service.store.next_queued(service.name) is None:
                 raise HTTPException(409, f"printer {service.name}: no file selected, none queued")
             if selected is not None:
-                _, commands = _check(server, service.name, selected)
+                _, commands = await asyncio.to_thread(_check, server, service.name, selected)
                 _queue(server, service.name, selected, commands)
             service.release()  # a held queue goes on too
         elif body.command == "cancel":

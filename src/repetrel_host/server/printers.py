@@ -102,6 +102,16 @@ class Running:
 _LAYER_MARKS = (b";LAYER_CHANGE", b";LAYER:", b"M790")
 
 
+def _fingerprint(plan: JobPlan) -> tuple[object, ...]:
+    """The job's file as it is on disk (an edit changes its time, a new file its inode),
+    and what its check depends on."""
+    try:
+        stat = plan.job.path.stat()
+    except OSError:
+        return ()  # gone: never the fingerprint of a check
+    return stat.st_size, stat.st_mtime_ns, stat.st_ino, plan.lint_settings
+
+
 def snapshot_name(tail: str) -> str:
     """A snapshot's name without its suffix: the time first, so that names sort by it."""
     return f"{datetime.now():%Y%m%d-%H%M%S-%f}{tail}"
@@ -160,8 +170,8 @@ class PrinterService:
         self.automatic_transition = False
         loadout = Path(config.loadout) if config.loadout is not None else None
         self.request = JobRequest(loadout, config.machine)  # as the session's
-        # Files checked for this printer (their size and the check's settings): a job is
-        # checked once, at its upload, not again (on the event loop) when it starts.
+        # Files checked for this printer (as they were on disk, and the check's settings):
+        # a job is checked once, at its upload, not again (on the event loop) as it starts.
         self._checked: dict[Path, tuple[object, ...]] = {}
         self.camera: Camera | None = None
         if config.camera is not None:
@@ -277,9 +287,8 @@ class PrinterService:
         history = self.data_dir / "history" / f"{record.id}-{Path(record.name).stem}.gcode"
         self._starting, self._cancel_starting = record.id, False
         try:
-            layers = await asyncio.to_thread(layer_offsets, path)
             plan = self.plan(path)
-            checked = self._checked.get(path) == (plan.job.size, plan.lint_settings)
+            checked = self._checked.get(path) == _fingerprint(plan)
             job = await printer.print(
                 plan if checked else path, history=history, on_action=self._perform
             )
@@ -293,12 +302,14 @@ class PrinterService:
             return
         finally:
             self._starting = None
-        self.running = Running(record, job, layers)
+        running = self.running = Running(record, job)
         if self._cancel_starting:
             job.stop()
         self._paused = False
         log.info("printer %s: printing job %d (%s)", self.name, record.id, record.name)
         self.job_changed(record.id)
+        with contextlib.suppress(rh.HostError):  # read while the job streams: a big file
+            running.layers = await asyncio.to_thread(layer_offsets, path)
         state, error = JobState.COMPLETED, None
         ending = asyncio.ensure_future(job.wait())
         try:
@@ -364,10 +375,15 @@ class PrinterService:
         """The job lint for this printer (any thread); a file with no errors is remembered as
         checked, so that its job starts without a second pass."""
         plan = self.plan(path)
+        before = _fingerprint(plan)
         findings = plan.check()
         if not any(f.severity is Severity.ERROR for f in findings):
-            self._checked[path] = (plan.job.size, plan.lint_settings)
+            self._checked[path] = before
         return plan, findings
+
+    def forget(self, path: Path) -> None:
+        """``path`` is gone: its check with it."""
+        self._checked.pop(path, None)
 
     # --- host actions ------------------------------------------------------------------
 

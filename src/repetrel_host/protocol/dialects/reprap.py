@@ -263,8 +263,10 @@ class RepRapDialect:
 
     def data_to_send(self, now: float) -> bytes:
         """Bytes to write now: every line the window has room for, or a probe."""
-        # While lines are in flight and the window has room for less than a batch, the
-        # next ok calls again; what is already queued (a retransmission) still goes.
+        # While live lines are in flight and the window has room for less than a batch,
+        # wait: their oks (or the timeout's probe) call again. Bytes already queued (a
+        # probe, an urgent line) still go; after a resend request nothing live is in
+        # flight, so the lines asked for go at once.
         refill = self._phase is not Phase.RUNNING or self._window.wants_refill(now)
         while (
             refill
