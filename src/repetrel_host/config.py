@@ -14,16 +14,16 @@ import tomllib
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal, TypeVar, get_args
+from typing import Annotated, Any, Literal, TypeVar, get_args
 
 from pydantic import (
+    AfterValidator,
     BaseModel,
     ConfigDict,
     Field,
     StrictFloat,
     StrictInt,
     ValidationError,
-    field_validator,
 )
 
 from repetrel_host.camera import check_command
@@ -36,6 +36,15 @@ Number = StrictInt | StrictFloat
 
 
 M = TypeVar("M", bound=BaseModel)
+
+
+def _camera_command(value: str) -> str:
+    check_command(value)  # a ValueError: pydantic's error, naming the setting
+    return value
+
+
+# A camera command line (M791/M790 snapshots), checked as it is read.
+CameraCommand = Annotated[str, AfterValidator(_camera_command)]
 
 
 class _Model(BaseModel):
@@ -59,16 +68,6 @@ class Machine(_Model):
     firmware: addressing.Firmware
     pause_sync: str = "M400"
     safe_stop: list[str] | None = None  # default: the standard footer's safe part
-    camera: str | None = None  # M791/M790 snapshots: a command line, {path} the image to write
-    layer_snapshots: bool = False  # a snapshot at every M790 (new layer) too
-
-    @field_validator("camera")
-    @classmethod
-    def _camera_command(cls, value: str | None) -> str | None:
-        if value is not None:
-            check_command(value)
-        return value
-
     link: LinkDefaults = LinkDefaults()
 
 
@@ -137,15 +136,8 @@ class HostSettings(_Model):
     allow_shell: bool = False  # M792 SHELL runs a program: off unless asked for
     speech_program: str | None = None  # M792 SAY; default: the first of espeak-ng, espeak, say
     safe_stop: list[str] | None = None  # default: the standard footer's safe part
-    camera: str | None = None  # M791/M790 snapshots: a command line, {path} the image to write
+    camera: CameraCommand | None = None  # M791/M790 snapshots ({path}: the image to write)
     layer_snapshots: bool = False  # a snapshot at every M790 (new layer) too
-
-    @field_validator("camera")
-    @classmethod
-    def _camera_command(cls, value: str | None) -> str | None:
-        if value is not None:
-            check_command(value)
-        return value
 
 
 class UserConfig(_Model):

@@ -20,11 +20,10 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import typer
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from repetrel_host import __version__
-from repetrel_host.camera import check_command
-from repetrel_host.config import read_toml
+from repetrel_host.config import CameraCommand, read_toml
 from repetrel_host.errors import ConfigError
 from repetrel_host.server.mqtt import MqttSettings
 from repetrel_host.server.printers import PrinterConfig
@@ -32,6 +31,7 @@ from repetrel_host.server.printers import PrinterConfig
 DEFAULT_BIND = "127.0.0.1:8765"
 API_KEY_FILE = "api-key"
 _NAME = re.compile(r"^[A-Za-z0-9_-]+$")
+_BRANCHES = ("str", "PrinterSettings")  # how pydantic names the sides of a printer's union
 
 app = typer.Typer(add_completion=False, pretty_exceptions_enable=False, rich_markup_mode=None)
 
@@ -48,16 +48,9 @@ class PrinterSettings(BaseModel):
     rx_buffer: int | None = Field(default=None, ge=2)
     max_lines: int | None = Field(default=None, ge=1)
     baud: int | None = Field(default=None, gt=0)
-    camera: str | None = None  # M791/M790 snapshots: a command line, {path} the image
+    camera: CameraCommand | None = None  # M791/M790 snapshots ({path}: the image to write)
     layer_snapshots: bool = True  # with a camera, a snapshot at every M790 (new layer)
     snapshots_kept: int = Field(default=500, ge=1)
-
-    @field_validator("camera")
-    @classmethod
-    def _camera_command(cls, value: str | None) -> str | None:
-        if value is not None:
-            check_command(value)
-        return value
 
 
 class ServerSettings(BaseModel):
@@ -130,8 +123,11 @@ def _settings(
     except ValidationError as exc:
         where = f"{config}: " if config is not None else ""
         problems = "; ".join(
-            f"{'.'.join(str(p) for p in error['loc']) or 'settings'}: {error['msg']}"
+            f"{'.'.join(str(p) for p in error['loc'] if p not in _BRANCHES) or 'settings'}: "
+            f"{error['msg']}"
             for error in exc.errors()
+            # A printer is a port or a table: a table's errors are its own, not "not a port".
+            if not (error["type"] == "string_type" and isinstance(error["input"], dict))
         )
         _fail(f"{where}{problems}")
         raise  # not reached
