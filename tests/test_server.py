@@ -484,9 +484,10 @@ def test_m790_and_m791_take_snapshots_that_the_api_serves(
     assert "M790" not in ran and "M791" not in ran and len(ran) >= 306
 
 
-def test_a_failing_camera_is_told_and_the_job_goes_on(
+def test_a_failing_camera_and_m792_actions_are_told_and_the_job_goes_on(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server], tmp_path: Path
 ) -> None:
+    marker = tmp_path / "shell-ran"
     fake = bench()
     config = camera_config(tmp_path, {"bench": fake.port}, bench=f"{CAMERA} --fail {{path}}")
     server = servers({}, "--config", str(config))
@@ -498,20 +499,25 @@ def test_a_failing_camera_is_told_and_the_job_goes_on(
             "printer bench: the camera command failed (exit 3): /dev/video0: No such device"
         )
         with client.stream("GET", "/v1/events", params={"printer": "bench"}) as stream:
-            job = client.post(
-                "/v1/printers/bench/jobs", files={"file": ("a.gcode", "G28\nM791\nG1 X1\n")}
-            ).json()
-            told = ""
+            text = f"G28\nM791\nM792 ; SHELL touch {marker} ; SAY hi\nG1 X1\n"
+            job = client.post("/v1/printers/bench/jobs", files={"file": ("a.gcode", text)}).json()
+            told: list[str] = []
             for line in stream.iter_lines():
                 event = json.loads(line[6:]) if line.startswith("data: ") else {}
-                if event.get("type") == "message" and "snapshot" in event["text"]:
-                    told = event["text"]
+                if event.get("type") == "message" and event["text"].startswith(("no ", "a.")):
+                    told.append(event["text"])
+                if len(told) == 3:
                     break
-        assert (
-            told == "no snapshot: the camera command failed (exit 3): /dev/video0: No such device"
-        )
+        assert sorted(told) == [
+            "a.gcode:3: SAY hi (not done on the server)",
+            f"a.gcode:3: SHELL touch {marker} (the server runs no programs)",
+            "no snapshot: the camera command failed (exit 3): /dev/video0: No such device",
+        ]
         wait_for(lambda: job_state(client, job["id"])["state"] == "completed")
         assert client.get("/v1/printers/bench/snapshots").json() == []
+    assert not marker.exists()
+    fake.request("status")  # the log is complete
+    assert executed(fake.log_path)[-2:] == ["G28", "G1 X1"]
 
 
 def test_a_bad_camera_setting_gets_one_sentence(tmp_path: Path) -> None:

@@ -398,8 +398,8 @@ class PrinterService:
             self._snap(action)
         elif action.kind in (ActionKind.ACTIONS, ActionKind.PAUSE):
             for verb, argument in action.actions:
-                done = "refused: the server runs no programs" if verb == "SHELL" else "not done"
-                self._tell(f"{action.position}: M792 {verb} {argument} ({done} on the server)")
+                why = "the server runs no programs" if verb == "SHELL" else "not done on the server"
+                self._tell(f"{action.position}: {verb} {argument} ({why})")
         return True
 
     def _snap(self, action: HostAction) -> None:
