@@ -1,0 +1,170 @@
+"""Hyrel's own controller link, both sides of the wire: pure, no I/O (PROTOCOL-NOTES.md §4).
+
+What the notes give (from a public port of the Hyrel "Hydra" firmware; Repetrel itself is
+closed): every line the controller receives earns one ACK byte (0x06) while its receive
+buffer has headroom; an ACK is credit, not "done". A line may start with ``N<n>`` (the
+controller's line number for its reports) and end with ``*<sum>``, an *additive* checksum of
+the bytes before ``*``; a mismatch is only reported. Single control bytes act at once, and
+0x09 as a line's first byte marks it urgent. Messages are tagged lines (``>IN:``, ``>ER:``,
+``>MC:``, ``>Hy:``...; :func:`repetrel_host.protocol.replies.classify` reads them).
+
+This module frames and splits; the host's dialect and the fake controller build on it.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from enum import IntEnum
+
+
+class Control(IntEnum):
+    """Single bytes that act at once, between lines (and, for ACK, from the controller)."""
+
+    END_WAIT = 0x01  # end any wait (M0, a heat-up); echoed back
+    PAUSE_AT_MOVE_END = 0x02
+    PAUSE_AT_LAYER_END = 0x03
+    STATUS = 0x05  # a status report
+    ACK = 0x06  # controller -> host: one line received
+    PING = 0x07  # the reply starts ">Hy:"
+    ABORT = 0x08
+    URGENT = 0x09  # as a line's first byte: the line goes ahead of the queue
+    WATCHDOG = 0x0E  # the host is alive
+
+
+_CONTROL_BYTES = frozenset(int(byte) for byte in Control) - {Control.URGENT}
+_NUMBER = re.compile(rb"N(\d+)\s*")
+_NOTICE_FIELD = re.compile(r"([A-Za-z])\s*(-?\d+(?:\.\d*)?)")
+
+
+def additive_checksum(data: bytes) -> int:
+    """The sum of the bytes before ``*``. (Its width in the firmware is not in the notes:
+    the whole sum is sent, which a line of 96 ASCII bytes keeps under 12,200.)"""
+    return sum(data)
+
+
+def frame(command: str, number: int | None = None, checksum: bool = False) -> bytes:
+    """One line for the wire: ``[N<number> ]<command>[*<sum>]\\n``."""
+    body = (f"N{number} {command}" if number is not None else command).encode("ascii")
+    if checksum:
+        body += b"*" + str(additive_checksum(body)).encode("ascii")
+    return body + b"\n"
+
+
+def urgent(line: bytes) -> bytes:
+    """A framed line marked urgent: the controller runs it ahead of what it holds."""
+    return bytes([Control.URGENT]) + line
+
+
+class HostReceiver:
+    """Splits what the controller sends into ACK credits and text lines.
+
+    An ACK byte may come between lines or inside one (the controller sends it as soon as
+    it has taken a line, whatever it is writing): it is counted and taken out of the text.
+    """
+
+    def __init__(self) -> None:
+        self._partial = bytearray()
+        self.acks = 0  # ACK bytes not yet taken with :meth:`take_acks`
+        self.end_wait_echoes = 0
+
+    def feed(self, data: bytes) -> list[str]:
+        """The complete lines in ``data`` (and what came before it), without control bytes."""
+        if Control.ACK in data or Control.END_WAIT in data:
+            self.acks += data.count(Control.ACK)
+            self.end_wait_echoes += data.count(Control.END_WAIT)
+            data = data.replace(b"\x06", b"").replace(b"\x01", b"")
+        buffer = self._partial
+        buffer += data
+        *complete, rest = buffer.split(b"\n")
+        self._partial = bytearray(rest)
+        lines = (line.decode("ascii", errors="replace").strip() for line in complete)
+        return [line for line in lines if line]
+
+    def take_acks(self) -> int:
+        acks, self.acks = self.acks, 0
+        return acks
+
+
+@dataclass(frozen=True, slots=True)
+class Notice:
+    """``>MC:M109: T11: S200:``: the controller processed an M-code (so every line before
+    it ran). ``fields`` holds its letters and values: ``{"T": "11", "S": "200"}``."""
+
+    code: str
+    fields: dict[str, str]
+
+
+def parse_notice(text: str) -> Notice | None:
+    """The text after ``>MC:`` as a :class:`Notice`; None when it names no M-code."""
+    parts = [part.strip() for part in text.split(":")]
+    code = parts[0].upper() if parts else ""
+    if not re.fullmatch(r"M\d+", code):
+        return None
+    fields: dict[str, str] = {}
+    for part in parts[1:]:
+        match = _NOTICE_FIELD.fullmatch(part)
+        if match is not None:
+            fields[match.group(1).upper()] = match.group(2)
+    return Notice(f"M{int(code[1:])}", fields)
+
+
+@dataclass(frozen=True, slots=True)
+class ReceivedLine:
+    """A line the controller took: its command, the ``N`` it set, and whether it was urgent
+    or failed its checksum (which the controller only reports)."""
+
+    command: str
+    number: int | None
+    urgent: bool
+    checksum_ok: bool = True
+
+
+@dataclass(frozen=True, slots=True)
+class ReceivedControl:
+    """A control byte, acted on at once."""
+
+    control: Control
+
+
+class ControllerReceiver:
+    """The controller's side: bytes from the host, as control bytes and lines, in order."""
+
+    def __init__(self) -> None:
+        self._partial = bytearray()
+
+    def feed(self, data: bytes) -> list[ReceivedLine | ReceivedControl]:
+        received: list[ReceivedLine | ReceivedControl] = []
+        for byte in data:
+            if byte in _CONTROL_BYTES:
+                received.append(ReceivedControl(Control(byte)))
+            elif byte == 0x0A:  # \n
+                line = read_line(bytes(self._partial))
+                self._partial.clear()
+                if line is not None:
+                    received.append(line)
+            else:
+                self._partial.append(byte)
+        return received
+
+
+def read_line(raw: bytes) -> ReceivedLine | None:
+    """One received line (without its ``\\n``); None for an empty line or a comment."""
+    urgent_line = raw.startswith(b"\x09")
+    line = raw[1:] if urgent_line else raw
+    line = line.split(b";", 1)[0].strip()
+    checksum_ok = True
+    star = line.rfind(b"*")
+    if star >= 0:
+        body, given = line[:star], line[star + 1 :].strip()
+        checksum_ok = given.isdigit() and int(given) == additive_checksum(body)
+        line = body.strip()
+    number = None
+    match = _NUMBER.match(line)
+    if match is not None:
+        number = int(match.group(1))
+        line = line[match.end() :]
+    if not line and number is None:
+        return None
+    command = line.decode("ascii", errors="replace").strip()
+    return ReceivedLine(command, number, urgent_line, checksum_ok)
