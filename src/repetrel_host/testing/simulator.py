@@ -283,7 +283,7 @@ class ControllerSimulator:
             times.append(self._next_report)
         if self._inbound and self._rx_free() > 0:
             times.append(self._inbound[0][0])
-        if self._queue:
+        if self._queue and not self._holding():
             head = self._queue[0]
             if self._busy_until > self._last_step:
                 times.append(self._busy_until)
@@ -294,6 +294,10 @@ class ControllerSimulator:
             if self.faults.busy_interval and self._blocked():
                 times.append(self._next_busy)
         return min(times) if times else None
+
+    def _holding(self) -> bool:
+        """The queue waits whatever it holds (a Hyrel pause byte); never on Marlin."""
+        return False
 
     def _blocked(self) -> bool:
         """The oldest command is waiting (for the planner or for itself to finish)."""
@@ -341,6 +345,10 @@ class ControllerSimulator:
         if len(data) > free:
             link.bytes_dropped += len(data) - free
             data = data[:free]
+        self._arrived(data, now)
+
+    def _arrived(self, data: bytes, now: float) -> None:
+        """Bytes that reached the receive buffer."""
         # Marlin's emergency parser acts on these as the bytes arrive.
         if data.lstrip().startswith(b"M112"):
             self._kill(now)
@@ -349,8 +357,8 @@ class ControllerSimulator:
             self._break_heat_wait(now)
             return
         self._rx += data
-        if len(self._rx) > link.peak_rx_buffer:
-            link.peak_rx_buffer = len(self._rx)
+        if len(self._rx) > self.link.peak_rx_buffer:
+            self.link.peak_rx_buffer = len(self._rx)
 
     def _fill_slots(self, now: float) -> None:
         # While a command slot is free the firmware reads the receive buffer into
@@ -366,22 +374,26 @@ class ControllerSimulator:
             del self._rx[: end + 1]
             raw = bytes(self._line).rstrip(b"\r")
             self._line.clear()
-            drop = self._chance(self.faults.drop_with_error)
-            outcome = self.protocol.handle_line(raw, drop)
-            if isinstance(outcome, Accepted):
-                command = outcome.command
-                word = command_word(command)
-                self._count_command(word, now)
-                self._queue.append(_Command(command, word, outcome.number))
-            elif isinstance(outcome, Rejected):
-                self._reply(outcome.reply.removesuffix(b"ok\n"), now)
-                if outcome.reply.endswith(b"ok\n") and not self.faults.resend_without_ok:
-                    self._ok(b"ok\n", now)
-                if outcome.reason == "dropped":
-                    self.counts.dropped_with_error += 1
-                if self.faults.flush_on_error:
-                    self.counts.flushed_bytes += len(self._rx)
-                    self._rx.clear()
+            self._take_line(raw, now)
+
+    def _take_line(self, raw: bytes, now: float) -> None:
+        """One line read out of the receive buffer (without its newline)."""
+        drop = self._chance(self.faults.drop_with_error)
+        outcome = self.protocol.handle_line(raw, drop)
+        if isinstance(outcome, Accepted):
+            command = outcome.command
+            word = command_word(command)
+            self._count_command(word, now)
+            self._queue.append(_Command(command, word, outcome.number))
+        elif isinstance(outcome, Rejected):
+            self._reply(outcome.reply.removesuffix(b"ok\n"), now)
+            if outcome.reply.endswith(b"ok\n") and not self.faults.resend_without_ok:
+                self._ok(b"ok\n", now)
+            if outcome.reason == "dropped":
+                self.counts.dropped_with_error += 1
+            if self.faults.flush_on_error:
+                self.counts.flushed_bytes += len(self._rx)
+                self._rx.clear()
 
     def _count_command(self, word: str, now: float) -> None:
         link = self.link

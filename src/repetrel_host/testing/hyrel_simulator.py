@@ -1,0 +1,196 @@
+"""The simulated controller speaking Hyrel's own link (PROTOCOL-NOTES.md §4).
+
+The machine is :class:`ControllerSimulator`'s (receive buffer, command slots, planner,
+heaters, faults); the link is Hyrel's:
+
+- an ACK byte (0x06) for every line received, sent while the receive buffer has
+  ``ack_headroom`` bytes free, else owed until reading lines out of it frees them;
+- no ``ok`` and no resend requests: a line that fails its additive checksum is reported
+  (``>ER:``) and not run;
+- control bytes act as they arrive: ping (answered ``>Hy: ...``), abort (everything held
+  is dropped), pause at the end of the move or layer (held until end-wait), end-wait
+  (ends a pause or a heat-up; echoed), status (``>ST: ...``), the watchdog byte;
+  0x09 as a line's first byte runs it ahead of the queue;
+- ``>MC:M<n>: ...:`` as M-codes are processed, ``M115`` answered with a ``>Hy:`` identity;
+- the watchdog: after ``watchdog`` seconds without a byte from the host, every extruder
+  stops (heater targets 0) and ``>ER:`` says so.
+
+Choices of this fake where the notes are silent (a real controller may differ): the
+temperature report's form (``>ST: T:... B:...``), the messages' wording, a layer pause
+held like a move pause.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from repetrel_host.gcode.commands import command_word
+from repetrel_host.protocol.hyrel import Control, read_line
+from repetrel_host.testing.simulator import (
+    _HEATERS,
+    ControllerSettings,
+    ControllerSimulator,
+    _Command,
+)
+
+ACK_HEADROOM = 2048  # bytes free in the receive buffer for a line's ACK to go
+RX_BUFFER = 8192
+WATCHDOG = 30.0  # seconds of a silent host before the extruders stop
+M115_REPLY = (
+    b"FIRMWARE_NAME:>Hy: repetrel-host-fake_1.0 PROTOCOL_VERSION:1.0 "
+    b"MACHINE_TYPE:HYREL_HYDRA HYREL_PROTOCOL:1\n"
+)
+PING_REPLY = b">Hy: repetrel-host fake controller (Hyrel link)\n"
+# M-codes whose processing the controller reports with a >MC: notice.
+NOTICED = frozenset(
+    {"M0", "M1", "M6", "M30", "M104", "M106", "M107", "M109", "M140", "M190", "M772"}
+)
+_CONTROL_BYTES = frozenset(int(byte) for byte in Control) - {Control.URGENT, Control.ACK}
+
+
+class HyrelControllerSimulator(ControllerSimulator):
+    """A :class:`ControllerSimulator` on Hyrel's link; ``ack_headroom`` and ``watchdog``
+    as the firmware has them unless a test wants them smaller."""
+
+    def __init__(
+        self,
+        settings: ControllerSettings | None = None,
+        *,
+        now: float = 0.0,
+        on_execute: Callable[[str], None] | None = None,
+        ack_headroom: int = ACK_HEADROOM,
+        watchdog: float = WATCHDOG,
+    ) -> None:
+        self.ack_headroom = ack_headroom
+        self.watchdog = watchdog
+        self.owed_acks = 0
+        self.acks_sent = 0
+        self.watchdog_trips = 0
+        self._held = False  # a pause byte: nothing runs until end-wait
+        self._heard_at: float | None = None  # the host's last byte (armed by the first)
+        settings = settings or ControllerSettings(rx_buffer=RX_BUFFER, banner=False)
+        super().__init__(settings, now=now, on_execute=on_execute)
+
+    # --- the link ------------------------------------------------------------------
+
+    def _arrived(self, data: bytes, now: float) -> None:
+        self._heard_at = now
+        if not _CONTROL_BYTES.isdisjoint(data):
+            for byte in data:
+                if byte in _CONTROL_BYTES:
+                    self._act(Control(byte), now)
+            data = bytes(byte for byte in data if byte not in _CONTROL_BYTES)
+        self.owed_acks += data.count(b"\n")
+        if data.startswith(b"\x09") and data.endswith(b"\n"):
+            # An urgent line (lines arrive one by one): ahead of the buffer and the queue.
+            self._take_line(data[:-1], now)
+            self._pay_acks(now)
+            return
+        self._rx += data
+        if len(self._rx) > self.link.peak_rx_buffer:
+            self.link.peak_rx_buffer = len(self._rx)
+        self._pay_acks(now)
+
+    def _fill_slots(self, now: float) -> None:
+        super()._fill_slots(now)
+        self._pay_acks(now)  # reading lines out frees room
+
+    def _pay_acks(self, now: float) -> None:
+        free = self.settings.rx_buffer - 1 - len(self._rx)
+        if self.owed_acks and free >= self.ack_headroom:
+            self._reply(bytes([Control.ACK]) * self.owed_acks, now)
+            self.acks_sent += self.owed_acks
+            self.owed_acks = 0
+
+    def _take_line(self, raw: bytes, now: float) -> None:
+        line = read_line(raw)
+        if line is None or not line.command:
+            return  # a comment, or a bare N<n> (it only sets the number reports use)
+        if not line.checksum_ok:
+            where = f" (line {line.number})" if line.number is not None else ""
+            self._reply(f">ER: checksum mismatch{where}: not run\n".encode(), now)
+            return
+        word = command_word(line.command)
+        self._count_command(word, now)
+        command = _Command(line.command, word, line.number)
+        if line.urgent:
+            self._queue.appendleft(command)
+        else:
+            self._queue.append(command)
+
+    def _act(self, control: Control, now: float) -> None:
+        if control is Control.PING:
+            self._reply(PING_REPLY, now)
+        elif control is Control.ABORT:
+            self._queue.clear()
+            self._planner.clear()
+            self._rx.clear()
+            self._line.clear()
+            self._planner_end = self._busy_until = now
+            self._held = False
+            self._reply(b">IN: aborted: every queued command dropped\n", now)
+        elif control in (Control.PAUSE_AT_MOVE_END, Control.PAUSE_AT_LAYER_END):
+            self._held = True
+            self._reply(b">IN: paused\n", now)
+        elif control is Control.END_WAIT:
+            self._reply(bytes([Control.END_WAIT]), now)
+            if self._held:
+                self._held = False
+                self._reply(b">IN: resumed\n", now)
+            else:
+                self._break_heat_wait(now)
+        elif control is Control.STATUS:
+            self._reply(f">ST: {self._temperatures(now)} Q:{len(self._queue)}\n".encode(), now)
+
+    # --- the firmware --------------------------------------------------------------
+
+    def _holding(self) -> bool:
+        return self._held
+
+    def _process_head(self, now: float) -> bool:
+        if self._held:
+            return False
+        return super()._process_head(now)
+
+    def _ok(self, line: bytes, now: float) -> None:
+        """No oks on this link."""
+
+    def _answer(self, command: _Command, now: float) -> None:
+        word = command.word
+        heater = _HEATERS.get(word)
+        if heater is not None and not heater[1]:
+            self._set_target(heater[0], command.text, now)
+        if word == "M105":
+            self._reply(f">ST: {self._temperatures(now)}\n".encode(), now)
+        elif word == "M115":
+            self._reply(M115_REPLY, now)
+        elif word in NOTICED:
+            fields = "".join(f" {part}:" for part in command.text.split()[1:] if part[:1] in "TSPE")
+            self._reply(f">MC:{word}:{fields}\n".encode(), now)
+
+    # --- the watchdog --------------------------------------------------------------
+
+    def _next_internal_time(self) -> float | None:
+        time = super()._next_internal_time()
+        due = self._watchdog_due()
+        if due is None:
+            return time
+        return due if time is None else min(time, due)
+
+    def _watchdog_due(self) -> float | None:
+        heard = self._heard_at
+        return None if heard is None or self.hung else heard + self.watchdog
+
+    def _step(self, now: float) -> None:
+        super()._step(now)
+        due = self._watchdog_due()
+        if due is not None and now >= due:
+            self._heard_at = None  # tripped: armed again by the host's next byte
+            self.watchdog_trips += 1
+            for heater in self.heaters.values():
+                heater[1] = 0.0
+            self._reply(
+                f">ER: host watchdog: no byte for {self.watchdog:g} s; "
+                "every extruder stopped\n".encode(),
+                now,
+            )

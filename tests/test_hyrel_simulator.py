@@ -1,0 +1,103 @@
+"""The fake controller on Hyrel's link, driven byte by byte on simulated time."""
+
+from __future__ import annotations
+
+from repetrel_host.protocol.hyrel import Control, HostReceiver, frame, urgent
+from repetrel_host.testing.hyrel_simulator import PING_REPLY, HyrelControllerSimulator
+from repetrel_host.testing.simulator import ControllerSettings
+
+
+class Wire:
+    """The host's end: what it wrote, and what came back split as the host splits it."""
+
+    def __init__(self, controller: HyrelControllerSimulator) -> None:
+        self.controller = controller
+        self.host = HostReceiver()
+        self.lines: list[str] = []
+        self.now = 0.0
+
+    def send(self, data: bytes) -> None:
+        self.controller.receive(data, self.now)
+
+    def run(self, until: float) -> None:
+        self.now = until
+        self.controller.advance(until)
+        self.lines += self.host.feed(self.controller.take_output(until))
+
+
+def test_every_line_earns_an_ack_and_m_codes_are_noticed_as_they_run() -> None:
+    controller = HyrelControllerSimulator()
+    wire = Wire(controller)
+    wire.send(frame("G28") + frame("M104 T11 S200", 15) + frame("G1 X5", 16, checksum=True))
+    wire.run(0.1)
+    assert wire.host.take_acks() == 3
+    assert controller.executed == ["G28", "M104 T11 S200", "G1 X5"]
+    assert wire.lines == [">MC:M104: T11: S200:"]
+    assert controller.temperatures(0.1)["T"][1] == 200.0
+
+
+def test_acks_wait_for_headroom_in_the_receive_buffer() -> None:
+    settings = ControllerSettings(rx_buffer=200, slots=1, command_time=1.0, banner=False)
+    controller = HyrelControllerSimulator(settings, ack_headroom=150)
+    wire = Wire(controller)
+    wire.send(b"".join(frame(f"M117 line {i}") for i in range(8)))  # 13 bytes each
+    wire.run(0.0)
+    # One line in the slot, the rest in the buffer: once it has less than 150 bytes free,
+    # the lines that come are owed their ACK.
+    early = wire.host.take_acks()
+    assert 0 < early < 8 and controller.owed_acks == 8 - early
+    wire.run(30.0)  # every command done: the buffer emptied, every line acknowledged
+    assert wire.host.take_acks() == 8 - early and controller.owed_acks == 0
+    assert len(controller.executed) == 8
+
+
+def test_a_bad_checksum_is_reported_and_not_run() -> None:
+    controller = HyrelControllerSimulator()
+    wire = Wire(controller)
+    wire.send(b"N7 G1 X5*1\n" + frame("G1 X6"))
+    wire.run(0.1)
+    assert wire.lines == [">ER: checksum mismatch (line 7): not run"]
+    assert controller.executed == ["G1 X6"] and wire.host.take_acks() == 2
+
+
+def test_control_bytes_ping_pause_end_wait_abort_and_urgent_lines() -> None:
+    settings = ControllerSettings(rx_buffer=8192, move_time=0.5, banner=False)
+    controller = HyrelControllerSimulator(settings)
+    wire = Wire(controller)
+    wire.send(bytes([Control.PING]))
+    wire.run(0.01)
+    assert wire.lines == [PING_REPLY.decode().strip()]
+    wire.send(bytes([Control.PAUSE_AT_MOVE_END]) + frame("M107") + frame("G1 X1"))
+    wire.run(5.0)
+    assert controller.executed == []  # held
+    wire.send(bytes([Control.END_WAIT]))
+    wire.run(10.0)
+    assert controller.executed == ["M107", "G1 X1"] and wire.host.end_wait_echoes == 1
+    moves = b"".join(frame(f"G1 X{i}") for i in range(2, 40))
+    wire.send(moves + urgent(frame("M104 S0")))
+    wire.run(10.2)
+    # It ran while moves sent before it still wait (the planner took the first 16).
+    assert "M104 S0" in controller.executed and "G1 X39" not in controller.executed
+    wire.send(bytes([Control.ABORT]))
+    wire.run(10.3)
+    done = len(controller.executed)
+    wire.run(60.0)
+    assert len(controller.executed) == done < 40  # nothing after the abort
+    assert ">IN: aborted: every queued command dropped" in wire.lines
+
+
+def test_the_watchdog_stops_the_extruders_when_the_host_falls_silent() -> None:
+    controller = HyrelControllerSimulator(watchdog=30.0)
+    wire = Wire(controller)
+    wire.send(frame("M104 S200"))
+    wire.run(29.0)
+    assert controller.watchdog_trips == 0
+    wire.send(bytes([Control.WATCHDOG]))  # a keepalive
+    wire.run(58.0)
+    assert controller.watchdog_trips == 0 and controller.temperatures(58.0)["T"][1] == 200.0
+    wire.run(60.0)
+    assert controller.watchdog_trips == 1
+    assert controller.temperatures(60.0)["T"][1] == 0.0
+    assert wire.lines[-1] == ">ER: host watchdog: no byte for 30 s; every extruder stopped"
+    wire.run(200.0)
+    assert controller.watchdog_trips == 1  # once, until the host is heard again
