@@ -11,6 +11,7 @@ from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 
 from repetrel_host.job import JobLine
+from repetrel_host.protocol.dialect import Dialect
 from repetrel_host.protocol.dialects.reprap import RepRapDialect
 from repetrel_host.protocol.events import Failed, ProbeKind
 from repetrel_host.protocol.flow import FlowControl, FlowMode
@@ -28,7 +29,7 @@ class LoopbackResult:
     acknowledged: list[int]  # indexes (from 0) of acknowledged commands, in order
     failure: Failed | None
     seconds: float  # simulated time
-    host: RepRapDialect = field(repr=False)
+    host: Dialect = field(repr=False)
     controller: ControllerSimulator = field(repr=False)
     run: Run = field(repr=False)
 
@@ -62,18 +63,20 @@ def run_loopback(
     probe: ProbeKind | None = None,
     time_limit: float = 36_000.0,
     record: bool = True,
+    dialect: Dialect | None = None,
+    controller: ControllerSimulator | None = None,
 ) -> LoopbackResult:
     """Stream ``commands`` until confirmed, failed or ``time_limit``.
 
     ``record=False`` keeps no acknowledgements (for million-line soaks). ``probe``
     None lets the greeting find out how to probe, as a real connection does.
     """
-    host = (
+    host = dialect or (
         RepRapDialect(flow, probe=probe)
         if line_number_limit is None
         else RepRapDialect(flow, line_number_limit=line_number_limit, probe=probe)
     )
-    controller = ControllerSimulator(settings)
+    controller = controller or ControllerSimulator(settings)
     recorder = _Recorder(record)
     pump = Pump(host, recorder)
     run = Run(job_lines(commands))
