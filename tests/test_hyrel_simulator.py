@@ -2,7 +2,16 @@
 
 from __future__ import annotations
 
+import os
+import select
+import time
+import tty
+from pathlib import Path
+
+import pytest
+
 from repetrel_host.protocol.hyrel import Control, HostReceiver, frame, urgent
+from repetrel_host.testing.fake_controller import BuiltInFake
 from repetrel_host.testing.hyrel_simulator import PING_REPLY, HyrelControllerSimulator
 from repetrel_host.testing.simulator import ControllerSettings
 
@@ -101,3 +110,25 @@ def test_the_watchdog_stops_the_extruders_when_the_host_falls_silent() -> None:
     assert wire.lines[-1] == ">ER: host watchdog: no byte for 30 s; every extruder stopped"
     wire.run(200.0)
     assert controller.watchdog_trips == 1  # once, until the host is heard again
+
+
+@pytest.mark.timeout(30)
+def test_the_pty_fake_speaks_hyrels_link(tmp_path: Path) -> None:
+    log = tmp_path / "executed.log"
+    with BuiltInFake(log, ["--protocol", "hyrel", "--no-banner"], control=True) as fake:
+        port = os.open(fake.port, os.O_RDWR | os.O_NOCTTY)
+        try:
+            tty.setraw(port)
+            receiver = HostReceiver()
+            os.write(port, bytes([Control.PING]) + frame("G28", 1) + frame("M104 S200", 2))
+            lines: list[str] = []
+            deadline = time.monotonic() + 10
+            while (len(lines) < 2 or receiver.acks < 2) and time.monotonic() < deadline:
+                if select.select([port], [], [], 0.5)[0]:
+                    lines += receiver.feed(os.read(port, 4096))
+        finally:
+            os.close(port)
+        fake.request("status")  # the log is complete
+    assert lines == [PING_REPLY.decode().strip(), ">MC:M104: S200:"]
+    assert receiver.take_acks() == 2
+    assert log.read_text().splitlines() == ["G28", "M104 S200"]

@@ -35,6 +35,8 @@ from pathlib import Path
 from typing import Any, BinaryIO, TextIO
 
 from repetrel_host.errors import LinkError
+from repetrel_host.testing.hyrel_simulator import RX_BUFFER as HYREL_RX_BUFFER
+from repetrel_host.testing.hyrel_simulator import HyrelControllerSimulator
 from repetrel_host.testing.simulator import (
     ControllerSettings,
     ControllerSimulator,
@@ -58,6 +60,7 @@ class PtyController:
         log: TextIO | None = None,
         received: BinaryIO | None = None,
         control: tuple[BinaryIO, TextIO] | None = None,
+        protocol: str = "reprap",
     ) -> None:
         self.link = link
         self._control = control
@@ -66,9 +69,8 @@ class PtyController:
         self._log = log
         self._received = received
         self._unflushed = False
-        self.simulator = ControllerSimulator(
-            settings, now=time.monotonic(), on_execute=self._execute
-        )
+        simulator = HyrelControllerSimulator if protocol == "hyrel" else ControllerSimulator
+        self.simulator = simulator(settings, now=time.monotonic(), on_execute=self._execute)
         self._to_write = bytearray()
         self._poll_until = 0.0
         self._stopping = False
@@ -259,7 +261,8 @@ class PtyController:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="hyrel-fake-controller",
-        description="A Marlin-style fake motion controller on a pseudo-terminal.",
+        description="A fake motion controller on a pseudo-terminal: Marlin-style, or on "
+        "Hyrel's own link (--protocol hyrel).",
     )
     parser.add_argument("--link", type=Path, help="create a symlink to the pty at this path")
     parser.add_argument("--log", type=Path, help="write every executed command to this file")
@@ -268,7 +271,19 @@ def build_parser() -> argparse.ArgumentParser:
         "--bandwidth", type=float, default=None, help="link bytes/s each way (default: unlimited)"
     )
     parser.add_argument("--latency", type=float, default=0.0, help="one-way link delay in seconds")
-    parser.add_argument("--rx-buffer", type=int, default=128, help="receive buffer in bytes")
+    parser.add_argument(
+        "--protocol",
+        choices=["reprap", "hyrel"],
+        default="reprap",
+        help="the link: RepRap/Marlin lines with ok and Resend, or Hyrel's own (ACK bytes, "
+        "control bytes, tagged messages, the host watchdog)",
+    )
+    parser.add_argument(
+        "--rx-buffer",
+        type=int,
+        default=None,
+        help=f"receive buffer in bytes (default: 128; {HYREL_RX_BUFFER} with --protocol hyrel)",
+    )
     parser.add_argument(
         "--overflow",
         choices=[o.value for o in Overflow],
@@ -312,6 +327,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def settings_from_args(args: argparse.Namespace) -> ControllerSettings:
+    if args.rx_buffer is None:
+        args.rx_buffer = HYREL_RX_BUFFER if args.protocol == "hyrel" else 128
     if args.rx_buffer < 2 or args.slots < 1 or args.planner < 1:
         raise SystemExit(
             "hyrel-fake-controller: --rx-buffer, --slots and --planner must be positive"
@@ -350,7 +367,12 @@ def main(argv: list[str] | None = None) -> int:
     try:
         control = (sys.stdin.buffer, sys.stdout) if args.control else None
         controller = PtyController(
-            settings, link=args.link, log=log, received=received, control=control
+            settings,
+            link=args.link,
+            log=log,
+            received=received,
+            control=control,
+            protocol=args.protocol,
         )
     except FileExistsError:
         print(f"hyrel-fake-controller: {args.link} exists and is not a link", file=sys.stderr)
