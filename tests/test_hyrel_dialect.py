@@ -92,3 +92,18 @@ def test_a_quiet_host_sends_the_watchdog_byte(quiet: float) -> None:
     dialect.handle_timeout(quiet)
     assert dialect.data_to_send(quiet) == b"\x0e"
     assert dialect.next_deadline() == quiet + KEEPALIVE
+
+
+@pytest.mark.parametrize("checksum", [False, True])
+def test_the_window_never_holds_more_than_the_headroom(checksum: bool) -> None:
+    dialect = HyrelDialect(FlowControl(rx_buffer=100, max_lines=50), checksum=checksum)
+    dialect.start(0.0)
+    dialect.data_to_send(0.0)
+    dialect.receive_data(b">Hy: Hydra\n", 0.0)
+    for i in range(20):
+        dialect.send(f"G1 X{i}.125")
+    sent = dialect.data_to_send(0.0)
+    assert 0 < len(sent) <= 99  # the byte limit: the buffer less one
+    dialect.receive_data(b"\x06", 0.1)  # one line received: room for one more
+    more = dialect.data_to_send(0.1)
+    assert more.count(b"\n") == 1 and len(sent) - len(sent.split(b"\n")[0]) - 1 + len(more) <= 99

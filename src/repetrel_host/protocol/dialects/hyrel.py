@@ -180,7 +180,11 @@ class HyrelDialect:
         if not self._in_flight:
             return True  # a line longer than the window still goes, alone
         command = self._pending[0][0] if self._pending else SYNC_COMMAND
-        size = len(command) + 12  # "N<n> " and the newline, near enough
+        size = len(command) + 1  # and its newline
+        if self.numbered:
+            size += len(str(self._next_number)) + 2  # "N<n> "
+        if self.checksum:
+            size += 7  # "*<sum>": a line of 96 ASCII bytes sums to at most 5 digits
         return (
             len(self._in_flight) < flow.line_limit
             and self._in_flight_bytes + size <= flow.byte_limit
