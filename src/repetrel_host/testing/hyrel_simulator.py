@@ -26,12 +26,7 @@ from collections.abc import Callable
 
 from repetrel_host.gcode.commands import command_word
 from repetrel_host.protocol.hyrel import Control, read_line
-from repetrel_host.testing.simulator import (
-    _HEATERS,
-    ControllerSettings,
-    ControllerSimulator,
-    _Command,
-)
+from repetrel_host.testing.simulator import ControllerSettings, ControllerSimulator, _Command
 
 ACK_HEADROOM = 2048  # bytes free in the receive buffer for a line's ACK to go
 RX_BUFFER = 8192
@@ -157,9 +152,7 @@ class HyrelControllerSimulator(ControllerSimulator):
 
     def _answer(self, command: _Command, now: float) -> None:
         word = command.word
-        heater = _HEATERS.get(word)
-        if heater is not None and not heater[1]:
-            self._set_target(heater[0], command.text, now)
+        self._set_heater(command, now)
         if word == "M105":
             self._reply(f">ST: {self._temperatures(now)}\n".encode(), now)
         elif word == "M115":

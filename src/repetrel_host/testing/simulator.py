@@ -465,11 +465,16 @@ class ControllerSimulator:
             return 0.0
         return self.settings.command_time
 
-    def _answer(self, command: _Command, now: float) -> None:
-        word = command.word
-        heater = _HEATERS.get(word)
+    def _set_heater(self, command: _Command, now: float) -> None:
+        """M104 and M140 set their heater's target as they run (M109 and M190 did as they
+        began to wait)."""
+        heater = _HEATERS.get(command.word)
         if heater is not None and not heater[1]:
             self._set_target(heater[0], command.text, now)
+
+    def _answer(self, command: _Command, now: float) -> None:
+        word = command.word
+        self._set_heater(command, now)
         if word == "M105":
             self._ok(f"ok {self._temperatures(now)}\n".encode(), now)
             return
