@@ -346,7 +346,7 @@ def settings_from_args(args: argparse.Namespace) -> ControllerSettings:
         planner=args.planner,
         move_time=args.move_time,
         command_time=args.command_time,
-        banner=not args.no_banner,
+        banner=not args.no_banner and args.protocol != "hyrel",  # "start" is Marlin's
         advanced_ok=args.advanced_ok,
         heat_rate=args.heat_rate,
         faults=faults,

@@ -13,7 +13,7 @@ heaters, faults); the link is Hyrel's:
   0x09 as a line's first byte runs it ahead of the queue;
 - ``>MC:M<n>: ...:`` as M-codes are processed, ``M115`` answered with a ``>Hy:`` identity;
 - the watchdog: after ``watchdog`` seconds without a byte from the host, every extruder
-  stops (heater targets 0) and ``>ER:`` says so.
+  stops (here: the head's heater target goes to 0) and ``>ER:`` says so.
 
 Choices of this fake where the notes are silent (a real controller may differ): the
 temperature report's form (``>ST: T:... B:...``), the messages' wording, a layer pause
@@ -180,8 +180,7 @@ class HyrelControllerSimulator(ControllerSimulator):
         if due is not None and now >= due:
             self._heard_at = None  # tripped: armed again by the host's next byte
             self.watchdog_trips += 1
-            for heater in self.heaters.values():
-                heater[1] = 0.0
+            self.heaters["T"][1] = 0.0  # the heads; the bed stays as it was
             self._reply(
                 f">ER: host watchdog: no byte for {self.watchdog:g} s; "
                 "every extruder stopped\n".encode(),

@@ -49,6 +49,9 @@ KEEPALIVE = 10.0  # the longest quiet from the host: well inside the 30 s watchd
 STATUS_AFTER = 5.0  # lines waiting this long for an ACK: ask whether the controller is there
 STATUS_ATTEMPTS = 4  # unanswered status requests in a row: it is gone
 SYNC_COMMAND = "M115"  # answered when processed: every line before it ran
+SYNC_RETRY = 30.0  # a sync unanswered this long, nothing in flight: its answer was lost
+RECENT = 1024  # lines remembered by number, to name the one an error report names
+_LINE_NUMBER = re.compile(r"\bline\s+(\d+)|\bN(\d+)\b", re.IGNORECASE)
 _FATAL = re.compile(r"checksum|watchdog", re.IGNORECASE)
 
 
@@ -68,6 +71,8 @@ class _Sent:
     tag: object
     size: int
     host_line: bool = False  # the sync's M115, an urgent line: not the caller's
+    lines_before: int = 0  # the caller's lines sent before this one
+    seq: int = 0  # its place on the wire, the host's lines counted
 
 
 class HyrelDialect:
@@ -89,11 +94,15 @@ class HyrelDialect:
         self._in_flight: deque[_Sent] = deque()
         self._in_flight_bytes = 0
         self._next_number = 1
-        self._transmitted = 0  # lines put on the wire, the host's own too
-        self._unconfirmed = 0  # lines sent since the last sync that confirmed them
-        self._sync_at = 0  # _transmitted once the sync's M115 went
+        self._lines_sent = 0  # the caller's lines put on the wire
+        self._seq = 0  # every line put on the wire
+        self._confirmed = 0  # of those, how many are known to have run
         self._sync_requested = False
-        self._sync: _Sent | None = None  # the M115 whose answer is awaited
+        # Every M115 on the wire, the caller's and the host's syncs, in order: each
+        # "FIRMWARE_NAME:" answer is the oldest one's.
+        self._m115s: deque[_Sent] = deque()
+        self._sync_sent_at: float | None = None  # the last sync, while one is unanswered
+        self._recent: dict[int, object] = {}  # line number -> tag, of the last RECENT lines
         self._receiver = HostReceiver()
         self._outgoing = bytearray()
         self._events: deque[Event] = deque()
@@ -121,7 +130,8 @@ class HyrelDialect:
     def send_urgent(self, command: str) -> None:
         """Ahead of everything the controller holds (0x09 first)."""
         wire = urgent(frame(command))
-        self._push(_Sent(None, command, None, len(wire), host_line=True), wire)
+        sent = _Sent(None, command, None, len(wire), True, self._lines_sent)
+        self._push(sent, wire, self._last_sent_at)
 
     def request_sync(self) -> None:
         self._sync_requested = True
@@ -138,7 +148,7 @@ class HyrelDialect:
     @property
     def is_done(self) -> bool:
         """Every line queued so far was received and ran (the sync's answer says so)."""
-        return not self._pending and not self._in_flight and self._unconfirmed == 0
+        return not self._pending and not self._in_flight and self._confirmed == self._lines_sent
 
     @property
     def is_ready(self) -> bool:
@@ -158,16 +168,16 @@ class HyrelDialect:
         if self._phase is Phase.RUNNING:
             while self._pending and self._has_room():
                 command, tag = self._pending.popleft()
-                self._transmit(command, tag)
+                self._transmit(command, tag, now)
             if (
                 self._sync_requested
                 and not self._pending
-                and self._unconfirmed
-                and self._sync is None
+                and self._confirmed < self._lines_sent
+                and self._sync_sent_at is None
                 and self._has_room()
             ):
-                self._sync = self._transmit(SYNC_COMMAND, None, host_line=True)
-                self._sync_at = self._transmitted
+                self._transmit(SYNC_COMMAND, None, now, host_line=True)
+                self._sync_sent_at = now
         if not self._outgoing:
             return b""
         self._last_sent_at = now
@@ -190,21 +200,26 @@ class HyrelDialect:
             and self._in_flight_bytes + size <= flow.byte_limit
         )
 
-    def _transmit(self, command: str, tag: object, host_line: bool = False) -> _Sent:
+    def _transmit(self, command: str, tag: object, now: float, host_line: bool = False) -> None:
         number = self._next_number if self.numbered else None
         self._next_number += 1
         wire = frame(command, number, self.checksum)
-        sent = _Sent(number, command, tag, len(wire), host_line)
-        self._push(sent, wire)
-        self._transmitted += 1
-        self._unconfirmed += 1
+        sent = _Sent(number, command, tag, len(wire), host_line, self._lines_sent)
+        self._push(sent, wire, now)
+        if command_word(command) == "M115":
+            self._m115s.append(sent)
+        if number is not None:
+            self._recent[number] = tag
+            self._recent.pop(number - RECENT, None)
         if not host_line:
+            self._lines_sent += 1
             self.stats.lines_sent += 1
-        return sent
 
-    def _push(self, sent: _Sent, wire: bytes) -> None:
+    def _push(self, sent: _Sent, wire: bytes, now: float) -> None:
+        self._seq += 1
+        sent.seq = self._seq
         if not self._in_flight:
-            self._last_progress_at = max(self._last_progress_at, self._last_sent_at)
+            self._last_progress_at = now  # the first line waiting: its ACK is due from now
         self._in_flight.append(sent)
         self._in_flight_bytes += sent.size
         self._outgoing += wire
@@ -234,10 +249,13 @@ class HyrelDialect:
         if not self._in_flight:
             self.stats.unexpected_oks += 1  # an ACK nothing was owed
             return
-        sent = self._in_flight.popleft()
-        self._in_flight_bytes -= sent.size
         self._last_progress_at = now
         self._status_asked = 0
+        self._acknowledged_line(self._in_flight[0])
+
+    def _acknowledged_line(self, sent: _Sent) -> None:
+        self._in_flight.popleft()
+        self._in_flight_bytes -= sent.size
         if not sent.host_line:
             number = sent.number if sent.number is not None else -1
             self._events.append(LineAcknowledged(number, sent.command, sent.tag, ""))
@@ -251,17 +269,27 @@ class HyrelDialect:
                 self._phase = Phase.RUNNING
                 self._events.append(ControllerReady(ProbeKind.COMMAND))
             return
-        if "FIRMWARE_NAME:" in text and self._sync is not None:
-            # The sync's M115 ran: so did every line sent before it.
-            self._sync = None
-            self._sync_requested = False
-            self._unconfirmed = self._transmitted - self._sync_at  # those sent after it
+        if "FIRMWARE_NAME:" in text and self._m115s and self._answered(self._m115s.popleft()):
+            return  # the host's own sync: not the caller's business
         if isinstance(reply, replies.HyrelReport) and reply.tag == "ER" and _FATAL.search(text):
             # A line refused cannot be sent again in its place; the watchdog stopped the
             # extruders: the job cannot go on as written.
-            self._fail(FailureKind.CONTROLLER, f"the controller says: {text}")
+            self._fail(FailureKind.CONTROLLER, f"the controller says: {text}", _named(text))
             return
         self._events.append(ControllerMessage(reply, text))
+
+    def _answered(self, m115: _Sent) -> bool:
+        """An M115 ran, so did every line before it: it and they were received, whatever
+        ACKs were lost on the way (their lines leave the window). True for a host's sync."""
+        self._confirmed = max(self._confirmed, m115.lines_before)
+        while self._in_flight and self._in_flight[0].seq <= m115.seq:
+            self.stats.unexpected_oks += 1  # counted the other way round: an ACK lost
+            self._acknowledged_line(self._in_flight[0])
+        if m115.host_line:
+            self._sync_sent_at = None
+            if self._confirmed == self._lines_sent:
+                self._sync_requested = False
+        return m115.host_line
 
     def next_event(self) -> Event | None:
         return self._events.popleft() if self._events else None
@@ -277,6 +305,8 @@ class HyrelDialect:
         deadline = self._last_sent_at + KEEPALIVE
         if self._in_flight:
             deadline = min(deadline, self._last_progress_at + STATUS_AFTER)
+        elif self._sync_sent_at is not None:
+            deadline = min(deadline, self._sync_sent_at + SYNC_RETRY)
         return deadline
 
     def handle_timeout(self, now: float) -> None:
@@ -306,11 +336,29 @@ class HyrelDialect:
             self._status_asked += 1
             self._last_progress_at = now  # the next request after as long again
             self._outgoing.append(Control.STATUS)
+        elif (
+            not self._in_flight
+            and self._sync_sent_at is not None
+            and now >= self._sync_sent_at + SYNC_RETRY
+        ):
+            self._sync_sent_at = None  # its answer was lost (or it waits long): ask again
         elif now >= self._last_sent_at + KEEPALIVE:
             self._outgoing.append(Control.WATCHDOG)
 
-    def _fail(self, kind: FailureKind, reason: str) -> None:
-        oldest = next((s for s in self._in_flight if not s.host_line), None)
-        self._failure = Failed(kind, reason, oldest.tag if oldest is not None else None)
+    def _fail(self, kind: FailureKind, reason: str, number: int | None = None) -> None:
+        if number is not None and number in self._recent:
+            tag = self._recent[number]  # the line the report names
+        else:
+            oldest = next((s for s in self._in_flight if not s.host_line), None)
+            tag = oldest.tag if oldest is not None else None
+        self._failure = Failed(kind, reason, tag)
         self._phase = Phase.FAILED
         self._events.append(self._failure)
+
+
+def _named(text: str) -> int | None:
+    """The line number an error report names ("line 12", "N12"), if any."""
+    match = _LINE_NUMBER.search(text)
+    if match is None:
+        return None
+    return int(match.group(1) or match.group(2))
