@@ -152,3 +152,4 @@ def greeted() -> HyrelDialect:
     dialect.receive_data(b">Hy: Hydra\n", 0.0)
     assert isinstance(dialect.next_event(), ControllerReady)
     return dialect
+

@@ -281,7 +281,8 @@ class HyrelDialect:
     def _answered(self, m115: _Sent) -> bool:
         """An M115 ran, so did every line before it: it and they were received, whatever
         ACKs were lost on the way (their lines leave the window). True for a host's sync."""
-        self._confirmed = max(self._confirmed, m115.lines_before)
+        ran = m115.lines_before + (0 if m115.host_line else 1)  # a caller's M115 ran too
+        self._confirmed = max(self._confirmed, ran)
         while self._in_flight and self._in_flight[0].seq <= m115.seq:
             self.stats.unexpected_oks += 1  # counted the other way round: an ACK lost
             self._acknowledged_line(self._in_flight[0])
