@@ -152,4 +152,3 @@ def greeted() -> HyrelDialect:
     dialect.receive_data(b">Hy: Hydra\n", 0.0)
     assert isinstance(dialect.next_event(), ControllerReady)
     return dialect
-
