@@ -81,9 +81,7 @@ class HyrelControllerSimulator(ControllerSimulator):
             self._take_line(data[:-1], now)
             self._pay_acks(now)
             return
-        self._rx += data
-        if len(self._rx) > self.link.peak_rx_buffer:
-            self.link.peak_rx_buffer = len(self._rx)
+        self._buffer(data)
         self._pay_acks(now)
 
     def _fill_slots(self, now: float) -> None:

@@ -356,6 +356,10 @@ class ControllerSimulator:
         if data.lstrip().startswith(b"M108"):
             self._break_heat_wait(now)
             return
+        self._buffer(data)
+
+    def _buffer(self, data: bytes) -> None:
+        """Into the receive buffer, its peak counted."""
         self._rx += data
         if len(self._rx) > self.link.peak_rx_buffer:
             self.link.peak_rx_buffer = len(self._rx)
