@@ -18,11 +18,11 @@ import os
 import re
 import shutil
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Awaitable
 from contextlib import asynccontextmanager
 from importlib import resources
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, TypeVar
 from urllib.parse import parse_qsl
 
 from fastapi import (
@@ -61,6 +61,7 @@ OCTOPRINT_VERSION = "1.10.0"
 G_CODE_SUFFIXES = (".gcode", ".gco", ".g")
 KEEPALIVE = 15.0  # seconds of quiet before the event stream says it is alive
 _SAFE_NAME = re.compile(r"[^A-Za-z0-9._ ()+-]")
+T = TypeVar("T")
 _SNAPSHOT = re.compile(r"[A-Za-z0-9_-]+\.(jpg|png|gif|webp)")
 
 
@@ -461,7 +462,7 @@ def _native_router() -> APIRouter:
     @router.get("/files")
     async def files(request: Request) -> list[dict[str, Any]]:
         server = _server(request)
-        return [_file_json(server, p) for p in sorted(server.files.rglob("*")) if p.is_file()]
+        return _uploads_json(server)
 
     @router.delete("/files/{location:path}", status_code=204, dependencies=[Keyed])
     async def delete_file(request: Request, location: str) -> Response:
@@ -543,36 +544,27 @@ def _native_router() -> APIRouter:
     async def take_snapshot(request: Request, name: str) -> dict[str, Any]:
         """A snapshot now (the camera's settings, tried out)."""
         service = _server(request).service(name)
-        try:
-            path = await service.snapshot()
-        except Refused as exc:
-            raise HTTPException(exc.status, str(exc)) from None
+        path = await _answered(service.snapshot())
         return {"file": path.name, "url": service.url(path)}
 
     @router.post("/printers/{name}/command", dependencies=[Keyed])
     async def command(request: Request, name: str, body: Command) -> dict[str, Any]:
-        reply = await _command(_server(request).service(name), body.command)
+        reply = await _answered(_server(request).service(name).command(body.command))
         return {"command": reply.command, "lines": reply.lines, "ok": reply.ok}
 
     @router.post("/printers/{name}/{action}", status_code=204, dependencies=[Keyed])
     async def control(request: Request, name: str, action: str) -> Response:
         service = _server(request).service(name)
-        await _control(service, action)
+        await _answered(service.control(action))
         return Response(status_code=204)
 
     return router
 
 
-async def _control(service: PrinterService, action: str) -> None:
+async def _answered(call: Awaitable[T]) -> T:
+    """What the printer's ``call`` gives; its :class:`Refused` as an HTTP error."""
     try:
-        await service.control(action)
-    except Refused as exc:
-        raise HTTPException(exc.status, str(exc)) from None
-
-
-async def _command(service: PrinterService, line: str) -> rh.Reply:
-    try:
-        return await service.command(line)
+        return await call
     except Refused as exc:
         raise HTTPException(exc.status, str(exc)) from None
 
@@ -590,6 +582,10 @@ def _file_json(server: PrintServer, path: Path) -> dict[str, Any]:
         "size": path.stat().st_size,
         "date": int(path.stat().st_mtime),
     }
+
+
+def _uploads_json(server: PrintServer) -> list[dict[str, Any]]:
+    return [_file_json(server, p) for p in sorted(server.files.rglob("*")) if p.is_file()]
 
 
 def _true(value: str) -> bool:
@@ -665,8 +661,7 @@ def _octoprint_router() -> APIRouter:
     @router.get("/files")
     async def files(request: Request) -> dict[str, Any]:
         server = _server(request)
-        entries = [_file_json(server, p) for p in sorted(server.files.rglob("*")) if p.is_file()]
-        return {"files": entries, "free": shutil.disk_usage(server.data_dir).free}
+        return {"files": _uploads_json(server), "free": shutil.disk_usage(server.data_dir).free}
 
     @router.get("/files/local/{location:path}")
     async def file(request: Request, location: str) -> dict[str, Any]:
@@ -733,7 +728,7 @@ def _octoprint_router() -> APIRouter:
                 _queue(server, service.name, selected, commands)
             service.release()  # a held queue goes on too
         elif body.command == "cancel":
-            await _control(service, "cancel")
+            await _answered(service.control("cancel"))
         elif body.command == "pause":
             action = body.action or "toggle"
             if action == "toggle":
@@ -742,7 +737,7 @@ def _octoprint_router() -> APIRouter:
                 raise HTTPException(400, f"action '{action}' is not pause, resume or toggle")
             if service.running is None:
                 raise HTTPException(409, f"printer {service.name} is not printing")
-            await _control(service, action)
+            await _answered(service.control(action))
         else:
             raise HTTPException(400, f"command '{body.command}' is not start, cancel or pause")
         return Response(status_code=204)
@@ -788,7 +783,7 @@ def _octoprint_router() -> APIRouter:
         if not lines:
             raise HTTPException(400, "give 'command' or 'commands'")
         for line in lines:
-            await _command(service, line)
+            await _answered(service.command(line))
         return Response(status_code=204)
 
     @router.get("/connection")
