@@ -14,9 +14,9 @@ from repetrel_host.protocol.hyrel import (
     ReceivedLine,
     additive_checksum,
     frame,
+    mark_urgent,
     parse_notice,
     read_line,
-    urgent,
 )
 
 
@@ -26,7 +26,7 @@ def test_lines_are_framed_with_an_optional_number_and_additive_checksum() -> Non
     body = b"N14 G1 X5"
     assert additive_checksum(body) == sum(body) == 504
     assert frame("G1 X5", number=14, checksum=True) == b"N14 G1 X5*504\n"
-    assert urgent(frame("M107")) == b"\x09M107\n"
+    assert mark_urgent(frame("M107")) == b"\x09M107\n"
 
 
 def test_the_controller_reads_lines_numbers_checksums_and_urgent_marks() -> None:

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from repetrel_host.protocol.hyrel import Control, HostReceiver, frame, urgent
+from repetrel_host.protocol.hyrel import Control, HostReceiver, frame, mark_urgent
 from repetrel_host.testing.fake_controller import BuiltInFake
 from repetrel_host.testing.hyrel_simulator import PING_REPLY, HyrelControllerSimulator
 from repetrel_host.testing.simulator import ControllerSettings
@@ -83,7 +83,7 @@ def test_control_bytes_ping_pause_end_wait_abort_and_urgent_lines() -> None:
     wire.run(10.0)
     assert controller.executed == ["M107", "G1 X1"] and wire.host.end_wait_echoes == 1
     moves = b"".join(frame(f"G1 X{i}") for i in range(2, 40))
-    wire.send(moves + urgent(frame("M104 S0")))
+    wire.send(moves + mark_urgent(frame("M104 S0")))
     wire.run(10.2)
     # It ran while moves sent before it still wait (the planner took the first 16).
     assert "M104 S0" in controller.executed and "G1 X39" not in controller.executed

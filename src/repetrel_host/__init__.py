@@ -28,6 +28,7 @@ from repetrel_host.events import (
     Paused,
     PauseReason,
     Progress,
+    Report,
     Resend,
     Resumed,
     State,
@@ -36,7 +37,7 @@ from repetrel_host.events import (
 )
 from repetrel_host.protocol.events import ProbeKind
 from repetrel_host.protocol.flow import FlowControl, FlowMode
-from repetrel_host.protocol.reports import Firmware
+from repetrel_host.protocol.reports import Firmware, JobReport
 from repetrel_host.pump import Outcome, Summary
 from repetrel_host.session import Printer, PrintJob, Reply, connect
 
@@ -53,6 +54,7 @@ __all__ = [
     "FlowMode",
     "HostError",
     "JobError",
+    "JobReport",
     "LinkError",
     "Message",
     "Notice",
@@ -65,6 +67,7 @@ __all__ = [
     "Progress",
     "ProtocolError",
     "Reply",
+    "Report",
     "Resend",
     "Resumed",
     "State",

@@ -378,11 +378,13 @@ def _dry_run(plan: JobPlan, framed: bool) -> None:
 async def _send(
     console: Out, errors: Out, plan: JobPlan, user: UserConfig, options: Options
 ) -> int:
-    baud, flow = link_settings(options.link, plan.machine)
+    link = link_settings(options.link, plan.machine)
     printer = await connect(
         options.port,
-        flow=flow,
-        baud=baud,
+        flow=link.flow,
+        baud=link.baud,
+        protocol=link.protocol,
+        checksum=link.checksum,
         config=user,
         reconnect=False,
         poll_interval=None,

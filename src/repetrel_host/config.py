@@ -54,9 +54,14 @@ class _Model(BaseModel):
 
 class LinkDefaults(_Model):
     baud: int = Field(default=115200, gt=0)
+    # reprap: numbered lines, ok and Resend; hyrel: Hyrel's own link (ACK bytes, control bytes)
+    protocol: Literal["reprap", "hyrel"] = "reprap"
     flow: Literal["buffered", "unbuffered"] = "buffered"
-    rx_buffer: int = Field(default=128, ge=2)
-    max_lines: int = Field(default=8, ge=1)
+    # The window; default: the protocol's (reprap: 128 bytes and 8 lines, AVR Marlin's
+    # buffer; hyrel: 2048 bytes and 256 lines, the controller's headroom).
+    rx_buffer: int | None = Field(default=None, ge=2)
+    max_lines: int | None = Field(default=None, ge=1)
+    checksum: bool = False  # hyrel: every line with the additive checksum
 
 
 class Machine(_Model):

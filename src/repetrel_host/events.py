@@ -9,6 +9,7 @@ from enum import Enum, StrEnum
 from repetrel_host.errors import HostError
 from repetrel_host.job import ActionKind
 from repetrel_host.protocol.events import Notice
+from repetrel_host.protocol.reports import JobReport
 from repetrel_host.pump import Summary
 
 __all__ = [
@@ -22,6 +23,7 @@ __all__ = [
     "Paused",
     "PrinterEvent",
     "Progress",
+    "Report",
     "Resend",
     "Resumed",
     "State",
@@ -112,6 +114,13 @@ class Resumed:
 
 
 @dataclass(frozen=True, slots=True)
+class Report:
+    """The controller's M773 job report (sent at M30 after ``M772 S1``), before Done."""
+
+    report: JobReport
+
+
+@dataclass(frozen=True, slots=True)
 class Done:
     """The job ended: completed, or cancelled after its safe stop."""
 
@@ -126,4 +135,4 @@ class Failed:
 
 
 PrinterEvent = StateChanged | Temperatures | Message | Notice
-JobEvent = Progress | Resend | Message | Notice | Action | Paused | Resumed | Done | Failed
+JobEvent = Progress | Resend | Message | Notice | Action | Paused | Resumed | Report | Done | Failed

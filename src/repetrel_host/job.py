@@ -3,8 +3,9 @@
 Some codes are the host's, not the controller's (as in Repetrel):
 
 - ``M0`` / ``M1``: pause. On the wire it becomes the machine's ``pause_sync`` command
-  (``M400``: its ok means every move before it has finished); once that is
-  acknowledged the host shows the text after the semicolon and waits to resume.
+  (``M400``: its ok means every move before it has finished), or ``M0`` where the
+  controller waits itself (Hyrel's link); once that is confirmed the host shows the
+  text after the semicolon and waits to resume.
   ``M0 ; SAY Hello`` also performs the actions ``M792`` knows.
 - ``M792 ; SAY text ; PIC file ; VID file ; SEND text ; BEEP ; SHELL program``: actions
   on the host, in stream order. Not forwarded.
@@ -137,13 +138,17 @@ class Job:
                 if command:
                     yield number, command, raw, offset
 
-    def items(self, check: Callable[[int, str], None] | None = None) -> Iterator[JobItem]:
+    def items(
+        self, check: Callable[[int, str], None] | None = None, pause_sync: str | None = None
+    ) -> Iterator[JobItem]:
         """Lines to send and host actions, in order; :class:`JobError` at a line that cannot go.
 
-        ``check(line number, command)`` sees each command as read (it may raise JobError).
+        ``check(line number, command)`` sees each command as read (it may raise JobError);
+        ``pause_sync`` replaces :attr:`pause_sync` (``M0`` where the controller waits itself).
         """
         index = 0
         name = self.name
+        pause_sync = pause_sync or self.pause_sync
         for number, command, raw, offset in self.commands():
             if check is not None:
                 check(number, command)
@@ -152,7 +157,7 @@ class Job:
                 index += 1
                 yield JobLine(index, number, command, offset, name)
                 continue
-            for item in self._host_code(word, command, raw, number):
+            for item in self._host_code(word, command, raw, number, pause_sync):
                 if isinstance(item, str):  # a command the host still sends
                     index += 1
                     yield JobLine(index, number, item, offset, name)
@@ -164,7 +169,7 @@ class Job:
         return (item for item in self.items() if isinstance(item, JobLine))
 
     def _host_code(
-        self, word: str, command: str, raw: bytes, number: int
+        self, word: str, command: str, raw: bytes, number: int, pause_sync: str
     ) -> list[str | HostAction]:
         """What a host-side code becomes: commands still sent, and actions."""
         name = self.name
@@ -182,7 +187,7 @@ class Job:
         message, actions = parse_actions(text)
         if word == "M792":
             return [HostAction(ActionKind.ACTIONS, message, actions, number, name)]
-        return [self.pause_sync, HostAction(ActionKind.PAUSE, message, actions, number, name)]
+        return [pause_sync, HostAction(ActionKind.PAUSE, message, actions, number, name)]
 
 
 _CAMERA_WORDS = {"M790": ActionKind.LAYER, "M791": ActionKind.SNAPSHOT}

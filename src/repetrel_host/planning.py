@@ -29,6 +29,7 @@ from repetrel_host.gcode.header import header_commands, safe_stop_commands
 from repetrel_host.gcode.lint import Finding, Linter, Severity
 from repetrel_host.job import Job, JobItem, JobLine
 from repetrel_host.links import FAKE_PORT
+from repetrel_host.protocol.dialects.hyrel import DEFAULT_WINDOW as HYREL_WINDOW
 from repetrel_host.protocol.flow import FlowControl, FlowMode
 from repetrel_host.protocol.framing import clean_line
 from repetrel_host.protocol.reports import Firmware
@@ -84,8 +85,10 @@ class JobPlan:
     def machine(self) -> Machine | None:
         return self.profile.machine
 
-    def items(self, check: Callable[[int, str], None] | None = None) -> Iterator[JobItem]:
-        return chain(self.header, self.job.items(check))
+    def items(
+        self, check: Callable[[int, str], None] | None = None, pause_sync: str | None = None
+    ) -> Iterator[JobItem]:
+        return chain(self.header, self.job.items(check, pause_sync))
 
     def linter(self, streaming: bool = False) -> Linter:
         firmware, positions, loaded_tools, code_chart = self.lint_settings
@@ -294,17 +297,38 @@ class LinkRequest:
     flow: FlowMode | None = None
     rx_buffer: int | None = None
     max_lines: int | None = None
+    protocol: str | None = None
 
 
-def link_settings(request: LinkRequest, machine: Machine | None) -> tuple[int, FlowControl]:
-    """Baud rate and flow control: what the user gave, then the machine's link defaults."""
+@dataclass(frozen=True, slots=True)
+class LinkSettings:
+    """How to talk to the controller: baud rate, line protocol, flow control."""
+
+    baud: int
+    protocol: str
+    flow: FlowControl
+    checksum: bool = False  # Hyrel's link: the additive checksum on every line
+
+
+# The window by protocol, unless the user or the machine gives one: Marlin's 128-byte
+# buffer (AVR), and the headroom within which Hyrel's controller ACKs what it receives.
+DEFAULT_WINDOWS = {"reprap": FlowControl(), "hyrel": HYREL_WINDOW}
+
+
+def link_settings(request: LinkRequest, machine: Machine | None) -> LinkSettings:
+    """What the user gave, then the machine's link defaults, then the protocol's."""
     defaults = machine.link if machine else LinkDefaults()
+    protocol = request.protocol or defaults.protocol
+    window = DEFAULT_WINDOWS.get(protocol)
+    if window is None:
+        known = ", ".join(sorted(DEFAULT_WINDOWS))
+        raise ConfigError(f"unknown protocol '{protocol}' (known: {known})")
     flow = FlowControl(
         request.flow or FlowMode(defaults.flow),
-        rx_buffer=request.rx_buffer or defaults.rx_buffer,
-        max_lines=request.max_lines or defaults.max_lines,
+        rx_buffer=request.rx_buffer or defaults.rx_buffer or window.rx_buffer,
+        max_lines=request.max_lines or defaults.max_lines or window.max_lines,
     )
-    return request.baud or defaults.baud, flow
+    return LinkSettings(request.baud or defaults.baud, protocol, flow, defaults.checksum)
 
 
 def default_history_dir() -> Path:

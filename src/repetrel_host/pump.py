@@ -9,7 +9,9 @@ is told to a :class:`Listener`.
 
 A job is a :class:`Run`: its lines are read while the controller works, a host
 action (M0, M792...) waits until every line before it is confirmed, and a stop
-drops what is queued and sends the safe-stop sequence ahead of anything else.
+drops what is queued (what the controller holds too, where the link can) and sends
+the safe-stop sequence ahead of anything else. A pause holds the controller where the
+link can (Hyrel's), else stops feeding and lets the controller run what it has.
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ from repetrel_host.errors import (
     ProtocolError,
     UsageError,
 )
-from repetrel_host.job import HostAction, JobItem, JobLine
+from repetrel_host.job import ActionKind, HostAction, JobItem, JobLine
 from repetrel_host.protocol import replies
 from repetrel_host.protocol.dialect import Dialect
 from repetrel_host.protocol.events import (
@@ -127,6 +129,7 @@ class Run:
         self.action_running = False
         self.pause_requested = False
         self.paused = False
+        self.held = False  # the controller holds the job (a pause on Hyrel's link)
         self.stop_deadline: float | None = None
         self.stop_requests = 0
         # Progress: the job line with the highest index acknowledged so far.
@@ -213,11 +216,13 @@ class Pump:
         run.retransmissions_before = stats.retransmissions
 
     def command(self, command: str, tag: object) -> None:
-        """Send one command outside any job; :meth:`Listener.command_done` gets ``tag``."""
-        self.dialect.send(command, tag)
+        """Send one command outside any job; :meth:`Listener.command_done` gets ``tag``
+        once the controller ran it (its reply is complete then)."""
+        self.dialect.send(command, tag, confirm=True)
 
-    def pause(self) -> None:
-        """Stop feeding job lines; :meth:`Listener.paused` once every line sent is confirmed.
+    def pause(self, at_layer_end: bool = False) -> None:
+        """Stop feeding job lines; :meth:`Listener.paused` once the controller holds the
+        job (Hyrel's link: at the end of the move, or layer) or ran every line sent.
 
         Lines read ahead but not yet on the wire wait for :meth:`resume`."""
         run = self.run
@@ -231,24 +236,45 @@ class Pump:
                 if tag.index == 0:
                     run.header_fed -= 1  # read again on resume
             else:
-                self.dialect.send(command, tag)  # not the job's: it goes
+                self.dialect.send(command, tag, confirm=True)  # not the job's: it goes
         if run.barrier is not None and not run.action_running:
             held.append(run.barrier)  # after the lines before it, as in the file
             run.barrier = None
         run.items = chain(held, run.items)
         if held:
             run.exhausted = False  # the lines held back are still to be read
+        if self.dialect.hold(at_layer_end):
+            run.held = run.paused = True
+            self.listener.paused()
 
     def resume(self) -> None:
         run = self.run
         if run is not None:
-            run.pause_requested = run.paused = False
+            if run.held:
+                self.dialect.end_wait()
+            run.pause_requested = run.paused = run.held = False
+
+    @property
+    def controller_holds(self) -> bool:
+        """The controller holds the job's lines (a pause, or its own M0, on Hyrel's link):
+        a command would wait behind them."""
+        run = self.run
+        return run is not None and (
+            run.held
+            or (
+                run.action_running
+                and run.barrier is not None
+                and run.barrier.kind is ActionKind.PAUSE
+                and self.dialect.pause_command is not None
+            )
+        )
 
     def action_done(self, proceed: bool | HostError) -> None:
         """The host action is over: go on, stop the job (False), or stop it with an error."""
         run = self.run
         if run is None or run.barrier is None:
             return
+        waiting = self.controller_holds  # at its own M0
         run.barrier = None
         run.action_running = False
         if isinstance(proceed, HostError):
@@ -256,6 +282,8 @@ class Pump:
             self._stop_feeding(run)
         elif not proceed:
             self._stop_feeding(run)
+        elif waiting:
+            self.dialect.end_wait()
 
     def stop(self, now: float, error: HostError | None = None) -> bool:
         """Stop the job: the safe-stop sequence goes ahead of anything not yet sent.
@@ -339,7 +367,11 @@ class Pump:
                 else:
                     listener.command_done(tag, event.data)
             elif isinstance(event, ControllerMessage):
-                listener.message(event.text, event.reply)
+                named = event.tag
+                if isinstance(named, JobLine):  # the line it names, by its number
+                    listener.message(f"{event.text} ({named.position})", event.reply)
+                else:
+                    listener.message(event.text, event.reply)
             elif isinstance(event, ResendRequested):
                 if isinstance(event.tag, JobLine):
                     listener.resend(event.tag)
@@ -406,10 +438,12 @@ class Pump:
         run.stopping = True
         run.barrier = None
         run.action_running = False
-        run.pause_requested = run.paused = False
+        run.pause_requested = run.paused = run.held = False
         self._drop_pending()
+        urgent = self.dialect.abort()  # where the link can: what the controller holds too
         for command in run.safe_stop:
-            self.dialect.send(command, JobLine(0, 0, command, 0, SAFE_STOP_SOURCE))
+            line = JobLine(0, 0, command, 0, SAFE_STOP_SOURCE)
+            self.dialect.send(command, line, urgent=urgent)
 
     def _drop_pending(self) -> None:
         """Drop what is queued and not on the wire; commands among it are told."""

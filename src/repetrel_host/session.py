@@ -1,11 +1,11 @@
 """The printer session: one long-lived connection to one controller.
 
-``connect`` opens the port, greets the controller (M110 and a probe), asks M115
-who it is, and hands back a READY :class:`Printer`. The session then keeps
-reading: controller messages and temperatures become events, commands get
-their replies, jobs stream one after another on the same numbering, and a
-vanished port is reopened (with backoff) and greeted again. It never resumes a
-job by itself.
+``connect`` opens the port, greets the controller (M110 and a probe on the RepRap
+link, a ping on Hyrel's), asks M115 who it is, and hands back a READY
+:class:`Printer`. The session then keeps reading: controller messages and
+temperatures become events, commands get their replies, jobs stream one after
+another on the same numbering, and a vanished port is reopened (with backoff) and
+greeted again. It never resumes a job by itself.
 
 All I/O is here: bytes go between a link (``repetrel_host.links``) and the one
 pump (``repetrel_host.pump``), which drives the dialect. Models: zigpy-znp's
@@ -24,6 +24,7 @@ import re
 from collections import deque
 from collections.abc import AsyncIterator, Awaitable, Callable, Coroutine, Generator, Iterable
 from dataclasses import dataclass, field
+from itertools import chain
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, BinaryIO, Generic, TypeVar
 
@@ -40,6 +41,7 @@ from repetrel_host.events import (
     PauseReason,
     PrinterEvent,
     Progress,
+    Report,
     Resend,
     Resumed,
     State,
@@ -47,7 +49,7 @@ from repetrel_host.events import (
     Temperatures,
 )
 from repetrel_host.gcode.commands import command_word
-from repetrel_host.job import ActionKind, HostAction, JobLine
+from repetrel_host.job import ActionKind, HostAction, JobItem, JobLine
 from repetrel_host.links import Link, make_link
 from repetrel_host.planning import (
     JobPlan,
@@ -69,7 +71,7 @@ from repetrel_host.protocol.events import Failed as DialectFailed
 from repetrel_host.protocol.events import FailureKind, ProbeKind
 from repetrel_host.protocol.flow import FlowControl, FlowMode
 from repetrel_host.protocol.framing import clean_line
-from repetrel_host.protocol.reports import Firmware, parse_temperatures
+from repetrel_host.protocol.reports import Firmware, JobReport, ReportReader, parse_temperatures
 from repetrel_host.pump import CANCEL_DRAIN_TIMEOUT, Listener, Pump, Run, Summary, failure_error
 
 if TYPE_CHECKING:
@@ -95,6 +97,9 @@ PROGRESS_INTERVAL = 0.1
 # Events a late subscriber to a job still gets.
 JOB_EVENT_BACKLOG = 1000
 LINK_LOST = "the serial link was lost (printer unplugged, or its port closed)"
+# Sent before a job when its report is asked for: reset the metrics, and have M30 send
+# the M773 report (Hyrel's diagnostic codes, M772: bit 0 of S).
+REPORT_COMMAND = "M772 S1"
 _FRAMED = re.compile(r"^\s*N-?\d|\*", re.IGNORECASE)
 
 E = TypeVar("E")
@@ -123,6 +128,7 @@ class SessionSettings:
     protocol: str = "reprap"
     user: UserConfig = field(default_factory=UserConfig)
     request: JobRequest = field(default_factory=JobRequest)
+    checksum: bool = False  # Hyrel's link: the additive checksum on every line
 
 
 class _Hub(Generic[E]):
@@ -218,6 +224,13 @@ class PrintJob:
         self._ticking = False  # progress goes out while someone listens
         self._reported = -1
         self._m0: asyncio.Future[None] | None = None  # an M0 waiting for resume()
+        self._reports = ReportReader()
+        self.report_requested = False  # M772 S1 went first: M30 sends the M773 report
+
+    @property
+    def report(self) -> JobReport | None:
+        """The M773 report the controller sent (at M30, after M772 S1), or None."""
+        return self._reports.report
 
     # --- progress -------------------------------------------------------------
 
@@ -244,6 +257,12 @@ class PrintJob:
     @property
     def done(self) -> bool:
         return self._done.done()
+
+    @property
+    def report_path(self) -> Path:
+        """Where the M773 report is kept: beside the history, ``<run>-report.txt``."""
+        history = self.history or Path(f"{self.name}.gcode")
+        return history.with_name(f"{history.stem}-report.txt")
 
     def where(self) -> str:
         """The last line the controller acknowledged, as error messages name it."""
@@ -272,8 +291,8 @@ class PrintJob:
 
     # --- control ----------------------------------------------------------------
 
-    async def pause(self) -> None:
-        await self.printer.pause()
+    async def pause(self, at_layer_end: bool = False) -> None:
+        await self.printer.pause(at_layer_end)
 
     async def resume(self) -> None:
         await self.printer.resume()
@@ -317,6 +336,12 @@ class PrintJob:
         if self._done.done():
             return
         self._publish(self._progress())
+        report = self.report
+        if report is not None:
+            self._publish(Report(report))
+            if self.history is not None:  # beside the stream, under the same run's name
+                with contextlib.suppress(OSError):
+                    self.report_path.write_text(report.text + "\n")
         if run.error is not None:
             self._publish(Failed(run.error))
             self._done.set_exception(run.error)
@@ -433,6 +458,11 @@ class Printer:
             )
         if state is not State.READY and state is not State.PAUSED:
             raise LinkError(f"{self.port} is not connected (the session is {state.value})")
+        if state is State.PAUSED and self._pump is not None and self._pump.controller_holds:
+            raise UsageError(
+                "the controller holds the paused job's lines (Hyrel's link): a command "
+                "would wait behind them; it can go after resume() or cancel()"
+            )
 
     @property
     def pending(self) -> list[str]:
@@ -469,6 +499,7 @@ class Printer:
         history: Path | str | bool = True,
         on_action: ActionHandler | None = None,
         on_warning: Callable[[str], None] | None = None,
+        report: bool = False,
     ) -> PrintJob:
         """Start streaming ``job`` (a path, or a plan from :meth:`plan`); returns at once.
 
@@ -479,6 +510,8 @@ class Printer:
         history folder; a path: that file; False: none).
         ``on_action`` performs M792's SAY, BEEP, SHELL... and an M0's; M0 pauses the job
         until :meth:`resume`. Warnings go to ``on_warning``, else to the events.
+        ``report``: send ``M772 S1`` first, so that a Hyrel controller sends its M773 job
+        report at M30 (:attr:`PrintJob.report`, kept beside the history).
         """
         if self._job is not None or self.state is State.PRINTING or self.state is State.PAUSED:
             raise UsageError("a job is already running on this printer")
@@ -500,8 +533,12 @@ class Printer:
             pump = self._pump
             assert pump is not None
             path = self._open_history(plan, history)
-            run = Run(plan.items(checker), plan.safe_stop, started_at=self._loop.time())
+            items: Iterable[JobItem] = plan.items(checker, pump.dialect.pause_command)
+            if report:
+                items = chain([JobLine(0, 0, REPORT_COMMAND, 0, "report")], items)
+            run = Run(items, plan.safe_stop, started_at=self._loop.time())
             print_job = PrintJob(self, plan, run, on_action, path)
+            print_job.report_requested = report
             self._job = print_job
             pump.begin(run)
             self._set_state(State.PRINTING, plan.job.name)
@@ -531,15 +568,17 @@ class Printer:
             raise JobError(f"cannot write the print history {path}: {exc.strerror}") from None
         return path
 
-    async def pause(self) -> None:
-        """Stop feeding the job; returns once every line sent is confirmed (PAUSED)."""
+    async def pause(self, at_layer_end: bool = False) -> None:
+        """Stop feeding the job; returns once it is PAUSED: on Hyrel's link once the
+        controller was told to hold it at the end of the move (or of the layer:
+        ``at_layer_end``), on the RepRap link once every line sent is confirmed."""
         job = self._job
         if job is None:
             raise UsageError("no job is printing")
         if self.state is State.PAUSED:
             return
         if self._pump is not None:
-            self._pump.pause()
+            self._pump.pause(at_layer_end)
             self._poke()
         await self._until(lambda: self.state is not State.PRINTING or job.done)
 
@@ -640,7 +679,10 @@ class Printer:
     def _start_pump(self) -> None:
         settings = self.settings
         dialect = create_dialect(
-            settings.protocol, settings.flow, reply_timeout=settings.reply_timeout
+            settings.protocol,
+            settings.flow,
+            reply_timeout=settings.reply_timeout,
+            checksum=settings.checksum,
         )
         self._pump = Pump(dialect, self._listener)
         self._write(self._pump.start(self._loop.time()))
@@ -886,6 +928,15 @@ class _PumpListener(Listener):
         printer = self.printer
         if isinstance(reply, replies.Busy | replies.Wait):
             return  # keepalives
+        job = printer._job
+        if job is not None and isinstance(reply, replies.HyrelReport):
+            for line in job._reports.feed(text):  # the M773 report is the job's
+                self._message(line, replies.classify(line))
+            return
+        self._message(text, reply)
+
+    def _message(self, text: str, reply: replies.Reply) -> None:
+        printer = self.printer
         reported = self._temperatures(text, text)
         if printer._commands and not (reported and printer._autoreport):
             printer._commands[0].lines.append(text)
@@ -1040,7 +1091,8 @@ def connect(
     reply_timeout: float = DEFAULT_REPLY_TIMEOUT,
     reconnect: bool = True,
     poll_interval: float | None = POLL_INTERVAL,
-    protocol: str = "reprap",
+    protocol: str | None = None,
+    checksum: bool | None = None,
     fake_log: Path | None = None,
     fake_args: Iterable[str] = (),
     sim: ControllerSettings | None = None,
@@ -1052,30 +1104,43 @@ def connect(
     ``sim`` (the simulator in this process); None: ``$HYREL_PORT``, then the
     configuration's ``[printer] port``, else the fake. ``machine`` and ``loadout``
     choose the profile (else the firmware's M115 answer does), ``flow`` the flow
-    control (else the profile's). ``poll_interval``: seconds between temperature
-    polls while idle, None for silence. ``reconnect=False``: a lost port stays lost.
+    control (else the profile's), ``protocol`` the line protocol: ``reprap`` or
+    ``hyrel`` (Hyrel's own link; else the profile's, else ``reprap``; the fake and the
+    simulator speak it too); ``checksum``: Hyrel's link sends the additive checksum on
+    every line (else as the profile says; without it). ``poll_interval``: seconds between
+    temperature polls while idle, None for silence. ``reconnect=False``: a lost port stays
+    lost.
     """
 
     async def opening() -> Printer:
         user = config if isinstance(config, UserConfig) else load_user_config(config)
         request = JobRequest(Path(loadout) if loadout is not None else None, machine)
         mode = FlowMode(flow) if isinstance(flow, str) else flow
-        link = LinkRequest(baud=baud, flow=mode if isinstance(mode, FlowMode) else None)
-        link_baud, flow_control = link_settings(link, explicit_machine(request, user))
-        if isinstance(flow, FlowControl):
-            flow_control = flow
+        link = LinkRequest(
+            baud=baud, flow=mode if isinstance(mode, FlowMode) else None, protocol=protocol
+        )
+        chosen = link_settings(link, explicit_machine(request, user))
+        flow_control = flow if isinstance(flow, FlowControl) else chosen.flow
         name = resolve_port(port, user)
-        opened = make_link(name, link_baud, fake_log=fake_log, fake_args=tuple(fake_args), sim=sim)
+        opened = make_link(
+            name,
+            chosen.baud,
+            fake_log=fake_log,
+            fake_args=tuple(fake_args),
+            sim=sim,
+            protocol=chosen.protocol,
+        )
         settings = SessionSettings(
             name,
-            link_baud,
+            chosen.baud,
             flow_control,
             reply_timeout,
             reconnect,
             poll_interval,
-            protocol,
+            chosen.protocol,
             user,
             request,
+            chosen.checksum if checksum is None else checksum,
         )
         printer = Printer(opened, settings)
         try:

@@ -60,7 +60,11 @@ class FakeLink:
     """The built-in fake controller on a pty, its link running at the chosen baud rate."""
 
     def __init__(
-        self, baudrate: int, log_path: Path | None = None, extra_args: Sequence[str] = ()
+        self,
+        baudrate: int,
+        log_path: Path | None = None,
+        extra_args: Sequence[str] = (),
+        protocol: str = "reprap",
     ) -> None:
         from repetrel_host.testing.fake_controller import BuiltInFake
 
@@ -68,6 +72,7 @@ class FakeLink:
         self.baudrate = baudrate
         # 10 bits on the wire per byte, and a millisecond each way, as a USB adapter.
         args = ["--bandwidth", str(baudrate / 10), "--latency", "0.001", *extra_args]
+        args += ["--protocol", protocol]  # the fake speaks what the session speaks
         # Its control channel on stdin also ends it should this process die.
         self.fake = BuiltInFake(log_path, args, control=True)
         self.device = ""
@@ -92,11 +97,13 @@ class FakeLink:
 class SimLink:
     """The simulated controller, in this process."""
 
-    def __init__(self, settings: ControllerSettings | None = None) -> None:
+    def __init__(
+        self, settings: ControllerSettings | None = None, protocol: str = "reprap"
+    ) -> None:
         from repetrel_host.links.sim import SimController
 
         self.port = self.device = SIM_PORT
-        self.controller = SimController(settings)
+        self.controller = SimController(settings, protocol)
 
     async def open(self, factory: ProtocolFactory) -> tuple[asyncio.Transport, asyncio.Protocol]:
         return await self.controller.open(factory)
@@ -112,10 +119,12 @@ def make_link(
     fake_log: Path | None = None,
     fake_args: Sequence[str] = (),
     sim: ControllerSettings | None = None,
+    protocol: str = "reprap",
 ) -> Link:
-    """The link for ``port`` (see the module's docstring)."""
+    """The link for ``port`` (see the module's docstring); the fake and the simulator
+    speak ``protocol``."""
     if port == FAKE_PORT:
-        return FakeLink(baudrate, fake_log, fake_args)
+        return FakeLink(baudrate, fake_log, fake_args, protocol)
     if port == SIM_PORT:
-        return SimLink(sim)
+        return SimLink(sim, protocol)
     return SerialLink(port, baudrate)

@@ -12,14 +12,23 @@ import asyncio
 from collections.abc import Callable
 
 from repetrel_host.errors import LinkError
+from repetrel_host.testing.hyrel_simulator import RX_BUFFER as HYREL_RX_BUFFER
+from repetrel_host.testing.hyrel_simulator import HyrelControllerSimulator
 from repetrel_host.testing.simulator import ControllerSettings, ControllerSimulator
 
 
 class SimController:
     """One simulated controller that outlives its connections, as a board outlives a cable."""
 
-    def __init__(self, settings: ControllerSettings | None = None) -> None:
-        self.settings = settings or ControllerSettings()
+    def __init__(
+        self, settings: ControllerSettings | None = None, protocol: str = "reprap"
+    ) -> None:
+        self.protocol = protocol
+        self.settings = settings or (
+            ControllerSettings(rx_buffer=HYREL_RX_BUFFER, banner=False)
+            if protocol == "hyrel"
+            else ControllerSettings()
+        )
         self.simulator: ControllerSimulator | None = None
         self.unplugged_until = 0.0
 
@@ -30,7 +39,8 @@ class SimController:
         if loop.time() < self.unplugged_until:
             raise LinkError("cannot open sim: no such port (it is unplugged)")
         if self.simulator is None:
-            self.simulator = ControllerSimulator(self.settings, now=loop.time())
+            kind = HyrelControllerSimulator if self.protocol == "hyrel" else ControllerSimulator
+            self.simulator = kind(self.settings, now=loop.time())
         protocol = protocol_factory()
         return SimTransport(loop, protocol, self), protocol
 

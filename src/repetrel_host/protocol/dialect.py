@@ -4,8 +4,10 @@ A dialect is pure and sans-IO, like h11's ``Connection``: commands go in with
 :meth:`Dialect.send`, bytes from the controller with :meth:`Dialect.receive_data`,
 the time wherever it matters; bytes to write come out of
 :meth:`Dialect.data_to_send` and happenings out of :meth:`Dialect.next_event`.
-The session never asks which dialect it drives: RepRap/Marlin today, Hyrel's
-native link (ACK credit, control bytes) next.
+The session never asks which dialect it drives: RepRap/Marlin (``dialects/reprap.py``)
+or Hyrel's own link (``dialects/hyrel.py``: ACK credit, control bytes). What only one of
+them can do (drop what the controller holds, hold it at the end of a move) is asked for
+all the same, and the answer says whether it was done.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ class Statistics:
     pings: int = 0  # probes sent
     stalls_recovered: int = 0  # timeouts answered by a probe
     bytes_sent: int = 0
+    lost_acks: int = 0  # Hyrel's link: lines that ran whose ACK never came
 
 
 class Dialect(Protocol):
@@ -36,11 +39,33 @@ class Dialect(Protocol):
     def start(self, now: float) -> None:
         """Greet the controller: the first bytes to send set up the numbering."""
 
-    def send(self, command: str, tag: object = None) -> None:
-        """Queue one clean command; ``tag`` comes back in its events."""
+    @property
+    def pause_command(self) -> str | None:
+        """The command that makes the controller itself wait for :meth:`end_wait` (M0 on
+        Hyrel's link); None: the host holds the job at an M0 instead."""
+
+    def send(
+        self, command: str, tag: object = None, *, confirm: bool = False, urgent: bool = False
+    ) -> None:
+        """Queue one clean command; ``tag`` comes back in its events. ``confirm``: its
+        :class:`LineAcknowledged` waits until the controller ran it, so that its reply
+        is complete (a command's); ``urgent``: ahead of what the controller holds, where
+        the link can say so (the safe stop after :meth:`abort`)."""
 
     def send_urgent(self, command: str) -> None:
-        """Put ``command`` on the wire at once, ahead of anything queued (M112)."""
+        """Put ``command`` on the wire at once, ahead of anything queued (M112, M108)."""
+
+    def abort(self) -> bool:
+        """Have the controller drop every line it holds and has not run; False when the
+        link cannot (the lines sent run first)."""
+
+    def hold(self, at_layer_end: bool = False) -> bool:
+        """Have the controller stop at the end of the move (or layer) and hold the rest
+        until :meth:`end_wait`; False when the link cannot (the host stops feeding and
+        lets the controller run what it has)."""
+
+    def end_wait(self) -> None:
+        """End the controller's wait: a hold, the :attr:`pause_command`."""
 
     def request_sync(self) -> None:
         """No more lines for now: have the controller confirm every line sent."""

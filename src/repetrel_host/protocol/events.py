@@ -29,6 +29,9 @@ class ProbeKind(Enum):
     # it was; its "ok T:..." says so. For controllers whose answer to a bad
     # checksum does not name the line they expect (found at the greeting).
     COMMAND = "command"
+    # M115, which the controller answers as it runs it, once every line before it ran:
+    # for links that have no way to ask for a line again (Hyrel's own).
+    ANSWER = "answer"
 
 
 @dataclass(frozen=True, slots=True)
@@ -61,10 +64,12 @@ class ResendRequested:
 
 @dataclass(frozen=True, slots=True)
 class ControllerMessage:
-    """A line that is not flow control: echo, comments, Hyrel reports, busy, line errors."""
+    """A line that is not flow control: echo, comments, Hyrel reports, busy, line errors.
+    ``tag`` is the tag of the line it names by number (Hyrel's ``>ER: ... line 12``), if any."""
 
     reply: replies.Reply
     text: str
+    tag: object = None
 
 
 @dataclass(frozen=True, slots=True)

@@ -51,7 +51,7 @@ def frame(command: str, number: int | None = None, checksum: bool = False) -> by
     return body + b"\n"
 
 
-def urgent(line: bytes) -> bytes:
+def mark_urgent(line: bytes) -> bytes:
     """A framed line marked urgent: the controller runs it ahead of what it holds."""
     return bytes([Control.URGENT]) + line
 

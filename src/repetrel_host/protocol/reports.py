@@ -5,9 +5,9 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass, field
 
-# A line that is a temperature report (M105's answer, an auto-report, a heat-up's):
-# it starts with a reading.
-_REPORT = re.compile(r"^\s*(?:ok\s+)?[TBC]\d*:\s*-?\d")
+# A line that is a temperature report (M105's answer, an auto-report, a heat-up's, a
+# Hyrel status report ">ST: T:..."): it starts with a reading.
+_REPORT = re.compile(r"^\s*(?:ok\s+|>[A-Z]{2}:\s*)?[TBC]\d*:\s*-?\d")
 _READING = re.compile(r"(?<![\w@])([TBC]\d*):\s*(-?\d+(?:\.\d+)?)(?:\s*/\s*(-?\d+(?:\.\d+)?))?")
 # "FIRMWARE_NAME:Marlin 2.1.2 (Jan 1 2024) SOURCE_CODE_URL:... PROTOCOL_VERSION:1.0 ..."
 _FIELD = re.compile(r"(?:^|\s)([A-Z][A-Z0-9_]+):")
@@ -65,3 +65,71 @@ class Firmware:
         if "FIRMWARE_NAME" not in fields:
             return None
         return cls(fields, capabilities, tuple(lines))
+
+
+_REPORT_LEVEL = re.compile(r"^>IN:\s*(?:\d+:\s?)?")
+_COLUMNS = re.compile(r"\s{2,}")
+_FIGURE = re.compile(r"-?\d")
+
+
+@dataclass(frozen=True, slots=True)
+class JobReport:
+    """The M773 job report a Hyrel controller sends at M30 after ``M772 S1``: its rows as
+    text, and the rows that hold figures as {label: [values]}, e.g. ``"Totals":
+    ["12.5", "0.317"]`` (time in seconds, distance in metres) or
+    ``"approx filament (PI*d)": ["0.132 m"]``."""
+
+    lines: tuple[str, ...]
+    complete: bool = True  # its "End M773" line came
+
+    @property
+    def fields(self) -> dict[str, list[str]]:
+        found: dict[str, list[str]] = {}
+        for line in self.lines:
+            label, *values = _COLUMNS.split(line.strip())
+            if label and values and _FIGURE.match(values[0]):
+                found[label.rstrip(":")] = values
+        return found
+
+    @property
+    def text(self) -> str:
+        return "\n".join(self.lines)
+
+
+class ReportReader:
+    """Picks the M773 report out of the controller's lines as they come: the ``>IN:`` lines
+    from ``Begin M773`` to ``End M773``, and the rows of stars around them."""
+
+    def __init__(self) -> None:
+        self.report: JobReport | None = None  # the latest, complete or as far as it came
+        self._rows: list[str] | None = None  # the report's rows while it comes
+        self._closing = False  # its End came: a row of stars may follow
+        self._held: tuple[str, str] | None = None  # a row of stars: the report's, if Begin follows
+
+    def feed(self, text: str) -> list[str]:
+        """The lines that are not the report's, to be shown as they are."""
+        if not text.startswith(">IN:"):
+            return [text]
+        body = _REPORT_LEVEL.sub("", text)
+        stars = bool(body) and set(body) == {"*"}
+        rows = self._rows
+        if rows is not None:
+            closing = self._closing
+            if not closing or stars:
+                rows.append(body)
+                self._closing = closing or "End M773" in body
+                self.report = JobReport(tuple(rows), complete=self._closing)
+                if not closing:
+                    return []
+                self._rows = None
+                return []
+            self._rows = None  # the report is over: this line is not its
+        if "Begin M773" in body:
+            self._rows = [self._held[1], body] if self._held is not None else [body]
+            self._held = None
+            self._closing = False
+            self.report = JobReport(tuple(self._rows), complete=False)
+            return []
+        passed = [self._held[0]] if self._held is not None else []
+        self._held = (text, body) if stars else None
+        return passed if stars else [*passed, text]

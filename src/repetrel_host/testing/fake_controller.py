@@ -37,6 +37,7 @@ from typing import Any, BinaryIO, TextIO
 from repetrel_host.errors import LinkError
 from repetrel_host.testing.hyrel_simulator import RX_BUFFER as HYREL_RX_BUFFER
 from repetrel_host.testing.hyrel_simulator import HyrelControllerSimulator
+from repetrel_host.testing.hyrel_simulator import check_faults as check_hyrel_faults
 from repetrel_host.testing.simulator import (
     ControllerSettings,
     ControllerSimulator,
@@ -335,6 +336,8 @@ def settings_from_args(args: argparse.Namespace) -> ControllerSettings:
         )
     try:
         faults = Faults.parse(args.faults)
+        if args.protocol == "hyrel":
+            check_hyrel_faults(faults)
     except ValueError as exc:
         raise SystemExit(f"hyrel-fake-controller: --faults: {exc}") from None
     return ControllerSettings(

@@ -13,20 +13,35 @@ heaters, faults); the link is Hyrel's:
   0x09 as a line's first byte runs it ahead of the queue;
 - ``>MC:M<n>: ...:`` as M-codes are processed, ``M115`` answered with a ``>Hy:`` identity;
 - the watchdog: after ``watchdog`` seconds without a byte from the host, every extruder
-  stops (here: the head's heater target goes to 0) and ``>ER:`` says so.
+  stops (here: the head's heater target goes to 0) and ``>ER:`` says so;
+- ``M0``/``M1`` wait until end-wait; ``M772 S<mask>`` resets the job metrics and, with
+  bit 0, arms the ``M773`` report that ``M30`` sends (``M773`` sends it at once), in the
+  reference's form (hyrel-gcode-reference.txt, M773);
+- faults: ``corrupt`` and ``garble`` as on Marlin's link, ``drop_ok`` and
+  ``duplicate_ok`` for ACK bytes; the others are Marlin's ways and refused here.
 
 Choices of this fake where the notes are silent (a real controller may differ): the
 temperature report's form (``>ST: T:... B:...``), the messages' wording, a layer pause
-held like a move pause.
+held like a move pause, urgent lines run in the order they came (after the command in
+hand), owed ACKs still sent after an abort, the ``>Hy:`` line it says when it restarts,
+the report sent before M30's notice.
 """
 
 from __future__ import annotations
 
+import math
+import re
 from collections.abc import Callable
+from dataclasses import dataclass, fields
 
 from repetrel_host.gcode.commands import command_word
 from repetrel_host.protocol.hyrel import Control, read_line
-from repetrel_host.testing.simulator import ControllerSettings, ControllerSimulator, _Command
+from repetrel_host.testing.simulator import (
+    ControllerSettings,
+    ControllerSimulator,
+    Faults,
+    _Command,
+)
 
 ACK_HEADROOM = 2048  # bytes free in the receive buffer for a line's ACK to go
 RX_BUFFER = 8192
@@ -36,11 +51,98 @@ M115_REPLY = (
     b"MACHINE_TYPE:HYREL_HYDRA HYREL_PROTOCOL:1\n"
 )
 PING_REPLY = b">Hy: repetrel-host fake controller (Hyrel link)\n"
+RESTART_REPLY = b">Hy: repetrel-host fake controller (Hyrel link) restarted\n"
 # M-codes whose processing the controller reports with a >MC: notice.
 NOTICED = frozenset(
     {"M0", "M1", "M6", "M30", "M104", "M106", "M107", "M109", "M140", "M190", "M772"}
 )
 _CONTROL_BYTES = frozenset(int(byte) for byte in Control) - {Control.URGENT, Control.ACK}
+# Faults of this link: lines corrupted on the way, replies garbled, ACKs lost or doubled.
+LINK_FAULTS = frozenset({"corrupt", "garble", "drop_ok", "duplicate_ok", "seed"})
+_MOVES = frozenset({"G0", "G1", "G2", "G3"})
+_AXIS = re.compile(r"([XYZE])\s*(-?\d*\.?\d+)", re.IGNORECASE)
+
+
+def check_faults(faults: Faults) -> None:
+    """ValueError for a fault that is Marlin's way, not this link's."""
+    default = Faults()
+    for item in fields(Faults):
+        if item.name not in LINK_FAULTS and getattr(faults, item.name) != getattr(
+            default, item.name
+        ):
+            raise ValueError(
+                f"'{item.name}' is Marlin's, not on Hyrel's link "
+                f"(there: {', '.join(sorted(LINK_FAULTS))})"
+            )
+
+
+@dataclass(slots=True)
+class Metrics:
+    """What M773 reports: moves' time and distance, printing (with E) or not, and E."""
+
+    printing_time: float = 0.0
+    printing_distance: float = 0.0  # mm
+    travel_time: float = 0.0
+    travel_distance: float = 0.0
+    extruded: float = 0.0  # mm of E
+    position: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+    relative: bool = False  # G91
+    relative_e: bool = False  # M83
+
+    def move(self, command: str, seconds: float) -> None:
+        x, y, z, e = self.position
+        values = {axis.upper(): float(value) for axis, value in _AXIS.findall(command)}
+        new = [x, y, z, e]
+        for index, axis in enumerate("XYZE"):
+            if axis in values:
+                step = self.relative or (axis == "E" and self.relative_e)
+                new[index] = (new[index] if step else 0.0) + values[axis]
+        distance = math.dist((x, y, z), new[:3])
+        if new[3] > e:
+            self.printing_time += seconds
+            self.printing_distance += distance
+            self.extruded += new[3] - e
+        else:
+            self.travel_time += seconds
+            self.travel_distance += distance
+        self.position = (new[0], new[1], new[2], new[3])
+
+    def set_mode(self, word: str, command: str) -> None:
+        if word in ("G90", "G91"):
+            self.relative = word == "G91"
+        elif word in ("M82", "M83"):
+            self.relative_e = word == "M83"
+        elif word == "G92":
+            values = {axis.upper(): float(value) for axis, value in _AXIS.findall(command)}
+            x, y, z, e = self.position
+            self.position = (
+                values.get("X", x), values.get("Y", y), values.get("Z", z), values.get("E", e)
+            )  # fmt: skip
+
+    def report(self) -> list[str]:
+        """The M773 report's lines, as the reference's sample shows them."""
+        stars = "*" * 66
+        total_time = self.printing_time + self.travel_time
+        total_distance = (self.printing_distance + self.travel_distance) / 1000
+        rows = [
+            stars,
+            "**  Begin M773 - print job metrics Report",
+            stars,
+            "",
+            f"{'':22}Time (s)    Dist (m)",
+            f"{'':22}--------    --------",
+            f"{'Totals:':22}{total_time:8.1f}{total_distance:12.3f}",
+            "",
+            f"{'Printing moves:':22}{self.printing_time:8.1f}{self.printing_distance / 1000:12.3f}",
+            f"{'Non-printing moves':22}{self.travel_time:8.1f}{self.travel_distance / 1000:12.3f}",
+            "",
+            f"{'approx filament (E)':26}{self.extruded / 1000:.3f} m",
+            "",
+            stars,
+            "**  End M773 Report",
+            stars,
+        ]
+        return [f">IN:  50: {row}" for row in rows]
 
 
 class HyrelControllerSimulator(ControllerSimulator):
@@ -61,10 +163,17 @@ class HyrelControllerSimulator(ControllerSimulator):
         self.owed_acks = 0
         self.acks_sent = 0
         self.watchdog_trips = 0
-        self._held = False  # a pause byte: nothing runs until end-wait
+        self.metrics = Metrics()
+        self._reports = 0  # M772's mask: bit 0, the M773 report at M30
+        self._held = False  # a pause byte, an M0: nothing runs until end-wait
         self._heard_at: float | None = None  # the host's last byte (armed by the first)
         settings = settings or ControllerSettings(rx_buffer=RX_BUFFER, banner=False)
+        check_faults(settings.faults)
         super().__init__(settings, now=now, on_execute=on_execute)
+
+    def control(self, text: str, now: float) -> None:
+        super().control(text, now)
+        check_faults(self.faults)
 
     # --- the link ------------------------------------------------------------------
 
@@ -90,10 +199,23 @@ class HyrelControllerSimulator(ControllerSimulator):
 
     def _pay_acks(self, now: float) -> None:
         free = self.settings.rx_buffer - 1 - len(self._rx)
-        if self.owed_acks and free >= self.ack_headroom:
-            self._reply(bytes([Control.ACK]) * self.owed_acks, now)
-            self.acks_sent += self.owed_acks
-            self.owed_acks = 0
+        owed = self.owed_acks
+        if not owed or free < self.ack_headroom:
+            return
+        self.owed_acks = 0
+        self.acks_sent += owed
+        faults = self.faults
+        if faults.drop_ok or faults.duplicate_ok:
+            counts = self.counts
+            for _ in range(owed):
+                if self._chance(faults.drop_ok):
+                    counts.dropped_oks += 1
+                    owed -= 1
+                elif self._chance(faults.duplicate_ok):
+                    counts.duplicated_oks += 1
+                    owed += 1
+        if owed:
+            self._reply(bytes([Control.ACK]) * owed, now)
 
     def _take_line(self, raw: bytes, now: float) -> None:
         line = read_line(raw)
@@ -105,11 +227,16 @@ class HyrelControllerSimulator(ControllerSimulator):
             return
         word = command_word(line.command)
         self._count_command(word, now)
-        command = _Command(line.command, word, line.number)
-        if line.urgent:
-            self._queue.appendleft(command)
-        else:
-            self._queue.append(command)
+        command = _Command(line.command, word, line.number, urgent=line.urgent)
+        queue = self._queue
+        if not line.urgent:
+            queue.append(command)
+            return
+        # Ahead of the queue, after the command in hand and urgent lines that came before.
+        place = 0
+        while place < len(queue) and (queue[place].urgent or queue[place].started):
+            place += 1
+        queue.insert(place, command)
 
     def _act(self, control: Control, now: float) -> None:
         if control is Control.PING:
@@ -150,14 +277,34 @@ class HyrelControllerSimulator(ControllerSimulator):
 
     def _answer(self, command: _Command, now: float) -> None:
         word = command.word
+        if word in _MOVES:
+            self.metrics.move(command.text, self.settings.move_time)
+            return
         self._set_heater(command, now)
+        self.metrics.set_mode(word, command.text)
         if word == "M105":
             self._reply(f">ST: {self._temperatures(now)}\n".encode(), now)
         elif word == "M115":
             self._reply(M115_REPLY, now)
-        elif word in NOTICED:
+        elif word == "M772":
+            match = re.search(r"S\s*(\d+)", command.text)
+            self._reports = int(match.group(1)) if match else 0
+            self.metrics = Metrics()
+        elif word == "M773" or (word == "M30" and self._reports & 1):
+            self._reply("".join(f"{line}\n" for line in self.metrics.report()).encode(), now)
+        if word in ("M0", "M1"):
+            self._held = True  # until end-wait
+        if word in NOTICED:
             fields = "".join(f" {part}:" for part in command.text.split()[1:] if part[:1] in "TSPE")
             self._reply(f">MC:{word}:{fields}\n".encode(), now)
+
+    def _reboot(self, now: float) -> None:
+        super()._reboot(now)
+        self.owed_acks = 0
+        self._held = False
+
+    def _boot_banner(self) -> bytes:
+        return RESTART_REPLY
 
     # --- the watchdog --------------------------------------------------------------
 

@@ -45,6 +45,7 @@ import pytest
 if TYPE_CHECKING:
     import repetrel_host as rh
     from repetrel_host.events import PrinterEvent
+    from repetrel_host.planning import LinkSettings
     from repetrel_host.testing.fake_controller import BuiltInFake
 
 FAKE = "fake"
@@ -59,6 +60,8 @@ _OPTIONS = {
     "flow": "flow control, buffered or unbuffered (also HYREL_FLOW); default: the machine "
     "profile's",
     "baud": "baud rate (also HYREL_BAUD); default: the machine profile's (115200)",
+    "protocol": "line protocol, reprap or hyrel (Hyrel's own link; also HYREL_PROTOCOL); "
+    "default: the machine profile's (reprap); the fake speaks it too",
 }
 # Seconds a session on real hardware may take to be READY again before a test.
 READY_TIMEOUT = 30.0
@@ -131,6 +134,7 @@ class HyrelOptions:
     loadout: str | None = None
     flow: str | None = None
     baud: int | None = None
+    protocol: str | None = None
 
     @property
     def hardware(self) -> bool:
@@ -153,9 +157,11 @@ class HyrelOptions:
                 if ini
                 else None
             )
-        flow, baud = values["flow"], values["baud"]
+        flow, baud, protocol = values["flow"], values["baud"], values["protocol"]
         if flow is not None and flow[0] not in ("buffered", "unbuffered"):
             raise pytest.UsageError(f"{flow[1]}: '{flow[0]}' is not buffered or unbuffered")
+        if protocol is not None and protocol[0] not in ("reprap", "hyrel"):
+            raise pytest.UsageError(f"{protocol[1]}: '{protocol[0]}' is not reprap or hyrel")
         if baud is not None and not (baud[0].isdigit() and int(baud[0]) > 0):
             raise pytest.UsageError(f"{baud[1]}: '{baud[0]}' is not a baud rate")
 
@@ -169,6 +175,7 @@ class HyrelOptions:
             loadout=value("loadout"),
             flow=value("flow"),
             baud=int(baud[0]) if baud is not None else None,
+            protocol=value("protocol"),
         )
 
 
@@ -867,7 +874,7 @@ class HyrelController:
 
 
 # The fake's options a test may not set: the plugin sets them itself.
-_PLUGIN_OWNED = frozenset({"link", "log", "received", "stats", "control"})
+_PLUGIN_OWNED = frozenset({"link", "log", "received", "stats", "control", "protocol"})
 
 
 def _fake_arguments(item: pytest.Item) -> list[str]:
@@ -877,6 +884,8 @@ def _fake_arguments(item: pytest.Item) -> list[str]:
         owned = _PLUGIN_OWNED & set(marker.kwargs)
         if marker.args or owned:
             what = f"{', '.join(sorted(owned))} is the plugin's" if owned else "name each setting"
+            if "protocol" in owned:
+                what += " (--hyrel-protocol: the session speaks it too)"
             pytest.fail(f"hyrel_fake: {what} (as in hyrel_fake(heat_rate=20))", pytrace=False)
         for name, value in marker.kwargs.items():
             option = "--" + name.replace("_", "-")
@@ -924,9 +933,9 @@ def hyrel_controller(
         return
     from repetrel_host.testing.fake_controller import BuiltInFake
 
-    baud, _ = _link(hyrel_options)
-    arguments = ["--bandwidth", str(baud / 10), "--latency", "0.001"]
-    arguments += _fake_arguments(request.node)
+    link = _link(hyrel_options)
+    arguments = ["--bandwidth", str(link.baud / 10), "--latency", "0.001"]
+    arguments += ["--protocol", link.protocol, *_fake_arguments(request.node)]
     log = tmp_path_factory.mktemp("hyrel-fake") / "executed.log"
     fake = BuiltInFake(log, arguments, control=True)
     fake.start()
@@ -936,7 +945,7 @@ def hyrel_controller(
         fake.stop()
 
 
-def _link(options: HyrelOptions) -> tuple[int, rh.FlowControl]:
+def _link(options: HyrelOptions) -> LinkSettings:
     from repetrel_host.config import load_user_config
     from repetrel_host.planning import JobRequest, LinkRequest, explicit_machine, link_settings
     from repetrel_host.protocol.flow import FlowMode
@@ -944,7 +953,8 @@ def _link(options: HyrelOptions) -> tuple[int, rh.FlowControl]:
     loadout = Path(options.loadout) if options.loadout else None
     machine = explicit_machine(JobRequest(loadout, options.machine), load_user_config(None))
     flow = FlowMode(options.flow) if options.flow else None
-    return link_settings(LinkRequest(baud=options.baud, flow=flow), machine)
+    request = LinkRequest(baud=options.baud, flow=flow, protocol=options.protocol)
+    return link_settings(request, machine)
 
 
 @pytest.fixture(scope=_scope)
@@ -959,13 +969,14 @@ def _hyrel_session(
     deadline = SAFE_STOP_DEADLINE if options.hardware else FAKE_SAFE_STOP_DEADLINE
 
     async def open_session() -> _Session:
-        baud, flow = _link(options)
+        link = _link(options)
         printer = await rh.connect(
             hyrel_controller.port,
             machine=options.machine,
             loadout=options.loadout,
-            flow=flow,
-            baud=baud,
+            flow=link.flow,
+            baud=link.baud,
+            protocol=link.protocol,
             poll_interval=POLL_INTERVAL,
         )
         printer.tap_wire(recorder.tap)

@@ -155,6 +155,7 @@ class _Command:
     word: str
     number: int | None
     started: bool = False
+    urgent: bool = False  # Hyrel's link: ahead of the queue
 
 
 class ControllerSimulator:
@@ -592,7 +593,10 @@ class ControllerSimulator:
         self._rx.clear()
         self._line.clear()
         self._planner_end = self._busy_until = now
-        self._reply(b"start\n", now)
+        self._reply(self._boot_banner(), now)
+
+    def _boot_banner(self) -> bytes:
+        return b"start\n"
 
     # --- replies ------------------------------------------------------------
 

@@ -6,18 +6,25 @@ as the RepRap dialect counts them, and each ACK releases the oldest line on the 
 There is no resend: a line the controller refuses (its checksum) cannot be sent again in
 its place, so the stream fails, naming it.
 
-An ACK says "received", not "run". What has run is learned from the controller's own
-answers: when every line sent must be confirmed (the end of a job, before a host action)
-the host sends ``M115``, whose identity line (``FIRMWARE_NAME:>Hy: ...``) the controller
-writes when it processes it, after every line before it was processed (moves planned,
-waits such as a heat-up or a dwell over). Up to 8 KB of job may wait in the controller
-when the last ACK comes: the job ends with that answer, the link kept alive until then.
+An ACK says "received", not "run". What has run is learned from what the controller
+writes as it runs commands, in order: ``M115``'s identity line (``FIRMWARE_NAME:>Hy:
+...``), which says that every line before that M115 ran too, and the ``>MC:M<n>: ...``
+notices of M-codes (each is matched to the oldest line of that M-code not yet known to
+have run). Where every line sent must be known to have run (the end of a job, before a
+host action, a command's reply) and nothing says so yet, the host sends an ``M115`` of its
+own once every line is received: a *sync*. Up to 8 KB of job may wait in the controller
+when the last ACK comes: a job ends when its last line is known to have run.
 
 The controller stops its extruders after 30 s without a byte from the host: the dialect
 sends the watchdog byte whenever it has been quiet for :data:`KEEPALIVE` seconds, through
 heat-ups, dwells and pauses. While lines wait for their ACKs it asks for a status report
 (0x05) now and then: an answer means the controller is there, its buffer full behind a
-long command; none, several times, means it is gone.
+long command; none, several times, means it is gone. Waiting that long also sends a sync,
+past the window if need be: its answer releases lines whose ACK was lost.
+
+Cancel is abort (0x08): the controller drops what it holds, and the safe stop goes as
+urgent lines (0x09 first). A pause is 0x02 (end of the move) or 0x03 (end of the layer),
+an M0 is the controller's own, and both end with end-wait (0x01).
 """
 
 from __future__ import annotations
@@ -41,16 +48,21 @@ from repetrel_host.protocol.events import (
     ProbeKind,
 )
 from repetrel_host.protocol.flow import FlowControl
-from repetrel_host.protocol.hyrel import Control, HostReceiver, frame, urgent
+from repetrel_host.protocol.hyrel import Control, HostReceiver, frame, mark_urgent, parse_notice
 
-HELLO_TIMEOUT = 2.0  # for the ping's answer
+# The window is the controller's headroom, not its buffer: it ACKs lines while 2 KB of
+# its 8 KB are free, so 2 KB unacknowledged keep the buffer from overflowing.
+DEFAULT_WINDOW = FlowControl(rx_buffer=2048, max_lines=256)
+HELLO_TIMEOUT = 2.0  # for the ping's answer; a late answer within it is not a reboot
 HELLO_ATTEMPTS = 5
 KEEPALIVE = 10.0  # the longest quiet from the host: well inside the 30 s watchdog
+STATUS_ATTEMPTS = 4  # unanswered status requests in a row: the controller is gone
 STATUS_AFTER = 5.0  # lines waiting this long for an ACK: ask whether the controller is there
-STATUS_ATTEMPTS = 4  # unanswered status requests in a row: it is gone
-SYNC_COMMAND = "M115"  # answered when processed: every line before it ran
-SYNC_RETRY = 30.0  # a sync unanswered this long, nothing in flight: its answer was lost
-RECENT = 1024  # lines remembered by number, to name the one an error report names
+SYNC_COMMAND = "M115"  # answered when run: every line before it ran
+SYNC_RETRY = 30.0  # an M115 unanswered this long: its answer may be lost, another may go
+ACK_GRACE = 1.0  # a line ran but its ACK is not here: lost, once this long has passed
+HOST_RESERVE = 32  # bytes of the window kept for the host's own lines (a sync past it)
+RECENT = 1024  # lines remembered by number (an error names one), M-codes awaiting notices
 _LINE_NUMBER = re.compile(r"\bline\s+(\d+)|\bN(\d+)\b", re.IGNORECASE)
 _FATAL = re.compile(r"checksum|watchdog", re.IGNORECASE)
 
@@ -64,45 +76,68 @@ class Phase(Enum):
 
 @dataclass(slots=True)
 class _Sent:
-    """A line on the wire, waiting for its ACK."""
+    """A line on the wire."""
 
     number: int | None
     command: str
+    word: str
     tag: object
     size: int
-    host_line: bool = False  # the sync's M115, an urgent line: not the caller's
-    lines_before: int = 0  # the caller's lines sent before this one
-    seq: int = 0  # its place on the wire, the host's lines counted
+    seq: int  # its place on the wire, the host's own lines counted
+    host_line: bool = False  # a sync, an urgent M112: not the caller's
+    confirm: bool = False  # told once it ran, not once it was received
 
 
 class HyrelDialect:
     """The session's dialect for a Hyrel controller on its own link.
 
+    ``flow``: the window (the controller's headroom; :data:`DEFAULT_WINDOW`);
     ``numbered``: lines carry ``N<n>``, so that the controller's reports name them;
-    ``checksum``: they carry the additive checksum too (a mismatch fails the stream).
+    ``checksum``: they carry the additive checksum too (a mismatch fails the stream);
+    ``reply_timeout``: seconds without a word from the controller, while lines wait for
+    their ACKs, after which it is taken as gone.
     """
 
+    pause_command = "M0"  # the controller waits at M0 itself, until end-wait
+
     def __init__(
-        self, flow: FlowControl | None = None, numbered: bool = True, checksum: bool = False
+        self,
+        flow: FlowControl | None = None,
+        numbered: bool = True,
+        checksum: bool = False,
+        *,
+        reply_timeout: float = STATUS_AFTER * STATUS_ATTEMPTS,
     ) -> None:
-        self.flow = flow or FlowControl()
+        self.flow = flow = flow or DEFAULT_WINDOW
         self.numbered = numbered
         self.checksum = checksum
         self.stats = Statistics()
+        self._status_after = min(STATUS_AFTER, reply_timeout / STATUS_ATTEMPTS)
+        self._line_limit = flow.line_limit
+        self._host_byte_limit = flow.byte_limit
+        self._byte_limit = max(1, flow.byte_limit - min(HOST_RESERVE, flow.byte_limit // 4))
         self._phase = Phase.IDLE
-        self._pending: deque[tuple[str, object]] = deque()
-        self._in_flight: deque[_Sent] = deque()
+        self._pending: deque[tuple[str, str, object, bool, bool]] = deque()  # and its word...
+        self._in_flight: deque[_Sent] = deque()  # waiting for their ACK
         self._in_flight_bytes = 0
-        self._next_number = 1
-        self._lines_sent = 0  # the caller's lines put on the wire
-        self._seq = 0  # every line put on the wire
-        self._confirmed = 0  # of those, how many are known to have run
-        self._sync_requested = False
+        self._stale_acks = 0  # ACKs that may still come for lines an abort dropped
+        self._awaiting: deque[_Sent] = deque()  # confirm lines not yet known to have run
+        self._mcodes: deque[_Sent] = deque(maxlen=RECENT)  # M-codes a notice may name
         # Every M115 on the wire, the caller's and the host's syncs, in order: each
         # "FIRMWARE_NAME:" answer is the oldest one's.
         self._m115s: deque[_Sent] = deque()
-        self._sync_sent_at: float | None = None  # the last sync, while one is unanswered
+        self._stale_answers = 0  # answers that may still come for M115s an abort dropped
+        self._answer_fragment = False  # the last line was an answer cut in two
         self._recent: dict[int, object] = {}  # line number -> tag, of the last RECENT lines
+        self._next_number = 1
+        self._seq = 0
+        self._last_caller_seq = 0
+        self._confirmed_seq = 0  # every line up to this one ran
+        self._sync_requested = False
+        self._sync_sent_at: float | None = None  # an M115 after the last caller line
+        self._stalled = False  # lines waited for their ACK: a sync may go past the window
+        self._overdue_seq = 0  # lines up to this one ran; their ACKs are overdue...
+        self._overdue_at: float | None = None  # ...and taken as lost from then on
         self._receiver = HostReceiver()
         self._outgoing = bytearray()
         self._events: deque[Event] = deque()
@@ -122,33 +157,73 @@ class HyrelDialect:
         self._last_sent_at = self._last_progress_at = now
         self._ping(now)
 
-    def send(self, command: str, tag: object = None) -> None:
-        if command_word(command) == "M110":
+    def send(
+        self, command: str, tag: object = None, *, confirm: bool = False, urgent: bool = False
+    ) -> None:
+        word = command_word(command)
+        if word == "M110":
             raise UsageError("M110 sets line numbers, which the host owns; it cannot be queued")
-        self._pending.append((command, tag))
+        self._pending.append((command, word, tag, confirm, urgent))
+        self._sync_requested = False
 
     def send_urgent(self, command: str) -> None:
-        """Ahead of everything the controller holds (0x09 first)."""
-        wire = urgent(frame(command))
-        sent = _Sent(None, command, None, len(wire), True, self._lines_sent)
-        self._push(sent, wire, self._last_sent_at)
+        """Ahead of everything: M108 is end-wait (0x01); M112 is abort (0x08), then an
+        urgent M112; anything else an urgent line."""
+        word = command_word(command)
+        if word == "M108":
+            self._outgoing.append(Control.END_WAIT)
+            return
+        if word == "M112":
+            self.abort()
+        self._transmit(command, word, None, self._last_sent_at, host_line=True, urgent=True)
+
+    def abort(self) -> bool:
+        """Abort (0x08): the controller drops what it holds. What it would have said of
+        those lines (ACKs, M115 answers) may still come, and is not taken for what follows."""
+        if self._phase is not Phase.RUNNING:
+            return False
+        self._outgoing.append(Control.ABORT)
+        self._stale_acks += len(self._in_flight)
+        self._in_flight.clear()
+        self._in_flight_bytes = 0
+        self._overdue_at = None
+        self._stale_answers += len(self._m115s)
+        self._m115s.clear()
+        self._sync_sent_at = None
+        return True
+
+    def hold(self, at_layer_end: bool = False) -> bool:
+        if self._phase is not Phase.RUNNING:
+            return False
+        self._outgoing.append(
+            Control.PAUSE_AT_LAYER_END if at_layer_end else Control.PAUSE_AT_MOVE_END
+        )
+        return True
+
+    def end_wait(self) -> None:
+        if self._phase is Phase.RUNNING:
+            self._outgoing.append(Control.END_WAIT)
 
     def request_sync(self) -> None:
         self._sync_requested = True
 
     def cancel_pending(self) -> list[tuple[str, object]]:
-        dropped = list(self._pending)
+        dropped = [(command, tag) for command, _, tag, _, _ in self._pending]
         self._pending.clear()
         return dropped
 
     @property
     def wants_lines(self) -> bool:
-        return self._phase is not Phase.FAILED and len(self._pending) < self.flow.line_limit
+        return self._phase is not Phase.FAILED and len(self._pending) < self._line_limit
 
     @property
     def is_done(self) -> bool:
-        """Every line queued so far was received and ran (the sync's answer says so)."""
-        return not self._pending and not self._in_flight and self._confirmed == self._lines_sent
+        """Every line queued so far ran (the controller's answers and notices say so)."""
+        return (
+            self._phase is Phase.RUNNING
+            and not self._pending
+            and self._confirmed_seq >= self._last_caller_seq
+        )
 
     @property
     def is_ready(self) -> bool:
@@ -156,7 +231,7 @@ class HyrelDialect:
 
     @property
     def probe(self) -> ProbeKind:
-        return ProbeKind.COMMAND  # a real command whose answer confirms
+        return ProbeKind.ANSWER
 
     @property
     def failure(self) -> Failed | None:
@@ -166,18 +241,12 @@ class HyrelDialect:
 
     def data_to_send(self, now: float) -> bytes:
         if self._phase is Phase.RUNNING:
-            while self._pending and self._has_room():
-                command, tag = self._pending.popleft()
-                self._transmit(command, tag, now)
-            if (
-                self._sync_requested
-                and not self._pending
-                and self._confirmed < self._lines_sent
-                and self._sync_sent_at is None
-                and self._has_room()
-            ):
-                self._transmit(SYNC_COMMAND, None, now, host_line=True)
-                self._sync_sent_at = now
+            pending = self._pending
+            while pending and self._has_room(pending[0][0], pending[0][4]):
+                command, word, tag, confirm, urgent_line = pending.popleft()
+                self._transmit(command, word, tag, now, confirm=confirm, urgent=urgent_line)
+            if self._wants_sync() and self._has_room(SYNC_COMMAND, False, host_line=True):
+                self._transmit(SYNC_COMMAND, SYNC_COMMAND, None, now, host_line=True)
         if not self._outgoing:
             return b""
         self._last_sent_at = now
@@ -185,45 +254,70 @@ class HyrelDialect:
         self._outgoing.clear()
         return data
 
-    def _has_room(self) -> bool:
-        flow = self.flow
+    def _wants_sync(self) -> bool:
+        """Lines must be known to have run and nothing will say so: send an M115 once
+        every line is received (so that an answer an abort left behind came first), or
+        once lines waited too long for their ACK (to release those whose ACK was lost)."""
+        return (
+            self._confirmed_seq < self._last_caller_seq
+            and self._sync_sent_at is None
+            and (self._stalled or (not self._pending and not self._in_flight))
+            and (self._stalled or self._sync_requested or bool(self._awaiting))
+        )
+
+    def _has_room(self, command: str, urgent_line: bool, host_line: bool = False) -> bool:
         if not self._in_flight:
             return True  # a line longer than the window still goes, alone
-        command = self._pending[0][0] if self._pending else SYNC_COMMAND
-        size = len(command) + 1  # and its newline
+        size = len(command) + 1 + urgent_line  # its newline, its 0x09
         if self.numbered:
             size += len(str(self._next_number)) + 2  # "N<n> "
         if self.checksum:
             size += 7  # "*<sum>": a line of 96 ASCII bytes sums to at most 5 digits
-        return (
-            len(self._in_flight) < flow.line_limit
-            and self._in_flight_bytes + size <= flow.byte_limit
-        )
+        limit = self._host_byte_limit if host_line else self._byte_limit
+        lines = len(self._in_flight) - host_line  # a sync may go past the line limit
+        return lines < self._line_limit and self._in_flight_bytes + size <= limit
 
-    def _transmit(self, command: str, tag: object, now: float, host_line: bool = False) -> None:
+    def _transmit(
+        self,
+        command: str,
+        word: str,
+        tag: object,
+        now: float,
+        *,
+        host_line: bool = False,
+        confirm: bool = False,
+        urgent: bool = False,
+    ) -> None:
         number = self._next_number if self.numbered else None
         self._next_number += 1
         wire = frame(command, number, self.checksum)
-        sent = _Sent(number, command, tag, len(wire), host_line, self._lines_sent)
-        self._push(sent, wire, now)
-        if command_word(command) == "M115":
-            self._m115s.append(sent)
-        if number is not None:
-            self._recent[number] = tag
-            self._recent.pop(number - RECENT, None)
-        if not host_line:
-            self._lines_sent += 1
-            self.stats.lines_sent += 1
-
-    def _push(self, sent: _Sent, wire: bytes, now: float) -> None:
-        self._seq += 1
-        sent.seq = self._seq
+        if urgent:
+            wire = mark_urgent(wire)
+        self._seq = seq = self._seq + 1
+        sent = _Sent(number, command, word, tag, len(wire), seq, host_line, confirm)
         if not self._in_flight:
             self._last_progress_at = now  # the first line waiting: its ACK is due from now
         self._in_flight.append(sent)
         self._in_flight_bytes += sent.size
         self._outgoing += wire
         self.stats.bytes_sent += len(wire)
+        if number is not None:
+            self._recent[number] = tag
+            self._recent.pop(number - RECENT, None)
+        if word == "M115":
+            self._m115s.append(sent)
+            self._sync_sent_at = now
+            self._stale_answers = 0  # sent once every line was received: they came first
+            self._stalled = False
+        elif not host_line:
+            self._sync_sent_at = None  # a line after the last M115: it confirms not this one
+        if not host_line:
+            self._last_caller_seq = seq
+            self.stats.lines_sent += 1
+            if confirm:
+                self._awaiting.append(sent)
+            if word[:1] == "M" and word != "M115":
+                self._mcodes.append(sent)
 
     def _ping(self, now: float) -> None:
         self._phase = Phase.GREETING
@@ -246,17 +340,21 @@ class HyrelDialect:
                 return
 
     def _acknowledged(self, now: float) -> None:
+        if self._stale_acks:
+            self._stale_acks -= 1  # for a line an abort dropped
+            return
         if not self._in_flight:
             self.stats.unexpected_oks += 1  # an ACK nothing was owed
             return
         self._last_progress_at = now
         self._status_asked = 0
-        self._acknowledged_line(self._in_flight[0])
+        self._stalled = False
+        self._release(self._in_flight.popleft())
 
-    def _acknowledged_line(self, sent: _Sent) -> None:
-        self._in_flight.popleft()
+    def _release(self, sent: _Sent) -> None:
+        """A line leaves the window; a plain caller's line is acknowledged with it."""
         self._in_flight_bytes -= sent.size
-        if not sent.host_line:
+        if not sent.host_line and not sent.confirm:
             number = sent.number if sent.number is not None else -1
             self._events.append(LineAcknowledged(number, sent.command, sent.tag, ""))
 
@@ -264,33 +362,85 @@ class HyrelDialect:
         reply = replies.classify(text)
         self._last_progress_at = now
         self._status_asked = 0
-        if isinstance(reply, replies.HyrelReport) and reply.tag == "HY":
-            if self._phase is Phase.GREETING:
-                self._phase = Phase.RUNNING
-                self._events.append(ControllerReady(ProbeKind.COMMAND))
+        hyrel = reply if isinstance(reply, replies.HyrelReport) else None
+        if hyrel is not None and hyrel.tag == "HY":
+            self._identity(text, now)
             return
-        if "FIRMWARE_NAME:" in text and self._m115s and self._answered(self._m115s.popleft()):
-            return  # the host's own sync: not the caller's business
-        if isinstance(reply, replies.HyrelReport) and reply.tag == "ER" and _FATAL.search(text):
+        if self._is_answer(text):
+            self._answered(reply, text, now)
+            return
+        if hyrel is not None and hyrel.tag == "ER" and _FATAL.search(text):
             # A line refused cannot be sent again in its place; the watchdog stopped the
             # extruders: the job cannot go on as written.
             self._fail(FailureKind.CONTROLLER, f"the controller says: {text}", _named(text))
             return
-        self._events.append(ControllerMessage(reply, text))
+        number = _named(text) if hyrel is not None else None
+        self._events.append(ControllerMessage(reply, text, self._recent.get(number or -1)))
+        if hyrel is not None and hyrel.tag == "MC":
+            notice = parse_notice(hyrel.text)
+            if notice is not None:
+                self._noticed(notice.code, now)
 
-    def _answered(self, m115: _Sent) -> bool:
-        """An M115 ran, so did every line before it: it and they were received, whatever
-        ACKs were lost on the way (their lines leave the window). True for a host's sync."""
-        ran = m115.lines_before + (0 if m115.host_line else 1)  # a caller's M115 ran too
-        self._confirmed = max(self._confirmed, ran)
-        while self._in_flight and self._in_flight[0].seq <= m115.seq:
-            self.stats.unexpected_oks += 1  # counted the other way round: an ACK lost
-            self._acknowledged_line(self._in_flight[0])
-        if m115.host_line:
+    def _identity(self, text: str, now: float) -> None:
+        """``>Hy: ...``: the answer to a ping, or, unasked, a controller that restarted."""
+        if self._phase is Phase.GREETING:
+            self._phase = Phase.RUNNING
+            self._events.append(ControllerReady(ProbeKind.ANSWER))
+        elif now > self._hello_deadline:  # not the late answer to an earlier ping
+            self._fail(FailureKind.RESET, f"the controller restarted (it says: {text})")
+
+    def _is_answer(self, text: str) -> bool:
+        """An M115 answer, even with a byte garbled: its name or its version field (not
+        both halves of one answer that a garbled newline cut in two)."""
+        named = "FIRMWARE_NAME:" in text
+        versioned = "PROTOCOL_VERSION:" in text
+        answer = named or (versioned and not self._answer_fragment)
+        self._answer_fragment = named and not versioned
+        return answer
+
+    def _answered(self, reply: replies.Reply, text: str, now: float) -> None:
+        """An M115 ran, so did every line before it (whatever ACKs were lost on the way)."""
+        if self._stale_answers:
+            self._stale_answers -= 1  # an M115's that an abort dropped: it ran before
+            return
+        if not self._m115s:
+            self._events.append(ControllerMessage(reply, text))  # nobody asked
+            return
+        m115 = self._m115s.popleft()
+        if not m115.host_line:
+            self._events.append(ControllerMessage(reply, text))  # the caller's answer
+        if not self._m115s:
             self._sync_sent_at = None
-            if self._confirmed == self._lines_sent:
-                self._sync_requested = False
-        return m115.host_line
+        self._confirm_through(m115.seq, now)
+
+    def _noticed(self, code: str, now: float) -> None:
+        """``>MC:`` for ``code``: its oldest line not known to have run ran now."""
+        for sent in self._mcodes:
+            if sent.word == code:
+                self._confirm_through(sent.seq, now)
+                return
+
+    def _confirm_through(self, seq: int, now: float) -> None:
+        """Every line up to ``seq`` ran (and was received, whether or not its ACK came)."""
+        if seq <= self._confirmed_seq:
+            return
+        self._confirmed_seq = seq
+        awaiting = self._awaiting
+        while awaiting and awaiting[0].seq <= seq:
+            sent = awaiting.popleft()
+            number = sent.number if sent.number is not None else -1
+            self._events.append(LineAcknowledged(number, sent.command, sent.tag, ""))
+        mcodes = self._mcodes
+        while mcodes and mcodes[0].seq <= seq:
+            mcodes.popleft()
+        m115s = self._m115s
+        while m115s and m115s[0].seq < seq:
+            m115s.popleft()  # it ran before a line that ran: its answer was lost
+        if self._in_flight and self._in_flight[0].seq <= seq:
+            # Their ACKs may be on their way still: lost only if they do not come soon.
+            self._overdue_seq = max(self._overdue_seq, seq)
+            if self._overdue_at is None:
+                self._overdue_at = now + ACK_GRACE
 
     def next_event(self) -> Event | None:
         return self._events.popleft() if self._events else None
@@ -305,9 +455,11 @@ class HyrelDialect:
             return None
         deadline = self._last_sent_at + KEEPALIVE
         if self._in_flight:
-            deadline = min(deadline, self._last_progress_at + STATUS_AFTER)
-        elif self._sync_sent_at is not None:
+            deadline = min(deadline, self._last_progress_at + self._status_after)
+        if self._sync_sent_at is not None:
             deadline = min(deadline, self._sync_sent_at + SYNC_RETRY)
+        if self._overdue_at is not None:
+            deadline = min(deadline, self._overdue_at)
         return deadline
 
     def handle_timeout(self, now: float) -> None:
@@ -326,7 +478,13 @@ class HyrelDialect:
             return
         if phase is not Phase.RUNNING:
             return
-        if self._in_flight and now >= self._last_progress_at + STATUS_AFTER:
+        if self._overdue_at is not None and now >= self._overdue_at:
+            self._overdue_at = None
+            in_flight = self._in_flight
+            while in_flight and in_flight[0].seq <= self._overdue_seq:
+                self.stats.lost_acks += 1
+                self._release(in_flight.popleft())
+        if self._in_flight and now >= self._last_progress_at + self._status_after:
             if self._status_asked >= STATUS_ATTEMPTS:
                 self._fail(
                     FailureKind.TIMEOUT,
@@ -336,14 +494,12 @@ class HyrelDialect:
                 return
             self._status_asked += 1
             self._last_progress_at = now  # the next request after as long again
+            self._stalled = True
             self._outgoing.append(Control.STATUS)
-        elif (
-            not self._in_flight
-            and self._sync_sent_at is not None
-            and now >= self._sync_sent_at + SYNC_RETRY
-        ):
-            self._sync_sent_at = None  # its answer was lost (or it waits long): ask again
-        elif now >= self._last_sent_at + KEEPALIVE:
+        if self._sync_sent_at is not None and now >= self._sync_sent_at + SYNC_RETRY:
+            self._sync_sent_at = None  # its answer was lost, or it waits long: ask again
+            self._stalled = True
+        if now >= self._last_sent_at + KEEPALIVE and not self._outgoing:
             self._outgoing.append(Control.WATCHDOG)
 
     def _fail(self, kind: FailureKind, reason: str, number: int | None = None) -> None:
@@ -351,6 +507,8 @@ class HyrelDialect:
             tag = self._recent[number]  # the line the report names
         else:
             oldest = next((s for s in self._in_flight if not s.host_line), None)
+            if oldest is None and self._awaiting:
+                oldest = self._awaiting[0]
             tag = oldest.tag if oldest is not None else None
         self._failure = Failed(kind, reason, tag)
         self._phase = Phase.FAILED

@@ -193,8 +193,15 @@ class RepRapDialect:
         self._last_received_at = self._last_sent_at = self._last_progress_at = now
         self._begin_greeting()
 
-    def send(self, command: str, tag: object = None) -> None:
-        """Queue one clean command (see :func:`clean_line`); ``tag`` comes back in events."""
+    pause_command = None  # the host holds a job at M0 (the controller's ok says it stopped)
+
+    def send(
+        self, command: str, tag: object = None, *, confirm: bool = False, urgent: bool = False
+    ) -> None:
+        """Queue one clean command (see :func:`clean_line`); ``tag`` comes back in events.
+
+        An ok already says that the controller took the line (``confirm``), and nothing
+        goes ahead of what it holds (``urgent``): both are how every line goes here."""
         word = command_word(command)
         if word == "M110":
             raise UsageError("M110 sets line numbers, which the host owns; it cannot be queued")
@@ -207,6 +214,15 @@ class RepRapDialect:
         data = command.encode("ascii") + b"\n"
         self.stats.bytes_sent += len(data)
         self._outgoing += data
+
+    def abort(self) -> bool:
+        return False  # no way to take back what the controller holds
+
+    def hold(self, at_layer_end: bool = False) -> bool:
+        return False
+
+    def end_wait(self) -> None:
+        pass
 
     def request_sync(self) -> None:
         """No more lines for now: confirm that the controller accepted every line sent.
