@@ -11,9 +11,14 @@ from pathlib import Path
 import pytest
 
 from repetrel_host.protocol.hyrel import Control, HostReceiver, frame, mark_urgent
+from repetrel_host.protocol.reports import ReportReader
 from repetrel_host.testing.fake_controller import BuiltInFake
-from repetrel_host.testing.hyrel_simulator import PING_REPLY, HyrelControllerSimulator
-from repetrel_host.testing.simulator import ControllerSettings
+from repetrel_host.testing.hyrel_simulator import (
+    PING_REPLY,
+    RESTART_REPLY,
+    HyrelControllerSimulator,
+)
+from repetrel_host.testing.simulator import ControllerSettings, Faults
 
 
 class Wire:
@@ -132,3 +137,55 @@ def test_the_pty_fake_speaks_hyrels_link(tmp_path: Path) -> None:
     assert lines == [PING_REPLY.decode().strip(), ">MC:M104: S200:"]
     assert receiver.take_acks() == 2
     assert log.read_text().splitlines() == ["G28", "M104 S200"]
+
+
+def test_m0_waits_until_end_wait_and_urgent_lines_keep_their_order() -> None:
+    controller = HyrelControllerSimulator()
+    wire = Wire(controller)
+    wire.send(frame("G28") + frame("M0") + frame("G1 X1"))
+    wire.run(1.0)
+    assert controller.executed == ["G28", "M0"] and wire.lines == [">MC:M0:"]
+    wire.send(mark_urgent(frame("M104 S0")) + mark_urgent(frame("M140 S0")))
+    wire.send(bytes([Control.END_WAIT]))
+    wire.run(2.0)
+    assert controller.executed == ["G28", "M0", "M104 S0", "M140 S0", "G1 X1"]
+
+
+def test_m772_arms_the_m773_report_that_m30_sends_before_its_notice() -> None:
+    controller = HyrelControllerSimulator()
+    wire = Wire(controller)
+    moves = ["G1 X10 F600", "G1 X20 E2", "G91", "G1 Y10", "G90", "M30"]
+    wire.send(frame("G1 X5") + frame("M772 S1") + b"".join(frame(m) for m in moves))
+    wire.run(1.0)
+    report = ReportReader()
+    shown = [line for text in wire.lines for line in report.feed(text)]
+    assert shown == [">MC:M772: S1:", ">MC:M30:"]
+    assert report.report is not None and report.report.complete
+    fields = report.report.fields
+    # From X5 (before M772): 5 mm at 600 mm/min, 10 mm extruding, 10 mm in Y.
+    assert fields["Printing moves"] == ["1.0", "0.010"]
+    assert fields["Non-printing moves"] == ["1.5", "0.015"]
+    assert fields["Totals"] == ["2.5", "0.025"]
+    assert fields["approx filament (E)"] == ["0.002 m"]
+
+
+def test_acks_lost_on_the_way_and_faults_that_are_marlins_refused() -> None:
+    settings = ControllerSettings(rx_buffer=8192, banner=False, faults=Faults(drop_ok=0.5))
+    controller = HyrelControllerSimulator(settings)
+    wire = Wire(controller)
+    wire.send(b"".join(frame(f"G1 X{i}") for i in range(100)))
+    wire.run(1.0)
+    assert wire.host.take_acks() == 100 - controller.counts.dropped_oks
+    assert 25 < controller.counts.dropped_oks < 75 and len(controller.executed) == 100
+    with pytest.raises(ValueError, match="'spurious_resend' is Marlin's, not on Hyrel's link"):
+        controller.control("set spurious_resend=0.1", 1.0)
+    with pytest.raises(ValueError, match="'busy_interval' is Marlin's"):
+        HyrelControllerSimulator(ControllerSettings(faults=Faults(busy_interval=2)))
+
+
+def test_a_reset_says_so_with_a_hyrel_identity_line() -> None:
+    controller = HyrelControllerSimulator()
+    wire = Wire(controller)
+    wire.send(frame("!!DEBUG:reset"))
+    wire.run(0.1)
+    assert wire.lines == [RESTART_REPLY.decode().strip()]

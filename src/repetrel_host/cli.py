@@ -8,11 +8,13 @@ keyboard and turns Ctrl-C into the safe stop.
 from __future__ import annotations
 
 import asyncio
+import re
 import signal
 import sys
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
+from enum import StrEnum
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
@@ -62,6 +64,16 @@ EXIT_CONTROLLER_ERROR = 4
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, as shells report Ctrl-C
 
 PROGRESS_REFRESH = 0.1  # seconds between progress bar updates
+# Every line sent, the job not done this long after: the controller holds the rest
+# (Hyrel's 8 KB), which is said once.
+FINISHING_NOTE = 1.0
+_CONTROL = re.compile(r"[\x00-\x09\x0b-\x1f]")
+
+
+class Protocol(StrEnum):
+    REPRAP = "reprap"
+    HYREL = "hyrel"
+
 
 app = typer.Typer(add_completion=False, pretty_exceptions_enable=False, rich_markup_mode=None)
 
@@ -100,6 +112,7 @@ class Options:
     no_history: bool
     fake_log: Path | None
     force: bool
+    report: bool = False
 
 
 def _version(value: bool) -> None:
@@ -125,6 +138,13 @@ def send(
     baud: Annotated[
         int | None, typer.Option(help="Baud rate (default 115200).", min=1, metavar="N")
     ] = None,
+    protocol: Annotated[
+        Protocol | None,
+        typer.Option(
+            help="reprap (default): numbered lines, ok and Resend; hyrel: Hyrel's own link "
+            "(ACK bytes, control bytes, the host watchdog). Default: the machine profile's."
+        ),
+    ] = None,
     flow: Annotated[
         FlowMode | None,
         typer.Option(help="buffered (default): several lines in flight; unbuffered: one."),
@@ -132,12 +152,19 @@ def send(
     rx_buffer: Annotated[
         int | None,
         typer.Option(
-            help="Controller receive buffer in bytes (default 128).", min=2, metavar="BYTES"
+            help="Controller receive buffer in bytes (default 128; with --protocol hyrel, "
+            "the headroom within which it takes lines: 2048).",
+            min=2,
+            metavar="BYTES",
         ),
     ] = None,
     max_lines: Annotated[
         int | None,
-        typer.Option(help="Most lines in flight at once (default 8).", min=1, metavar="N"),
+        typer.Option(
+            help="Most lines in flight at once (default 8; 256 with --protocol hyrel).",
+            min=1,
+            metavar="N",
+        ),
     ] = None,
     reply_timeout: Annotated[
         float,
@@ -182,6 +209,14 @@ def send(
         bool, typer.Option("--check", help="Only check the job; send nothing.")
     ] = False,
     force: Annotated[bool, typer.Option("--force", help="Send despite errors found.")] = False,
+    report: Annotated[
+        bool,
+        typer.Option(
+            "--report",
+            help="Send M772 S1 first: a Hyrel controller sends its job report (M773) at "
+            "M30, kept beside the print history and shown at the end.",
+        ),
+    ] = False,
     history: Annotated[
         Path | None,
         typer.Option(
@@ -263,17 +298,19 @@ def send(
                 )
                 raise typer.Exit(EXIT_BAD_INPUT if refused else EXIT_OK)
             if dry_run:  # a preview: shown even when the findings would refuse the job
-                _dry_run(plan, framed)
+                link = link_settings(LinkRequest(protocol=_value(protocol)), plan.machine)
+                _dry_run(plan, framed, link.protocol)
                 raise typer.Exit(EXIT_OK)
             plan.refuse(findings, force, "--force")
         options = Options(
             port,
-            LinkRequest(baud, flow, rx_buffer, max_lines),
+            LinkRequest(baud, flow, rx_buffer, max_lines, _value(protocol)),
             reply_timeout,
             history,
             no_history,
             fake_log,
             force,
+            report,
         )
         code = asyncio.run(_send(console, errors, plan, user, options))
     except (JobError, ConfigError, UsageError) as exc:
@@ -354,11 +391,12 @@ def _check(plan: JobPlan, errors: Out) -> list[Finding]:
     return findings
 
 
-def _dry_run(plan: JobPlan, framed: bool) -> None:
+def _dry_run(plan: JobPlan, framed: bool, protocol: str) -> None:
     """The commands on stdout, exactly as they would go; host actions noted on stderr."""
+    pause_sync = "M0" if protocol == "hyrel" else None  # the controller waits itself
 
     def commands() -> Iterator[str]:
-        for item in plan.items():
+        for item in plan.items(pause_sync=pause_sync):
             if isinstance(item, HostAction):
                 sys.stderr.write(f"{item.position}: host {item.kind}: {item.message}\n")
             else:
@@ -367,8 +405,10 @@ def _dry_run(plan: JobPlan, framed: bool) -> None:
     if framed:
         from repetrel_host.testing.loopback import wire_preview  # only a preview needs it
 
-        for data in wire_preview(commands()):
-            sys.stdout.write(data.decode("ascii"))
+        for data in wire_preview(commands(), protocol=protocol):
+            # Hyrel's control bytes (the ping, 0x07, would ring the terminal's bell) shown.
+            text = data.decode("ascii", errors="replace")
+            sys.stdout.write(_CONTROL.sub(lambda m: f"<0x{ord(m.group()):02x}>", text))
     else:
         for command in commands():
             sys.stdout.write(command + "\n")
@@ -393,12 +433,14 @@ async def _send(
     )
     try:
         plan = _plan_for(printer, plan, user, errors, options.force)
-        summary, history, last = await _stream(console, errors, printer, plan, user, options)
+        job = await _stream(console, errors, printer, plan, user, options)
     finally:
         await printer.close()
-    _print_summary(console, summary, plan, last)
-    if history is not None:
-        console.print(f"Print history (the stream as transmitted): {history}", markup=False)
+    summary = await job.wait()
+    _print_summary(console, summary, plan, job.where())
+    _print_report(console, job, options.report)
+    if job.history is not None:
+        console.print(f"Print history (the stream as transmitted): {job.history}", markup=False)
     if isinstance(printer.link, FakeLink):
         console.print(
             f"The fake controller's log of executed commands: {printer.link.log_path}",
@@ -419,6 +461,11 @@ def _announce(console: Out, printer: Printer, plan: JobPlan) -> None:
         console.print(
             "The controller's answer to a bad checksum names a line it never got: "
             "probing with numbered M105 lines (they run; they are harmless)."
+        )
+    elif printer.probe is ProbeKind.ANSWER:
+        console.print(
+            "Hyrel's own link: the job is done once the controller ran its last line "
+            "(it asks M115 to be sure, and the link stays alive until then)."
         )
     console.print(f"Machine profile: {plan.profile.describe()}", markup=False)
     if plan.checked_as_it_streams:
@@ -448,7 +495,8 @@ async def _stream(
     plan: JobPlan,
     user: UserConfig,
     options: Options,
-) -> tuple[Summary, Path | None, str]:
+) -> PrintJob:
+    """Stream the job with a progress bar; returns it once it ended (however it did)."""
     loop = asyncio.get_running_loop()
     stream_file = history_file(options.history, user, plan.job)
     history = None if options.no_history else stream_file
@@ -461,6 +509,7 @@ async def _stream(
         history=history or False,
         on_action=actions.perform,
         on_warning=lambda text: errors.print(text, markup=False),
+        report=options.report,
     )
     _announce(console, printer, plan)
     from rich.markup import escape
@@ -503,9 +552,18 @@ async def _stream(
                 )
 
     async def refresh() -> None:
+        sent_at: float | None = None
         while True:
             _update(progress, task, job, started)
             await asyncio.sleep(PROGRESS_REFRESH)
+            if sent_at is None and job.all_sent:
+                sent_at = time.monotonic()
+            elif sent_at is not None and time.monotonic() - sent_at > FINISHING_NOTE:
+                sent_at = float("inf")  # said once
+                console.print(
+                    "every line is sent: waiting until the controller has run the last "
+                    "of them (it holds the rest of the job)"
+                )
 
     loop.add_signal_handler(signal.SIGINT, interrupt)
     progress.start()
@@ -522,7 +580,7 @@ async def _stream(
         await actions.close()
     if summary.outcome is Outcome.COMPLETED:
         progress.update(task, completed=job.size)  # trailing comments count as sent
-    return summary, history, job.where()
+    return job
 
 
 async def _watch(console: Out, printer: Printer, job: PrintJob, actions: ConsoleActions) -> None:
@@ -570,6 +628,29 @@ def _print_summary(console: Out, summary: Summary, plan: JobPlan, last: str) -> 
         f"{summary.retransmissions} lines sent again; machine profile {plan.profile.name}.",
         markup=False,
     )
+
+
+def _print_report(console: Out, job: PrintJob, asked: bool) -> None:
+    """The controller's M773 job report, where it sent one (and where it is kept)."""
+    report = job.report
+    if report is None:
+        if asked:
+            console.print(
+                "No job report came: the job has no M30, or the controller sends none "
+                "(M772 S1 went first).",
+                markup=False,
+            )
+        return
+    cut = "" if report.complete else " (cut short)"
+    console.print(f"The controller's job report (M773){cut}:", markup=False)
+    for line in report.lines:
+        console.print(f"  {line}", markup=False)
+    if job.history is not None:
+        console.print(f"Job report: {job.report_path}", markup=False)
+
+
+def _value(protocol: Protocol | None) -> str | None:
+    return protocol.value if protocol is not None else None
 
 
 def main() -> None:

@@ -269,6 +269,12 @@ class PrintJob:
         return self._run.where()
 
     @property
+    def all_sent(self) -> bool:
+        """The job was read to its end: what is left is the controller's to run."""
+        run = self._run
+        return run.exhausted and not run.stopping and not run.pause_requested
+
+    @property
     def stopping(self) -> bool:
         """A stop was asked for (the safe stop is going, or went)."""
         return self._run.stop_requests > 0
@@ -941,7 +947,9 @@ class _PumpListener(Listener):
         if printer._commands and not (reported and printer._autoreport):
             printer._commands[0].lines.append(text)
             return
-        if not reported:
+        # A Hyrel notice (an M-code ran) tells what ran; it is no message for the user.
+        notice = isinstance(reply, replies.HyrelReport) and reply.tag == "MC"
+        if not reported and not notice:
             printer._broadcast(Message(text))
 
     def _temperatures(self, text: str, line: str) -> bool:

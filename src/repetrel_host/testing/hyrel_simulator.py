@@ -60,7 +60,7 @@ _CONTROL_BYTES = frozenset(int(byte) for byte in Control) - {Control.URGENT, Con
 # Faults of this link: lines corrupted on the way, replies garbled, ACKs lost or doubled.
 LINK_FAULTS = frozenset({"corrupt", "garble", "drop_ok", "duplicate_ok", "seed"})
 _MOVES = frozenset({"G0", "G1", "G2", "G3"})
-_AXIS = re.compile(r"([XYZE])\s*(-?\d*\.?\d+)", re.IGNORECASE)
+_AXIS = re.compile(r"([XYZEF])\s*(-?\d*\.?\d+)", re.IGNORECASE)
 
 
 def check_faults(faults: Faults) -> None:
@@ -78,7 +78,8 @@ def check_faults(faults: Faults) -> None:
 
 @dataclass(slots=True)
 class Metrics:
-    """What M773 reports: moves' time and distance, printing (with E) or not, and E."""
+    """What M773 reports: moves' time (at their feed rate, without acceleration) and
+    distance, printing (with E) or not, and E."""
 
     printing_time: float = 0.0
     printing_distance: float = 0.0  # mm
@@ -88,16 +89,19 @@ class Metrics:
     position: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
     relative: bool = False  # G91
     relative_e: bool = False  # M83
+    feed_rate: float = 0.0  # mm/min, as the last F said
 
-    def move(self, command: str, seconds: float) -> None:
+    def move(self, command: str) -> None:
         x, y, z, e = self.position
         values = {axis.upper(): float(value) for axis, value in _AXIS.findall(command)}
+        self.feed_rate = values.get("F", self.feed_rate)
         new = [x, y, z, e]
         for index, axis in enumerate("XYZE"):
             if axis in values:
                 step = self.relative or (axis == "E" and self.relative_e)
                 new[index] = (new[index] if step else 0.0) + values[axis]
         distance = math.dist((x, y, z), new[:3])
+        seconds = distance / (self.feed_rate / 60) if self.feed_rate > 0 else 0.0
         if new[3] > e:
             self.printing_time += seconds
             self.printing_distance += distance
@@ -278,18 +282,32 @@ class HyrelControllerSimulator(ControllerSimulator):
     def _answer(self, command: _Command, now: float) -> None:
         word = command.word
         if word in _MOVES:
-            self.metrics.move(command.text, self.settings.move_time)
+            self.metrics.move(command.text)
             return
         self._set_heater(command, now)
         self.metrics.set_mode(word, command.text)
-        if word == "M105":
+        if word == "M112":  # halts as Marlin's does (the notes say nothing of Hyrel's)
+            for heater in self.heaters.values():
+                heater[1] = 0.0
+            self._queue.clear()
+            self._planner.clear()
+            self._rx.clear()
+            self._reply(b">ER: halted (M112): every heater off\n", now)
+            self.hung = True
+        elif word == "M105":
             self._reply(f">ST: {self._temperatures(now)}\n".encode(), now)
         elif word == "M115":
             self._reply(M115_REPLY, now)
         elif word == "M772":
             match = re.search(r"S\s*(\d+)", command.text)
             self._reports = int(match.group(1)) if match else 0
-            self.metrics = Metrics()
+            old = self.metrics  # the counts start again; where the machine is does not
+            self.metrics = Metrics(
+                position=old.position,
+                relative=old.relative,
+                relative_e=old.relative_e,
+                feed_rate=old.feed_rate,
+            )
         elif word == "M773" or (word == "M30" and self._reports & 1):
             self._reply("".join(f"{line}\n" for line in self.metrics.report()).encode(), now)
         if word in ("M0", "M1"):

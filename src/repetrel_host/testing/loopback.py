@@ -12,10 +12,12 @@ from dataclasses import dataclass, field
 
 from repetrel_host.job import JobLine
 from repetrel_host.protocol.dialect import Dialect
+from repetrel_host.protocol.dialects import create_dialect
 from repetrel_host.protocol.dialects.reprap import RepRapDialect
 from repetrel_host.protocol.events import Failed, ProbeKind
 from repetrel_host.protocol.flow import FlowControl, FlowMode
 from repetrel_host.pump import Listener, Pump, Run
+from repetrel_host.testing.hyrel_simulator import HyrelControllerSimulator
 from repetrel_host.testing.simulator import ControllerSettings, ControllerSimulator, Faults
 
 # The smallest step of simulated time when nothing is scheduled.
@@ -145,14 +147,21 @@ def run_noisy_job(
     )
 
 
-def wire_preview(commands: Iterable[str], flow: FlowControl | None = None) -> Iterator[bytes]:
-    """The bytes a clean exchange with a Marlin-style controller puts on the wire, lazily.
+def wire_preview(
+    commands: Iterable[str], flow: FlowControl | None = None, protocol: str = "reprap"
+) -> Iterator[bytes]:
+    """The bytes a clean exchange with a simulated controller puts on the wire, lazily.
 
-    Used by ``hyrel-send --dry-run --framed``: the pump drives a simulated
-    controller without faults, so the greeting, probes and any renumbering show.
+    Used by ``hyrel-send --dry-run --framed``: the pump drives a simulated controller
+    without faults, so the greeting, probes and any renumbering show (on Hyrel's link:
+    the ping, the numbered lines and the M115 that confirms the end).
     """
-    controller = ControllerSimulator(ControllerSettings(banner=False))
-    pump = Pump(RepRapDialect(flow))
+    controller: ControllerSimulator
+    if protocol == "hyrel":
+        controller = HyrelControllerSimulator()
+    else:
+        controller = ControllerSimulator(ControllerSettings(banner=False))
+    pump = Pump(create_dialect(protocol, flow))
     run = Run(job_lines(commands))
     pump.begin(run)
     now = 0.0

@@ -48,7 +48,14 @@ from repetrel_host.protocol.events import (
     ProbeKind,
 )
 from repetrel_host.protocol.flow import FlowControl
-from repetrel_host.protocol.hyrel import Control, HostReceiver, frame, mark_urgent, parse_notice
+from repetrel_host.protocol.hyrel import (
+    Control,
+    HostReceiver,
+    Notice,
+    frame,
+    mark_urgent,
+    parse_notice,
+)
 
 # The window is the controller's headroom, not its buffer: it ACKs lines while 2 KB of
 # its 8 KB are free, so 2 KB unacknowledged keep the buffer from overflowing.
@@ -65,6 +72,7 @@ HOST_RESERVE = 32  # bytes of the window kept for the host's own lines (a sync p
 RECENT = 1024  # lines remembered by number (an error names one), M-codes awaiting notices
 _LINE_NUMBER = re.compile(r"\bline\s+(\d+)|\bN(\d+)\b", re.IGNORECASE)
 _FATAL = re.compile(r"checksum|watchdog", re.IGNORECASE)
+_FIELD = re.compile(r"([A-Za-z])\s*(-?\d+(?:\.\d*)?)")
 
 
 class Phase(Enum):
@@ -86,6 +94,7 @@ class _Sent:
     seq: int  # its place on the wire, the host's own lines counted
     host_line: bool = False  # a sync, an urgent M112: not the caller's
     confirm: bool = False  # told once it ran, not once it was received
+    told: bool = False  # its LineAcknowledged went (it ran before its ACK came)
 
 
 class HyrelDialect:
@@ -144,6 +153,7 @@ class HyrelDialect:
         self._failure: Failed | None = None
         self._hello_attempts = 0
         self._hello_deadline = 0.0
+        self._late_pings = 0
         self._last_sent_at = 0.0
         self._last_progress_at = 0.0  # an ACK, an answer: the controller is there
         self._status_asked = 0
@@ -354,7 +364,12 @@ class HyrelDialect:
     def _release(self, sent: _Sent) -> None:
         """A line leaves the window; a plain caller's line is acknowledged with it."""
         self._in_flight_bytes -= sent.size
-        if not sent.host_line and not sent.confirm:
+        if not sent.confirm:
+            self._tell(sent)
+
+    def _tell(self, sent: _Sent) -> None:
+        if not sent.host_line and not sent.told:
+            sent.told = True
             number = sent.number if sent.number is not None else -1
             self._events.append(LineAcknowledged(number, sent.command, sent.tag, ""))
 
@@ -379,15 +394,18 @@ class HyrelDialect:
         if hyrel is not None and hyrel.tag == "MC":
             notice = parse_notice(hyrel.text)
             if notice is not None:
-                self._noticed(notice.code, now)
+                self._noticed(notice, now)
 
     def _identity(self, text: str, now: float) -> None:
         """``>Hy: ...``: the answer to a ping, or, unasked, a controller that restarted."""
         if self._phase is Phase.GREETING:
             self._phase = Phase.RUNNING
+            self._late_pings = self._hello_attempts - 1  # pings that may be answered yet
             self._events.append(ControllerReady(ProbeKind.ANSWER))
-        elif now > self._hello_deadline:  # not the late answer to an earlier ping
-            self._fail(FailureKind.RESET, f"the controller restarted (it says: {text})")
+        elif self._late_pings and now <= self._hello_deadline:
+            self._late_pings -= 1  # the late answer to an earlier ping
+        else:
+            self._fail(FailureKind.RESET, f"the controller reset (it says: {text})")
 
     def _is_answer(self, text: str) -> bool:
         """An M115 answer, even with a byte garbled: its name or its version field (not
@@ -413,11 +431,13 @@ class HyrelDialect:
             self._sync_sent_at = None
         self._confirm_through(m115.seq, now)
 
-    def _noticed(self, code: str, now: float) -> None:
-        """``>MC:`` for ``code``: its oldest line not known to have run ran now."""
+    def _noticed(self, notice: Notice, now: float) -> None:
+        """``>MC:`` for an M-code: its oldest line not known to have run ran now, if the
+        notice's values are that line's (a garbled notice must not confirm another)."""
         for sent in self._mcodes:
-            if sent.word == code:
-                self._confirm_through(sent.seq, now)
+            if sent.word == notice.code:
+                if _agrees(notice, sent.command):
+                    self._confirm_through(sent.seq, now)
                 return
 
     def _confirm_through(self, seq: int, now: float) -> None:
@@ -427,9 +447,7 @@ class HyrelDialect:
         self._confirmed_seq = seq
         awaiting = self._awaiting
         while awaiting and awaiting[0].seq <= seq:
-            sent = awaiting.popleft()
-            number = sent.number if sent.number is not None else -1
-            self._events.append(LineAcknowledged(number, sent.command, sent.tag, ""))
+            self._tell(awaiting.popleft())
         mcodes = self._mcodes
         while mcodes and mcodes[0].seq <= seq:
             mcodes.popleft()
@@ -437,7 +455,12 @@ class HyrelDialect:
         while m115s and m115s[0].seq < seq:
             m115s.popleft()  # it ran before a line that ran: its answer was lost
         if self._in_flight and self._in_flight[0].seq <= seq:
-            # Their ACKs may be on their way still: lost only if they do not come soon.
+            # They were received, and are acknowledged now; but their ACKs may be on their
+            # way still: they leave the window once those come, or are taken as lost.
+            for sent in self._in_flight:
+                if sent.seq > seq:
+                    break
+                self._tell(sent)
             self._overdue_seq = max(self._overdue_seq, seq)
             if self._overdue_at is None:
                 self._overdue_at = now + ACK_GRACE
@@ -494,7 +517,9 @@ class HyrelDialect:
                 return
             self._status_asked += 1
             self._last_progress_at = now  # the next request after as long again
-            self._stalled = True
+            if not self._stalled:
+                self._stalled = True
+                self.stats.stalls_recovered += 1  # a sync will release what ran
             self._outgoing.append(Control.STATUS)
         if self._sync_sent_at is not None and now >= self._sync_sent_at + SYNC_RETRY:
             self._sync_sent_at = None  # its answer was lost, or it waits long: ask again
@@ -503,6 +528,10 @@ class HyrelDialect:
             self._outgoing.append(Control.WATCHDOG)
 
     def _fail(self, kind: FailureKind, reason: str, number: int | None = None) -> None:
+        if kind is not FailureKind.RESET and self._phase is Phase.RUNNING:
+            # The controller would run on what it holds (past a refused line, with its
+            # extruders stopped): it drops it, and the safe stop goes at the next greeting.
+            self._outgoing.append(Control.ABORT)
         if number is not None and number in self._recent:
             tag = self._recent[number]  # the line the report names
         else:
@@ -513,6 +542,12 @@ class HyrelDialect:
         self._failure = Failed(kind, reason, tag)
         self._phase = Phase.FAILED
         self._events.append(self._failure)
+
+
+def _agrees(notice: Notice, command: str) -> bool:
+    """Every value the notice gives is the command's: ``T11: S200:`` and ``M104 T11 S200.0``."""
+    values = {letter.upper(): float(value) for letter, value in _FIELD.findall(command[1:])}
+    return all(values.get(letter) == float(value) for letter, value in notice.fields.items())
 
 
 def _named(text: str) -> int | None:
