@@ -9,6 +9,7 @@ import json
 import shutil
 import signal
 import socket
+import sqlite3
 import stat
 import subprocess
 import sys
@@ -540,6 +541,107 @@ def test_a_bad_camera_setting_gets_one_sentence(tmp_path: Path) -> None:
     assert result.stderr == (
         f"hyrel-server: {config}: printers.demo.camera: Value error, the camera command "
         "cannot be split into words (No closing quotation)\n"
+    )
+
+
+# --- Hyrel's link and its job report -----------------------------------------------------
+
+
+def server_config(tmp_path: Path, **printers: dict[str, object]) -> Path:
+    """A server TOML file with a ``[printers.NAME]`` table of settings for each printer."""
+    config = tmp_path / "server.toml"
+    text = ""
+    for name, settings in printers.items():
+        text += f"[printers.{name}]\n"
+        text += "".join(f"{key} = {json.dumps(value)}\n" for key, value in settings.items())
+    config.write_text(text)
+    return config
+
+
+# A data folder made before jobs kept their M773 report: the table without its column.
+OLD_SCHEMA = """
+CREATE TABLE jobs (
+    id INTEGER PRIMARY KEY AUTOINCREMENT, printer TEXT NOT NULL, name TEXT NOT NULL,
+    file TEXT NOT NULL, state TEXT NOT NULL, position REAL NOT NULL, submitted REAL NOT NULL,
+    started REAL, ended REAL, lines INTEGER NOT NULL DEFAULT 0,
+    last_line INTEGER NOT NULL DEFAULT 0, total_lines INTEGER NOT NULL DEFAULT 0, error TEXT
+);
+INSERT INTO jobs (printer, name, file, state, position, submitted, started, ended, lines)
+VALUES ('hyrel', 'old.gcode', 'files/old.gcode', 'completed', 1, 1.0, 2.0, 3.0, 2);
+"""
+
+
+def test_a_hyrel_link_printer_prints_and_keeps_the_m773_report_with_the_job(
+    servers: Callable[..., Server], tmp_path: Path
+) -> None:
+    data_dir = tmp_path / "data"
+    data_dir.mkdir()
+    with contextlib.closing(sqlite3.connect(data_dir / "jobs.sqlite")) as old:
+        old.executescript(OLD_SCHEMA)
+    config = server_config(
+        tmp_path,
+        hyrel={"port": "fake", "protocol": "hyrel", "report": True},
+        plain={"port": "fake", "protocol": "hyrel"},
+    )
+    server = servers({}, "--config", str(config))
+    text = "G28\nG90\nM83\nG1 X10 Y0 F3000\nG1 X20 Y10 E1.5\nM30\n"
+    with server.client() as client:
+        assert job_state(client, 1)["report"] is None  # from before: still there
+        jobs = {
+            name: client.post(
+                f"/v1/printers/{name}/jobs", files={"file": (f"{name}.gcode", text)}
+            ).json()["id"]
+            for name in ("hyrel", "plain")
+        }
+        wait_for(
+            lambda: all(job_state(client, j)["state"] == "completed" for j in jobs.values()),
+            what="the jobs",
+        )
+        report = job_state(client, jobs["hyrel"])["report"]
+        assert report["complete"] is True and "Begin M773" in report["text"]
+        assert len(report["fields"]["Totals"]) == 2 and "End M773" in report["text"]
+        listed = {j["id"]: j for j in client.get("/v1/printers/hyrel/jobs").json()}
+        assert listed[jobs["hyrel"]]["report"] == report and listed[1]["report"] is None
+        assert job_state(client, jobs["plain"])["report"] is None  # not asked for
+        assert client.get("/v1/printers/plain").json()["protocol"] == "hyrel"
+    assert server.stop() == 0
+    kept = list((data_dir / "history").glob(f"{jobs['hyrel']}-hyrel-report.txt"))
+    assert len(kept) == 1 and "Begin M773" in kept[0].read_text()
+
+
+def test_a_protocol_defaults_the_window_that_rx_buffer_and_max_lines_do_not_give(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import repetrel_host as rh
+    from repetrel_host.config import UserConfig
+    from repetrel_host.planning import DEFAULT_WINDOWS
+    from repetrel_host.server.printers import PrinterConfig
+
+    asked: dict[str, Any] = {}
+    monkeypatch.setattr(rh, "connect", lambda port, **given: asked.update(given))
+    PrinterConfig("fake", protocol="hyrel", max_lines=64).connect(UserConfig())
+    hyrel = DEFAULT_WINDOWS["hyrel"]
+    assert asked["protocol"] == "hyrel"
+    assert asked["flow"] == rh.FlowControl(hyrel.mode, rx_buffer=hyrel.rx_buffer, max_lines=64)
+    PrinterConfig("fake", rx_buffer=96).connect(UserConfig())
+    assert asked["protocol"] is None and asked["flow"].rx_buffer == 96
+    assert asked["flow"].max_lines == DEFAULT_WINDOWS["reprap"].max_lines
+
+
+def test_a_bad_protocol_gets_one_sentence(tmp_path: Path) -> None:
+    config = server_config(tmp_path, demo={"port": "fake", "protocol": "marlin"})
+    result = subprocess.run(
+        [
+            *(sys.executable, "-m", "repetrel_host.server.main"),
+            *("--config", str(config), "--data-dir", str(tmp_path / "data")),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
+    assert result.returncode == 2
+    assert result.stderr == (
+        f"hyrel-server: {config}: printers.demo.protocol: Input should be 'reprap' or 'hyrel'\n"
     )
 
 

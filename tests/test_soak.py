@@ -58,3 +58,24 @@ def test_a_controller_counting_lines_its_own_way_runs_every_line_once(
     ran = [c for c in log.read_text().splitlines() if c not in ("M105", "M115")]
     assert [c for c in ran if not c.startswith("M110")] == job_commands(CONE)
     assert "probing with numbered M105 lines" in result.stdout
+
+
+# Hyrel's own link: ACK bytes lost, replies garbled (its answers and notices among them).
+# A line corrupted on its way cannot be sent again on this link: that is a failure, named
+# (tests/test_hyrel_dialect.py), not noise a job survives.
+HYREL_NOISE = "drop_ok=0.02 garble=0.01"
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("seed", [6, 7])
+def test_over_hyrels_link_every_line_runs_exactly_once(seed: int, tmp_path: Path) -> None:
+    log = tmp_path / "fake.log"
+    faults = f"{HYREL_NOISE} seed={seed}"
+    with BuiltInFake(log, ["--protocol", "hyrel", "--faults", faults], control=True) as fake:
+        result = hyrel_send(str(CONE), "--port", fake.port, "--protocol", "hyrel", timeout=55)
+        counts = fake.request("status")["counts"]
+    assert result.returncode == 0, result.stderr
+    # The session's M115s (who are you; has every line run?) ran too; the job has none.
+    assert [c for c in log.read_text().splitlines() if c != "M115"] == job_commands(CONE)
+    assert counts["dropped_oks"] > 100 and counts["garbled_replies"] > 10
+    assert "done: 20066 lines" in result.stdout

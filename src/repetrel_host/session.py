@@ -21,6 +21,7 @@ import contextlib
 import logging
 import math
 import re
+import weakref
 from collections import deque
 from collections.abc import AsyncIterator, Awaitable, Callable, Coroutine, Generator, Iterable
 from dataclasses import dataclass, field
@@ -92,6 +93,8 @@ QUIET = 0.3
 QUIET_MAX = 5.0
 # How long each line of an owed safe stop may take to be answered after a reconnect.
 SAFE_STOP_TIMEOUT = 30.0
+# Closing waits this long for the snapshots a job's markers asked for (M790, M791).
+MARKER_TIMEOUT = 30.0
 # A job's progress goes to its event subscribers at most this often.
 PROGRESS_INTERVAL = 0.1
 # Events a late subscriber to a job still gets.
@@ -383,6 +386,7 @@ class Printer:
         self._hub: _Hub[PrinterEvent] = _Hub()
         self._state_waiters: list[tuple[Callable[[], bool], asyncio.Future[None]]] = []
         self._tasks: set[asyncio.Task[Any]] = set()
+        self._markers: weakref.WeakSet[asyncio.Task[None]] = weakref.WeakSet()  # snapshots
         self._reconnecting: asyncio.Task[None] | None = None
         self._polling: asyncio.Task[None] | None = None
         self._autoreport = False
@@ -883,6 +887,9 @@ class Printer:
                 job.stop()  # a stop under way goes on: a second one would abandon it
             with contextlib.suppress(HostError, TimeoutError):
                 await asyncio.wait_for(job.wait(), CANCEL_DRAIN_TIMEOUT + 5)
+        markers = {task for task in self._markers if not task.done()}
+        if markers:  # a snapshot the job's last lines asked for is still taken
+            await asyncio.wait(markers, timeout=MARKER_TIMEOUT)
         self._closing = True
         for task in list(self._tasks):
             task.cancel()
@@ -976,7 +983,7 @@ class _PumpListener(Listener):
             # Told at once: a marker reached in the job's last exchange comes before Done.
             job._publish(Action(action.kind, action.message, action.actions, action.position))
             if job.on_action is not None:
-                printer._spawn(_mark(job, job.on_action, action))
+                printer._markers.add(printer._spawn(_mark(job, job.on_action, action)))
 
     def paused(self) -> None:
         printer = self.printer

@@ -176,6 +176,7 @@ def _printer_json(service: PrinterService) -> dict[str, Any]:
         "held": service.held,
         "error": service.last_error or None,
         "firmware": printer.firmware.name if printer and printer.firmware else None,
+        "protocol": printer.settings.protocol if printer else None,  # the link's: reprap, hyrel
         "temperatures": {
             sensor: {"actual": actual, "target": target}
             for sensor, (actual, target) in (printer.temperatures if printer else {}).items()

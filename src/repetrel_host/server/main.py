@@ -2,9 +2,10 @@
 
 ``hyrel-server --data-dir DIR --printer NAME=PORT [--printer ...] [--bind HOST:PORT]``, or
 the same in a TOML file (``--config server.toml``: ``data_dir``, ``bind``, ``api_key``,
-``max_upload_mb``, and a ``[printers]`` table of ``name = "port"``). Logs go to stderr,
-one line each, without times (journald adds them). SIGTERM or Ctrl-C stops feeding, runs
-the safe stop on a printing machine, and exits.
+``max_upload_mb``, and a ``[printers]`` table of ``name = "port"``, or of
+``[printers.NAME]`` tables: ``port``, ``machine``, ``protocol``, ``report``...). Logs go to
+stderr, one line each, without times (journald adds them). SIGTERM or Ctrl-C stops feeding,
+runs the safe stop on a printing machine, and exits.
 """
 
 from __future__ import annotations
@@ -48,6 +49,8 @@ class PrinterSettings(BaseModel):
     rx_buffer: int | None = Field(default=None, ge=2)
     max_lines: int | None = Field(default=None, ge=1)
     baud: int | None = Field(default=None, gt=0)
+    protocol: Literal["reprap", "hyrel"] | None = None  # None: the machine's, else reprap
+    report: bool = False  # every job asks for the controller's M773 report (M772 S1)
     camera: CameraCommand | None = None  # M791/M790 snapshots ({path}: the image to write)
     layer_snapshots: bool = True  # with a camera, a snapshot at every M790 (new layer)
     snapshots_kept: int = Field(default=500, ge=1)

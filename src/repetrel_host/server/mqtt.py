@@ -1,7 +1,7 @@
 """MQTT for farms: the server's events published under ``<prefix>/<printer>/...``.
 
 - ``state`` (retained): ``{"state": "ready", "held": false}``
-- ``job`` (retained): the printer's current or last job
+- ``job`` (retained): the printer's current or last job (with its M773 ``report``, if any)
 - ``progress`` (retained): lines, the file line, bytes of the running job
 - ``temperatures`` (retained): ``{"T": [actual, target], "B": [...]}``
 - ``snapshot`` (retained): the camera's newest image, ``{"file": ..., "url": "/v1/..."}``

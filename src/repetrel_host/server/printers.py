@@ -24,7 +24,14 @@ from repetrel_host.camera import Camera, SnapshotFailed
 from repetrel_host.config import UserConfig
 from repetrel_host.gcode.lint import Finding, Severity
 from repetrel_host.job import ActionKind, HostAction
-from repetrel_host.planning import JobPlan, JobRequest, plan_job
+from repetrel_host.planning import (
+    JobPlan,
+    JobRequest,
+    LinkRequest,
+    explicit_machine,
+    link_settings,
+    plan_job,
+)
 from repetrel_host.server.events import Event
 from repetrel_host.server.store import PROGRESS_INTERVAL, JobRecord, JobState, Store
 
@@ -58,6 +65,8 @@ class PrinterConfig:
     rx_buffer: int | None = None
     max_lines: int | None = None
     baud: int | None = None
+    protocol: str | None = None  # reprap, hyrel (None: the machine's, else reprap)
+    report: bool = False  # every job asks for the controller's M773 report (M772 S1)
     camera: str | None = None  # a command line for M791/M790 snapshots ({path}: the image)
     layer_snapshots: bool = True  # with a camera: a snapshot at every M790
     snapshots_kept: int = 500
@@ -66,12 +75,16 @@ class PrinterConfig:
         """``rh.connect(...)`` for this printer."""
         flow: rh.FlowControl | str | None = self.flow
         if self.rx_buffer is not None or self.max_lines is not None:
-            defaults = rh.FlowControl()
-            flow = rh.FlowControl(
-                rh.FlowMode(self.flow or defaults.mode.value),
-                rx_buffer=self.rx_buffer or defaults.rx_buffer,
-                max_lines=self.max_lines or defaults.max_lines,
+            # What is not given is the machine's, else the protocol's window (as hyrel-send).
+            loadout = Path(self.loadout) if self.loadout is not None else None
+            machine = explicit_machine(JobRequest(loadout, self.machine), user)
+            link = LinkRequest(
+                flow=rh.FlowMode(self.flow) if self.flow is not None else None,
+                rx_buffer=self.rx_buffer,
+                max_lines=self.max_lines,
+                protocol=self.protocol,
             )
+            flow = link_settings(link, machine).flow
         return rh.connect(
             self.port,
             machine=self.machine,
@@ -80,6 +93,7 @@ class PrinterConfig:
             config=user,
             baud=self.baud,
             poll_interval=POLL_INTERVAL,
+            protocol=self.protocol,
         )
 
 
@@ -290,7 +304,10 @@ class PrinterService:
             plan = self.plan(path)
             checked = self._checked.get(path) == _fingerprint(plan)
             job = await printer.print(
-                plan if checked else path, history=history, on_action=self._perform
+                plan if checked else path,
+                history=history,
+                on_action=self._perform,
+                report=self.config.report,
             )
         except rh.HostError as exc:  # refused (a check), or the printer went meanwhile
             if printer.state is not rh.State.READY and not isinstance(exc, rh.JobError):
@@ -326,7 +343,8 @@ class PrinterService:
         finally:
             self._record_progress(record, job)
             self.running = None
-        self.store.set_state(record.id, state, error)
+        report = job.report  # the controller's M773 report, kept with the job
+        self.store.set_state(record.id, state, error, report.text if report else None)
         why = f": {error}" if error else ""
         log.info("printer %s: job %d %s%s", self.name, record.id, state, why)
         if not self.automatic_transition:

@@ -18,8 +18,11 @@ from dataclasses import dataclass
 from enum import StrEnum
 from pathlib import Path
 
+from repetrel_host.protocol.reports import JobReport
+
 PROGRESS_INTERVAL = 0.5  # seconds between progress records of a streaming job
 CRASHED = "the server ended while the job was streaming (its safe stop was not sent)"
+REPORT_END = "End M773"  # the report's last line but its stars: it came whole
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS jobs (
@@ -35,10 +38,13 @@ CREATE TABLE IF NOT EXISTS jobs (
     lines INTEGER NOT NULL DEFAULT 0,      -- job lines acknowledged (at least)
     last_line INTEGER NOT NULL DEFAULT 0,  -- file line of the last acknowledged one
     total_lines INTEGER NOT NULL DEFAULT 0,
-    error TEXT
+    error TEXT,
+    report TEXT                   -- the controller's M773 report (Hyrel), as it came
 );
 CREATE INDEX IF NOT EXISTS jobs_by_printer ON jobs (printer, state, position);
 """
+# Columns added since the first schema, added to an older data folder's table as it opens.
+_ADDED_COLUMNS = {"report": "TEXT"}
 
 
 class JobState(StrEnum):
@@ -70,6 +76,7 @@ class JobRecord:
     last_line: int
     total_lines: int
     error: str | None
+    report: str | None = None  # the M773 report's text
 
     def as_json(self) -> dict[str, object]:
         return {
@@ -84,7 +91,16 @@ class JobRecord:
             "last_line": self.last_line,
             "total_lines": self.total_lines,
             "error": self.error,
+            "report": _report_json(self.report),
         }
+
+
+def _report_json(text: str | None) -> dict[str, object] | None:
+    """The report as the API shows it: its text, its figures, whether its end came."""
+    if text is None:
+        return None
+    report = JobReport(tuple(text.split("\n")), complete=REPORT_END in text)
+    return {"text": report.text, "fields": report.fields, "complete": report.complete}
 
 
 class Store:
@@ -98,6 +114,11 @@ class Store:
         self._db.execute("PRAGMA journal_mode=WAL")
         self._db.execute("PRAGMA synchronous=FULL")
         self._db.executescript(_SCHEMA)
+        with self._transaction() as db:
+            have = {row["name"] for row in db.execute("PRAGMA table_info(jobs)")}
+            for column, kind in _ADDED_COLUMNS.items():
+                if column not in have:
+                    db.execute(f"ALTER TABLE jobs ADD COLUMN {column} {kind}")
 
     def close(self) -> None:
         self._db.close()
@@ -200,7 +221,10 @@ class Store:
                 return None
         return self.job(job_id)
 
-    def set_state(self, job_id: int, state: JobState, error: str | None = None) -> None:
+    def set_state(
+        self, job_id: int, state: JobState, error: str | None = None, report: str | None = None
+    ) -> None:
+        """A job's new state; an ended one's error and M773 report with it."""
         now = time.time()
         with self._transaction() as db:
             if state in ACTIVE:
@@ -210,8 +234,8 @@ class Store:
                 )
             elif state in ENDED:
                 db.execute(
-                    "UPDATE jobs SET state = ?, ended = ?, error = ? WHERE id = ?",
-                    (state.value, now, error, job_id),
+                    "UPDATE jobs SET state = ?, ended = ?, error = ?, report = ? WHERE id = ?",
+                    (state.value, now, error, report, job_id),
                 )
             else:
                 db.execute("UPDATE jobs SET state = ? WHERE id = ?", (state.value, job_id))

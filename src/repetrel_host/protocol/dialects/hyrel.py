@@ -12,8 +12,9 @@ writes as it runs commands, in order: ``M115``'s identity line (``FIRMWARE_NAME:
 notices of M-codes (each is matched to the oldest line of that M-code not yet known to
 have run). Where every line sent must be known to have run (the end of a job, before a
 host action, a command's reply) and nothing says so yet, the host sends an ``M115`` of its
-own once every line is received: a *sync*. Up to 8 KB of job may wait in the controller
-when the last ACK comes: a job ends when its last line is known to have run.
+own once every line is received: a *sync*; one goes among every :data:`SYNC_EVERY` lines
+too, so that what ran is known as the job goes. Up to 8 KB of job may wait in the
+controller when the last ACK comes: a job ends when its last line is known to have run.
 
 The controller stops its extruders after 30 s without a byte from the host: the dialect
 sends the watchdog byte whenever it has been quiet for :data:`KEEPALIVE` seconds, through
@@ -67,8 +68,13 @@ STATUS_ATTEMPTS = 4  # unanswered status requests in a row: the controller is go
 STATUS_AFTER = 5.0  # lines waiting this long for an ACK: ask whether the controller is there
 SYNC_COMMAND = "M115"  # answered when run: every line before it ran
 SYNC_RETRY = 30.0  # an M115 unanswered this long: its answer may be lost, another may go
-ACK_GRACE = 1.0  # a line ran but its ACK is not here: lost, once this long has passed
-HOST_RESERVE = 32  # bytes of the window kept for the host's own lines (a sync past it)
+# A sync among every this many lines: its answer says how far the controller got, and
+# releases lines whose ACK was lost before they fill the window (0.4 % more lines).
+SYNC_EVERY = 256
+# Bytes of the headroom the caller's lines leave free: room for the host's own lines (a
+# sync past the window), and against an ACK that comes late or twice (taken for the next
+# line's, it lets one line too many go; a full buffer has no other byte to spare).
+HOST_RESERVE = 512
 RECENT = 1024  # lines remembered by number (an error names one), M-codes awaiting notices
 _LINE_NUMBER = re.compile(r"\bline\s+(\d+)|\bN(\d+)\b", re.IGNORECASE)
 _FATAL = re.compile(r"checksum|watchdog", re.IGNORECASE)
@@ -94,7 +100,6 @@ class _Sent:
     seq: int  # its place on the wire, the host's own lines counted
     host_line: bool = False  # a sync, an urgent M112: not the caller's
     confirm: bool = False  # told once it ran, not once it was received
-    told: bool = False  # its LineAcknowledged went (it ran before its ACK came)
 
 
 class HyrelDialect:
@@ -144,9 +149,8 @@ class HyrelDialect:
         self._confirmed_seq = 0  # every line up to this one ran
         self._sync_requested = False
         self._sync_sent_at: float | None = None  # an M115 after the last caller line
+        self._since_m115 = 0  # caller lines sent since the last M115
         self._stalled = False  # lines waited for their ACK: a sync may go past the window
-        self._overdue_seq = 0  # lines up to this one ran; their ACKs are overdue...
-        self._overdue_at: float | None = None  # ...and taken as lost from then on
         self._receiver = HostReceiver()
         self._outgoing = bytearray()
         self._events: deque[Event] = deque()
@@ -196,10 +200,10 @@ class HyrelDialect:
         self._stale_acks += len(self._in_flight)
         self._in_flight.clear()
         self._in_flight_bytes = 0
-        self._overdue_at = None
         self._stale_answers += len(self._m115s)
         self._m115s.clear()
         self._sync_sent_at = None
+        self._since_m115 = 0
         return True
 
     def hold(self, at_layer_end: bool = False) -> bool:
@@ -255,6 +259,8 @@ class HyrelDialect:
             while pending and self._has_room(pending[0][0], pending[0][4]):
                 command, word, tag, confirm, urgent_line = pending.popleft()
                 self._transmit(command, word, tag, now, confirm=confirm, urgent=urgent_line)
+                if self._since_m115 >= SYNC_EVERY and self._has_room(SYNC_COMMAND, False, True):
+                    self._transmit(SYNC_COMMAND, SYNC_COMMAND, None, now, host_line=True)
             if self._wants_sync() and self._has_room(SYNC_COMMAND, False, host_line=True):
                 self._transmit(SYNC_COMMAND, SYNC_COMMAND, None, now, host_line=True)
         if not self._outgoing:
@@ -265,15 +271,16 @@ class HyrelDialect:
         return data
 
     def _wants_sync(self) -> bool:
-        """Lines must be known to have run and nothing will say so: send an M115 once
-        every line is received (so that an answer an abort left behind came first), or
-        once lines waited too long for their ACK (to release those whose ACK was lost)."""
-        return (
-            self._confirmed_seq < self._last_caller_seq
-            and self._sync_sent_at is None
-            and (self._stalled or (not self._pending and not self._in_flight))
-            and (self._stalled or self._sync_requested or bool(self._awaiting))
-        )
+        """Lines must be known to have run and nothing will say so: send an M115 after the
+        last of them (after an abort, once they are all received, so that the answers it
+        left behind came first), or once lines waited long for their ACK (to release
+        those whose ACK was lost)."""
+        if self._confirmed_seq >= self._last_caller_seq or self._sync_sent_at is not None:
+            return False
+        if self._stalled:
+            return True
+        wanted = self._sync_requested or bool(self._awaiting)
+        return wanted and not self._pending and not (self._stale_answers and self._in_flight)
 
     def _has_room(self, command: str, urgent_line: bool, host_line: bool = False) -> bool:
         if not self._in_flight:
@@ -305,7 +312,8 @@ class HyrelDialect:
             wire = mark_urgent(wire)
         self._seq = seq = self._seq + 1
         sent = _Sent(number, command, word, tag, len(wire), seq, host_line, confirm)
-        if not self._in_flight:
+        received = not self._in_flight  # every line before this one
+        if received:
             self._last_progress_at = now  # the first line waiting: its ACK is due from now
         self._in_flight.append(sent)
         self._in_flight_bytes += sent.size
@@ -317,10 +325,13 @@ class HyrelDialect:
         if word == "M115":
             self._m115s.append(sent)
             self._sync_sent_at = now
-            self._stale_answers = 0  # sent once every line was received: they came first
+            self._since_m115 = 0
             self._stalled = False
+            if received:
+                self._stale_answers = 0  # what an abort left behind came before those ACKs
         elif not host_line:
             self._sync_sent_at = None  # a line after the last M115: it confirms not this one
+            self._since_m115 += 1
         if not host_line:
             self._last_caller_seq = seq
             self.stats.lines_sent += 1
@@ -364,14 +375,12 @@ class HyrelDialect:
     def _release(self, sent: _Sent) -> None:
         """A line leaves the window; a plain caller's line is acknowledged with it."""
         self._in_flight_bytes -= sent.size
-        if not sent.confirm:
+        if not sent.host_line and not sent.confirm:
             self._tell(sent)
 
     def _tell(self, sent: _Sent) -> None:
-        if not sent.host_line and not sent.told:
-            sent.told = True
-            number = sent.number if sent.number is not None else -1
-            self._events.append(LineAcknowledged(number, sent.command, sent.tag, ""))
+        number = sent.number if sent.number is not None else -1
+        self._events.append(LineAcknowledged(number, sent.command, sent.tag, ""))
 
     def _handle_line(self, text: str, now: float) -> None:
         reply = replies.classify(text)
@@ -454,16 +463,13 @@ class HyrelDialect:
         m115s = self._m115s
         while m115s and m115s[0].seq < seq:
             m115s.popleft()  # it ran before a line that ran: its answer was lost
-        if self._in_flight and self._in_flight[0].seq <= seq:
-            # They were received, and are acknowledged now; but their ACKs may be on their
-            # way still: they leave the window once those come, or are taken as lost.
-            for sent in self._in_flight:
-                if sent.seq > seq:
-                    break
-                self._tell(sent)
-            self._overdue_seq = max(self._overdue_seq, seq)
-            if self._overdue_at is None:
-                self._overdue_at = now + ACK_GRACE
+        # What ran was received: an ACK not here yet for it was lost. (It cannot be on
+        # its way still: the controller sent it as the line came, or, lacking headroom
+        # then, once it had read out enough lines, before the line ran.)
+        in_flight = self._in_flight
+        while in_flight and in_flight[0].seq <= seq:
+            self.stats.lost_acks += 1
+            self._release(in_flight.popleft())
 
     def next_event(self) -> Event | None:
         return self._events.popleft() if self._events else None
@@ -481,8 +487,6 @@ class HyrelDialect:
             deadline = min(deadline, self._last_progress_at + self._status_after)
         if self._sync_sent_at is not None:
             deadline = min(deadline, self._sync_sent_at + SYNC_RETRY)
-        if self._overdue_at is not None:
-            deadline = min(deadline, self._overdue_at)
         return deadline
 
     def handle_timeout(self, now: float) -> None:
@@ -501,12 +505,6 @@ class HyrelDialect:
             return
         if phase is not Phase.RUNNING:
             return
-        if self._overdue_at is not None and now >= self._overdue_at:
-            self._overdue_at = None
-            in_flight = self._in_flight
-            while in_flight and in_flight[0].seq <= self._overdue_seq:
-                self.stats.lost_acks += 1
-                self._release(in_flight.popleft())
         if self._in_flight and now >= self._last_progress_at + self._status_after:
             if self._status_asked >= STATUS_ATTEMPTS:
                 self._fail(
