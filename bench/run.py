@@ -6,7 +6,8 @@
 For each link profile the fake controller (``hyrel-fake-controller``, a real pty)
 emulates the link, and each host streams the same slicer file to it in turn:
 repetrel-host buffered and unbuffered (``hyrel-send``, run in-process by
-bench/peer.py) and Printrun's printcore (``pip install --no-deps printrun``).
+bench/peer.py), repetrel-host on Hyrel's own link (the fake speaking it too, with its
+8 KB buffer) and Printrun's printcore (``pip install --no-deps printrun``).
 Then ``hyrel-send`` streams a generated job of ``--big-gb`` GB for a few seconds:
 when did its first job line reach the controller, and what was its peak RSS?
 
@@ -103,7 +104,13 @@ def job_file(lines: int, folder: Path) -> tuple[Path, list[str]]:
     return path, commands
 
 
-def start_fake(profile: Profile, folder: Path, tag: str) -> tuple[subprocess.Popen[str], str]:
+# Hyrel's own link: the fake speaks it, with its 8 KB buffer (ACKs while 2 KB are free).
+HYREL_FAKE = ("--protocol", "hyrel", "--rx-buffer", "8192")
+
+
+def start_fake(
+    profile: Profile, folder: Path, tag: str, extra: tuple[str, ...] = ()
+) -> tuple[subprocess.Popen[str], str]:
     stats, log = folder / f"{tag}.json", folder / f"{tag}.log"
     command = [
         sys.executable,
@@ -122,6 +129,7 @@ def start_fake(profile: Profile, folder: Path, tag: str) -> tuple[subprocess.Pop
         "--log",
         str(log),
         *profile.fake_options,
+        *extra,  # after the profile's: the last --rx-buffer given counts
     ]
     fake = subprocess.Popen(command, stdout=subprocess.PIPE, text=True)
     assert fake.stdout is not None
@@ -138,10 +146,13 @@ def stop_fake(fake: subprocess.Popen[str]) -> None:
 
 def run_host(host: str, profile: Profile, job: Path, commands: list[str], folder: Path) -> Result:
     tag = f"{profile.name}-{host}"
-    fake, port = start_fake(profile, folder, tag)
+    fake, port = start_fake(profile, folder, tag, HYREL_FAKE if host == "ours-hyrel" else ())
     try:
         if host in ("printcore", "ideal"):
             argv = [sys.executable, str(PEER), host, port, str(job)]
+        elif host == "ours-hyrel":  # the window: the headroom, or as buffered's on usb
+            options = ["--protocol", "hyrel", *profile.options]
+            argv = [sys.executable, str(PEER), "ours", port, str(job), *options]
         else:
             flow = host.removeprefix("ours-")
             options = list(profile.options) if flow == "buffered" else []
@@ -155,8 +166,8 @@ def run_host(host: str, profile: Profile, job: Path, commands: list[str], folder
     report = json.loads(report_line[-1].removeprefix("PEER "))
     stats = json.loads((folder / f"{tag}.json").read_text())
     executed = (folder / f"{tag}.log").read_text().splitlines()
-    # Greetings are not the job: our M110 and M115, printcore's M110 N-1 and the M105 it
-    # connects with.
+    # Greetings are not the job: our M110 and M115 (and Hyrel's link's M115s, which
+    # confirm what ran), printcore's M110 N-1 and the M105 it connects with.
     job_executed = [c for c in executed if not c.startswith(("M110", "M105", "M115"))]
     job_commands = [c for c in commands if not c.startswith("M105")]
     return Result(
@@ -286,7 +297,7 @@ def main() -> int:
             job, commands = job_file(lines, folder)
             hosts = ["ours-buffered"]
             if not profile.fake_options:  # the variants compare ours with ours
-                hosts += ["ours-unbuffered", "printcore", "ideal"]
+                hosts += ["ours-unbuffered", "ours-hyrel", "printcore", "ideal"]
             for host in hosts:
                 if args.host and host not in args.host:
                     continue

@@ -3,10 +3,16 @@
     python bench/soak.py                      # 1,000,000 lines, both flow modes, in memory
     python bench/soak.py --lines 100000 --engine pty
     python bench/soak.py --rx-buffer 4096 --max-lines 96   # a USB link's window
+    python bench/soak.py --protocol hyrel     # Hyrel's own link (its noise: see below)
 
 The job is the cone slicer file repeated to ``--lines``. The noise is issue 4's: 2 %
 of lines corrupted on the way in, 1 % of replies garbled, 1 % of oks dropped, 1 %
 duplicated, 0.5 % spurious resend requests, on a link with ``--latency`` each way.
+
+On Hyrel's own link (``--protocol hyrel``; its 8 KB buffer, the window its 2 KB headroom)
+the noise is what that link can survive: 2 % of ACK bytes lost, 1 % of replies garbled
+(ACKs, answers and notices among them). A line corrupted on its way has no resend there:
+the job stops, naming it (tests/test_hyrel_dialect.py); it is no part of a soak.
 
 - ``memory`` runs the host core against the simulated controller on simulated time:
   the stall figure is exact and the run is deterministic (same seed, same numbers).
@@ -31,14 +37,19 @@ import time
 from pathlib import Path
 
 from repetrel_host.job import Job
+from repetrel_host.planning import DEFAULT_WINDOWS
+from repetrel_host.protocol.dialects.hyrel import HyrelDialect
 from repetrel_host.protocol.flow import FlowControl, FlowMode
 from repetrel_host.testing.fake_controller import BuiltInFake
+from repetrel_host.testing.hyrel_simulator import HyrelControllerSimulator
 from repetrel_host.testing.loopback import run_loopback
 from repetrel_host.testing.simulator import ControllerSettings, Faults
 
 ROOT = Path(__file__).resolve().parent.parent
 CONE = ROOT / "tests" / "data" / "cone-prusaslicer.gcode"
 NOISE = "corrupt=0.02 garble=0.01 drop_ok=0.01 duplicate_ok=0.01 spurious_resend=0.005"
+HYREL_NOISE = "drop_ok=0.02 garble=0.01"
+HYREL_RX_BUFFER = 8192
 
 
 def job_commands(lines: int) -> list[str]:
@@ -53,17 +64,37 @@ def cpu_seconds() -> float:
 
 
 def memory_run(
-    commands: list[str], mode: FlowMode, latency: float, faults: str, window: tuple[int, int]
+    commands: list[str],
+    mode: FlowMode,
+    latency: float,
+    faults: str,
+    window: tuple[int, int],
+    protocol: str,
 ) -> dict[str, object]:
     rx_buffer, max_lines = window
-    settings = ControllerSettings(latency=latency, faults=Faults.parse(faults), rx_buffer=rx_buffer)
-    started = cpu_seconds()
     flow = FlowControl(mode, rx_buffer=rx_buffer, max_lines=max_lines)
-    result = run_loopback(commands, flow, settings, record=False)
+    started = cpu_seconds()
+    if protocol == "hyrel":
+        settings = ControllerSettings(
+            latency=latency, faults=Faults.parse(faults), rx_buffer=HYREL_RX_BUFFER, banner=False
+        )
+        result = run_loopback(
+            commands,
+            record=False,
+            dialect=HyrelDialect(flow),
+            controller=HyrelControllerSimulator(settings),
+        )
+        executed = [c for c in result.executed if c != "M115"]  # the host's syncs
+    else:
+        settings = ControllerSettings(
+            latency=latency, faults=Faults.parse(faults), rx_buffer=rx_buffer
+        )
+        result = run_loopback(commands, flow, settings, record=False)
+        executed = result.executed
     stats, counts = result.host.stats, result.controller.counts
     return {
         "seconds": result.seconds,
-        "exact": result.failure is None and result.executed == commands,
+        "exact": result.failure is None and executed == commands,
         "failure": result.failure.reason if result.failure else "",
         "resends": stats.resend_requests,
         "stalls": stats.stalls_recovered,
@@ -78,30 +109,40 @@ def memory_run(
 
 
 def pty_run(
-    commands: list[str], mode: FlowMode, latency: float, faults: str, window: tuple[int, int]
+    commands: list[str],
+    mode: FlowMode,
+    latency: float,
+    faults: str,
+    window: tuple[int, int],
+    protocol: str,
 ) -> dict[str, object]:
     rx_buffer, max_lines = (str(value) for value in window)
+    fake_buffer = str(HYREL_RX_BUFFER) if protocol == "hyrel" else rx_buffer
     with tempfile.TemporaryDirectory() as folder:
         job = Path(folder) / "soak.gcode"
         job.write_text("\n".join(commands) + "\n")
         log = Path(folder) / "executed.log"
         fake = BuiltInFake(
-            log, ["--latency", str(latency), "--faults", faults, "--rx-buffer", rx_buffer]
-        )
+            log,
+            ["--latency", str(latency), "--faults", faults, "--rx-buffer", fake_buffer,
+             "--protocol", protocol],
+        )  # fmt: skip
         fake.start()
         started, wall = cpu_seconds(), time.monotonic()
         try:
             result = subprocess.run(
                 [sys.executable, "-m", "repetrel_host.cli", str(job), "--port", fake.port,
                  "--flow", mode.value, "--no-history", "--rx-buffer", rx_buffer,
-                 "--max-lines", max_lines],
+                 "--max-lines", max_lines, "--protocol", protocol],
                 capture_output=True, text=True, check=False,
             )  # fmt: skip
         finally:
             fake.stop()
         seconds = time.monotonic() - wall
         done = [c for c in log.read_text().splitlines() if not c.startswith("M110")]
-        if done[:1] == ["M115"]:
+        if protocol == "hyrel":
+            done = [c for c in done if c != "M115"]  # the host's syncs, and who are you?
+        elif done[:1] == ["M115"]:
             done = done[1:]  # the session asks who the controller is before the job
     summary = re.search(r"(\d+) resend requests", result.stdout)
     return {
@@ -123,17 +164,23 @@ def main() -> int:
     parser.add_argument("--latency", type=float, default=0.001, help="one-way link delay, s")
     parser.add_argument("--engine", choices=["memory", "pty"], default="memory")
     parser.add_argument("--seed", type=int, default=1)
-    parser.add_argument("--rx-buffer", type=int, default=128, help="the controller's, bytes")
-    parser.add_argument("--max-lines", type=int, default=8, help="the host's window, lines")
+    parser.add_argument(
+        "--rx-buffer", type=int, help="the window: the controller's buffer (128), or headroom "
+        "with --protocol hyrel (2048), bytes"
+    )  # fmt: skip
+    parser.add_argument("--max-lines", type=int, help="the host's window, lines (8; hyrel 256)")
+    parser.add_argument("--protocol", choices=["reprap", "hyrel"], default="reprap")
     args = parser.parse_args()
-    window = (args.rx_buffer, args.max_lines)
+    default = DEFAULT_WINDOWS[args.protocol]
+    window = (args.rx_buffer or default.rx_buffer, args.max_lines or default.max_lines)
     commands = job_commands(args.lines)
     run = memory_run if args.engine == "memory" else pty_run
     modes = list(FlowMode) if args.flow == "both" else [FlowMode(args.flow)]
-    noisy_faults = f"{NOISE} seed={args.seed}"
+    noise = HYREL_NOISE if args.protocol == "hyrel" else NOISE
+    noisy_faults = f"{noise} seed={args.seed}"
     print(
-        f"soak: {args.lines:,} lines, {args.engine}, {args.latency * 1000:g} ms each way, "
-        f"window {args.rx_buffer} bytes / {args.max_lines} lines"
+        f"soak: {args.lines:,} lines, {args.engine}, {args.protocol}, {args.latency * 1000:g} ms "
+        f"each way, window {window[0]} bytes / {window[1]} lines"
     )
     print(f"noise: {noisy_faults}")
     header = (
@@ -143,8 +190,8 @@ def main() -> int:
     print(header)
     verdicts = []
     for mode in modes:
-        clean = run(commands, mode, args.latency, "", window)
-        noisy = run(commands, mode, args.latency, noisy_faults, window)
+        clean = run(commands, mode, args.latency, "", window, args.protocol)
+        noisy = run(commands, mode, args.latency, noisy_faults, window, args.protocol)
         lost = int(noisy["lost_oks"])  # type: ignore[call-overload]
         extra = float(noisy["seconds"]) - float(clean["seconds"])  # type: ignore[arg-type]
         stall = f"{extra / lost:.3f}" if lost > 0 else "-"

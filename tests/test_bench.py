@@ -42,7 +42,7 @@ def test_speed_bench_prints_every_figure_against_printcore() -> None:
     assert header[:4] == ["host", "link", "lines", "lines/s"]
     hosts = {(row[0], row[1]) for row in table}
     for link in ("uart", "usb"):
-        for host in ("ours-buffered", "ours-unbuffered", "printcore", "ideal"):
+        for host in ("ours-buffered", "ours-unbuffered", "ours-hyrel", "printcore", "ideal"):
             assert (host, link) in hosts
     assert ("ours-buffered", "uart+advanced_ok") in hosts
     for row in table:

@@ -9,6 +9,7 @@ import pytest
 from repetrel_host.protocol.dialects.hyrel import (
     KEEPALIVE,
     STATUS_AFTER,
+    SYNC_AFTER,
     SYNC_EVERY,
     HyrelDialect,
 )
@@ -153,9 +154,12 @@ def test_lines_whose_acks_are_lost_get_a_sync_once_they_waited_long() -> None:
         dialect.send(f"G1 X{i}", i)
     assert dialect.data_to_send(0.0) == b"N1 G1 X0\nN2 G1 X1\nN3 G1 X2\n"
     dialect.receive_data(b"\x06", 0.1)  # the job goes on; two ACKs were lost
+    assert dialect.next_deadline() == pytest.approx(0.1 + SYNC_AFTER)
+    dialect.handle_timeout(0.1 + SYNC_AFTER)
+    assert dialect.data_to_send(0.6) == b"N4 M115\n"  # what ran? (past a full window)
     assert dialect.next_deadline() == pytest.approx(0.1 + STATUS_AFTER)
     dialect.handle_timeout(0.1 + STATUS_AFTER)
-    assert dialect.data_to_send(5.1) == b"\x05N4 M115\n"  # is it there? what ran?
+    assert dialect.data_to_send(5.1) == b"\x05"  # is it there at all?
     dialect.receive_data(b">ST: T:21.0 /0.0\nFIRMWARE_NAME:>Hy: Hydra PROTOCOL_VERSION:1.0\n", 5.2)
     assert [e.tag for e in iter(dialect.next_event, None) if isinstance(e, LineAcknowledged)] == [
         0, 1, 2
@@ -169,6 +173,8 @@ def test_lines_after_a_quiet_spell_get_their_full_time_before_a_status_request()
     assert dialect.data_to_send(KEEPALIVE) == b"\x0e"
     dialect.send("G28")
     assert dialect.data_to_send(19.9) == b"N1 G28\n"
+    assert dialect.next_deadline() == pytest.approx(19.9 + SYNC_AFTER)
+    dialect.handle_timeout(19.9 + SYNC_AFTER)
     assert dialect.next_deadline() == pytest.approx(19.9 + STATUS_AFTER)
 
 
@@ -342,3 +348,19 @@ def test_a_line_refused_for_its_checksum_is_named_and_the_controller_aborts() ->
     executed = result.executed
     assert executed == [c for c in commands if c != "G1 X199"][: len(executed)]
     assert 150 < len(executed) <= 199 + 20
+
+
+def test_an_abort_while_acks_were_held_back_waits_for_what_it_left_behind() -> None:
+    dialect = greeted()
+    dialect.send("G1 X1")
+    dialect.data_to_send(0.0)
+    dialect.handle_timeout(SYNC_AFTER)  # a full buffer holds the ACK back: a sync goes
+    assert dialect.data_to_send(SYNC_AFTER) == b"N2 M115\n"
+    assert dialect.abort()  # it was dropped with the line, or ran: its answer may come
+    dialect.send("M104 S0", "off", urgent=True)
+    dialect.request_sync()
+    assert dialect.data_to_send(1.0) == b"\x08\x09N3 M104 S0\n"  # no sync yet
+    dialect.receive_data(b"\x06\x06\x06", 1.1)  # the two dropped lines', the safe stop's
+    assert dialect.data_to_send(1.1) == b"N4 M115\n"  # every answer left behind came first
+    dialect.receive_data(b"FIRMWARE_NAME:>Hy: Hydra PROTOCOL_VERSION:1.0\n", 1.2)
+    assert dialect.is_done

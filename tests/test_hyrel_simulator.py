@@ -162,10 +162,11 @@ def test_m772_arms_the_m773_report_that_m30_sends_before_its_notice() -> None:
     assert shown == [">MC:M772: S1:", ">MC:M30:"]
     assert report.report is not None and report.report.complete
     fields = report.report.fields
-    # From X5 (before M772): 5 mm at 600 mm/min, 10 mm extruding, 10 mm in Y.
+    # Counted from M772 (the fake starts from X0): 10 mm at 600 mm/min, 10 mm extruding,
+    # 10 mm in Y.
     assert fields["Printing moves"] == ["1.0", "0.010"]
-    assert fields["Non-printing moves"] == ["1.5", "0.015"]
-    assert fields["Totals"] == ["2.5", "0.025"]
+    assert fields["Non-printing moves"] == ["2.0", "0.020"]
+    assert fields["Totals"] == ["3.0", "0.030"]
     assert fields["approx filament (E)"] == ["0.002 m"]
 
 

@@ -141,8 +141,9 @@ def send(
     protocol: Annotated[
         Protocol | None,
         typer.Option(
-            help="reprap (default): numbered lines, ok and Resend; hyrel: Hyrel's own link "
-            "(ACK bytes, control bytes, the host watchdog). Default: the machine profile's."
+            help="reprap: numbered lines, ok and Resend; hyrel: Hyrel's own link (ACK "
+            "bytes, control bytes, the host watchdog). Default: the machine profile's, else "
+            "reprap."
         ),
     ] = None,
     flow: Annotated[

@@ -277,7 +277,7 @@ def build_parser() -> argparse.ArgumentParser:
         choices=["reprap", "hyrel"],
         default="reprap",
         help="the link: RepRap/Marlin lines with ok and Resend, or Hyrel's own (ACK bytes, "
-        "control bytes, tagged messages, the host watchdog)",
+        "control bytes, tagged messages, the host watchdog, M0 waits, the M773 report)",
     )
     parser.add_argument(
         "--rx-buffer",
@@ -322,7 +322,8 @@ def build_parser() -> argparse.ArgumentParser:
         "spurious_resend=0.005 resend_without_ok=1 flush_on_error=1 drop_duplicates=1 "
         "busy_interval=2 seed=7'; and two controllers' ways: counted_resend=1 (OctoPrint's "
         "virtual printer's answer to a bad checksum) and drop_with_error=0.01 (lines dropped "
-        "with only an error line)",
+        "with only an error line); with --protocol hyrel: corrupt, garble, drop_ok and "
+        "duplicate_ok (ACK bytes lost or doubled)",
     )
     return parser
 

@@ -16,7 +16,8 @@ heaters, faults); the link is Hyrel's:
   stops (here: the head's heater target goes to 0) and ``>ER:`` says so;
 - ``M0``/``M1`` wait until end-wait; ``M772 S<mask>`` resets the job metrics and, with
   bit 0, arms the ``M773`` report that ``M30`` sends (``M773`` sends it at once), in the
-  reference's form (hyrel-gcode-reference.txt, M773);
+  reference's form (hyrel-gcode-reference.txt, M773): what ran since M772 (positions
+  from X0 Y0 Z0, times at the feed rate);
 - faults: ``corrupt`` and ``garble`` as on Marlin's link, ``drop_ok`` and
   ``duplicate_ok`` for ACK bytes; the others are Marlin's ways and refused here.
 
@@ -167,7 +168,7 @@ class HyrelControllerSimulator(ControllerSimulator):
         self.owed_acks = 0
         self.acks_sent = 0
         self.watchdog_trips = 0
-        self.metrics = Metrics()
+        self.metrics: Metrics | None = None  # counted from the first M772 on
         self._reports = 0  # M772's mask: bit 0, the M773 report at M30
         self._held = False  # a pause byte, an M0: nothing runs until end-wait
         self._heard_at: float | None = None  # the host's last byte (armed by the first)
@@ -281,11 +282,14 @@ class HyrelControllerSimulator(ControllerSimulator):
 
     def _answer(self, command: _Command, now: float) -> None:
         word = command.word
+        metrics = self.metrics
         if word in _MOVES:
-            self.metrics.move(command.text)
+            if metrics is not None:
+                metrics.move(command.text)
             return
         self._set_heater(command, now)
-        self.metrics.set_mode(word, command.text)
+        if metrics is not None:
+            metrics.set_mode(word, command.text)
         if word == "M112":  # halts as Marlin's does (the notes say nothing of Hyrel's)
             for heater in self.heaters.values():
                 heater[1] = 0.0
@@ -301,15 +305,10 @@ class HyrelControllerSimulator(ControllerSimulator):
         elif word == "M772":
             match = re.search(r"S\s*(\d+)", command.text)
             self._reports = int(match.group(1)) if match else 0
-            old = self.metrics  # the counts start again; where the machine is does not
-            self.metrics = Metrics(
-                position=old.position,
-                relative=old.relative,
-                relative_e=old.relative_e,
-                feed_rate=old.feed_rate,
-            )
+            self.metrics = Metrics()  # the counts start again, from X0 Y0 Z0 as this fake has it
         elif word == "M773" or (word == "M30" and self._reports & 1):
-            self._reply("".join(f"{line}\n" for line in self.metrics.report()).encode(), now)
+            lines = (metrics or Metrics()).report()
+            self._reply("".join(f"{line}\n" for line in lines).encode(), now)
         if word in ("M0", "M1"):
             self._held = True  # until end-wait
         if word in NOTICED:

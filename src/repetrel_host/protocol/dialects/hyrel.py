@@ -66,6 +66,10 @@ HELLO_ATTEMPTS = 5
 KEEPALIVE = 10.0  # the longest quiet from the host: well inside the 30 s watchdog
 STATUS_ATTEMPTS = 4  # unanswered status requests in a row: the controller is gone
 STATUS_AFTER = 5.0  # lines waiting this long for an ACK: ask whether the controller is there
+# No ACK for this long while lines wait for theirs: a sync goes (past the window if need
+# be), whose answer releases those that ran, whose ACK was lost. A full buffer behind a
+# long command holds its ACKs back too: then the sync waits its turn, and does no harm.
+SYNC_AFTER = 0.5
 SYNC_COMMAND = "M115"  # answered when run: every line before it ran
 SYNC_RETRY = 30.0  # an M115 unanswered this long: its answer may be lost, another may go
 # A sync among every this many lines: its answer says how far the controller got, and
@@ -74,7 +78,7 @@ SYNC_EVERY = 256
 # Bytes of the headroom the caller's lines leave free: room for the host's own lines (a
 # sync past the window), and against an ACK that comes late or twice (taken for the next
 # line's, it lets one line too many go; a full buffer has no other byte to spare).
-HOST_RESERVE = 512
+HOST_RESERVE = 128
 RECENT = 1024  # lines remembered by number (an error names one), M-codes awaiting notices
 _LINE_NUMBER = re.compile(r"\bline\s+(\d+)|\bN(\d+)\b", re.IGNORECASE)
 _FATAL = re.compile(r"checksum|watchdog", re.IGNORECASE)
@@ -151,6 +155,7 @@ class HyrelDialect:
         self._sync_sent_at: float | None = None  # an M115 after the last caller line
         self._since_m115 = 0  # caller lines sent since the last M115
         self._stalled = False  # lines waited for their ACK: a sync may go past the window
+        self._acked_at = 0.0  # the last ACK, or the first line to wait for one since
         self._receiver = HostReceiver()
         self._outgoing = bytearray()
         self._events: deque[Event] = deque()
@@ -204,6 +209,7 @@ class HyrelDialect:
         self._m115s.clear()
         self._sync_sent_at = None
         self._since_m115 = 0
+        self._stalled = False  # the lines after it wait for ACKs afresh
         return True
 
     def hold(self, at_layer_end: bool = False) -> bool:
@@ -313,8 +319,8 @@ class HyrelDialect:
         self._seq = seq = self._seq + 1
         sent = _Sent(number, command, word, tag, len(wire), seq, host_line, confirm)
         received = not self._in_flight  # every line before this one
-        if received:
-            self._last_progress_at = now  # the first line waiting: its ACK is due from now
+        if received:  # the first line waiting: its ACK is due from now
+            self._last_progress_at = self._acked_at = now
         self._in_flight.append(sent)
         self._in_flight_bytes += sent.size
         self._outgoing += wire
@@ -326,7 +332,6 @@ class HyrelDialect:
             self._m115s.append(sent)
             self._sync_sent_at = now
             self._since_m115 = 0
-            self._stalled = False
             if received:
                 self._stale_answers = 0  # what an abort left behind came before those ACKs
         elif not host_line:
@@ -362,12 +367,13 @@ class HyrelDialect:
 
     def _acknowledged(self, now: float) -> None:
         if self._stale_acks:
-            self._stale_acks -= 1  # for a line an abort dropped
+            self._stale_acks -= 1  # for a line an abort dropped: the controller is there
+            self._last_progress_at = self._acked_at = now
             return
         if not self._in_flight:
             self.stats.unexpected_oks += 1  # an ACK nothing was owed
             return
-        self._last_progress_at = now
+        self._last_progress_at = self._acked_at = now
         self._status_asked = 0
         self._stalled = False
         self._release(self._in_flight.popleft())
@@ -485,6 +491,8 @@ class HyrelDialect:
         deadline = self._last_sent_at + KEEPALIVE
         if self._in_flight:
             deadline = min(deadline, self._last_progress_at + self._status_after)
+            if not self._stalled:
+                deadline = min(deadline, self._acked_at + SYNC_AFTER)
         if self._sync_sent_at is not None:
             deadline = min(deadline, self._sync_sent_at + SYNC_RETRY)
         return deadline
@@ -505,6 +513,11 @@ class HyrelDialect:
             return
         if phase is not Phase.RUNNING:
             return
+        if self._in_flight and not self._stalled and now >= self._acked_at + SYNC_AFTER:
+            self._stalled = True
+            self.stats.stalls_recovered += 1  # a sync will release what ran
+            # What an abort left to come came before this quiet (or was never sent).
+            self._stale_acks = self._stale_answers = 0
         if self._in_flight and now >= self._last_progress_at + self._status_after:
             if self._status_asked >= STATUS_ATTEMPTS:
                 self._fail(
@@ -515,9 +528,6 @@ class HyrelDialect:
                 return
             self._status_asked += 1
             self._last_progress_at = now  # the next request after as long again
-            if not self._stalled:
-                self._stalled = True
-                self.stats.stalls_recovered += 1  # a sync will release what ran
             self._outgoing.append(Control.STATUS)
         if self._sync_sent_at is not None and now >= self._sync_sent_at + SYNC_RETRY:
             self._sync_sent_at = None  # its answer was lost, or it waits long: ask again
