@@ -18,6 +18,7 @@ from repetrel_host.protocol.hyrel import (
     parse_notice,
     read_line,
 )
+from repetrel_host.protocol.reports import ReportReader
 
 
 def test_lines_are_framed_with_an_optional_number_and_additive_checksum() -> None:
@@ -75,3 +76,35 @@ def test_the_host_counts_acks_wherever_they_come_and_keeps_the_text() -> None:
 )
 def test_m_code_notices_are_read(text: str, notice: Notice | None) -> None:
     assert parse_notice(text) == notice
+
+
+def test_the_m773_report_is_picked_out_of_the_controllers_lines() -> None:
+    reader = ReportReader()
+    lines = [
+        ">IN:  50: ******",  # not the report's: no Begin follows
+        ">MC:M30:",
+        ">IN:  50: ******",
+        ">IN:  50: **  Begin M773 - print job metrics Report",
+        ">IN:  50: ******",
+        ">IN:  50: Totals:                   12.5       0.317",
+        ">IN:  50: approx filament (PI*d)    0.132 m",
+        ">IN:  50: unprimes issued:          3",
+        ">IN:  50: **  End M773 Report",
+        ">IN:  50: ******",
+        ">IN:  50: next",
+    ]
+    shown = [line for text in lines for line in reader.feed(text)]
+    assert shown == [">IN:  50: ******", ">MC:M30:", ">IN:  50: next"]
+    report = reader.report
+    assert report is not None and report.complete and report.lines[0] == "******"
+    assert report.lines[1] == "**  Begin M773 - print job metrics Report"
+    assert report.lines[-2:] == ("**  End M773 Report", "******")
+    assert report.fields == {
+        "Totals": ["12.5", "0.317"],
+        "approx filament (PI*d)": ["0.132 m"],
+        "unprimes issued": ["3"],
+    }
+    cut = ReportReader()
+    for text in lines[2:6]:
+        cut.feed(text)
+    assert cut.report is not None and not cut.report.complete

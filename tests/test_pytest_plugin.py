@@ -20,7 +20,7 @@ pytestmark = pytest.mark.timeout(180)
 
 @pytest.fixture(autouse=True)
 def no_printer_in_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
-    for name in ("PORT", "MACHINE", "LOADOUT", "FLOW", "BAUD"):
+    for name in ("PORT", "MACHINE", "LOADOUT", "FLOW", "BAUD", "PROTOCOL"):
         monkeypatch.delenv(f"HYREL_{name}", raising=False)
 
 
@@ -41,7 +41,7 @@ def test_help_lists_the_options_in_a_hyrel_group_with_their_defaults(
     assert result.ret == 0
     text = result.stdout.str()
     group = one_line(text[text.index("Hyrel printers (repetrel-host):") :])
-    for option in ("PORT", "MACHINE", "LOADOUT", "FLOW", "BAUD"):
+    for option in ("PORT", "MACHINE", "LOADOUT", "FLOW", "BAUD", "PROTOCOL"):
         assert f"--hyrel-{option.lower()}={option}" in group
         assert f"HYREL_{option}" in group
         assert f"hyrel_{option.lower()} (string)" in group  # the ini key
@@ -449,3 +449,36 @@ def test_the_wire_recorder_joins_lines_split_across_reads_and_caps_noise() -> No
     assert lines[:3] == ["> N1 G28*18", "> N2 G1 X1*99", "< ok"]
     assert lines[3] == "< " + "\\xff" * (WIRE_LINE_MAX + 1)  # shown, not held back
     assert len(recorder.since(recorder.wire, mark)) == 3  # what came after the mark
+
+
+def test_hyrel_protocol_runs_the_same_tests_over_hyrels_link(pytester: pytest.Pytester) -> None:
+    pytester.makepyfile(
+        """
+        import pytest
+
+        def test_the_controller_says_it_is_a_hyrel(hyrel_printer):
+            assert hyrel_printer.command("M115").lines[0].startswith("FIRMWARE_NAME:>Hy:")
+            assert hyrel_printer.session.settings.protocol == "hyrel"
+
+        def test_a_job_runs_exactly_once_with_acks_lost(
+            hyrel_printer, hyrel_controller, hyrel_job
+        ):
+            job = hyrel_job("G28\\n" + "".join(f"G1 X{i} F3000\\n" for i in range(600)))
+            before = len(hyrel_controller.executed)
+            hyrel_controller.set_faults("drop_ok=0.1 garble=0.02 seed=3")
+            result = hyrel_printer.print(job)
+            assert result.completed and result.acknowledged == result.commands
+            ran = [c for c in hyrel_controller.executed[before:] if c != "M115"]
+            assert ran == result.commands and hyrel_controller.fault_counts["dropped_oks"] > 10
+
+        @pytest.mark.hyrel_fake(protocol="reprap")
+        def test_the_fakes_protocol_is_the_sessions(hyrel_printer):
+            pass
+        """
+    )
+    result = run(pytester, "--hyrel-protocol=hyrel")
+    result.assert_outcomes(passed=2, errors=1)
+    assert "hyrel_fake: protocol is the plugin's: give --hyrel-protocol" in result.stdout.str()
+    result = run(pytester, "--hyrel-protocol=marlin")
+    assert result.ret != 0
+    assert "--hyrel-protocol: 'marlin' is not reprap or hyrel" in result.stderr.str()

@@ -645,6 +645,26 @@ def test_a_controller_slow_to_say_who_it_is_is_used_without_its_name(
     run(scenario)
 
 
+def test_a_hyrel_controller_slow_to_answer_m115_is_known_by_its_pings_answer(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr(rh.session, "FIRMWARE_TIMEOUT", 0.3)
+    settings = ControllerSettings(latency=0.25, rx_buffer=8192, banner=False)
+
+    async def scenario() -> None:
+        connecting = rh.connect("sim", sim=settings, poll_interval=None, protocol="hyrel")
+        async with connecting as printer:
+            assert printer.firmware is not None
+            assert printer.firmware.name == ">Hy: repetrel-host fake controller (Hyrel link)"
+            assert printer.profile.name == "hyrel"
+            # M115's late answer stays its own: M105 gets only its temperatures.
+            assert (await printer.command("M105")).lines == [
+                ">ST: T:21.0 /0.0 B:21.0 /0.0 @:0 B@:0"
+            ]
+
+    run(scenario)
+
+
 def test_a_stop_under_way_is_not_abandoned_by_leaving_the_session(rig: Rig, tmp_path: Path) -> None:
     rig.move_time = 0.003
     commands = ["M104 S200", *(f"G1 X{i % 100}" for i in range(2000))]

@@ -646,7 +646,7 @@ def _print_report(console: Out, job: PrintJob, asked: bool) -> None:
     console.print(f"The controller's job report (M773){cut}:", markup=False)
     for line in report.lines:
         console.print(f"  {line}", markup=False)
-    if job.history is not None:
+    if job.report_path is not None:
         console.print(f"Job report: {job.report_path}", markup=False)
 
 

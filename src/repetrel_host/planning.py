@@ -29,8 +29,7 @@ from repetrel_host.gcode.header import header_commands, safe_stop_commands
 from repetrel_host.gcode.lint import Finding, Linter, Severity
 from repetrel_host.job import Job, JobItem, JobLine
 from repetrel_host.links import FAKE_PORT
-from repetrel_host.protocol.dialects.hyrel import DEFAULT_WINDOW as HYREL_WINDOW
-from repetrel_host.protocol.flow import FlowControl, FlowMode
+from repetrel_host.protocol.flow import HYREL_WINDOW, FlowControl, FlowMode
 from repetrel_host.protocol.framing import clean_line
 from repetrel_host.protocol.reports import Firmware
 

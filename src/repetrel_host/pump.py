@@ -69,8 +69,9 @@ class Summary:
 class Listener:
     """Told what the pump sees; override what you need."""
 
-    def ready(self, probe: ProbeKind) -> None:
-        """The greeting is over: lines flow."""
+    def ready(self, probe: ProbeKind, identity: str) -> None:
+        """The greeting is over: lines flow (``identity``: what the controller said of
+        itself in the greeting, or "")."""
 
     def acknowledged(self, line: JobLine) -> None:
         """A line of the running job (or its header or safe stop) was acknowledged."""
@@ -376,7 +377,7 @@ class Pump:
                 if isinstance(event.tag, JobLine):
                     listener.resend(event.tag)
             elif isinstance(event, ControllerReady):
-                listener.ready(event.probe)
+                listener.ready(event.probe, event.identity)
             elif isinstance(event, Notice):
                 listener.notice(event.text)
             elif isinstance(event, Failed):

@@ -228,7 +228,6 @@ class PrintJob:
         self._reported = -1
         self._m0: asyncio.Future[None] | None = None  # an M0 waiting for resume()
         self._reports = ReportReader()
-        self.report_requested = False  # M772 S1 went first: M30 sends the M773 report
 
     @property
     def report(self) -> JobReport | None:
@@ -262,10 +261,10 @@ class PrintJob:
         return self._done.done()
 
     @property
-    def report_path(self) -> Path:
+    def report_path(self) -> Path | None:
         """Where the M773 report is kept: beside the history, ``<run>-report.txt``."""
-        history = self.history or Path(f"{self.name}.gcode")
-        return history.with_name(f"{history.stem}-report.txt")
+        history = self.history
+        return history.with_name(f"{history.stem}-report.txt") if history else None
 
     def where(self) -> str:
         """The last line the controller acknowledged, as error messages name it."""
@@ -345,12 +344,12 @@ class PrintJob:
         if self._done.done():
             return
         self._publish(self._progress())
-        report = self.report
+        report, path = self.report, self.report_path
         if report is not None:
             self._publish(Report(report))
-            if self.history is not None:  # beside the stream, under the same run's name
+            if path is not None:  # beside the stream, under the same run's name
                 with contextlib.suppress(OSError):
-                    self.report_path.write_text(report.text + "\n")
+                    path.write_text(report.text + "\n")
         if run.error is not None:
             self._publish(Failed(run.error))
             self._done.set_exception(run.error)
@@ -390,6 +389,7 @@ class Printer:
         self._reconnecting: asyncio.Task[None] | None = None
         self._polling: asyncio.Task[None] | None = None
         self._autoreport = False
+        self._greeting = ""  # what the controller said of itself as it was greeted
         self._closing = False
         self._last_data_at = 0.0
         # The safe stop a job that failed (the link, the controller) could not send.
@@ -548,7 +548,6 @@ class Printer:
                 items = chain([JobLine(0, 0, REPORT_COMMAND, 0, "report")], items)
             run = Run(items, plan.safe_stop, started_at=self._loop.time())
             print_job = PrintJob(self, plan, run, on_action, path)
-            print_job.report_requested = report
             self._job = print_job
             pump.begin(run)
             self._set_state(State.PRINTING, plan.job.name)
@@ -667,11 +666,14 @@ class Printer:
     async def _identify(self) -> None:
         self.firmware = None
         self._autoreport = False
+        # Without an answer to M115, the greeting's own (Hyrel's ping: ">Hy: ...").
+        greeting = [f"FIRMWARE_NAME:{self._greeting}"] if self._greeting else []
         try:
             reply = await self._command("M115", FIRMWARE_TIMEOUT)
         except TimeoutError:
-            return  # fine: a controller that does not say who it is
-        self.firmware = Firmware.parse([*reply.lines, reply.ok])
+            self.firmware = Firmware.parse(greeting)  # or none: it does not say who it is
+            return
+        self.firmware = Firmware.parse([*reply.lines, reply.ok]) or Firmware.parse(greeting)
         interval = self.settings.poll_interval
         if interval and self.firmware is not None and self.firmware.can("AUTOREPORT_TEMP"):
             with contextlib.suppress(TimeoutError):  # then it is polled instead
@@ -912,7 +914,8 @@ class _PumpListener(Listener):
     def __init__(self, printer: Printer) -> None:
         self.printer = printer
 
-    def ready(self, probe: ProbeKind) -> None:
+    def ready(self, probe: ProbeKind, identity: str) -> None:
+        self.printer._greeting = identity
         ready = self.printer._ready
         if ready is not None and not ready.done():
             ready.set_result(probe)

@@ -36,9 +36,12 @@ class ProbeKind(Enum):
 
 @dataclass(frozen=True, slots=True)
 class ControllerReady:
-    """The controller confirmed the opening M110: it is there and numbering agrees."""
+    """The controller confirmed the opening M110 (or answered the ping): it is there and
+    numbering agrees. ``identity``: what it said of itself then, where the link has that
+    (Hyrel's ``>Hy: ...``)."""
 
     probe: ProbeKind = ProbeKind.CHECKSUM
+    identity: str = ""
 
 
 class LineAcknowledged(NamedTuple):

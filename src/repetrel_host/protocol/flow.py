@@ -43,3 +43,8 @@ class FlowControl:
     @property
     def line_limit(self) -> int:
         return 1 if self.mode is FlowMode.UNBUFFERED else self.max_lines
+
+
+# Hyrel's own link: the window is the controller's headroom, not its buffer. It ACKs lines
+# while 2 KB of its 8 KB are free, so 2 KB unacknowledged keep the buffer from overflowing.
+HYREL_WINDOW = FlowControl(rx_buffer=2048, max_lines=256)

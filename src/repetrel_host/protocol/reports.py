@@ -109,19 +109,21 @@ class ReportReader:
     def feed(self, text: str) -> list[str]:
         """The lines that are not the report's, to be shown as they are."""
         if not text.startswith(">IN:"):
-            return [text]
+            if self._held is None:
+                return [text]
+            held, self._held = self._held[0], None  # a row of stars of something else
+            return [held, text]
         body = _REPORT_LEVEL.sub("", text)
         stars = bool(body) and set(body) == {"*"}
         rows = self._rows
         if rows is not None:
-            closing = self._closing
-            if not closing or stars:
+            ended = self._closing
+            if not ended or stars:
                 rows.append(body)
-                self._closing = closing or "End M773" in body
+                self._closing = ended or "End M773" in body
                 self.report = JobReport(tuple(rows), complete=self._closing)
-                if not closing:
-                    return []
-                self._rows = None
+                if ended:
+                    self._rows = None  # that was its last row of stars
                 return []
             self._rows = None  # the report is over: this line is not its
         if "Begin M773" in body:

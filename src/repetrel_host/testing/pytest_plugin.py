@@ -882,10 +882,14 @@ def _fake_arguments(item: pytest.Item) -> list[str]:
     arguments: list[str] = []
     for marker in reversed(list(item.iter_markers("hyrel_fake"))):
         owned = _PLUGIN_OWNED & set(marker.kwargs)
+        if "protocol" in owned:
+            pytest.fail(
+                "hyrel_fake: protocol is the plugin's: give --hyrel-protocol (the session "
+                "speaks it too)",
+                pytrace=False,
+            )
         if marker.args or owned:
             what = f"{', '.join(sorted(owned))} is the plugin's" if owned else "name each setting"
-            if "protocol" in owned:
-                what += " (--hyrel-protocol: the session speaks it too)"
             pytest.fail(f"hyrel_fake: {what} (as in hyrel_fake(heat_rate=20))", pytrace=False)
         for name, value in marker.kwargs.items():
             option = "--" + name.replace("_", "-")

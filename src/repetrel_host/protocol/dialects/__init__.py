@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from repetrel_host.errors import ConfigError
 from repetrel_host.protocol.dialect import Dialect
-from repetrel_host.protocol.dialects.hyrel import HyrelDialect
 from repetrel_host.protocol.dialects.reprap import DEFAULT_REPLY_TIMEOUT, RepRapDialect
 from repetrel_host.protocol.events import ProbeKind
 from repetrel_host.protocol.flow import FlowControl
@@ -24,6 +23,8 @@ def create_dialect(
     at the greeting) or ``hyrel`` (``checksum``: the additive checksum on every line)."""
     if name == "reprap":
         return RepRapDialect(flow, reply_timeout=reply_timeout, probe=probe)
-    if name == "hyrel":
+    if name == "hyrel":  # imported here: a RepRap session starts without it
+        from repetrel_host.protocol.dialects.hyrel import HyrelDialect
+
         return HyrelDialect(flow, checksum=checksum, reply_timeout=reply_timeout)
     raise ConfigError(f"unknown protocol '{name}' (known: {', '.join(PROTOCOLS)})")

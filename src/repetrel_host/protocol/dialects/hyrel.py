@@ -48,7 +48,7 @@ from repetrel_host.protocol.events import (
     LineAcknowledged,
     ProbeKind,
 )
-from repetrel_host.protocol.flow import FlowControl
+from repetrel_host.protocol.flow import HYREL_WINDOW, FlowControl
 from repetrel_host.protocol.hyrel import (
     Control,
     HostReceiver,
@@ -58,9 +58,7 @@ from repetrel_host.protocol.hyrel import (
     parse_notice,
 )
 
-# The window is the controller's headroom, not its buffer: it ACKs lines while 2 KB of
-# its 8 KB are free, so 2 KB unacknowledged keep the buffer from overflowing.
-DEFAULT_WINDOW = FlowControl(rx_buffer=2048, max_lines=256)
+DEFAULT_WINDOW = HYREL_WINDOW  # 2 KB: the controller's headroom
 HELLO_TIMEOUT = 2.0  # for the ping's answer; a late answer within it is not a reboot
 HELLO_ATTEMPTS = 5
 KEEPALIVE = 10.0  # the longest quiet from the host: well inside the 30 s watchdog
@@ -135,7 +133,8 @@ class HyrelDialect:
         self._host_byte_limit = flow.byte_limit
         self._byte_limit = max(1, flow.byte_limit - min(HOST_RESERVE, flow.byte_limit // 4))
         self._phase = Phase.IDLE
-        self._pending: deque[tuple[str, str, object, bool, bool]] = deque()  # and its word...
+        # Queued: command, word, tag, confirm, urgent.
+        self._pending: deque[tuple[str, str, object, bool, bool]] = deque()
         self._in_flight: deque[_Sent] = deque()  # waiting for their ACK
         self._in_flight_bytes = 0
         self._stale_acks = 0  # ACKs that may still come for lines an abort dropped
@@ -416,7 +415,7 @@ class HyrelDialect:
         if self._phase is Phase.GREETING:
             self._phase = Phase.RUNNING
             self._late_pings = self._hello_attempts - 1  # pings that may be answered yet
-            self._events.append(ControllerReady(ProbeKind.ANSWER))
+            self._events.append(ControllerReady(ProbeKind.ANSWER, text))
         elif self._late_pings and now <= self._hello_deadline:
             self._late_pings -= 1  # the late answer to an earlier ping
         else:
