@@ -407,9 +407,19 @@ def test_a_pty_given_as_the_port_stands_for_the_bench(
     assert "M140 S50" in executed and "G1 X3" in executed
 
 
-def test_the_hil_examples_pass_on_the_fake() -> None:
+@pytest.mark.parametrize("protocol", ["reprap", "hyrel"])
+def test_the_hil_examples_pass_on_the_fake(protocol: str) -> None:
     result = subprocess.run(
-        [sys.executable, "-m", "pytest", "examples/hil", "-p", "no:cacheprovider", "-q"],
+        [
+            sys.executable,
+            "-m",
+            "pytest",
+            "examples/hil",
+            "-p",
+            "no:cacheprovider",
+            "-q",
+            f"--hyrel-protocol={protocol}",
+        ],
         cwd=ROOT,
         capture_output=True,
         text=True,
