@@ -6,6 +6,7 @@ from typing import Any
 
 import pytest
 
+from repetrel_host.errors import ControllerError
 from repetrel_host.protocol.dialects.hyrel import (
     KEEPALIVE,
     STATUS_AFTER,
@@ -19,6 +20,7 @@ from repetrel_host.protocol.events import (
     Failed,
     FailureKind,
     LineAcknowledged,
+    LineRefused,
 )
 from repetrel_host.protocol.flow import FlowControl
 from repetrel_host.pump import Outcome
@@ -78,7 +80,7 @@ def test_a_controller_that_never_answers_the_ping_fails_the_greeting() -> None:
     assert result.executed == []
 
 
-def test_a_line_the_controller_refuses_fails_the_stream_naming_it() -> None:
+def test_a_line_the_controller_refuses_stops_the_job_naming_it() -> None:
     dialect = HyrelDialect(HYREL_WINDOW, checksum=True)
     dialect.start(0.0)
     assert dialect.data_to_send(0.0) == b"\x07"
@@ -91,10 +93,11 @@ def test_a_line_the_controller_refuses_fails_the_stream_naming_it() -> None:
     dialect.receive_data(b"\x06\x06>ER: checksum mismatch (line 2): not run\n", 0.1)
     assert dialect.next_event() == LineAcknowledged(1, "G28", "first", "")
     assert dialect.next_event() == LineAcknowledged(2, "G1 X5", "second", "")
-    failed = dialect.next_event()
-    assert isinstance(failed, Failed) and failed.kind is FailureKind.CONTROLLER
-    assert failed.tag == "second"
-    assert failed.reason == "the controller says: >ER: checksum mismatch (line 2): not run"
+    # The job must stop there; the link goes on (the pump aborts, then the safe stop).
+    assert dialect.next_event() == LineRefused(
+        "the controller says: >ER: checksum mismatch (line 2): not run", "second"
+    )
+    assert dialect.failure is None and dialect.is_ready
 
 
 @pytest.mark.parametrize("quiet", [KEEPALIVE, 25.0])
@@ -198,9 +201,9 @@ def test_a_commands_reply_is_complete_once_the_controller_ran_it() -> None:
     message = dialect.next_event()
     assert isinstance(message, ControllerMessage) and message.text == ">MC:M104: S200:"
     assert dialect.next_event() == LineAcknowledged(1, "M104 S200", "command", "")
-    assert dialect.is_done
+    assert not dialect.is_done  # for that, an answer: what it wrote as it ran all came
     dialect.receive_data(b"\x06FIRMWARE_NAME:>Hy: Hydra PROTOCOL_VERSION:1.0\n", 0.3)
-    assert dialect.next_event() is None  # the sync's answer is the host's own
+    assert dialect.next_event() is None and dialect.is_done  # the sync's answer
 
 
 def test_a_callers_m115_is_its_own_sync_and_its_answer_is_its_reply() -> None:
@@ -339,13 +342,14 @@ def test_a_line_refused_for_its_checksum_is_named_and_the_controller_aborts() ->
         dialect=HyrelDialect(HYREL_WINDOW, checksum=True),
         controller=CorruptsOneLine(settings),
     )
-    assert result.failure is not None and result.failure.kind is FailureKind.CONTROLLER
-    assert "checksum mismatch (line 200)" in result.failure.reason
-    tag = result.failure.tag
-    assert tag is not None and tag.command == "G1 X199"  # type: ignore[attr-defined]
+    assert result.failure is None  # the link goes on: the job stopped
+    error = result.run.error
+    assert isinstance(error, ControllerError)
+    assert "checksum mismatch (line 200): not run (at job:200)" in str(error)
+    assert "the last line the controller acknowledged is job:" in str(error)
     # In order without it, and not far past it: the abort came within a round trip (and
     # dropped what the controller held, lines before it in its command slots too).
-    executed = result.executed
+    executed = [c for c in result.executed if c != "M115"]  # the syncs ran too
     assert executed == [c for c in commands if c != "G1 X199"][: len(executed)]
     assert 150 < len(executed) <= 199 + 20
 
@@ -364,3 +368,32 @@ def test_an_abort_while_acks_were_held_back_waits_for_what_it_left_behind() -> N
     assert dialect.data_to_send(1.1) == b"N4 M115\n"  # every answer left behind came first
     dialect.receive_data(b"FIRMWARE_NAME:>Hy: Hydra PROTOCOL_VERSION:1.0\n", 1.2)
     assert dialect.is_done
+
+
+def test_a_garbled_notice_confirms_no_line_that_has_not_run() -> None:
+    dialect = greeted()
+    job = ["M107", *(f"G1 X{i}" for i in range(50)), "M106 S255", *(f"G1 Y{i}" for i in range(50))]
+    for command in job:
+        dialect.send(command, command)
+    dialect.request_sync()
+    dialect.data_to_send(0.0)
+    dialect.receive_data(b"\x06" * 10, 0.1)  # ten received so far
+    assert len(list(iter(dialect.next_event, None))) == 10
+    # The M107's notice, its 7 garbled into a 6: a notice names the oldest M-code not known
+    # to have run, or nothing.
+    dialect.receive_data(b">MC:M106:\n", 0.2)
+    assert [type(e) for e in iter(dialect.next_event, None)] == [ControllerMessage]
+    assert dialect.stats.lost_acks == 0 and not dialect.is_done
+    # Nor does a notice alone say a job is done: only an answer does.
+    dialect.receive_data(b">MC:M107:\n", 0.3)
+    assert not dialect.is_done
+
+
+def test_an_answer_cut_by_a_garbled_colon_is_no_reset() -> None:
+    dialect = greeted()
+    dialect.send("G1 X1", "line")
+    dialect.request_sync()
+    assert dialect.data_to_send(0.0) == b"N1 G1 X1\nN2 M115\n"
+    dialect.receive_data(b"\x06\x06FIRMWARE_NAME\n>Hy: Hydra_5 PROTOCOL_VERSION:1.0\n", 0.1)
+    events = list(iter(dialect.next_event, None))
+    assert not any(isinstance(e, Failed) for e in events) and dialect.is_done

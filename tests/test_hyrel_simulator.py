@@ -178,10 +178,12 @@ def test_acks_lost_on_the_way_and_faults_that_are_marlins_refused() -> None:
     wire.run(1.0)
     assert wire.host.take_acks() == 100 - controller.counts.dropped_oks
     assert 25 < controller.counts.dropped_oks < 75 and len(controller.executed) == 100
-    with pytest.raises(ValueError, match="'spurious_resend' is Marlin's, not on Hyrel's link"):
+    with pytest.raises(ValueError, match="'spurious_resend' is not a fault of Hyrel's link: it"):
         controller.control("set spurious_resend=0.1", 1.0)
-    with pytest.raises(ValueError, match="'busy_interval' is Marlin's"):
+    with pytest.raises(ValueError, match="'busy_interval' is not a fault of Hyrel's link"):
         HyrelControllerSimulator(ControllerSettings(faults=Faults(busy_interval=2)))
+    with pytest.raises(ValueError, match="ACKs sent twice cannot be told from two"):
+        HyrelControllerSimulator(ControllerSettings(faults=Faults(duplicate_ok=0.01)))
 
 
 def test_a_reset_says_so_with_a_hyrel_identity_line() -> None:

@@ -39,6 +39,7 @@ from repetrel_host.protocol.events import (
     Failed,
     FailureKind,
     LineAcknowledged,
+    LineRefused,
     Notice,
     ProbeKind,
     ResendRequested,
@@ -81,6 +82,9 @@ class Listener:
 
     def commands_dropped(self, tags: list[object]) -> None:
         """Commands that will never go: the stream failed or stopped before they went out."""
+
+    def command_refused(self, tag: object, reason: str) -> None:
+        """The controller will not run a command it received (``reason``: why)."""
 
     def resend(self, line: JobLine) -> None:
         """The controller asked for a job line again."""
@@ -275,15 +279,15 @@ class Pump:
         run = self.run
         if run is None or run.barrier is None:
             return
+        if isinstance(proceed, HostError) or not proceed:
+            if isinstance(proceed, HostError):
+                run.error = proceed
+            self._stop_feeding(run)
+            return
         waiting = self.controller_holds  # at its own M0
         run.barrier = None
         run.action_running = False
-        if isinstance(proceed, HostError):
-            run.error = proceed
-            self._stop_feeding(run)
-        elif not proceed:
-            self._stop_feeding(run)
-        elif waiting:
+        if waiting:
             self.dialect.end_wait()
 
     def stop(self, now: float, error: HostError | None = None) -> bool:
@@ -380,6 +384,8 @@ class Pump:
                 listener.ready(event.probe, event.identity)
             elif isinstance(event, Notice):
                 listener.notice(event.text)
+            elif isinstance(event, LineRefused):
+                self._refused(event, now)
             elif isinstance(event, Failed):
                 run = self.run
                 if run is not None:
@@ -388,6 +394,19 @@ class Pump:
                 listener.failed(event)
                 return False
         return True
+
+    def _refused(self, event: LineRefused, now: float) -> None:
+        """A line that will not run: the job stops there, its safe stop first."""
+        tag, run = event.tag, self.run
+        where = f" (at {tag.position})" if isinstance(tag, JobLine) else ""
+        if run is not None:
+            error = ControllerError(f"{event.reason}{where}")
+            if run.stopping:  # a safe-stop line: the rest of it still goes
+                run.error = run.error or error
+            else:
+                self.stop(now, error)
+        elif tag is not None:
+            self.listener.command_refused(tag, event.reason)
 
     def _acknowledged(self, line: JobLine) -> None:
         run = self.run
@@ -436,12 +455,15 @@ class Pump:
         """No more job lines: drop what is queued and queue the safe stop."""
         if run.stopping:
             return
+        waiting = self.controller_holds  # held, or at its own M0
         run.stopping = True
         run.barrier = None
         run.action_running = False
         run.pause_requested = run.paused = run.held = False
         self._drop_pending()
         urgent = self.dialect.abort()  # where the link can: what the controller holds too
+        if waiting:
+            self.dialect.end_wait()  # should the abort not have ended the hold as well
         for command in run.safe_stop:
             line = JobLine(0, 0, command, 0, SAFE_STOP_SOURCE)
             self.dialect.send(command, line, urgent=urgent)
@@ -463,6 +485,8 @@ class Pump:
             return
         run.finished = True
         self.run = None
+        if run.held:  # a pause that came as the job ended holds nothing after it
+            self.dialect.end_wait()
         if isinstance(result, HostError):
             run.error = result
         else:

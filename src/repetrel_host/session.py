@@ -442,6 +442,10 @@ class Printer:
             self._emergency_stop()
             return Reply(command, [], "")
         if word == "M108":
+            if self._pump is not None and self._pump.controller_holds:
+                # On Hyrel's link it is end-wait, which would end the hold behind the
+                # session's back (and the later resume() a heat-up's wait).
+                raise UsageError("the job is paused: resume() ends the pause, not M108")
             self._urgent(command)
             return Reply(command, [], "")
         self._check_can_command()
@@ -935,6 +939,10 @@ class _PumpListener(Listener):
         error = UsageError("the command was not sent: the job it waited behind was stopped")
         self.printer._fail_commands((t for t in tags if isinstance(t, _Command)), error)
 
+    def command_refused(self, tag: object, reason: str) -> None:
+        if isinstance(tag, _Command):
+            self.printer._fail_commands([tag], ControllerError(reason))
+
     def resend(self, line: JobLine) -> None:
         job = self.printer._job
         if job is not None:
@@ -1027,7 +1035,8 @@ class _PumpListener(Listener):
         if printer.settings.reconnect and not printer._closing:
             printer._spawn(printer._regreet(failure.reason))
         else:
-            printer._drop_connection()
+            # Once what the pump has yet to write (an abort) went: it writes after this.
+            printer._loop.call_soon(printer._drop_connection)
             printer._set_state(State.DISCONNECTED, failure.reason)
 
 

@@ -83,6 +83,16 @@ class Notice:
 
 
 @dataclass(frozen=True, slots=True)
+class LineRefused:
+    """The controller will not run a line it received (Hyrel's checksum), or can no longer
+    run the job as written (its watchdog stopped the extruders): the job must stop, its
+    safe stop first; the connection goes on. ``tag``: the line's, if known."""
+
+    reason: str
+    tag: object = None
+
+
+@dataclass(frozen=True, slots=True)
 class Failed:
     """The stream cannot go on. Nothing more is sent; ``reason`` is one sentence."""
 
@@ -91,4 +101,12 @@ class Failed:
     tag: object = None  # the oldest unacknowledged line's tag, where the trouble most likely is
 
 
-Event = ControllerReady | LineAcknowledged | ResendRequested | ControllerMessage | Notice | Failed
+Event = (
+    ControllerReady
+    | LineAcknowledged
+    | ResendRequested
+    | ControllerMessage
+    | Notice
+    | LineRefused
+    | Failed
+)

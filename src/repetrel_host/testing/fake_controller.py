@@ -322,8 +322,8 @@ def build_parser() -> argparse.ArgumentParser:
         "spurious_resend=0.005 resend_without_ok=1 flush_on_error=1 drop_duplicates=1 "
         "busy_interval=2 seed=7'; and two controllers' ways: counted_resend=1 (OctoPrint's "
         "virtual printer's answer to a bad checksum) and drop_with_error=0.01 (lines dropped "
-        "with only an error line); with --protocol hyrel: corrupt, garble, drop_ok and "
-        "duplicate_ok (ACK bytes lost or doubled)",
+        "with only an error line); with --protocol hyrel: corrupt, garble and drop_ok (ACK "
+        "bytes lost)",
     )
     return parser
 

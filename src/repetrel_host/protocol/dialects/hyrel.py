@@ -9,12 +9,14 @@ its place, so the stream fails, naming it.
 An ACK says "received", not "run". What has run is learned from what the controller
 writes as it runs commands, in order: ``M115``'s identity line (``FIRMWARE_NAME:>Hy:
 ...``), which says that every line before that M115 ran too, and the ``>MC:M<n>: ...``
-notices of M-codes (each is matched to the oldest line of that M-code not yet known to
-have run). Where every line sent must be known to have run (the end of a job, before a
-host action, a command's reply) and nothing says so yet, the host sends an ``M115`` of its
-own once every line is received: a *sync*; one goes among every :data:`SYNC_EVERY` lines
-too, so that what ran is known as the job goes. Up to 8 KB of job may wait in the
-controller when the last ACK comes: a job ends when its last line is known to have run.
+notices of M-codes (one names the oldest M-code line not yet known to have run, with its
+values, or is taken for nothing: a command's reply is complete then). Where every line sent
+must be known to have run (the end of a job, before a host action, a command's reply) the
+host sends an ``M115`` of its own after the last of them: a *sync*; one goes among every
+:data:`SYNC_EVERY` lines too, so that what ran is known as the job goes, and one just
+before an ``M0`` (which waits; what follows it waits behind it). Up to 8 KB of job may wait
+in the controller when the last ACK comes: a job ends once a sync's answer says its last
+line ran, and with it all the controller wrote meanwhile.
 
 The controller stops its extruders after 30 s without a byte from the host: the dialect
 sends the watchdog byte whenever it has been quiet for :data:`KEEPALIVE` seconds, through
@@ -25,7 +27,8 @@ past the window if need be: its answer releases lines whose ACK was lost.
 
 Cancel is abort (0x08): the controller drops what it holds, and the safe stop goes as
 urgent lines (0x09 first). A pause is 0x02 (end of the move) or 0x03 (end of the layer),
-an M0 is the controller's own, and both end with end-wait (0x01).
+an M0 is the controller's own, and both end with end-wait (0x01). A line the controller
+refuses (its checksum) stops the job (:class:`LineRefused`); the link goes on.
 """
 
 from __future__ import annotations
@@ -46,6 +49,7 @@ from repetrel_host.protocol.events import (
     Failed,
     FailureKind,
     LineAcknowledged,
+    LineRefused,
     ProbeKind,
 )
 from repetrel_host.protocol.flow import HYREL_WINDOW, FlowControl
@@ -102,6 +106,7 @@ class _Sent:
     seq: int  # its place on the wire, the host's own lines counted
     host_line: bool = False  # a sync, an urgent M112: not the caller's
     confirm: bool = False  # told once it ran, not once it was received
+    reaches: int = 0  # a sync just before an M0: its answer says the M0 was reached too
 
 
 class HyrelDialect:
@@ -149,7 +154,8 @@ class HyrelDialect:
         self._next_number = 1
         self._seq = 0
         self._last_caller_seq = 0
-        self._confirmed_seq = 0  # every line up to this one ran
+        self._confirmed_seq = 0  # every line up to this one ran (an answer, a notice said)
+        self._synced_seq = 0  # every line up to this one ran (an M115's answer said)
         self._sync_requested = False
         self._sync_sent_at: float | None = None  # an M115 after the last caller line
         self._since_m115 = 0  # caller lines sent since the last M115
@@ -237,11 +243,12 @@ class HyrelDialect:
 
     @property
     def is_done(self) -> bool:
-        """Every line queued so far ran (the controller's answers and notices say so)."""
+        """Every line queued so far ran: an M115's answer says so (written after all the
+        controller wrote as it ran them, an M773 report among it)."""
         return (
             self._phase is Phase.RUNNING
             and not self._pending
-            and self._confirmed_seq >= self._last_caller_seq
+            and self._synced_seq >= self._last_caller_seq
         )
 
     @property
@@ -263,7 +270,14 @@ class HyrelDialect:
             pending = self._pending
             while pending and self._has_room(pending[0][0], pending[0][4]):
                 command, word, tag, confirm, urgent_line = pending.popleft()
-                self._transmit(command, word, tag, now, confirm=confirm, urgent=urgent_line)
+                # The M0's own notice may be lost, and what follows it waits behind it:
+                # a sync just before it says when it is reached.
+                sync = None
+                if word == self.pause_command:
+                    sync = self._transmit(SYNC_COMMAND, SYNC_COMMAND, None, now, host_line=True)
+                sent = self._transmit(command, word, tag, now, confirm=confirm, urgent=urgent_line)
+                if sync is not None:
+                    sync.reaches = sent.seq
                 if self._since_m115 >= SYNC_EVERY and self._has_room(SYNC_COMMAND, False, True):
                     self._transmit(SYNC_COMMAND, SYNC_COMMAND, None, now, host_line=True)
             if self._wants_sync() and self._has_room(SYNC_COMMAND, False, host_line=True):
@@ -280,7 +294,7 @@ class HyrelDialect:
         last of them (after an abort, once they are all received, so that the answers it
         left behind came first), or once lines waited long for their ACK (to release
         those whose ACK was lost)."""
-        if self._confirmed_seq >= self._last_caller_seq or self._sync_sent_at is not None:
+        if self._synced_seq >= self._last_caller_seq or self._sync_sent_at is not None:
             return False
         if self._stalled:
             return True
@@ -309,7 +323,7 @@ class HyrelDialect:
         host_line: bool = False,
         confirm: bool = False,
         urgent: bool = False,
-    ) -> None:
+    ) -> _Sent:
         number = self._next_number if self.numbered else None
         self._next_number += 1
         wire = frame(command, number, self.checksum)
@@ -343,6 +357,7 @@ class HyrelDialect:
                 self._awaiting.append(sent)
             if word[:1] == "M" and word != "M115":
                 self._mcodes.append(sent)
+        return sent
 
     def _ping(self, now: float) -> None:
         self._phase = Phase.GREETING
@@ -392,23 +407,24 @@ class HyrelDialect:
         self._last_progress_at = now
         self._status_asked = 0
         hyrel = reply if isinstance(reply, replies.HyrelReport) else None
+        if self._is_answer(text):  # first: an answer cut by a garbled ':' reads ">Hy: ..."
+            self._answered(reply, text, now)
+            return
         if hyrel is not None and hyrel.tag == "HY":
             self._identity(text, now)
             return
-        if self._is_answer(text):
-            self._answered(reply, text, now)
-            return
+        number = _named(text) if hyrel is not None else None
+        named = self._recent.get(number or -1)
         if hyrel is not None and hyrel.tag == "ER" and _FATAL.search(text):
             # A line refused cannot be sent again in its place; the watchdog stopped the
-            # extruders: the job cannot go on as written.
-            self._fail(FailureKind.CONTROLLER, f"the controller says: {text}", _named(text))
+            # extruders: the job cannot go on as written. The link can.
+            self._events.append(LineRefused(f"the controller says: {text}", named))
             return
-        number = _named(text) if hyrel is not None else None
-        self._events.append(ControllerMessage(reply, text, self._recent.get(number or -1)))
+        self._events.append(ControllerMessage(reply, text, named))
         if hyrel is not None and hyrel.tag == "MC":
             notice = parse_notice(hyrel.text)
             if notice is not None:
-                self._noticed(notice, now)
+                self._noticed(notice)
 
     def _identity(self, text: str, now: float) -> None:
         """``>Hy: ...``: the answer to a ping, or, unasked, a controller that restarted."""
@@ -443,19 +459,28 @@ class HyrelDialect:
             self._events.append(ControllerMessage(reply, text))  # the caller's answer
         if not self._m115s:
             self._sync_sent_at = None
-        self._confirm_through(m115.seq, now)
+        seq = max(m115.seq, m115.reaches)
+        self._synced_seq = max(self._synced_seq, seq)
+        self._confirm_through(seq)
+        # What ran was received: an ACK not here yet for it was lost. (It cannot be on
+        # its way still: the controller sent it as the line came, or, lacking headroom
+        # then, once it had read out enough lines, before the line ran.)
+        in_flight = self._in_flight
+        while in_flight and in_flight[0].seq <= seq:
+            self.stats.lost_acks += 1
+            self._release(in_flight.popleft())
 
-    def _noticed(self, notice: Notice, now: float) -> None:
-        """``>MC:`` for an M-code: its oldest line not known to have run ran now, if the
-        notice's values are that line's (a garbled notice must not confirm another)."""
-        for sent in self._mcodes:
-            if sent.word == notice.code:
-                if _agrees(notice, sent.command):
-                    self._confirm_through(sent.seq, now)
-                return
+    def _noticed(self, notice: Notice) -> None:
+        """``>MC:`` for an M-code: the oldest M-code line not known to have run ran now, if
+        the notice names it and its values (a notice garbled, or of an M-code the host did
+        not send, confirms nothing). A command's reply is complete then; a job is done
+        only once an answer says so."""
+        mcodes = self._mcodes
+        if mcodes and mcodes[0].word == notice.code and _agrees(notice, mcodes[0].command):
+            self._confirm_through(mcodes[0].seq)
 
-    def _confirm_through(self, seq: int, now: float) -> None:
-        """Every line up to ``seq`` ran (and was received, whether or not its ACK came)."""
+    def _confirm_through(self, seq: int) -> None:
+        """Every line up to ``seq`` ran: commands up to it have their reply."""
         if seq <= self._confirmed_seq:
             return
         self._confirmed_seq = seq
@@ -465,16 +490,6 @@ class HyrelDialect:
         mcodes = self._mcodes
         while mcodes and mcodes[0].seq <= seq:
             mcodes.popleft()
-        m115s = self._m115s
-        while m115s and m115s[0].seq < seq:
-            m115s.popleft()  # it ran before a line that ran: its answer was lost
-        # What ran was received: an ACK not here yet for it was lost. (It cannot be on
-        # its way still: the controller sent it as the line came, or, lacking headroom
-        # then, once it had read out enough lines, before the line ran.)
-        in_flight = self._in_flight
-        while in_flight and in_flight[0].seq <= seq:
-            self.stats.lost_acks += 1
-            self._release(in_flight.popleft())
 
     def next_event(self) -> Event | None:
         return self._events.popleft() if self._events else None
@@ -534,18 +549,15 @@ class HyrelDialect:
         if now >= self._last_sent_at + KEEPALIVE and not self._outgoing:
             self._outgoing.append(Control.WATCHDOG)
 
-    def _fail(self, kind: FailureKind, reason: str, number: int | None = None) -> None:
-        if kind is not FailureKind.RESET and self._phase is Phase.RUNNING:
-            # The controller would run on what it holds (past a refused line, with its
-            # extruders stopped): it drops it, and the safe stop goes at the next greeting.
+    def _fail(self, kind: FailureKind, reason: str) -> None:
+        if self._phase is Phase.RUNNING:
+            # Whatever it holds must not run on (should it be there, and not have reset):
+            # the safe stop goes at the next greeting.
             self._outgoing.append(Control.ABORT)
-        if number is not None and number in self._recent:
-            tag = self._recent[number]  # the line the report names
-        else:
-            oldest = next((s for s in self._in_flight if not s.host_line), None)
-            if oldest is None and self._awaiting:
-                oldest = self._awaiting[0]
-            tag = oldest.tag if oldest is not None else None
+        oldest = next((s for s in self._in_flight if not s.host_line), None)
+        if oldest is None and self._awaiting:
+            oldest = self._awaiting[0]
+        tag = oldest.tag if oldest is not None else None
         self._failure = Failed(kind, reason, tag)
         self._phase = Phase.FAILED
         self._events.append(self._failure)
