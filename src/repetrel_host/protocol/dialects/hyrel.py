@@ -78,8 +78,8 @@ SYNC_RETRY = 30.0  # an M115 unanswered this long: its answer may be lost, anoth
 # releases lines whose ACK was lost before they fill the window (0.4 % more lines).
 SYNC_EVERY = 256
 # Bytes of the headroom the caller's lines leave free: room for the host's own lines (a
-# sync past the window), and against an ACK that comes late or twice (taken for the next
-# line's, it lets one line too many go; a full buffer has no other byte to spare).
+# sync past the window), and against a few ACKs that come late (taken for the next line's,
+# each lets one line too many go; a full buffer has no other byte to spare).
 HOST_RESERVE = 128
 RECENT = 1024  # lines remembered by number (an error names one), M-codes awaiting notices
 _LINE_NUMBER = re.compile(r"\bline\s+(\d+)|\bN(\d+)\b", re.IGNORECASE)
