@@ -46,6 +46,7 @@ from repetrel_host.planning import (
     plan_job,
     replan_for_firmware,
 )
+from repetrel_host.protocol.dialects import create_dialect
 from repetrel_host.protocol.dialects.reprap import DEFAULT_REPLY_TIMEOUT
 from repetrel_host.protocol.events import ProbeKind
 from repetrel_host.protocol.flow import FlowMode
@@ -394,7 +395,7 @@ def _check(plan: JobPlan, errors: Out) -> list[Finding]:
 
 def _dry_run(plan: JobPlan, framed: bool, protocol: str) -> None:
     """The commands on stdout, exactly as they would go; host actions noted on stderr."""
-    pause_sync = "M0" if protocol == "hyrel" else None  # the controller waits itself
+    pause_sync = create_dialect(protocol).pause_command  # M0 where the controller waits
 
     def commands() -> Iterator[str]:
         for item in plan.items(pause_sync=pause_sync):
