@@ -26,18 +26,21 @@ def executed(log: Path) -> list[str]:
 
 
 def without_greetings(executed: Iterable[str]) -> list[str]:
-    """Executed commands without the host's own lines: M110, and the M115 a session asks
-    right after it (who are you?)."""
+    """Executed commands without the host's own lines: M110, the M115 a session asks right
+    after it (who are you?) and the M155 that may follow (report temperatures), and the
+    M105s of its temperature polls (the test jobs have none)."""
     commands: list[str] = []
-    greeting = False
+    after = ""  # the host's greeting line just before
     for command in executed:
         if command.startswith("M110"):
-            greeting = True
-        elif not (greeting and command == "M115"):
-            greeting = False
-            commands.append(command)
+            after = "M110"
+        elif after == "M110" and command == "M115":
+            after = "M115"
+        elif (after == "M115" and command.startswith("M155 S")) or command == "M105":
+            after = ""
         else:
-            greeting = False
+            after = ""
+            commands.append(command)
     return commands
 
 

@@ -8,11 +8,12 @@ keyboard and turns Ctrl-C into the safe stop.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import re
 import signal
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Awaitable, Callable, Iterator
 from dataclasses import dataclass
 from enum import StrEnum
 from pathlib import Path
@@ -32,7 +33,7 @@ from repetrel_host.errors import (
     ProtocolError,
     UsageError,
 )
-from repetrel_host.events import Message, Notice, Paused, PauseReason, Resend
+from repetrel_host.events import Message, Notice, Paused, PauseReason, Resend, State
 from repetrel_host.gcode.lint import Finding, Severity
 from repetrel_host.job import HostAction
 from repetrel_host.links import FAKE_PORT, FakeLink
@@ -55,7 +56,9 @@ from repetrel_host.session import Printer, PrintJob, connect
 
 if TYPE_CHECKING:
     from rich.console import Console
-    from rich.progress import Progress, TaskID
+    from rich.progress import TaskID
+
+    from repetrel_host.display import JobProgress, JobStatus
 
 # Exit codes: distinct per kind of failure so scripts can tell them apart.
 EXIT_OK = 0
@@ -65,6 +68,7 @@ EXIT_CONTROLLER_ERROR = 4
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, as shells report Ctrl-C
 
 PROGRESS_REFRESH = 0.1  # seconds between progress bar updates
+TEMPERATURE_POLL = 2.0  # seconds between M105s (or M155's reports) for the status line
 # Every line sent, the job not done this long after: the controller holds the rest
 # (Hyrel's 8 KB), which is said once.
 FINISHING_NOTE = 1.0
@@ -429,7 +433,8 @@ async def _send(
         checksum=link.checksum,
         config=user,
         reconnect=False,
-        poll_interval=None,
+        poll_interval=TEMPERATURE_POLL,
+        poll_while_printing=True,
         reply_timeout=options.reply_timeout,
         fake_log=options.fake_log,
     )
@@ -515,27 +520,26 @@ async def _stream(
     )
     _announce(console, printer, plan)
     from rich.markup import escape
-    from rich.progress import (
-        BarColumn,
-        Progress,
-        TaskProgressColumn,
-        TextColumn,
-        TimeRemainingColumn,
-    )
+    from rich.progress import BarColumn, TaskProgressColumn, TextColumn
 
-    progress = Progress(
+    from repetrel_host.display import JobProgress, JobStatus, Keys, TimeLeftColumn
+
+    progress = JobProgress(
         TextColumn("[bold]{task.description}"),
         BarColumn(),
         TaskProgressColumn(),
         TextColumn("{task.fields[lines]} lines"),
         TextColumn("{task.fields[rate]:.0f} lines/s"),
-        TimeRemainingColumn(),
+        TimeLeftColumn(),
         console=console.console,
         transient=False,
     )
     task = progress.add_task(escape(job.name), total=max(job.size, 1), lines=0, rate=0.0)
+    status = JobStatus(printer, plan.job.path)
     started = time.monotonic()
     interrupts = 0
+    keys = Keys(sys.stdin)
+    enter: asyncio.Future[None] | None = None  # an M0 waiting for Enter (or p)
 
     def interrupt() -> None:
         nonlocal interrupts
@@ -553,10 +557,36 @@ async def _stream(
                     markup=False,
                 )
 
+    async def pause_or_resume() -> None:
+        with contextlib.suppress(UsageError):  # the job ended meanwhile
+            if printer.state is State.PRINTING and not job.stopping:
+                console.print("pausing: the controller finishes what it was sent (p resumes)")
+                await printer.pause()
+            elif printer.state is State.PAUSED:
+                await printer.resume()
+                console.print("resumed")
+
+    def key(pressed: str) -> None:
+        nonlocal enter
+        if enter is not None and pressed in "\r\npP":
+            enter.set_result(None)
+            enter = None
+        elif pressed in "pP":
+            tasks.add(loop.create_task(pause_or_resume()))
+
+    async def wait_for_enter() -> bool:
+        """Enter at the keyboard (or p); False when standard input is closed."""
+        nonlocal enter
+        if not keyboard:
+            return await read_line(sys.stdin) is not None
+        enter = loop.create_future()
+        await enter
+        return True
+
     async def refresh() -> None:
         sent_at: float | None = None
         while True:
-            _update(progress, task, job, started)
+            _update(progress, task, job, started, status)
             await asyncio.sleep(PROGRESS_REFRESH)
             if sent_at is None and job.all_sent:
                 sent_at = time.monotonic()
@@ -567,17 +597,23 @@ async def _stream(
                     "of them (it holds the rest of the job)"
                 )
 
+    tasks: set[asyncio.Task[None]] = set()
     loop.add_signal_handler(signal.SIGINT, interrupt)
+    keyboard = keys.start(key)
+    if keyboard:
+        console.print("Keys: p pauses and resumes; Ctrl-C stops the job safely.")
     progress.start()
+    tasks.add(loop.create_task(status.read_marks()))
     refresher = asyncio.create_task(refresh())
-    watcher = asyncio.create_task(_watch(console, printer, job, actions))
+    watcher = asyncio.create_task(_watch(console, printer, job, actions, wait_for_enter))
     try:
         summary = await job.wait()
     finally:
-        refresher.cancel()
-        watcher.cancel()
+        keys.stop()
+        for running in (refresher, watcher, *tasks):
+            running.cancel()
         loop.remove_signal_handler(signal.SIGINT)
-        _update(progress, task, job, started)
+        _update(progress, task, job, started, status)
         progress.stop()
         await actions.close()
     if summary.outcome is Outcome.COMPLETED:
@@ -585,7 +621,13 @@ async def _stream(
     return job
 
 
-async def _watch(console: Out, printer: Printer, job: PrintJob, actions: ConsoleActions) -> None:
+async def _watch(
+    console: Out,
+    printer: Printer,
+    job: PrintJob,
+    actions: ConsoleActions,
+    wait_for_enter: Callable[[], Awaitable[bool]],
+) -> None:
     """Show what the job tells, and answer an M0 at the keyboard."""
     from rich.markup import escape
 
@@ -598,13 +640,18 @@ async def _watch(console: Out, printer: Printer, job: PrintJob, actions: Console
             console.print(f"[dim]resend: the controller asked again for {where}[/]")
         elif isinstance(event, Notice):
             console.print(f"[yellow]warning:[/] {escape(event.text)}")
+        elif isinstance(event, Paused) and event.reason is PauseReason.REQUEST:
+            console.print(
+                f"[bold]Paused[/] at {escape(event.position)} - press p to resume "
+                "(Ctrl-C stops the job)"
+            )
         elif isinstance(event, Paused) and event.reason is PauseReason.M0:
             message = f": {event.message}" if event.message else ""
             console.print(
                 f"[bold]Paused[/] at {escape(event.position)}{escape(message)} "
                 "- press Enter to resume (Ctrl-C stops the job)"
             )
-            if await read_line(sys.stdin) is None:
+            if not await wait_for_enter():
                 job.stop(
                     JobError(
                         f"{event.position}: M0 waits for the operator, but standard input is closed"
@@ -615,9 +662,15 @@ async def _watch(console: Out, printer: Printer, job: PrintJob, actions: Console
                 await printer.resume()
 
 
-def _update(progress: Progress, task: TaskID, job: PrintJob, started: float) -> None:
+def _update(
+    progress: JobProgress, task: TaskID, job: PrintJob, started: float, status: JobStatus
+) -> None:
     elapsed = max(time.monotonic() - started, 1e-6)
-    progress.update(task, completed=job.offset, lines=job.lines, rate=job.lines / elapsed)
+    progress.status = status.line(job)
+    left = status.time_left(job, elapsed)
+    progress.update(
+        task, completed=job.offset, lines=job.lines, rate=job.lines / elapsed, left=left
+    )
 
 
 def _print_summary(console: Out, summary: Summary, plan: JobPlan, last: str) -> None:

@@ -132,6 +132,7 @@ class SessionSettings:
     user: UserConfig = field(default_factory=UserConfig)
     request: JobRequest = field(default_factory=JobRequest)
     checksum: bool = False  # Hyrel's link: the additive checksum on every line
+    poll_while_printing: bool = False  # M105 between a job's lines, as OctoPrint does
 
 
 class _Hub(Generic[E]):
@@ -742,17 +743,25 @@ class Printer:
         self._reconnecting = None
 
     async def _poll(self, interval: float) -> None:
-        """M105 every ``interval`` seconds while nothing else talks to the controller (and
-        it does not report temperatures itself)."""
+        """M105 every ``interval`` seconds while no command waits (and the controller does
+        not report temperatures itself): while idle, and between a job's lines when the
+        session was opened with ``poll_while_printing``."""
         while True:
             await asyncio.sleep(interval)
             if self._autoreport:
                 continue
-            if self.state is not State.READY or self._lock.locked() or self._commands:
+            printing = self.state is State.PRINTING and self.settings.poll_while_printing
+            if not (self.state is State.READY or printing):
+                continue
+            if self._lock.locked() or self._commands:
                 continue
             with contextlib.suppress(HostError, TimeoutError):
                 async with self._lock:
-                    await self._command("M105", interval * 2)
+                    reply = await self._command("M105", interval * 2)
+                # What came while it waited is the job's (messages), not the poll's.
+                for line in reply.lines:
+                    if not parse_temperatures(line):
+                        self._broadcast(Message(line))
 
     # --- I/O ------------------------------------------------------------------
 
@@ -1118,6 +1127,7 @@ def connect(
     reply_timeout: float = DEFAULT_REPLY_TIMEOUT,
     reconnect: bool = True,
     poll_interval: float | None = POLL_INTERVAL,
+    poll_while_printing: bool = False,
     protocol: str | None = None,
     checksum: bool | None = None,
     fake_log: Path | None = None,
@@ -1135,7 +1145,8 @@ def connect(
     ``hyrel`` (Hyrel's own link; else the profile's, else ``reprap``; the fake and the
     simulator speak it too); ``checksum``: Hyrel's link sends the additive checksum on
     every line (else as the profile says; without it). ``poll_interval``: seconds between
-    temperature polls while idle, None for silence. ``reconnect=False``: a lost port stays
+    temperature polls while idle (``poll_while_printing``: while a job prints too), None
+    for silence. ``reconnect=False``: a lost port stays
     lost.
     """
 
@@ -1168,6 +1179,7 @@ def connect(
             user,
             request,
             chosen.checksum if checksum is None else checksum,
+            poll_while_printing,
         )
         printer = Printer(opened, settings)
         try:

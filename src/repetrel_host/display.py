@@ -1,0 +1,159 @@
+"""What ``hyrel-send`` shows while a job streams, and the keys it answers.
+
+Below the bar, a status line: the layer and Z the last acknowledged line belongs to (as
+the slicer marked them, :mod:`repetrel_host.gcode.marks`), M73's percentage, and the
+temperatures the session last heard; the time left is the slicer's estimate when the file
+has one, else the measured rate's. Imported only once a job streams (rich is slow to load).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+import sys
+import termios
+import tty
+from collections.abc import Callable, Iterable
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, TextIO
+
+from rich.console import RenderableType
+from rich.progress import Progress, ProgressColumn, Task
+from rich.text import Text
+
+from repetrel_host.gcode.marks import Position, SlicerMarks, scan_marks
+
+if TYPE_CHECKING:
+    from repetrel_host.session import Printer, PrintJob
+
+# Sensors in the order people read them: hotends, then bed and chamber.
+_SENSOR_ORDER = {"T": 0, "B": 2, "C": 3}
+
+
+class JobProgress(Progress):
+    """A rich progress bar with a status line under it."""
+
+    status = ""
+
+    def get_renderables(self) -> Iterable[RenderableType]:
+        yield self.make_tasks_table(self.tasks)
+        if self.status:
+            yield Text(self.status, style="dim")
+
+
+class TimeLeftColumn(ProgressColumn):
+    """The ``left`` field :class:`JobStatus` computes (``12:33 left``)."""
+
+    def render(self, task: Task) -> Text:
+        return Text(str(task.fields.get("left", "")), style="progress.remaining")
+
+
+class JobStatus:
+    """The status line and time left of one job, from its slicer marks and the session."""
+
+    def __init__(self, printer: Printer, path: Path) -> None:
+        self.printer = printer
+        self.path = path
+        self.marks: SlicerMarks | None = None  # until read (in a thread, beside the job)
+
+    async def read_marks(self) -> None:
+        self.marks = await asyncio.to_thread(scan_marks, self.path)
+
+    def line(self, job: PrintJob) -> str:
+        """``layer 12/82 · Z 3.65 · 42 % (slicer) · T 200.1/200 · B 60.0/60``"""
+        parts = []
+        where = self._where(job)
+        if where is not None and self.marks is not None:
+            if where.layer is not None:
+                parts.append(f"layer {where.layer.number}/{len(self.marks.layers)}")
+            if where.z is not None:
+                parts.append(f"Z {where.z:g}")
+            if where.percent is not None:
+                parts.append(f"{where.percent:g} % (M73)")
+        parts.extend(format_temperatures(self.printer.temperatures))
+        if where is not None and where.seconds_left is not None:
+            parts.append("*time left: the slicer's estimate")
+        return " · ".join(parts)
+
+    def time_left(self, job: PrintJob, elapsed: float) -> str:
+        """The slicer's estimate of what is left where it gave one, else the measured
+        rate's (bytes acknowledged per second); empty until there is something to say."""
+        where = self._where(job)
+        if where is not None and where.seconds_left is not None:
+            return f"{_clock(where.seconds_left)} left*"  # * : the slicer's estimate
+        done = job.offset
+        if done <= 0 or elapsed <= 0:
+            return ""
+        return f"{_clock(elapsed / done * max(job.size - done, 0))} left"
+
+    def _where(self, job: PrintJob) -> Position | None:
+        last = job.last
+        if self.marks is None or last is None or not last.source_line:
+            return None
+        return self.marks.at(last.source_line, job.offset / max(job.size, 1))
+
+
+def format_temperatures(readings: dict[str, tuple[float, float | None]]) -> list[str]:
+    """``T 200.1/200``, ``B 60.0/60``... in the order hotends, bed, chamber."""
+
+    def order(sensor: str) -> tuple[int, str]:
+        return _SENSOR_ORDER.get(sensor[:1], 1), sensor
+
+    shown = []
+    for sensor in sorted(readings, key=order):
+        current, target = readings[sensor]
+        aim = f"/{target:g}" if target is not None else ""
+        shown.append(f"{sensor} {current:.1f}{aim}")
+    return shown
+
+
+def _clock(seconds: float) -> str:
+    minutes, second = divmod(int(seconds + 0.5), 60)
+    hours, minute = divmod(minutes, 60)
+    return f"{hours}:{minute:02d}:{second:02d}" if hours else f"{minute}:{second:02d}"
+
+
+class Keys:
+    """Single keypresses from a terminal: no Enter needed, no echo; Ctrl-C still sends
+    SIGINT (cbreak mode keeps the terminal's signals). :meth:`stop` restores it."""
+
+    def __init__(self, stream: TextIO = sys.stdin) -> None:
+        self.stream = stream
+        self._saved: list[Any] | None = None
+        self._fd = -1
+
+    def start(self, on_key: Callable[[str], None]) -> bool:
+        """Call ``on_key`` with each key pressed; False (and nothing) if not a terminal."""
+        try:
+            fd = self.stream.fileno()
+        except (OSError, ValueError):
+            return False
+        if not os.isatty(fd):
+            return False
+        self._fd = fd
+        self._saved = termios.tcgetattr(fd)
+        tty.setcbreak(fd)
+
+        def readable() -> None:
+            try:
+                data = os.read(fd, 64)
+            except OSError:
+                data = b""
+            if not data:  # the terminal went away: stop listening
+                asyncio.get_running_loop().remove_reader(fd)
+                return
+            for key in data.decode(errors="replace"):
+                on_key(key)
+
+        asyncio.get_running_loop().add_reader(fd, readable)
+        return True
+
+    def stop(self) -> None:
+        if self._saved is None:
+            return
+        with contextlib.suppress(RuntimeError, ValueError, OSError):
+            asyncio.get_running_loop().remove_reader(self._fd)
+        with contextlib.suppress(termios.error, OSError):
+            termios.tcsetattr(self._fd, termios.TCSADRAIN, self._saved)
+        self._saved = None

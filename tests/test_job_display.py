@@ -1,0 +1,116 @@
+"""hyrel-send at a terminal while a job streams: the status line, time left, the p key, an
+M0 answered with Enter, Ctrl-C - all through a real pseudo-terminal."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from repetrel_host.gcode.marks import scan_marks
+from tests.helpers import CONE, executed, job_commands
+from tests.terminal import Screen
+
+MARLIN_SAFE_STOP = ["M107", "M104 S0", "M140 S0", "G91", "G0 Z10", "G90", "M84"]
+
+
+@pytest.fixture
+def screens() -> Iterator[list[Screen]]:
+    opened: list[Screen] = []
+    yield opened
+    for screen in opened:
+        screen.close()
+
+
+def first_layers(tmp_path: Path, layers: int = 3) -> Path:
+    """The cone's first ``layers`` (a few seconds on the built-in fake), with
+    PrusaSlicer's M73 progress after each layer's Z."""
+    out, layer = [], 0
+    end = scan_marks(CONE).layers[layers].line - 1
+    for line in CONE.read_text().splitlines()[:end]:
+        out.append(line)
+        if line.startswith(";Z:"):
+            out.append(f"M73 P{layer * 30} R{9 - layer * 3}")
+            layer += 1
+    path = tmp_path / "layers.gcode"
+    path.write_text("\n".join([*out, "M104 S0", ""]))
+    return path
+
+
+@pytest.mark.timeout(90)
+def test_the_status_line_and_p_pausing_and_resuming(tmp_path: Path, screens: list) -> None:
+    job, log = first_layers(tmp_path), tmp_path / "fake.log"
+    screen = Screen(str(job), "--fake-log", str(log), "--no-history", home=tmp_path)
+    screens.append(screen)
+    screen.expect("Keys: p pauses and resumes; Ctrl-C stops the job safely.")
+    # Layer and Z as the slicer marked them, M73's percent, the temperatures heard.
+    screen.expect(r"layer 2/3 · Z 0\.65 · 30 % \(M73\) · T \d+\.\d/200")
+    screen.expect(r"\d:\d\d left\*")  # M73's minutes left, starred: the slicer's
+    screen.send("p")
+    screen.expect("pausing: the controller finishes what it was sent")
+    paused = screen.expect(r"Paused at layers\.gcode:(\d+) - press p to resume")
+    ran = len(log.read_text().splitlines())
+    time.sleep(1)
+    assert len(log.read_text().splitlines()) == ran  # nothing more runs while paused
+    assert int(paused.group(1)) < len(job.read_text().splitlines())
+    screen.send("p")
+    screen.expect("resumed")
+    screen.expect(r"layers\.gcode: done: \d+ lines")
+    assert screen.wait() == 0
+    assert executed(log) == job_commands(job)  # each line once, the pause in between
+
+
+@pytest.mark.timeout(60)
+def test_time_left_from_the_measured_rate_without_slicer_marks(
+    tmp_path: Path, screens: list
+) -> None:
+    job = tmp_path / "plain.gcode"
+    job.write_text("".join(f"G1 X{i % 100} Y{i % 7}\n" for i in range(1500)))
+    screen = Screen(str(job), "--no-history", home=tmp_path)
+    screens.append(screen)
+    screen.expect(r"\d+ lines/s \d+:\d\d left\s")  # no star: measured, not estimated
+    assert "layer" not in screen.text() and "*time left" not in screen.text()
+    screen.send("\x03")  # Ctrl-C: the safe stop, as without a terminal
+    screen.expect("stopping: sending the safe-stop sequence")
+    assert screen.wait() == 130
+
+
+@pytest.mark.timeout(60)
+def test_an_m0_waits_for_enter_at_the_terminal(tmp_path: Path, screens: list) -> None:
+    job, log = tmp_path / "m0.gcode", tmp_path / "fake.log"
+    job.write_text("G28\nM0 ; look at the bed\nG1 X10\n")
+    screen = Screen(str(job), "--fake-log", str(log), "--no-history", home=tmp_path)
+    screens.append(screen)
+    screen.expect(r"Paused at m0\.gcode:2: look at the bed - press Enter to resume")
+    time.sleep(0.5)
+    assert "G1 X10" not in log.read_text()
+    screen.send("\r")
+    screen.expect("resumed")
+    assert screen.wait() == 0
+    assert executed(log) == job_commands(job)
+
+
+@pytest.mark.timeout(90)
+def test_ctrl_c_at_the_terminal_sends_the_safe_stop(tmp_path: Path, screens: list) -> None:
+    log = tmp_path / "fake.log"
+    screen = Screen(str(CONE), "--fake-log", str(log), "--no-history", home=tmp_path)
+    screens.append(screen)
+    screen.expect("layer 2/82")
+    screen.send("\x03")
+    screen.expect(r"stopping: sending the safe-stop sequence \(Ctrl-C again to abandon it\)")
+    screen.expect(r"stopped \(interrupted; the last line the controller acknowledged")
+    assert screen.wait() == 130
+    done = executed(log)
+    assert done[-len(MARLIN_SAFE_STOP) :] == MARLIN_SAFE_STOP
+    assert done[: -len(MARLIN_SAFE_STOP)] == job_commands(CONE)[: len(done) - 7]
+
+
+@pytest.mark.timeout(60)
+def test_temperatures_on_hyrels_link_come_from_polling(tmp_path: Path, screens: list) -> None:
+    job = first_layers(tmp_path, 2)
+    screen = Screen(str(job), "--protocol", "hyrel", "--no-history", home=tmp_path)
+    screens.append(screen)
+    screen.expect(r"layer \d/2 · Z [\d.]+ · \d+ % \(M73\) · T \d+\.\d/200", timeout=40)
+    assert screen.wait() == 0
