@@ -39,10 +39,23 @@ def first_layers(tmp_path: Path, layers: int = 3) -> Path:
     return path
 
 
+def settled(log: Path) -> int:
+    """The lines in ``log`` once it stopped growing for a third of a second."""
+    before = -1
+    while (now := len(log.read_text().splitlines())) != before:
+        before = now
+        time.sleep(0.33)
+    return now
+
+
 @pytest.mark.timeout(90)
-def test_the_status_line_and_p_pausing_and_resuming(tmp_path: Path, screens: list) -> None:
+@pytest.mark.parametrize("protocol", ["reprap", "hyrel"])
+def test_the_status_line_and_p_pausing_and_resuming(
+    tmp_path: Path, screens: list, protocol: str
+) -> None:
     job, log = first_layers(tmp_path), tmp_path / "fake.log"
-    screen = Screen(str(job), "--fake-log", str(log), "--no-history", home=tmp_path)
+    options = ("--fake-log", str(log), "--no-history", "--protocol", protocol)
+    screen = Screen(str(job), *options, home=tmp_path)
     screens.append(screen)
     screen.expect("Keys: p pauses and resumes; Ctrl-C stops the job safely.")
     # Layer and Z as the slicer marked them, M73's percent, the temperatures heard.
@@ -51,15 +64,18 @@ def test_the_status_line_and_p_pausing_and_resuming(tmp_path: Path, screens: lis
     screen.send("p")
     screen.expect("pausing: the controller finishes what it was sent")
     paused = screen.expect(r"Paused at layers\.gcode:(\d+) - press p to resume")
-    ran = len(log.read_text().splitlines())
+    # Nothing more runs while paused (the built-in fake of Hyrel's link runs what its
+    # receive buffer held before the hold byte, as it reads the bytes in order).
+    ran = settled(log)
     time.sleep(1)
-    assert len(log.read_text().splitlines()) == ran  # nothing more runs while paused
+    assert len(log.read_text().splitlines()) == ran
     assert int(paused.group(1)) < len(job.read_text().splitlines())
     screen.send("p")
     screen.expect("resumed")
     screen.expect(r"layers\.gcode: done: \d+ lines")
     assert screen.wait() == 0
-    assert executed(log) == job_commands(job)  # each line once, the pause in between
+    done = [c for c in executed(log) if protocol == "reprap" or c != "M115"]  # Hyrel's syncs
+    assert done == job_commands(job)  # each line once, the pause in between
 
 
 @pytest.mark.timeout(60)
@@ -105,12 +121,3 @@ def test_ctrl_c_at_the_terminal_sends_the_safe_stop(tmp_path: Path, screens: lis
     done = executed(log)
     assert done[-len(MARLIN_SAFE_STOP) :] == MARLIN_SAFE_STOP
     assert done[: -len(MARLIN_SAFE_STOP)] == job_commands(CONE)[: len(done) - 7]
-
-
-@pytest.mark.timeout(60)
-def test_temperatures_on_hyrels_link_come_from_polling(tmp_path: Path, screens: list) -> None:
-    job = first_layers(tmp_path, 2)
-    screen = Screen(str(job), "--protocol", "hyrel", "--no-history", home=tmp_path)
-    screens.append(screen)
-    screen.expect(r"layer \d/2 · Z [\d.]+ · \d+ % \(M73\) · T \d+\.\d/200", timeout=40)
-    assert screen.wait() == 0
