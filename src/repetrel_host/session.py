@@ -558,7 +558,8 @@ class Printer:
         (over 4 MB, as it streams): an error refuses the job unless ``force``; a plan was
         checked by whoever made it (a big one is still checked as it streams).
         ``history``: keep the stream as transmitted (True, the default: in the configured
-        history folder; a path: that file; False: none).
+        history folder; a path: that file; False: none), and how the job ended beside it
+        (``<run>.json``); the oldest runs in that folder go, down to ``history_max_mb``.
         ``on_action`` performs M792's SAY, BEEP, SHELL... and an M0's; M0 pauses the job
         until :meth:`resume`. Warnings go to ``on_warning``, else to the events.
         ``report``: send ``M772 S1`` first, so that a Hyrel controller sends its M773 job
@@ -1173,9 +1174,10 @@ def connect(
 ) -> _Connect:
     """Open a printer session on ``port`` and greet the controller.
 
-    ``port``: a device path, a pyserial URL (``socket://``, ``rfc2217://``), ``fake``
-    (the built-in fake on a fresh pty, started and stopped with the session) or
-    ``sim`` (the simulator in this process); None: ``$HYREL_PORT``, then the
+    ``port``: a device path, a pyserial URL (``socket://``, ``rfc2217://``), ``auto``
+    (the only serial port that looks like a printer board, else a LinkError naming
+    them), ``fake`` (the built-in fake on a fresh pty, started and stopped with the
+    session) or ``sim`` (the simulator in this process); None: ``$HYREL_PORT``, then the
     configuration's ``[printer] port``, else the fake. ``machine`` and ``loadout``
     choose the profile (else the firmware's M115 answer does), ``flow`` the flow
     control (else the profile's), ``protocol`` the line protocol: ``reprap`` or
