@@ -208,7 +208,8 @@ def prune(folder: Path, limit_mb: float, current: Path, now: float | None = None
         return []
     now = time.time() if now is None else now
     found = runs(folder)
-    keep = [current] + [run.stream for run in found if _may_be_running(run, now)]
+    keep = [folder / current.name]  # as the folder lists it, however it was spelt
+    keep += [run.stream for run in found if _may_be_running(run, now)]
     sizes = [(run.stream, sum(size_of(path) for path in run.files)) for run in found]
     try:
         total = sum(size_of(path) for path in folder.iterdir())
