@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 
 from repetrel_host import __version__
+from repetrel_host import history as print_history
 from repetrel_host.config import UserConfig, load_user_config
 from repetrel_host.console import ConsoleActions, read_line
 from repetrel_host.errors import (
@@ -42,6 +43,8 @@ from repetrel_host.planning import (
     JobPlan,
     JobRequest,
     LinkRequest,
+    choose_port,
+    default_history_dir,
     history_file,
     link_settings,
     plan_job,
@@ -136,8 +139,10 @@ def send(
         str | None,
         typer.Option(
             metavar="PORT",
-            help="Serial port or pyserial URL; 'fake' for the built-in fake controller. "
-            f"Default: ${PORT_ENV}, then [printer] port in the configuration, else the fake.",
+            help="Serial port or pyserial URL; 'auto' for the only port that looks like a "
+            "Hyrel or Marlin board (see --list-ports); 'fake' for the built-in fake "
+            f"controller. Default: ${PORT_ENV}, then [printer] port in the configuration, "
+            "else the fake.",
         ),
     ] = None,
     baud: Annotated[
@@ -236,9 +241,26 @@ def send(
     fake_log: Annotated[
         Path | None,
         typer.Option(
-            help="Where the built-in fake writes the commands it executed.", metavar="FILE"
+            help="Where the built-in fake writes the commands it executed (default: none kept).",
+            metavar="FILE",
         ),
     ] = None,
+    list_ports: Annotated[
+        bool,
+        typer.Option(
+            "--list-ports",
+            help="List the serial ports (USB description, VID:PID), marking the ones that "
+            "look like a Hyrel or Marlin board, and exit.",
+        ),
+    ] = False,
+    history_list: Annotated[
+        bool,
+        typer.Option(
+            "--history-list",
+            help=f"Show the newest {print_history.LIST_LENGTH} prints in the history folder "
+            "(--history DIR), how each ended, and exit.",
+        ),
+    ] = False,
     server: Annotated[
         str | None,
         typer.Option(
@@ -275,9 +297,26 @@ def send(
         ),
     ] = False,
 ) -> None:
-    """Stream JOB to a Hyrel (or Marlin-style) controller and show progress."""
+    """Stream JOB to a Hyrel (or Marlin-style) controller and show progress.
+
+    Without a port it streams to the built-in fake controller, which runs every command
+    at once on a link as fast as --baud (115200: 11.5 KB/s each way) with 1 ms latency.
+    For a slower or noisier one (hyrel-fake-controller --help lists its settings):
+
+    \b
+      hyrel-fake-controller --move-time 0.01 --faults "drop_ok=0.01" --link /tmp/printer &
+      hyrel-send JOB --port /tmp/printer
+    """
     console, errors = Out(), Out(stderr=True)
     try:
+        if list_ports or history_list:
+            if job is not None:
+                raise UsageError("--list-ports and --history-list take no JOB")
+            if list_ports:
+                _list_ports(console)
+            if history_list:
+                _history_list(console, history, config)
+            raise typer.Exit(EXIT_OK)
         if server is not None:
             request = ServerRequest(printer, api_key, job, list_jobs, cancel, release)
             code = _with_server(console, server, request)
@@ -421,12 +460,39 @@ def _dry_run(plan: JobPlan, framed: bool, protocol: str) -> None:
     sys.stdout.flush()
 
 
+def _list_ports(console: Out) -> None:
+    """hyrel-send --list-ports: one line a port, candidates marked."""
+    from repetrel_host.ports import describe, list_ports
+
+    found = list_ports()
+    for port in found:
+        console.print(describe(port), markup=False)
+    if not found:
+        console.print("no serial ports found", markup=False)
+
+
+def _history_list(console: Out, folder: Path | None, config: Path | None) -> None:
+    """hyrel-send --history-list: the newest runs, how each ended."""
+    user = load_user_config(config)
+    folder = folder or user.host.history_dir or default_history_dir()
+    lines = print_history.history_list(folder)
+    if not lines:
+        console.print(f"no prints in {folder} yet", markup=False)
+        return
+    console.print(f"Print history in {folder} (newest first):", markup=False)
+    for line in lines:
+        console.print(line, markup=False)
+
+
 async def _send(
     console: Out, errors: Out, plan: JobPlan, user: UserConfig, options: Options
 ) -> int:
     link = link_settings(options.link, plan.machine)
+    port, chosen_because = choose_port(options.port, user)
+    if chosen_because is not None:
+        console.print(f"{chosen_because}.", markup=False)
     printer = await connect(
-        options.port,
+        port,
         flow=link.flow,
         baud=link.baud,
         protocol=link.protocol,
@@ -448,7 +514,7 @@ async def _send(
     _print_report(console, job, options.report)
     if job.history is not None:
         console.print(f"Print history (the stream as transmitted): {job.history}", markup=False)
-    if isinstance(printer.link, FakeLink):
+    if isinstance(printer.link, FakeLink) and options.fake_log is not None:
         console.print(
             f"The fake controller's log of executed commands: {printer.link.log_path}",
             markup=False,

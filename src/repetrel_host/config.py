@@ -138,6 +138,8 @@ class PrinterSettings(_Model):
 
 class HostSettings(_Model):
     history_dir: Path | None = None
+    # The print history is pruned (oldest runs first) to this size when a job starts; 0: never.
+    history_max_mb: Number = Field(default=500, ge=0)
     allow_shell: bool = False  # M792 SHELL runs a program: off unless asked for
     speech_program: str | None = None  # M792 SAY; default: the first of espeak-ng, espeak, say
     safe_stop: list[str] | None = None  # default: the standard footer's safe part

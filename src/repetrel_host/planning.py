@@ -29,6 +29,7 @@ from repetrel_host.gcode.header import header_commands, safe_stop_commands
 from repetrel_host.gcode.lint import Finding, Linter, Severity
 from repetrel_host.job import Job, JobItem, JobLine
 from repetrel_host.links import FAKE_PORT
+from repetrel_host.ports import AUTO_PORT
 from repetrel_host.protocol.flow import HYREL_WINDOW, FlowControl, FlowMode
 from repetrel_host.protocol.framing import clean_line
 from repetrel_host.protocol.reports import Firmware
@@ -284,8 +285,29 @@ def _machine(library: Library, name: str) -> Machine:
 
 
 def resolve_port(port: str | None, user: UserConfig) -> str:
-    """The port as given, else ``$HYREL_PORT``, else ``[printer] port``, else the fake."""
-    return port or os.environ.get(PORT_ENV) or user.printer.port or FAKE_PORT
+    """The port as given, else ``$HYREL_PORT``, else ``[printer] port``, else the fake;
+    ``auto``: the only serial port that looks like a printer board (see ``ports``)."""
+    return choose_port(port, user)[0]
+
+
+def choose_port(port: str | None, user: UserConfig) -> tuple[str, str | None]:
+    """:func:`resolve_port`, and why when ``auto`` chose (None otherwise); a LinkError
+    names the candidates when there is not exactly one."""
+    environment = os.environ.get(PORT_ENV)
+    if port:
+        name, source = port, "--port"
+    elif environment:
+        name, source = environment, f"${PORT_ENV}"
+    elif user.printer.port:
+        name, source = user.printer.port, "[printer] port"
+    else:
+        name, source = FAKE_PORT, ""
+    if name != AUTO_PORT:
+        return name, None
+    from repetrel_host.ports import choose_auto, list_ports  # pyserial's port listing
+
+    choice = choose_auto(list_ports(), source)
+    return choice.device, choice.reason
 
 
 @dataclass(frozen=True, slots=True)

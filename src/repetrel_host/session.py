@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
 import math
 import re
@@ -25,10 +26,12 @@ import weakref
 from collections import deque
 from collections.abc import AsyncIterator, Awaitable, Callable, Coroutine, Generator, Iterable
 from dataclasses import dataclass, field
+from datetime import datetime
 from itertools import chain
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, BinaryIO, Generic, TypeVar
 
+from repetrel_host import history as print_history
 from repetrel_host.config import UserConfig, load_user_config
 from repetrel_host.errors import ControllerError, HostError, JobError, LinkError, UsageError
 from repetrel_host.events import (
@@ -73,7 +76,15 @@ from repetrel_host.protocol.events import FailureKind, ProbeKind
 from repetrel_host.protocol.flow import FlowControl, FlowMode
 from repetrel_host.protocol.framing import clean_line
 from repetrel_host.protocol.reports import Firmware, JobReport, ReportReader, parse_temperatures
-from repetrel_host.pump import CANCEL_DRAIN_TIMEOUT, Listener, Pump, Run, Summary, failure_error
+from repetrel_host.pump import (
+    CANCEL_DRAIN_TIMEOUT,
+    Listener,
+    Outcome,
+    Pump,
+    Run,
+    Summary,
+    failure_error,
+)
 
 if TYPE_CHECKING:
     from repetrel_host.testing.simulator import ControllerSettings
@@ -229,6 +240,7 @@ class PrintJob:
         self._reported = -1
         self._m0: asyncio.Future[None] | None = None  # an M0 waiting for resume()
         self._reports = ReportReader()
+        self.started = datetime.now()
 
     @property
     def report(self) -> JobReport | None:
@@ -351,6 +363,8 @@ class PrintJob:
             if path is not None:  # beside the stream, under the same run's name
                 with contextlib.suppress(OSError):
                     path.write_text(report.text + "\n")
+        if self.history is not None:  # how it ended, beside the stream (--history-list)
+            print_history.write_record(self.history, self._record(run))
         if run.error is not None:
             self._publish(Failed(run.error))
             self._done.set_exception(run.error)
@@ -360,6 +374,29 @@ class PrintJob:
             self._publish(Done(run.summary))
             self._done.set_result(run.summary)
         self._hub.close()
+
+    def _record(self, run: Run) -> print_history.Record:
+        error, summary = run.error, run.summary
+        if error is not None:
+            outcome = print_history.FAILED
+        elif summary is not None and summary.outcome is Outcome.CANCELLED:
+            outcome = print_history.CANCELLED
+        else:
+            outcome = print_history.COMPLETED
+        ended = datetime.now()
+        seconds = summary.seconds if summary else (ended - self.started).total_seconds()
+        return print_history.Record(
+            job=self.name,
+            outcome=outcome,
+            lines=self.lines,
+            seconds=round(seconds, 3),
+            where=self.where(),
+            port=self.printer.port,
+            started=self.started.isoformat(timespec="seconds"),
+            ended=ended.isoformat(timespec="seconds"),
+            error=str(error) if error is not None else "",
+            error_kind=print_history.error_kind(error) if error is not None else "",
+        )
 
 
 class Printer:
@@ -522,7 +559,8 @@ class Printer:
         (over 4 MB, as it streams): an error refuses the job unless ``force``; a plan was
         checked by whoever made it (a big one is still checked as it streams).
         ``history``: keep the stream as transmitted (True, the default: in the configured
-        history folder; a path: that file; False: none).
+        history folder; a path: that file; False: none), and how the job ended beside it
+        (``<run>.json``); the oldest runs in that folder go, down to ``history_max_mb``.
         ``on_action`` performs M792's SAY, BEEP, SHELL... and an M0's; M0 pauses the job
         until :meth:`resume`. Warnings go to ``on_warning``, else to the events.
         ``report``: send ``M772 S1`` first, so that a Hyrel controller sends its M773 job
@@ -557,6 +595,8 @@ class Printer:
             pump.begin(run)
             self._set_state(State.PRINTING, plan.job.name)
             self._poke()
+        if path is not None:
+            self._prune_history(path)
         return print_job
 
     def _warn(self, text: str) -> None:
@@ -567,6 +607,14 @@ class Printer:
         self._hub.publish(event)
         if self._job is not None:
             self._job._publish(event)
+
+    def _prune_history(self, started: Path) -> None:
+        """The oldest runs beside ``started`` go, down to ``history_max_mb``: in a thread,
+        as the first lines stream."""
+        limit = self.settings.user.host.history_max_mb
+        if limit > 0:
+            prune = functools.partial(print_history.prune, started.parent, limit, started)
+            self._loop.run_in_executor(None, prune)
 
     def _open_history(self, plan: JobPlan, history: Path | str | bool) -> Path | None:
         if history is False:
@@ -1136,9 +1184,10 @@ def connect(
 ) -> _Connect:
     """Open a printer session on ``port`` and greet the controller.
 
-    ``port``: a device path, a pyserial URL (``socket://``, ``rfc2217://``), ``fake``
-    (the built-in fake on a fresh pty, started and stopped with the session) or
-    ``sim`` (the simulator in this process); None: ``$HYREL_PORT``, then the
+    ``port``: a device path, a pyserial URL (``socket://``, ``rfc2217://``), ``auto``
+    (the only serial port that looks like a printer board, else a LinkError naming
+    them), ``fake`` (the built-in fake on a fresh pty, started and stopped with the
+    session) or ``sim`` (the simulator in this process); None: ``$HYREL_PORT``, then the
     configuration's ``[printer] port``, else the fake. ``machine`` and ``loadout``
     choose the profile (else the firmware's M115 answer does), ``flow`` the flow
     control (else the profile's), ``protocol`` the line protocol: ``reprap`` or

@@ -78,8 +78,8 @@ class FakeLink:
         self.device = ""
 
     @property
-    def log_path(self) -> Path:
-        """The fake's list of executed commands."""
+    def log_path(self) -> Path | None:
+        """The fake's list of executed commands (None: it keeps none, as without fake_log)."""
         return self.fake.log_path
 
     async def open(self, factory: ProtocolFactory) -> tuple[asyncio.Transport, asyncio.Protocol]:

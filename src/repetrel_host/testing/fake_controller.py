@@ -259,19 +259,57 @@ class PtyController:
                 os.close(fd)
 
 
+class _DefaultsShown(argparse.ArgumentDefaultsHelpFormatter):
+    """Every option's default in --help: argparse's ``(default: X)``, ``off`` for a flag;
+    an option whose default is "none" says what that means in its own help."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        text = action.help or ""
+        if "(default" in text or action.default is argparse.SUPPRESS:
+            return text
+        if action.default is False:
+            return f"{text} (default: off)"
+        return super()._get_help_string(action)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="hyrel-fake-controller",
         description="A fake motion controller on a pseudo-terminal: Marlin-style, or on "
-        "Hyrel's own link (--protocol hyrel).",
+        "Hyrel's own link (--protocol hyrel). By default it runs every command at once on "
+        "an unlimited link; --move-time, --command-time, --heat-rate, --bandwidth and "
+        "--latency slow it down, --faults makes it noisy.",
+        formatter_class=_DefaultsShown,
     )
-    parser.add_argument("--link", type=Path, help="create a symlink to the pty at this path")
-    parser.add_argument("--log", type=Path, help="write every executed command to this file")
-    parser.add_argument("--received", type=Path, help="write every byte received to this file")
+    parser.add_argument(
+        "--link",
+        type=Path,
+        metavar="PATH",
+        help="create a symlink to the pty at this path (default: none; the pty's own path "
+        "is printed as 'ready PATH')",
+    )
+    parser.add_argument(
+        "--log",
+        type=Path,
+        metavar="FILE",
+        help="write every executed command to this file (default: none)",
+    )
+    parser.add_argument(
+        "--received",
+        type=Path,
+        metavar="FILE",
+        help="write every byte received to this file (default: none)",
+    )
     parser.add_argument(
         "--bandwidth", type=float, default=None, help="link bytes/s each way (default: unlimited)"
     )
-    parser.add_argument("--latency", type=float, default=0.0, help="one-way link delay in seconds")
+    parser.add_argument(
+        "--latency",
+        type=float,
+        default=0.0,
+        metavar="SECONDS",
+        help="one-way link delay (default: 0)",
+    )
     parser.add_argument(
         "--protocol",
         choices=["reprap", "hyrel"],
@@ -293,8 +331,20 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--slots", type=int, default=4, help="command slots (Marlin BUFSIZE)")
     parser.add_argument("--planner", type=int, default=16, help="planner blocks")
-    parser.add_argument("--move-time", type=float, default=0.0, help="seconds per move")
-    parser.add_argument("--command-time", type=float, default=0.0, help="seconds per other command")
+    parser.add_argument(
+        "--move-time",
+        type=float,
+        default=0.0,
+        metavar="SECONDS",
+        help="time a move takes (default: 0, at once)",
+    )
+    parser.add_argument(
+        "--command-time",
+        type=float,
+        default=0.0,
+        metavar="SECONDS",
+        help="time any other command takes (default: 0, at once)",
+    )
     parser.add_argument("--no-banner", action="store_true", help="do not say 'start' at boot")
     parser.add_argument(
         "--advanced-ok",
@@ -308,7 +358,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="degrees per second a heater moves toward its target, so that M109 and M190 "
         "wait (default: targets are reached at once)",
     )
-    parser.add_argument("--stats", type=Path, help="write the link counters here as JSON at exit")
+    parser.add_argument(
+        "--stats",
+        type=Path,
+        metavar="FILE",
+        help="write the link counters here as JSON at exit (default: none)",
+    )
     parser.add_argument(
         "--control",
         action="store_true",
@@ -323,7 +378,7 @@ def build_parser() -> argparse.ArgumentParser:
         "busy_interval=2 seed=7'; and two controllers' ways: counted_resend=1 (OctoPrint's "
         "virtual printer's answer to a bad checksum) and drop_with_error=0.01 (lines dropped "
         "with only an error line); with --protocol hyrel: corrupt, garble and drop_ok (ACK "
-        "bytes lost)",
+        "bytes lost) (default: none)",
     )
     return parser
 
@@ -410,11 +465,7 @@ class BuiltInFake:
     def __init__(
         self, log_path: Path | None = None, extra_args: Sequence[str] = (), control: bool = False
     ) -> None:
-        if log_path is None:
-            # Kept after the run: it is the proof of what the fake executed.
-            fd, name = tempfile.mkstemp(prefix="hyrel-fake-", suffix=".log")
-            os.close(fd)
-            log_path = Path(name)
+        # None: no log (nobody asked for one; a temporary file would be left behind).
         self.log_path = log_path
         self.extra_args = [*extra_args, "--control"] if control else list(extra_args)
         self.control = control
@@ -430,10 +481,9 @@ class BuiltInFake:
             sys.executable,
             "-m",
             "repetrel_host.testing.fake_controller",
-            "--log",
-            str(self.log_path),
             "--link",
             str(link),
+            *(["--log", str(self.log_path)] if self.log_path is not None else []),
             *self.extra_args,
         ]
         self.process = subprocess.Popen(

@@ -828,7 +828,9 @@ class HyrelController:
     @property
     def log_path(self) -> Path:
         """The fake's log of executed commands (kept after the test)."""
-        return self._fake("the executed-command log").log_path
+        log = self._fake("the executed-command log").log_path
+        assert log is not None  # the plugin gives its fakes a log
+        return log
 
     @property
     def executed(self) -> list[str]:
