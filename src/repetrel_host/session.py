@@ -363,8 +363,11 @@ class PrintJob:
             if path is not None:  # beside the stream, under the same run's name
                 with contextlib.suppress(OSError):
                     path.write_text(report.text + "\n")
-        if self.history is not None:  # how it ended, beside the stream (--history-list)
-            print_history.write_record(self.history, self._record(run))
+        history = self.history
+        if history is not None and print_history.parse_run(history) is not None:
+            # How it ended, beside a stream in a history folder (--history-list); not
+            # beside a file of the caller's own naming (history=Path("/dev/null")...).
+            print_history.write_record(history, self._record(run))
         if run.error is not None:
             self._publish(Failed(run.error))
             self._done.set_exception(run.error)
@@ -595,8 +598,8 @@ class Printer:
             pump.begin(run)
             self._set_state(State.PRINTING, plan.job.name)
             self._poke()
-        if path is not None:
-            self._prune_history(path)
+        if path is not None and print_history.parse_run(path) is not None:
+            self._prune_history(path)  # a history folder's: never a folder of other files
         return print_job
 
     def _warn(self, text: str) -> None:
