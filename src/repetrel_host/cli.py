@@ -56,6 +56,7 @@ from repetrel_host.protocol.events import ProbeKind
 from repetrel_host.protocol.flow import FlowMode
 from repetrel_host.pump import Outcome, Summary
 from repetrel_host.session import Printer, PrintJob, connect
+from repetrel_host.terminal import CONSOLE_HELP, ConsoleOptions, run_console
 
 if TYPE_CHECKING:
     from rich.console import Console
@@ -290,6 +291,7 @@ def send(
             help="With --server: the bed is clear, let the printer's held queue go on.",
         ),
     ] = False,
+    console_mode: Annotated[bool, typer.Option("--console", help=CONSOLE_HELP)] = False,
     version: Annotated[
         bool,
         typer.Option(
@@ -317,6 +319,23 @@ def send(
             if history_list:
                 _history_list(console, history, config)
             raise typer.Exit(EXIT_OK)
+        if console_mode:
+            given: dict[str, object] = {
+                **{"JOB": job, "--dry-run": dry_run, "--check": check, "--framed": framed},
+                **{"--force": force, "--report": report, "--server": server},
+            }
+            terminal = ConsoleOptions(
+                port,
+                LinkRequest(baud, flow, rx_buffer, max_lines, _value(protocol)),
+                machine,
+                loadout,
+                reply_timeout,
+                history,
+                no_history,
+                fake_log,
+                not no_header,
+            )
+            raise typer.Exit(run_console(terminal, load_user_config(config), given))
         if server is not None:
             request = ServerRequest(printer, api_key, job, list_jobs, cancel, release)
             code = _with_server(console, server, request)
