@@ -93,7 +93,7 @@ def test_m105_shows_the_temperature_and_ok_and_the_status_line_keeps_it(term: Te
     term.type("M105")
     term.expect(r"ok T:\d+\.\d", regex=True)
     # The status line is drawn again under the printed reply: port, state, temperatures.
-    term.expect(r"fake ready \| T:\d+\.\d/\d+ B:\d+\.\d/\d+", regex=True)
+    term.expect(r"fake ready \| T \d+\.\d/\d+ · B \d+\.\d/\d+", regex=True)
     term.type("!quit")
     assert term.exit_code() == 0
 

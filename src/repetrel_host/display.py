@@ -23,12 +23,10 @@ from rich.progress import Progress, ProgressColumn, Task
 from rich.text import Text
 
 from repetrel_host.gcode.marks import Position, SlicerMarks, scan_marks
+from repetrel_host.protocol.reports import format_temperatures
 
 if TYPE_CHECKING:
     from repetrel_host.session import Printer, PrintJob
-
-# Sensors in the order people read them: hotends, then bed and chamber.
-_SENSOR_ORDER = {"T": 0, "B": 2, "C": 3}
 
 
 class JobProgress(Progress):
@@ -92,20 +90,6 @@ class JobStatus:
         if self.marks is None or last is None or not last.source_line:
             return None
         return self.marks.at(last.source_line, job.offset / max(job.size, 1))
-
-
-def format_temperatures(readings: dict[str, tuple[float, float | None]]) -> list[str]:
-    """``T 200.1/200``, ``B 60.0/60``... in the order hotends, bed, chamber."""
-
-    def order(sensor: str) -> tuple[int, str]:
-        return _SENSOR_ORDER.get(sensor[:1], 1), sensor
-
-    shown = []
-    for sensor in sorted(readings, key=order):
-        current, target = readings[sensor]
-        aim = f"/{target:g}" if target is not None else ""
-        shown.append(f"{sensor} {current:.1f}{aim}")
-    return shown
 
 
 def _clock(seconds: float) -> str:

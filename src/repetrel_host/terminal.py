@@ -50,6 +50,7 @@ from repetrel_host.planning import (
     history_file,
     link_settings,
 )
+from repetrel_host.protocol.reports import format_temperatures
 from repetrel_host.pump import Outcome, Summary
 from repetrel_host.session import Printer, PrintJob, connect
 
@@ -422,7 +423,8 @@ class PrinterConsole:
         firmware = printer.firmware
         self.say(f"firmware: {firmware.name if firmware else 'not known (no answer to M115)'}")
         self.say(f"machine profile: {printer.profile.describe()}")
-        self.say(f"temperatures: {format_temperatures(self.temperatures) or 'none reported yet'}")
+        readings = " · ".join(format_temperatures(self.temperatures))
+        self.say(f"temperatures: {readings or 'none reported yet'}")
         job = printer.job
         self.say(f"job: {job_progress(job) if job else 'none'}")
         if job is not None and job.history is not None:
@@ -437,7 +439,7 @@ class PrinterConsole:
         printer = self.printer
         parts = [
             f"{printer.port} {printer.state.value}",
-            format_temperatures(self.temperatures) or "no temperatures yet",
+            " · ".join(format_temperatures(self.temperatures)) or "no temperatures yet",
         ]
         job = printer.job
         if job is not None:
@@ -536,15 +538,6 @@ class PrinterConsole:
         task = asyncio.create_task(coroutine)
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
-
-
-def format_temperatures(readings: dict[str, tuple[float, float | None]]) -> str:
-    """``T:21.0/0 B:20.5/60``: each sensor's reading and, where given, its target."""
-    parts = []
-    for sensor, (current, target) in readings.items():
-        goal = f"/{target:.0f}" if target is not None else ""
-        parts.append(f"{sensor}:{current:.1f}{goal}")
-    return " ".join(parts)
 
 
 def job_progress(job: PrintJob) -> str:

@@ -135,3 +135,21 @@ class ReportReader:
         passed = [self._held[0]] if self._held is not None else []
         self._held = (text, body) if stars else None
         return passed if stars else [*passed, text]
+
+
+# Sensors in the order people read them: hotends, then bed and chamber.
+_SENSOR_ORDER = {"T": 0, "B": 2, "C": 3}
+
+
+def format_temperatures(readings: dict[str, tuple[float, float | None]]) -> list[str]:
+    """``T 200.1/200``, ``B 60.0/60``... in the order hotends, bed, chamber."""
+
+    def order(sensor: str) -> tuple[int, str]:
+        return _SENSOR_ORDER.get(sensor[:1], 1), sensor
+
+    shown = []
+    for sensor in sorted(readings, key=order):
+        current, target = readings[sensor]
+        aim = f"/{target:g}" if target is not None else ""
+        shown.append(f"{sensor} {current:.1f}{aim}")
+    return shown
