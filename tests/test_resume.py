@@ -336,3 +336,46 @@ def test_a_completed_job_gives_no_resume_hint(tmp_path: Path) -> None:
     assert result.returncode == 0, result.stderr
     assert "To resume" not in result.stdout
     assert "Resuming part.gcode at line 10 (asked: line 10)" in result.stdout
+
+
+def resume_hint(stdout: str) -> list[str]:
+    prefix = "To resume from the first line not acknowledged: "
+    return [shlex.split(line[len(prefix) :]) for line in stdout.splitlines() if prefix in line]
+
+
+@pytest.mark.timeout(60)
+def test_a_controller_error_or_link_failure_gives_the_resume_hint_too(tmp_path: Path) -> None:
+    job = tmp_path / "job.gcode"
+    job.write_text("".join(f"G1 X{i}\n" for i in range(30)) + "!!DEBUG:reset\nG1 X99\nG1 X100\n")
+    with BuiltInFake(tmp_path / "fake.log") as fake:
+        result = hyrel_send(str(job), "--port", fake.port, "--no-history")
+        hang = tmp_path / "hang.gcode"
+        hang.write_text("G28\nG1 X1\n!!DEBUG:hang\nG1 X2\n")
+        silent = hyrel_send(str(hang), "--port", fake.port, "--reply-timeout", "1")
+    assert result.returncode == 4, result.stderr
+    (command,) = resume_hint(result.stdout)
+    assert command[1:-2] == [str(job), "--port", fake.port, "--no-history"]
+    assert command[-2:] == ["--from-line", "31"]  # after G1 X29, the last acknowledged
+    assert result.stderr.splitlines()[-1].startswith("controller error:")  # as before
+    assert silent.returncode == 3, silent.stderr
+    (command,) = resume_hint(silent.stdout)
+    assert command[-2:] == ["--from-line", "3"]  # G1 X1, line 2, is the last acknowledged
+
+
+@pytest.mark.timeout(30)
+def test_no_hint_when_nothing_of_the_job_was_acknowledged(tmp_path: Path) -> None:
+    job = tmp_path / "job.gcode"
+    job.write_text("!!DEBUG:hang\nG1 X2\n")
+    with BuiltInFake(tmp_path / "fake.log") as fake:
+        result = hyrel_send(str(job), "--port", fake.port, "--reply-timeout", "1")
+    assert result.returncode == 3, result.stderr
+    assert "To resume" not in result.stdout
+
+
+def test_the_hint_replaces_an_earlier_resume_point() -> None:
+    from repetrel_host.cli import resume_command
+
+    arguments = ("my part.gcode", "--from-layer", "3", "--port", "/dev/ttyUSB0", "--from-line=9")
+    assert resume_command(arguments, 1234) == (
+        "hyrel-send 'my part.gcode' --port /dev/ttyUSB0 --from-line 1234"
+    )

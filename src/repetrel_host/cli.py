@@ -480,13 +480,13 @@ async def _send(
     try:
         plan = _plan_for(printer, plan, user, errors, options.force)
         job = await _stream(console, errors, printer, plan, user, options)
+    except (LinkError, ControllerError, ProtocolError):
+        if printer.last_job is not None:  # the job failed: then the failure's sentence
+            _print_resume_hint(console, printer.last_job, options)
+        raise
     finally:
         await printer.close()
-    try:
-        summary = await job.wait()
-    except (LinkError, ControllerError, ProtocolError):
-        _print_resume_hint(console, job, options)  # then the failure's sentence
-        raise
+    summary = await job.wait()
     _print_summary(console, summary, plan, job.where())
     if summary.outcome is not Outcome.COMPLETED:
         _print_resume_hint(console, job, options)

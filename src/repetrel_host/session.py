@@ -398,6 +398,7 @@ class Printer:
         self._commands: deque[_Command] = deque()
         self._lock = asyncio.Lock()
         self._job: PrintJob | None = None
+        self._last_job: PrintJob | None = None
         self._wire_log: BinaryIO | None = None
         self._hub: _Hub[PrinterEvent] = _Hub()
         self._state_waiters: list[tuple[Callable[[], bool], asyncio.Future[None]]] = []
@@ -421,6 +422,11 @@ class Printer:
     def job(self) -> PrintJob | None:
         """The job streaming now, if any."""
         return self._job
+
+    @property
+    def last_job(self) -> PrintJob | None:
+        """The job started last, streaming or ended (after a failure: its resume_line)."""
+        return self._last_job
 
     @property
     def profile(self) -> Profile:
@@ -586,7 +592,7 @@ class Printer:
             if plan.resume is not None:  # progress by bytes goes on from the skipped part
                 run.offset = plan.resume.start_offset
             print_job = PrintJob(self, plan, run, on_action, path)
-            self._job = print_job
+            self._job = self._last_job = print_job
             pump.begin(run)
             self._set_state(State.PRINTING, plan.job.name)
             self._poke()
