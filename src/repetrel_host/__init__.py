@@ -39,6 +39,7 @@ from repetrel_host.protocol.events import ProbeKind
 from repetrel_host.protocol.flow import FlowControl, FlowMode
 from repetrel_host.protocol.reports import Firmware, JobReport
 from repetrel_host.pump import Outcome, Summary
+from repetrel_host.resume import HomeAxes
 from repetrel_host.session import Printer, PrintJob, Reply, connect
 
 __version__ = "0.2.0"
@@ -52,6 +53,7 @@ __all__ = [
     "Firmware",
     "FlowControl",
     "FlowMode",
+    "HomeAxes",
     "HostError",
     "JobError",
     "JobReport",

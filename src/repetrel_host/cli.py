@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import re
+import shlex
 import signal
 import sys
 import time
@@ -46,15 +47,18 @@ from repetrel_host.planning import (
     choose_port,
     default_history_dir,
     history_file,
+    layer_line,
     link_settings,
     plan_job,
     replan_for_firmware,
+    resumed,
 )
 from repetrel_host.protocol.dialects import create_dialect
 from repetrel_host.protocol.dialects.reprap import DEFAULT_REPLY_TIMEOUT
 from repetrel_host.protocol.events import ProbeKind
 from repetrel_host.protocol.flow import FlowMode
 from repetrel_host.pump import Outcome, Summary
+from repetrel_host.resume import RESUME_SOURCE, HomeAxes
 from repetrel_host.session import Printer, PrintJob, connect
 from repetrel_host.terminal import CONSOLE_HELP, ConsoleOptions, run_console
 
@@ -122,6 +126,7 @@ class Options:
     fake_log: Path | None
     force: bool
     report: bool = False
+    command_line: tuple[str, ...] = ()  # hyrel-send's arguments, for the resume hint
 
 
 def _version(value: bool) -> None:
@@ -229,6 +234,31 @@ def send(
             "M30, kept beside the print history and shown at the end.",
         ),
     ] = False,
+    from_line: Annotated[
+        int | None,
+        typer.Option(
+            help="Resume a failed print at this source line (the first command on it or "
+            "after it): what the lines before it set up (temperatures, fans, modes, the "
+            "tool, the last position, E and feed rate) is restored first. A failed job's "
+            "summary gives the exact command.",
+            metavar="N",
+        ),
+    ] = None,
+    from_layer: Annotated[
+        int | None,
+        typer.Option(
+            help="Resume at the start of this layer (from 1, as the slicer marks them).",
+            metavar="L",
+        ),
+    ] = None,
+    resume_home: Annotated[
+        HomeAxes,
+        typer.Option(
+            help="With --from-line/--from-layer: xy (default) homes X and Y before going "
+            "back to the resume point (the safe stop turned their motors off); none: the "
+            "controller still knows where they are. Z is never homed: the part is on the bed.",
+        ),
+    ] = HomeAxes.XY,
     history: Annotated[
         Path | None,
         typer.Option(
@@ -323,6 +353,7 @@ def send(
             given: dict[str, object] = {
                 **{"JOB": job, "--dry-run": dry_run, "--check": check, "--framed": framed},
                 **{"--force": force, "--report": report, "--server": server},
+                **{"--from-line": from_line is not None, "--from-layer": from_layer is not None},
             }
             terminal = ConsoleOptions(
                 port,
@@ -336,6 +367,10 @@ def send(
                 not no_header,
             )
             raise typer.Exit(run_console(terminal, load_user_config(config), given))
+        if from_line is not None and from_layer is not None:
+            raise UsageError("--from-line and --from-layer both say where to resume: give one")
+        if server is not None and (from_line is not None or from_layer is not None):
+            raise UsageError("--from-line and --from-layer resume on a port, not with --server")
         if server is not None:
             request = ServerRequest(printer, api_key, job, list_jobs, cancel, release)
             code = _with_server(console, server, request)
@@ -350,6 +385,11 @@ def send(
             raise UsageError("--framed shows the wire of a dry run: add --dry-run")
         user = load_user_config(config)
         plan = plan_job(job, JobRequest(loadout, machine, not no_header), user)
+        if from_layer is not None:
+            from_line = layer_line(job, from_layer)
+        if from_line is not None:
+            plan = resumed(plan, from_line, resume_home)
+            _announce_resume(errors if dry_run or check else console, plan, from_layer)
         if check or dry_run or not plan.checked_as_it_streams:
             findings = _check(plan, errors)
             if check:
@@ -375,6 +415,7 @@ def send(
             fake_log,
             force,
             report,
+            tuple(sys.argv[1:]),
         )
         code = asyncio.run(_send(console, errors, plan, user, options))
     except (JobError, ConfigError, UsageError) as exc:
@@ -458,11 +499,15 @@ def _check(plan: JobPlan, errors: Out) -> list[Finding]:
 def _dry_run(plan: JobPlan, framed: bool, protocol: str) -> None:
     """The commands on stdout, exactly as they would go; host actions noted on stderr."""
     pause_sync = create_dialect(protocol).pause_command  # M0 where the controller waits
+    # A resumed job's preamble is shown with why each line is there (not on the wire).
+    notes = iter(plan.resume.preamble if plan.resume is not None and not framed else [])
 
     def commands() -> Iterator[str]:
         for item in plan.items(pause_sync=pause_sync):
             if isinstance(item, HostAction):
                 sys.stderr.write(f"{item.position}: host {item.kind}: {item.message}\n")
+            elif item.source == RESUME_SOURCE and (note := next(notes, None)) is not None:
+                yield f"{item.command} ; {note.why}"
             else:
                 yield item.command
 
@@ -526,10 +571,16 @@ async def _send(
     try:
         plan = _plan_for(printer, plan, user, errors, options.force)
         job = await _stream(console, errors, printer, plan, user, options)
+    except (LinkError, ControllerError, ProtocolError):
+        if printer.last_job is not None:  # the job failed: then the failure's sentence
+            _print_resume_hint(console, printer.last_job, options)
+        raise
     finally:
         await printer.close()
     summary = await job.wait()
     _print_summary(console, summary, plan, job.where())
+    if summary.outcome is not Outcome.COMPLETED:
+        _print_resume_hint(console, job, options)
     _print_report(console, job, options.report)
     if job.history is not None:
         console.print(f"Print history (the stream as transmitted): {job.history}", markup=False)
@@ -766,6 +817,43 @@ def _print_summary(console: Out, summary: Summary, plan: JobPlan, last: str) -> 
         f"{plan.job.name}: {verdict}: {summary.lines} lines in {summary.seconds:.2f} s "
         f"({rate:.0f} lines/s), {summary.resends} resend requests, "
         f"{summary.retransmissions} lines sent again; machine profile {plan.profile.name}.",
+        markup=False,
+    )
+
+
+def _announce_resume(out: Out, plan: JobPlan, layer: int | None) -> None:
+    resume = plan.resume
+    assert resume is not None
+    where = f"layer {layer}, " if layer is not None else ""
+    out.print(
+        f"Resuming {plan.job.name} at line {resume.line} ({where}asked: line {resume.requested}): "
+        f"{len(resume.preamble)} commands first restore what the lines before it set up.",
+        markup=False,
+    )
+
+
+def resume_command(arguments: tuple[str, ...], line: int) -> str:
+    """hyrel-send's command line with ``--from-line line`` in place of any earlier resume."""
+    kept: list[str] = []
+    skip = False
+    for argument in arguments:
+        if skip:
+            skip = False
+        elif argument in ("--from-line", "--from-layer"):
+            skip = True  # and its value
+        elif not argument.startswith(("--from-line=", "--from-layer=")):
+            kept.append(argument)
+    return shlex.join(["hyrel-send", *kept, "--from-line", str(line)])
+
+
+def _print_resume_hint(console: Out, job: PrintJob, options: Options) -> None:
+    """The command that resumes a job that did not complete, where any of it ran."""
+    line = job.resume_line
+    if line is None or not options.command_line:
+        return
+    after = "not known to have run" if job.resume_known_to_run else "not acknowledged"
+    console.print(
+        f"To resume from the first line {after}: {resume_command(options.command_line, line)}",
         markup=False,
     )
 

@@ -139,17 +139,24 @@ class Job:
                     yield number, command, raw, offset
 
     def items(
-        self, check: Callable[[int, str], None] | None = None, pause_sync: str | None = None
+        self,
+        check: Callable[[int, str], None] | None = None,
+        pause_sync: str | None = None,
+        start: int = 1,
     ) -> Iterator[JobItem]:
         """Lines to send and host actions, in order; :class:`JobError` at a line that cannot go.
 
         ``check(line number, command)`` sees each command as read (it may raise JobError);
-        ``pause_sync`` replaces :attr:`pause_sync` (``M0`` where the controller waits itself).
+        ``pause_sync`` replaces :attr:`pause_sync` (``M0`` where the controller waits itself);
+        ``start``: the first source line (a resumed job: the lines before it are neither
+        sent, nor checked, nor their host actions done; ``index`` counts from 1 there).
         """
         index = 0
         name = self.name
         pause_sync = pause_sync or self.pause_sync
         for number, command, raw, offset in self.commands():
+            if number < start:
+                continue
             if check is not None:
                 check(number, command)
             word = command_word(command)

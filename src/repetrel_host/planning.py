@@ -8,7 +8,7 @@ from __future__ import annotations
 import os
 import re
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from datetime import datetime
 from itertools import chain
 from pathlib import Path
@@ -23,16 +23,18 @@ from repetrel_host.config import (
     load_library,
     load_loadout,
 )
-from repetrel_host.errors import ConfigError, JobError
+from repetrel_host.errors import ConfigError, JobError, UsageError
 from repetrel_host.gcode import addressing
 from repetrel_host.gcode.header import header_commands, safe_stop_commands
 from repetrel_host.gcode.lint import Finding, Linter, Severity
+from repetrel_host.gcode.marks import scan_marks
 from repetrel_host.job import Job, JobItem, JobLine
 from repetrel_host.links import FAKE_PORT
 from repetrel_host.ports import AUTO_PORT
 from repetrel_host.protocol.flow import HYREL_WINDOW, FlowControl, FlowMode
 from repetrel_host.protocol.framing import clean_line
 from repetrel_host.protocol.reports import Firmware
+from repetrel_host.resume import RESUME_SOURCE, HomeAxes, MachineState, ResumePoint, preamble
 
 PORT_ENV = "HYREL_PORT"
 # Jobs up to this size are checked whole before the first line goes (a fraction of a
@@ -80,6 +82,7 @@ class JobPlan:
     loadout: Loadout | None
     header: list[JobLine]
     safe_stop: list[str]
+    resume: ResumePoint | None = None  # a resumed job: where it starts, what goes first
 
     @property
     def machine(self) -> Machine | None:
@@ -88,7 +91,12 @@ class JobPlan:
     def items(
         self, check: Callable[[int, str], None] | None = None, pause_sync: str | None = None
     ) -> Iterator[JobItem]:
-        return chain(self.header, self.job.items(check, pause_sync))
+        """The header, a resumed job's preamble, then the file's lines (from the resume point)."""
+        resume = self.resume
+        if resume is None:
+            return chain(self.header, self.job.items(check, pause_sync))
+        restore = [JobLine(0, 0, line.command, 0, RESUME_SOURCE) for line in resume.preamble]
+        return chain(self.header, restore, self.job.items(check, pause_sync, resume.line))
 
     def linter(self, streaming: bool = False) -> Linter:
         firmware, positions, loaded_tools, code_chart = self.lint_settings
@@ -167,6 +175,38 @@ def plan_job(
         for command, origin in (header_commands(loadout) if loadout and request.header else [])
     ]
     return JobPlan(job, profile, loadout, header, safe_stop(machine, user))
+
+
+def resumed(plan: JobPlan, line: int, home: HomeAxes = HomeAxes.XY) -> JobPlan:
+    """``plan`` from source ``line`` on (the first command on it or after it), with the
+    preamble that restores what the skipped lines set up (:mod:`repetrel_host.resume`)."""
+    if line < 1:
+        raise UsageError(f"lines count from 1: there is no line {line}")
+    job = plan.job
+    state = MachineState()
+    start_offset = last = 0
+    for number, command, _, offset in job.commands():
+        if number >= line:
+            point = ResumePoint(number, line, state, preamble(state, home), start_offset)
+            return replace(plan, resume=point)
+        state.apply(number, command)
+        start_offset, last = offset, number
+    where = f"its last command is on line {last}" if last else "it holds none"
+    raise UsageError(f"{job.name} has no command on line {line} or after it ({where})")
+
+
+def layer_line(path: Path, layer: int) -> int:
+    """The source line where ``layer`` (from 1, as the slicer marks them) begins."""
+    marks = scan_marks(path)
+    found = marks.layer(layer)
+    if found is not None:
+        return found.line
+    if not marks.layers:
+        raise UsageError(
+            f"{path.name} has no layer marks (;LAYER_CHANGE, ;LAYER:, '; layer N', M790): "
+            "give the line to resume from with --from-line"
+        )
+    raise UsageError(f"{path.name} has {len(marks.layers)} layers: there is no layer {layer}")
 
 
 def safe_stop(machine: Machine | None, user: UserConfig) -> list[str]:
@@ -253,7 +293,7 @@ def replan_for_firmware(plan: JobPlan, firmware: Firmware, user: UserConfig) -> 
     if plan.profile.explicit:
         return plan
     request = JobRequest(header=bool(plan.header))
-    return plan_job(plan.job.path, request, user, firmware)
+    return replace(plan_job(plan.job.path, request, user, firmware), resume=plan.resume)
 
 
 def is_hyrel_firmware(identity: str) -> bool:

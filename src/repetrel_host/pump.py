@@ -141,6 +141,11 @@ class Run:
         self.lines = 0
         self.offset = 0
         self.last: JobLine | None = None
+        # The last job line known to have run, where an acknowledgement says only that it
+        # was received (Hyrel's link); elsewhere an acknowledged line is taken to run.
+        self.ran: JobLine | None = None
+        self.acks_say_received = False
+        self.ran_before: object | None = None  # what had run when the job began: not its
         self.safe_stop_acknowledged = 0
         self.header_acknowledged = 0
         self.outcome: Outcome | None = None
@@ -151,6 +156,15 @@ class Run:
     def safe_stop_missing(self) -> list[str]:
         """Safe-stop commands not acknowledged (all of them before a stop began)."""
         return self.safe_stop[self.safe_stop_acknowledged :]
+
+    @property
+    def resume_line(self) -> int | None:
+        """The source line to resume from: the one after the last job line known to have run
+        (:attr:`ran` on Hyrel's link, else :attr:`last`); None when none did, or all did."""
+        line = self.ran if self.acks_say_received else self.last
+        if line is None or (self.exhausted and line.index == self.fed):
+            return None
+        return line.source_line + 1
 
     def where(self) -> str:
         """The last line the controller acknowledged, for failure messages."""
@@ -216,6 +230,7 @@ class Pump:
         if self.run is not None:
             raise UsageError("a job is already running on this connection")
         self.run = run
+        run.ran_before = self.dialect.last_ran
         stats = self.dialect.stats
         run.resends_before = stats.resend_requests
         run.retransmissions_before = stats.retransmissions
@@ -364,6 +379,8 @@ class Pump:
         """Hand the dialect's events on; False once it failed."""
         listener = self.listener
         dialect = self.dialect
+        if self.run is not None:
+            self._note_ran(self.run)
         while (event := dialect.next_event()) is not None:
             if isinstance(event, LineAcknowledged):
                 tag = event.tag
@@ -423,6 +440,19 @@ class Pump:
         self.listener.acknowledged(line)
         if run.markers:
             self._markers_due(run)
+
+    def _note_ran(self, run: Run) -> None:
+        """Where acknowledgements say only *received*: the last job line known to have run."""
+        dialect = self.dialect
+        if dialect.acks_say_received:
+            run.acks_say_received = True
+            line = dialect.last_ran
+            if (
+                isinstance(line, JobLine)
+                and line is not run.ran_before
+                and line.index > (run.ran.index if run.ran else 0)
+            ):
+                run.ran = line
 
     def _markers_due(self, run: Run) -> None:
         """Tell the markers whose lines before them are all acknowledged."""
@@ -484,6 +514,7 @@ class Pump:
         if run.finished:
             return
         run.finished = True
+        self._note_ran(run)
         self.run = None
         if run.held:  # a pause that came as the job ended holds nothing after it
             self.dialect.end_wait()

@@ -66,6 +66,7 @@ from repetrel_host.planning import (
     link_settings,
     plan_job,
     resolve_port,
+    resumed,
 )
 from repetrel_host.planning import safe_stop as safe_stop_for
 from repetrel_host.protocol import replies
@@ -85,6 +86,7 @@ from repetrel_host.pump import (
     Summary,
     failure_error,
 )
+from repetrel_host.resume import HomeAxes
 
 if TYPE_CHECKING:
     from repetrel_host.testing.simulator import ControllerSettings
@@ -284,6 +286,21 @@ class PrintJob:
         return self._run.where()
 
     @property
+    def resume_line(self) -> int | None:
+        """The source line a resumed run would start from (``print(path, from_line=...)``):
+        the one after the last job line known to have run. On Hyrel's link, where an ACK
+        says only *received*, that is what the controller's answers confirmed (what it held
+        when a stop aborted counts as not run); elsewhere the last acknowledged. None when
+        no job line ran, or every one did."""
+        return self._run.resume_line
+
+    @property
+    def resume_known_to_run(self) -> bool:
+        """:attr:`resume_line` follows a line known to have run (Hyrel's link), not one
+        acknowledged (an ok: taken to run, as its firmware took it)."""
+        return self._run.acks_say_received
+
+    @property
     def all_sent(self) -> bool:
         """The job was read to its end: what is left is the controller's to run."""
         run = self._run
@@ -422,6 +439,7 @@ class Printer:
         self._commands: deque[_Command] = deque()
         self._lock = asyncio.Lock()
         self._job: PrintJob | None = None
+        self._last_job: PrintJob | None = None
         self._wire_log: BinaryIO | None = None
         self._hub: _Hub[PrinterEvent] = _Hub()
         self._state_waiters: list[tuple[Callable[[], bool], asyncio.Future[None]]] = []
@@ -445,6 +463,11 @@ class Printer:
     def job(self) -> PrintJob | None:
         """The job streaming now, if any."""
         return self._job
+
+    @property
+    def last_job(self) -> PrintJob | None:
+        """The job started last, streaming or ended (after a failure: its resume_line)."""
+        return self._last_job
 
     @property
     def profile(self) -> Profile:
@@ -540,10 +563,19 @@ class Printer:
 
     # --- jobs -------------------------------------------------------------------
 
-    def plan(self, path: Path | str, *, header: bool = True) -> JobPlan:
-        """What :meth:`print` would stream for ``path``: profile, header, safe stop."""
+    def plan(
+        self,
+        path: Path | str,
+        *,
+        header: bool = True,
+        from_line: int | None = None,
+        resume_home: HomeAxes = HomeAxes.XY,
+    ) -> JobPlan:
+        """What :meth:`print` would stream for ``path``: profile, header, safe stop; with
+        ``from_line``, resumed there (the preamble first: :func:`planning.resumed`)."""
         request = JobRequest(self.settings.request.loadout, self.settings.request.machine, header)
-        return plan_job(Path(path), request, self.settings.user, self.firmware)
+        plan = plan_job(Path(path), request, self.settings.user, self.firmware)
+        return plan if from_line is None else resumed(plan, from_line, resume_home)
 
     async def print(
         self,
@@ -555,6 +587,7 @@ class Printer:
         on_action: ActionHandler | None = None,
         on_warning: Callable[[str], None] | None = None,
         report: bool = False,
+        from_line: int | None = None,
     ) -> PrintJob:
         """Start streaming ``job`` (a path, or a plan from :meth:`plan`); returns at once.
 
@@ -568,11 +601,16 @@ class Printer:
         until :meth:`resume`. Warnings go to ``on_warning``, else to the events.
         ``report``: send ``M772 S1`` first, so that a Hyrel controller sends its M773 job
         report at M30 (:attr:`PrintJob.report`, kept beside the history).
+        ``from_line``: resume a failed print there (see :meth:`plan`; a failed job's
+        :attr:`PrintJob.resume_line` says where).
         """
         if self._job is not None or self.state is State.PRINTING or self.state is State.PAUSED:
             raise UsageError("a job is already running on this printer")
         self._check_can_command()
-        plan = job if isinstance(job, JobPlan) else self.plan(job, header=header)
+        if isinstance(job, JobPlan):
+            plan = job if from_line is None else resumed(job, from_line)
+        else:
+            plan = self.plan(job, header=header, from_line=from_line)
         warn = on_warning or self._warn
         checker = None
         if plan.checked_as_it_streams:
@@ -593,8 +631,10 @@ class Printer:
             if report:
                 items = chain([JobLine(0, 0, REPORT_COMMAND, 0, "report")], items)
             run = Run(items, plan.safe_stop, started_at=self._loop.time())
+            if plan.resume is not None:  # progress by bytes goes on from the skipped part
+                run.offset = plan.resume.start_offset
             print_job = PrintJob(self, plan, run, on_action, path)
-            self._job = print_job
+            self._job = self._last_job = print_job
             pump.begin(run)
             self._set_state(State.PRINTING, plan.job.name)
             self._poke()

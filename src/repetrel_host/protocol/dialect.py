@@ -35,6 +35,12 @@ class Dialect(Protocol):
     """What the session drives. One instance serves one connection, from its greeting on."""
 
     stats: Statistics
+    # An acknowledgement says only that the controller received the line (Hyrel's link):
+    # what ran is :attr:`last_ran`. False: it says the controller took the line to run.
+    acks_say_received: bool
+    # Where :attr:`acks_say_received`: the tag of the last line (not the host's own) known to
+    # have run; an abort drops what was not known to have run by then.
+    last_ran: object | None
 
     def start(self, now: float) -> None:
         """Greet the controller: the first bytes to send set up the numbering."""

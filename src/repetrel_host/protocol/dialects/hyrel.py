@@ -120,6 +120,7 @@ class HyrelDialect:
     """
 
     pause_command = "M0"  # the controller waits at M0 itself, until end-wait
+    acks_say_received = True
 
     def __init__(
         self,
@@ -144,6 +145,8 @@ class HyrelDialect:
         self._in_flight_bytes = 0
         self._stale_acks = 0  # ACKs that may still come for lines an abort dropped
         self._awaiting: deque[_Sent] = deque()  # confirm lines not yet known to have run
+        self._unran: deque[_Sent] = deque()  # the caller's lines not yet known to have run
+        self.last_ran: object | None = None  # the tag of the last of them known to have run
         self._mcodes: deque[_Sent] = deque(maxlen=RECENT)  # M-codes a notice may name
         # Every M115 on the wire, the caller's and the host's syncs, in order: each
         # "FIRMWARE_NAME:" answer is the oldest one's.
@@ -212,6 +215,7 @@ class HyrelDialect:
         self._in_flight_bytes = 0
         self._stale_answers += len(self._m115s)
         self._m115s.clear()
+        self._unran.clear()  # dropped, as far as anyone knows: none of them counts as run
         self._sync_sent_at = None
         self._since_m115 = 0
         self._stalled = False  # the lines after it wait for ACKs afresh
@@ -355,6 +359,7 @@ class HyrelDialect:
             self.stats.lines_sent += 1
             if confirm:
                 self._awaiting.append(sent)
+            self._unran.append(sent)
             if word[:1] == "M" and word != "M115":
                 self._mcodes.append(sent)
         return sent
@@ -484,6 +489,9 @@ class HyrelDialect:
         if seq <= self._confirmed_seq:
             return
         self._confirmed_seq = seq
+        unran = self._unran
+        while unran and unran[0].seq <= seq:
+            self.last_ran = unran.popleft().tag
         awaiting = self._awaiting
         while awaiting and awaiting[0].seq <= seq:
             self._tell(awaiting.popleft())

@@ -139,6 +139,9 @@ class RepRapDialect:
     ``probe``: how to probe; None finds out at the greeting (see the module's docstring).
     """
 
+    acks_say_received = False  # an ok comes once the controller took the line to run
+    last_ran: object | None = None
+
     def __init__(
         self,
         flow: FlowControl | None = None,
