@@ -167,8 +167,10 @@ def run_host(host: str, profile: Profile, job: Path, commands: list[str], folder
     stats = json.loads((folder / f"{tag}.json").read_text())
     executed = (folder / f"{tag}.log").read_text().splitlines()
     # Greetings are not the job: our M110 and M115 (and Hyrel's link's M115s, which
-    # confirm what ran), printcore's M110 N-1 and the M105 it connects with.
-    job_executed = [c for c in executed if not c.startswith(("M110", "M105", "M115"))]
+    # confirm what ran), the M155 asking for temperature reports (or M105 polls) for the
+    # status line, printcore's M110 N-1 and the M105 it connects with.
+    host_lines = ("M110", "M105", "M115", "M155")
+    job_executed = [c for c in executed if not c.startswith(host_lines)]
     job_commands = [c for c in commands if not c.startswith("M105")]
     return Result(
         host=host,
