@@ -3,10 +3,13 @@ M0 answered with Enter, Ctrl-C - all through a real pseudo-terminal."""
 
 from __future__ import annotations
 
+import shlex
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
 
+import pexpect
 import pytest
 
 from repetrel_host.gcode.marks import scan_marks
@@ -121,3 +124,22 @@ def test_ctrl_c_at_the_terminal_sends_the_safe_stop(tmp_path: Path, screens: lis
     done = executed(log)
     assert done[-len(MARLIN_SAFE_STOP) :] == MARLIN_SAFE_STOP
     assert done[: -len(MARLIN_SAFE_STOP)] == job_commands(CONE)[: len(done) - 7]
+
+
+@pytest.mark.timeout(60)
+def test_in_the_background_it_leaves_the_terminal_alone(tmp_path: Path) -> None:
+    """``hyrel-send JOB &`` at a shell with job control: a change to the terminal's modes
+    from a background job would stop it (SIGTTOU), so no keys there, and it streams on."""
+    job = tmp_path / "small.gcode"
+    job.write_text("G28\nG1 X10\nG1 Y10\n")
+    script = (
+        f"set -m; {shlex.quote(sys.executable)} -m repetrel_host.cli {job} --no-history & wait $!"
+    )
+    child = pexpect.spawn("bash", ["-c", script], cwd=str(tmp_path), encoding="utf-8")
+    try:
+        child.expect(pexpect.EOF, timeout=40)
+    finally:
+        child.close(force=True)
+    assert child.exitstatus == 0, child.before
+    assert "small.gcode: done: 3 lines" in child.before
+    assert "Keys:" not in child.before

@@ -113,8 +113,8 @@ class Keys:
             fd = self.stream.fileno()
         except (OSError, ValueError):
             return False
-        if not os.isatty(fd):
-            return False
+        if not os.isatty(fd) or not _in_foreground(fd):
+            return False  # in the background (hyrel-send JOB &): a tty change would stop it
         self._fd = fd
         self._saved = termios.tcgetattr(fd)
         tty.setcbreak(fd)
@@ -141,3 +141,11 @@ class Keys:
         with contextlib.suppress(termios.error, OSError):
             termios.tcsetattr(self._fd, termios.TCSADRAIN, self._saved)
         self._saved = None
+
+
+def _in_foreground(fd: int) -> bool:
+    """Whether this process is the terminal's foreground job (it may change its modes)."""
+    try:
+        return os.tcgetpgrp(fd) == os.getpgrp()
+    except OSError:
+        return False
