@@ -286,3 +286,25 @@ def test_a_job_with_console_is_one_sentence() -> None:
     text = " ".join(help_text.split())
     assert "--console An interactive terminal on the printer" in text
     assert "!print FILE [--force], !pause, !resume, !cancel, !status, !help, !quit" in text
+
+
+@pytest.mark.timeout(60)
+def test_a_line_longer_than_controllers_take_is_refused_and_the_session_goes_on(
+    tmp_path: Path,
+) -> None:
+    # Marlin keeps 96 characters of a line: the rest is lost, its checksum fails, and the
+    # resends of it end the link (a paused job's with it).
+    lines = f"G1 X{'1' * 200}\nM105\n"
+    result = subprocess.run(
+        [sys.executable, "-m", "repetrel_host.cli", "--console", "--no-history"],
+        input=lines,
+        capture_output=True,
+        text=True,
+        timeout=50,
+        env=_environment(tmp_path),
+    )
+    assert result.returncode == 0, result.stderr
+    out = result.stdout
+    assert "error: the command is 204 characters long; controllers take at most 96" in out
+    assert "greeting the controller again" not in out
+    assert re.search(r"^ok T:\d+\.\d", out, re.MULTILINE), out

@@ -397,3 +397,22 @@ def test_an_answer_cut_by_a_garbled_colon_is_no_reset() -> None:
     dialect.receive_data(b"\x06\x06FIRMWARE_NAME\n>Hy: Hydra_5 PROTOCOL_VERSION:1.0\n", 0.1)
     events = list(iter(dialect.next_event, None))
     assert not any(isinstance(e, Failed) for e in events) and dialect.is_done
+
+
+def test_what_ran_of_a_job_is_its_line_not_a_command_confirmed_after_it() -> None:
+    # A session's M105 (poll_while_printing) among a job's lines, confirmed by the same
+    # answer: the last job line known to have run is still the job's (the resume hint).
+    from repetrel_host.job import JobLine
+    from repetrel_host.protocol.hyrel import Control
+    from repetrel_host.testing.hyrel_simulator import M115_REPLY, PING_REPLY
+
+    dialect = HyrelDialect(HYREL_WINDOW)
+    dialect.start(0.0)
+    dialect.data_to_send(0.0)
+    dialect.receive_data(PING_REPLY, 0.0)
+    line = JobLine(1, 1, "G1 X1", 6, "job.gcode")
+    dialect.send("G1 X1", line)
+    dialect.send("M105", "the session's poll", confirm=True)
+    assert dialect.data_to_send(0.0) == b"N1 G1 X1\nN2 M105\nN3 M115\n"
+    dialect.receive_data(bytes([Control.ACK]) * 3 + b">ST: T0:21.0/0\n" + M115_REPLY, 0.1)
+    assert dialect.last_ran is line

@@ -273,8 +273,10 @@ def numbered_job(path: Path, moves: int) -> list[str]:
 
 def two_runs(log: Path, first_line: str) -> tuple[list[str], list[str]]:
     """The fake's log cut where the second run's preamble begins (its ``first_line``), without
-    the host's own lines (M110, M115: greetings and syncs; the job has none)."""
-    commands = [c for c in log.read_text().splitlines() if not c.startswith(("M110", "M115"))]
+    the host's own lines (M110, M115: greetings and syncs; M155, M105: the status line's
+    temperatures; the job has none)."""
+    host_lines = ("M110", "M115", "M155", "M105")
+    commands = [c for c in log.read_text().splitlines() if not c.startswith(host_lines)]
     cut = commands.index(first_line, 1)
     return commands[:cut], commands[cut:]
 

@@ -53,7 +53,7 @@ from repetrel_host.events import (
     Temperatures,
 )
 from repetrel_host.gcode.commands import command_word
-from repetrel_host.job import ActionKind, HostAction, JobItem, JobLine
+from repetrel_host.job import MAX_COMMAND_LENGTH, ActionKind, HostAction, JobItem, JobLine
 from repetrel_host.links import Link, make_link
 from repetrel_host.planning import (
     JobPlan,
@@ -1183,6 +1183,11 @@ def _clean_command(line: str) -> str:
     command = clean_line(line, "command")
     if not command:
         raise UsageError("the command is empty")
+    if len(command) > MAX_COMMAND_LENGTH:  # Marlin drops the rest: its checksum fails
+        raise UsageError(
+            f"the command is {len(command)} characters long; "
+            f"controllers take at most {MAX_COMMAND_LENGTH}"
+        )
     if command_word(command) == "M110":
         raise UsageError("M110 sets line numbers, which the host owns; it cannot be sent")
     return command

@@ -38,8 +38,9 @@ class Dialect(Protocol):
     # An acknowledgement says only that the controller received the line (Hyrel's link):
     # what ran is :attr:`last_ran`. False: it says the controller took the line to run.
     acks_say_received: bool
-    # Where :attr:`acks_say_received`: the tag of the last line (not the host's own) known to
-    # have run; an abort drops what was not known to have run by then.
+    # Where :attr:`acks_say_received`: the tag of the last line (not the host's own, nor a
+    # command sent with confirm) known to have run; an abort drops what was not known to
+    # have run by then.
     last_ran: object | None
 
     def start(self, now: float) -> None:

@@ -145,7 +145,7 @@ class HyrelDialect:
         self._in_flight_bytes = 0
         self._stale_acks = 0  # ACKs that may still come for lines an abort dropped
         self._awaiting: deque[_Sent] = deque()  # confirm lines not yet known to have run
-        self._unran: deque[_Sent] = deque()  # the caller's lines not yet known to have run
+        self._unran: deque[_Sent] = deque()  # the caller's plain lines not known to have run
         self.last_ran: object | None = None  # the tag of the last of them known to have run
         self._mcodes: deque[_Sent] = deque(maxlen=RECENT)  # M-codes a notice may name
         # Every M115 on the wire, the caller's and the host's syncs, in order: each
@@ -359,7 +359,8 @@ class HyrelDialect:
             self.stats.lines_sent += 1
             if confirm:
                 self._awaiting.append(sent)
-            self._unran.append(sent)
+            else:  # a command (an M105 poll among a job's lines) is told once it ran
+                self._unran.append(sent)
             if word[:1] == "M" and word != "M115":
                 self._mcodes.append(sent)
         return sent
