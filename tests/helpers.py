@@ -27,8 +27,7 @@ def executed(log: Path) -> list[str]:
 
 def without_greetings(executed: Iterable[str]) -> list[str]:
     """Executed commands without the host's own lines: M110, the M115 a session asks right
-    after it (who are you?) and the M155 that may follow (report temperatures), and the
-    M105s of its temperature polls (the test jobs have none)."""
+    after it (who are you?) and the M155 that may follow (report temperatures)."""
     commands: list[str] = []
     after = ""  # the host's greeting line just before
     for command in executed:
@@ -36,7 +35,7 @@ def without_greetings(executed: Iterable[str]) -> list[str]:
             after = "M110"
         elif after == "M110" and command == "M115":
             after = "M115"
-        elif (after == "M115" and command.startswith("M155 S")) or command == "M105":
+        elif after == "M115" and command.startswith("M155 S"):
             after = ""
         else:
             after = ""
