@@ -11,6 +11,7 @@ import pytest
 
 from repetrel_host.config import load_user_config
 from repetrel_host.errors import UsageError
+from repetrel_host.gcode.marks import scan_marks
 from repetrel_host.job import Job, JobLine
 from repetrel_host.planning import JobRequest, plan_job, resumed
 from repetrel_host.protocol.dialects.hyrel import SYNC_EVERY
@@ -381,3 +382,25 @@ def test_the_hint_replaces_an_earlier_resume_point() -> None:
     assert resume_command(arguments, 1234) == (
         "hyrel-send 'my part.gcode' --port /dev/ttyUSB0 --from-line 1234"
     )
+
+
+@pytest.mark.timeout(90)
+def test_the_hint_also_offers_the_start_of_the_layer(tmp_path: Path) -> None:
+    """After a reset the controller's queue is lost with the acknowledged lines in it: the
+    start of the layer the stop came in is the resume that skips nothing."""
+    log = tmp_path / "slow.log"
+    with BuiltInFake(log, ["--move-time", "0.002"]) as slow:
+        process = start_streaming(CONE, slow.port, log, "--no-history")
+        process.send_signal(signal.SIGINT)
+        stdout, stderr = process.communicate(timeout=60)
+    assert process.returncode == 130, stderr
+    by_line = [x for x in stdout.splitlines() if x.startswith("To resume from the first")]
+    by_layer = [x for x in stdout.splitlines() if x.startswith("Or from the start of its layer")]
+    assert len(by_line) == 1 and len(by_layer) == 1, stdout
+    line = int(shlex.split(by_line[0])[-1])
+    command = shlex.split(by_layer[0].split(": ", 1)[1])
+    assert command[:2] == ["hyrel-send", str(CONE)] and command[-2] == "--from-layer"
+    layers = scan_marks(CONE).layers
+    layer = layers[int(command[-1]) - 1]
+    following = layers[layer.number].line if layer.number < len(layers) else 1 << 30
+    assert layer.line <= line < following

@@ -37,6 +37,7 @@ from repetrel_host.errors import (
 )
 from repetrel_host.events import Message, Notice, Paused, PauseReason, Resend, State
 from repetrel_host.gcode.lint import Finding, Severity
+from repetrel_host.gcode.marks import scan_marks
 from repetrel_host.job import HostAction
 from repetrel_host.links import FAKE_PORT, FakeLink
 from repetrel_host.planning import (
@@ -832,8 +833,9 @@ def _announce_resume(out: Out, plan: JobPlan, layer: int | None) -> None:
     )
 
 
-def resume_command(arguments: tuple[str, ...], line: int) -> str:
-    """hyrel-send's command line with ``--from-line line`` in place of any earlier resume."""
+def resume_command(arguments: tuple[str, ...], line: int, option: str = "--from-line") -> str:
+    """hyrel-send's command line with ``--from-line line`` (or ``option``) in place of any
+    earlier resume."""
     kept: list[str] = []
     skip = False
     for argument in arguments:
@@ -843,7 +845,7 @@ def resume_command(arguments: tuple[str, ...], line: int) -> str:
             skip = True  # and its value
         elif not argument.startswith(("--from-line=", "--from-layer=")):
             kept.append(argument)
-    return shlex.join(["hyrel-send", *kept, "--from-line", str(line)])
+    return shlex.join(["hyrel-send", *kept, option, str(line)])
 
 
 def _print_resume_hint(console: Out, job: PrintJob, options: Options) -> None:
@@ -856,6 +858,16 @@ def _print_resume_hint(console: Out, job: PrintJob, options: Options) -> None:
         f"To resume from the first line {after}: {resume_command(options.command_line, line)}",
         markup=False,
     )
+    layer = scan_marks(job.plan.job.path).at(line).layer
+    if layer is not None:
+        # A reset or a lost link also loses what the controller had taken but not yet run
+        # (its queue: a few moves), which the line above would skip.
+        again = resume_command(options.command_line, layer.number, "--from-layer")
+        console.print(
+            "Or from the start of its layer, which after a reset prints what the controller "
+            f"had queued again rather than skip it: {again}",
+            markup=False,
+        )
 
 
 def _print_report(console: Out, job: PrintJob, asked: bool) -> None:
