@@ -243,12 +243,9 @@ def test_cancel_and_quit_stop_the_job_with_the_safe_stop(
     assert done[-1] == "M84"  # the safe stop's last: motors off
 
 
-@pytest.mark.timeout(60)
-def test_piped_lines_get_their_replies_and_end_of_input_waits_for_the_job(
-    tmp_path: Path,
-) -> None:
-    lines = f"M105\n\nM110\n!print {EXAMPLE}\n"
-    result = subprocess.run(
+def piped_console(tmp_path: Path, lines: str) -> subprocess.CompletedProcess[str]:
+    """``hyrel-send --console`` on the built-in fake, reading ``lines`` from a pipe."""
+    return subprocess.run(
         [sys.executable, "-m", "repetrel_host.cli", "--console", "--no-history"],
         input=lines,
         capture_output=True,
@@ -256,6 +253,13 @@ def test_piped_lines_get_their_replies_and_end_of_input_waits_for_the_job(
         timeout=50,
         env=_environment(tmp_path),
     )
+
+
+@pytest.mark.timeout(60)
+def test_piped_lines_get_their_replies_and_end_of_input_waits_for_the_job(
+    tmp_path: Path,
+) -> None:
+    result = piped_console(tmp_path, f"M105\n\nM110\n!print {EXAMPLE}\n")
     assert result.returncode == 0, result.stderr
     out = result.stdout
     assert re.search(r"^ok T:\d+\.\d", out, re.MULTILINE), out
@@ -294,15 +298,7 @@ def test_a_line_longer_than_controllers_take_is_refused_and_the_session_goes_on(
 ) -> None:
     # Marlin keeps 96 characters of a line: the rest is lost, its checksum fails, and the
     # resends of it end the link (a paused job's with it).
-    lines = f"G1 X{'1' * 200}\nM105\n"
-    result = subprocess.run(
-        [sys.executable, "-m", "repetrel_host.cli", "--console", "--no-history"],
-        input=lines,
-        capture_output=True,
-        text=True,
-        timeout=50,
-        env=_environment(tmp_path),
-    )
+    result = piped_console(tmp_path, f"G1 X{'1' * 200}\nM105\n")
     assert result.returncode == 0, result.stderr
     out = result.stdout
     assert "error: the command is 204 characters long; controllers take at most 96" in out
