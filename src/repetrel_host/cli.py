@@ -740,7 +740,8 @@ async def _stream(
     if keyboard:
         console.print("Keys: p pauses and resumes; Ctrl-C stops the job safely.")
     progress.start()
-    tasks.add(loop.create_task(status.read_marks()))
+    if console.console.is_terminal:  # where the status line shows (the scan costs ~1 µs a line)
+        tasks.add(loop.create_task(status.read_marks()))
     refresher = asyncio.create_task(refresh())
     watcher = asyncio.create_task(_watch(console, printer, job, actions, wait_for_enter))
     try:
