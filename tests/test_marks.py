@@ -70,3 +70,12 @@ def test_hyrel_m790_layers_and_an_unreadable_file(tmp_path: Path) -> None:
     path = write(tmp_path, "M790\nG1 Z1\nM790\nG1 Z2\n")
     assert [(x.line, x.z) for x in scan_marks(path).layers] == [(1, 1), (3, 2)]
     assert scan_marks(tmp_path / "missing.gcode").layers == []
+
+
+def test_until_line_reads_no_further_than_needed(tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    text = "".join(f";LAYER_CHANGE\n;Z:{n}\nG1 Z{n}\n" for n in range(1, 100))
+    monkeypatch.setattr(marks, "_CHUNK", 20)
+    found = scan_marks(write(tmp_path, text), until_line=10)
+    assert 4 <= len(found.layers) < 99  # the piece holding line 10, not the whole file
+    assert found.at(10).layer == Layer(4, 10, 4)
+    assert found.z_changes == [(2 + 3 * n, n + 1) for n in range(len(found.layers))]

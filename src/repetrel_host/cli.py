@@ -859,7 +859,7 @@ def _print_resume_hint(console: Out, job: PrintJob, options: Options) -> None:
         f"To resume from the first line {after}: {resume_command(options.command_line, line)}",
         markup=False,
     )
-    layer = scan_marks(job.plan.job.path).at(line).layer
+    layer = scan_marks(job.plan.job.path, until_line=line).at(line).layer
     if layer is not None:
         # A reset or a lost link also loses what the controller had taken but not yet run
         # (its queue: a few moves), which the line above would skip.

@@ -111,11 +111,12 @@ def _last_at(items: list[T], line: int, key: Callable[[T], int]) -> T | None:
     return items[index - 1] if index else None
 
 
-def scan_marks(path: Path) -> SlicerMarks:
-    """The slicer's marks in ``path`` (none for an unreadable file)."""
+def scan_marks(path: Path, until_line: int | None = None) -> SlicerMarks:
+    """The slicer's marks in ``path`` (none for an unreadable file); ``until_line``: read
+    no further than the piece holding that line (what a resume needs of a big file)."""
     try:
         with path.open("rb") as handle:
-            return _scan(_chunks(handle))
+            return _scan(_chunks(handle), until_line)
     except OSError:
         return SlicerMarks()
 
@@ -140,12 +141,13 @@ def _line_ends(data: bytes) -> int:
     return data.count(b"\n") + data.count(b"\r") - data.count(b"\r\n")
 
 
-def _scan(chunks: Iterable[bytes]) -> SlicerMarks:
+def _scan(chunks: Iterable[bytes], until_line: int | None = None) -> SlicerMarks:
     marks = SlicerMarks()
     layer_kind: str | None = None
     move_z: list[tuple[int, float]] = []
     comment_z: list[tuple[int, float]] = []  # ;Z: comments: when there are any, they say Z
     first_line = 1
+    past = False  # read past until_line
     for data in chunks:
         if b"\n" not in data:  # lone CRs end its lines: let ^ see them (same length)
             data = data.replace(b"\r", b"\n")
@@ -164,7 +166,7 @@ def _scan(chunks: Iterable[bytes]) -> SlicerMarks:
                     comment_z.append((line, float(match["s3d_z"])))
             elif kind == "z":
                 comment_z.append((line, float(match["z"])))
-            elif kind == "move_z":
+            elif kind == "move_z" and not comment_z:  # once there are ;Z:, they say Z
                 move_z.append((line, float(match["move_z"])))
             elif kind == "m73":
                 words = {w.upper(): float(v) for w, v in _M73_WORD.findall(match["m73"].decode())}
@@ -177,6 +179,10 @@ def _scan(chunks: Iterable[bytes]) -> SlicerMarks:
             elif kind == "estimate" and marks.total_seconds is None:
                 marks.total_seconds = _duration(match["estimate"].decode(errors="replace"))
         first_line += _line_ends(data)
+        if until_line is not None and first_line > until_line:
+            if past:  # a piece more than the line's: the Z set after its layer's marker
+                break
+            past = True
     marks.z_changes = comment_z or move_z
     marks.layers = [_with_z(layer, marks.z_changes) for layer in marks.layers]
     return marks
