@@ -49,6 +49,13 @@ def test_temperatures_are_set_together_then_waited_for_before_any_move() -> None
     assert first_move == len(sets) + len(waits) + 2  # after G21 and G90
 
 
+def test_a_hotend_set_without_a_t_word_is_the_current_tools() -> None:
+    # The preamble heats before it selects the tool: a bare M104 would heat another one.
+    state = state_of("T1\nM104 S210\nM109 S210\nG1 Z0.3 F600\nT0\nM104 S190\n")
+    commands = [line.command for line in preamble(state)]
+    assert commands[:4] == ["M104 T0 S190", "M104 T1 S210", "M109 T0 S190", "M109 T1 S210"]
+
+
 def test_a_heater_turned_off_is_not_restored() -> None:
     state = state_of("M104 S200\nM140 S60\nG1 Z1\nM140 S0\n")
     commands = [line.command for line in preamble(state)]

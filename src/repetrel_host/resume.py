@@ -160,6 +160,9 @@ class MachineState:
     def _heater(self, number: int, word: str, words: dict[str, float]) -> None:
         kind, waits = _HEATERS[word]
         address = _int(words.get("T"))
+        if address is None and kind == "hotend":
+            # The current tool's: named, since the preamble heats before it selects the tool.
+            address = self.tool
         target = words.get("S", words.get("R"))  # Marlin's M109 R waits for cooling too
         key = (kind, address)
         previous = self.heaters.get(key)
