@@ -25,7 +25,7 @@ import typer
 from repetrel_host import __version__
 from repetrel_host import history as print_history
 from repetrel_host.config import UserConfig, load_user_config
-from repetrel_host.console import ConsoleActions, read_line
+from repetrel_host.console import ConsoleActions, read_line, summary_text
 from repetrel_host.errors import (
     ConfigError,
     ControllerError,
@@ -804,23 +804,15 @@ def _update(
     progress: JobProgress, task: TaskID, job: PrintJob, started: float, status: JobStatus
 ) -> None:
     elapsed = max(time.monotonic() - started, 1e-6)
-    progress.status = status.line(job)
-    left = status.time_left(job, elapsed)
+    progress.status, left = status.show(job, elapsed)
     progress.update(
         task, completed=job.offset, lines=job.lines, rate=job.lines / elapsed, left=left
     )
 
 
 def _print_summary(console: Out, summary: Summary, plan: JobPlan, last: str) -> None:
-    rate = summary.lines / summary.seconds if summary.seconds > 0 else 0.0
-    done = summary.outcome is Outcome.COMPLETED
-    verdict = "done" if done else f"stopped (interrupted; {last})"
-    console.print(
-        f"{plan.job.name}: {verdict}: {summary.lines} lines in {summary.seconds:.2f} s "
-        f"({rate:.0f} lines/s), {summary.resends} resend requests, "
-        f"{summary.retransmissions} lines sent again; machine profile {plan.profile.name}.",
-        markup=False,
-    )
+    text = summary_text(plan.job.name, summary, f"interrupted; {last}")
+    console.print(f"{text}; machine profile {plan.profile.name}.", markup=False)
 
 
 def _announce_resume(out: Out, plan: JobPlan, layer: int | None) -> None:

@@ -18,6 +18,7 @@ from typing import Protocol, TextIO
 from repetrel_host.camera import Camera
 from repetrel_host.config import HostSettings
 from repetrel_host.job import ActionKind, HostAction
+from repetrel_host.pump import Outcome, Summary
 
 SPEECH_PROGRAMS = ("espeak-ng", "espeak", "spd-say", "say")
 ACTION_TIMEOUT = 60.0  # seconds an action's program may run before it is abandoned
@@ -178,3 +179,16 @@ async def read_line(stream: TextIO) -> str | None:
             return data.decode(errors="replace") if data else None
         data += chunk
     return data.decode(errors="replace")
+
+
+def summary_text(name: str, summary: Summary, where: str) -> str:
+    """How a job ended, as hyrel-send's summary and the console's say it; ``where``: the
+    last line acknowledged, said of a job that stopped."""
+    rate = summary.lines / summary.seconds if summary.seconds > 0 else 0.0
+    done = summary.outcome is Outcome.COMPLETED
+    verdict = "done" if done else f"stopped ({where})"
+    return (
+        f"{name}: {verdict}: {summary.lines} lines in {summary.seconds:.2f} s "
+        f"({rate:.0f} lines/s), {summary.resends} resend requests, "
+        f"{summary.retransmissions} lines sent again"
+    )

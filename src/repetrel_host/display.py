@@ -58,8 +58,10 @@ class JobStatus:
     async def read_marks(self) -> None:
         self.marks = await asyncio.to_thread(scan_marks, self.path)
 
-    def line(self, job: PrintJob) -> str:
-        """``layer 12/82 · Z 3.65 · 42 % (slicer) · T 200.1/200 · B 60.0/60``"""
+    def show(self, job: PrintJob, elapsed: float) -> tuple[str, str]:
+        """The status line (``layer 12/82 · Z 3.65 · 42 % (M73) · T 200.1/200 · B 60.0/60``)
+        and the time left: the slicer's estimate where it gave one (starred), else the
+        measured rate's (bytes acknowledged per second); empty until there is one."""
         parts = []
         where = self._where(job)
         if where is not None and self.marks is not None:
@@ -70,20 +72,15 @@ class JobStatus:
             if where.percent is not None:
                 parts.append(f"{where.percent:g} % (M73)")
         parts.extend(format_temperatures(self.printer.temperatures))
+        done = job.offset
         if where is not None and where.seconds_left is not None:
             parts.append("*time left: the slicer's estimate")
-        return " · ".join(parts)
-
-    def time_left(self, job: PrintJob, elapsed: float) -> str:
-        """The slicer's estimate of what is left where it gave one, else the measured
-        rate's (bytes acknowledged per second); empty until there is something to say."""
-        where = self._where(job)
-        if where is not None and where.seconds_left is not None:
-            return f"{_clock(where.seconds_left)} left*"  # * : the slicer's estimate
-        done = job.offset
-        if done <= 0 or elapsed <= 0:
-            return ""
-        return f"{_clock(elapsed / done * max(job.size - done, 0))} left"
+            left = f"{_clock(where.seconds_left)} left*"
+        elif done > 0 and elapsed > 0:
+            left = f"{_clock(elapsed / done * max(job.size - done, 0))} left"
+        else:
+            left = ""
+        return " · ".join(parts), left
 
     def _where(self, job: PrintJob) -> Position | None:
         last = job.last

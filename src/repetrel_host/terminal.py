@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from repetrel_host.config import UserConfig
-from repetrel_host.console import ConsoleActions, read_line
+from repetrel_host.console import ConsoleActions, read_line, summary_text
 from repetrel_host.errors import HostError, JobError, UsageError
 from repetrel_host.events import (
     Message,
@@ -51,7 +51,6 @@ from repetrel_host.planning import (
     link_settings,
 )
 from repetrel_host.protocol.reports import format_temperatures
-from repetrel_host.pump import Outcome, Summary
 from repetrel_host.session import Printer, PrintJob, connect
 
 if TYPE_CHECKING:
@@ -60,7 +59,7 @@ if TYPE_CHECKING:
 EXIT_OK = 0
 EXIT_INTERRUPTED = 130
 PROMPT = "> "
-# Temperatures are polled this often while idle: the status line stays current.
+# Temperatures are polled this often (a job printing or not): the status line stays current.
 POLL_INTERVAL = 2.0
 STATUS_REFRESH = 0.5  # seconds between redraws of the status line
 # A console command shown in --help and !help: (usage, what it does).
@@ -491,7 +490,7 @@ class PrinterConsole:
             except HostError as exc:
                 self.say(f"{job.name}: failed: {exc}")
             else:
-                self.say(summary_line(job, summary))
+                self.say(summary_text(job.name, summary, job.where()))
         finally:
             await actions.close()
 
@@ -549,15 +548,3 @@ def job_progress(job: PrintJob) -> str:
     stopping = " (stopping)" if job.stopping else ""
     paused = " (paused)" if state is State.PAUSED and not stopping else ""
     return f"{job.name} {percent}% {job.lines} lines{at}{paused}{stopping}"
-
-
-def summary_line(job: PrintJob, summary: Summary) -> str:
-    """How a job ended, as hyrel-send's last line says it."""
-    rate = summary.lines / summary.seconds if summary.seconds > 0 else 0.0
-    done = summary.outcome is Outcome.COMPLETED
-    verdict = "done" if done else f"stopped ({job.where()})"
-    return (
-        f"{job.name}: {verdict}: {summary.lines} lines in {summary.seconds:.2f} s "
-        f"({rate:.0f} lines/s), {summary.resends} resend requests, "
-        f"{summary.retransmissions} lines sent again"
-    )
