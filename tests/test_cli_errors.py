@@ -11,6 +11,7 @@ from repetrel_host.testing.fake_controller import BuiltInFake
 from tests.helpers import CONE, executed, hyrel_send, job_commands, start_streaming
 
 pytestmark = pytest.mark.timeout(60)
+MARLIN_SAFE_STOP = ["M107", "M104 S0", "M140 S0", "G91", "G0 Z10", "G90", "M84"]
 
 
 def assert_one_clear_line(stderr: str, *words: str) -> None:
@@ -66,15 +67,18 @@ def test_link_lost_mid_job_reports_the_last_acknowledged_line(tmp_path: Path) ->
     log = tmp_path / "lost.log"
     fake = BuiltInFake(log, ["--move-time", "0.002"])
     fake.start()
-    process = start_streaming(CONE, fake.port, log)
+    process = start_streaming(CONE, fake.port, log, "--reconnect-wait", "1")
     try:
         assert fake.process is not None
         fake.process.kill()  # the controller vanishes, as when a cable is pulled
         _, stderr = process.communicate(timeout=30)
     finally:
         fake.stop()
-    assert process.returncode == 3
-    assert_one_clear_line(stderr, "lost", f"acknowledged is {CONE.name}:")
+    # It tried to reopen the port to send the safe stop; it could not: not safe (exit 5).
+    assert process.returncode == 5
+    assert_one_clear_line(
+        stderr, "not safe: ", "lost", f"acknowledged is {CONE.name}:", "could not be sent"
+    )
     done = executed(log)
     assert done == job_commands(CONE)[: len(done)]
 
@@ -105,17 +109,21 @@ def test_a_reset_mid_job_stops_and_names_the_last_acknowledged_line(tmp_path: Pa
     with BuiltInFake(log) as fake:
         result = hyrel_send(str(job), "--port", fake.port)
     assert result.returncode == 4
-    assert_one_clear_line(result.stderr, "reset", "job.gcode:")
-    assert executed(log) == [f"G1 X{i}" for i in range(30)]  # nothing after, nothing again
+    assert_one_clear_line(result.stderr, "reset", "job.gcode:", "the safe stop went once")
+    # Nothing after, nothing again: then, greeted again, the safe stop it had missed.
+    assert executed(log) == [f"G1 X{i}" for i in range(30)] + MARLIN_SAFE_STOP
 
 
 def test_a_controller_that_stops_answering_is_a_link_failure(tmp_path: Path) -> None:
     job = tmp_path / "job.gcode"
     job.write_text("G28\nG1 X1\n!!DEBUG:hang\nG1 X2\nG1 X3\n")
     with BuiltInFake(tmp_path / "fake.log") as fake:
-        result = hyrel_send(str(job), "--port", fake.port, "--reply-timeout", "1")
-    assert result.returncode == 3
-    assert_one_clear_line(result.stderr, "stopped answering", "job.gcode:2")
+        result = hyrel_send(
+            str(job), "--port", fake.port, "--reply-timeout", "1", "--reconnect-wait", "1"
+        )
+    # A hung controller takes no safe stop: the machine may not be safe (exit 5).
+    assert result.returncode == 5
+    assert_one_clear_line(result.stderr, "stopped answering", "job.gcode:2", "check the machine")
 
 
 def test_a_link_that_disappears_mid_job_is_a_link_failure(tmp_path: Path) -> None:
@@ -125,8 +133,11 @@ def test_a_link_that_disappears_mid_job_is_a_link_failure(tmp_path: Path) -> Non
     with BuiltInFake(log) as fake:
         result = hyrel_send(str(job), "--port", fake.port)
     assert result.returncode == 3
-    assert_one_clear_line(result.stderr, "lost", "job.gcode:")
-    # What reached the controller before the cable went ran once, in order.
+    assert_one_clear_line(result.stderr, "lost", "job.gcode:", "the safe stop went once")
+    # What reached the controller before the cable went ran once, in order; then, once it
+    # was back, the safe stop.
     sent = [f"G1 X{i}" for i in range(20)] + ["G1 X99"]
     done = executed(log)
+    assert done[-len(MARLIN_SAFE_STOP) :] == MARLIN_SAFE_STOP
+    done = done[: -len(MARLIN_SAFE_STOP)]
     assert len(done) >= 20 and done == sent[: len(done)]

@@ -165,12 +165,14 @@ def test_history_list_after_a_completed_and_a_failed_run(tmp_path: Path) -> None
     assert done.returncode == 0, done.stderr
     hang = tmp_path / "hang.gcode"
     hang.write_text("G28\nG1 X1\n!!DEBUG:hang\nG1 X2\n")
-    failed = hyrel_send(str(hang), "--history", str(folder), "--reply-timeout", "1")
-    assert failed.returncode == 3
+    failed = hyrel_send(
+        str(hang), "--history", str(folder), "--reply-timeout", "1", "--reconnect-wait", "1"
+    )
+    assert failed.returncode == 5
     newest, oldest = history_list(folder)
-    error = failed.stderr.strip().splitlines()[-1].removeprefix("link failure: ")
+    error = failed.stderr.strip().splitlines()[-1].removeprefix("not safe: ")
     assert newest.endswith(
-        f"  hang.gcode  failed: link failure: {error}; 2 lines acknowledged in "
+        f"  hang.gcode  failed: not safe: {error}; 2 lines acknowledged in "
         f"{newest.rsplit(' in ', 1)[1]}"
     )
     assert "the last line the controller acknowledged is hang.gcode:2" in newest

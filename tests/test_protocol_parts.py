@@ -6,7 +6,7 @@ from collections.abc import Iterator
 
 import pytest
 
-from repetrel_host.errors import JobError
+from repetrel_host.errors import JobError, SafeStopError
 from repetrel_host.job import ActionKind, HostAction, JobItem, JobLine
 from repetrel_host.protocol.dialects.reprap import RepRapDialect
 from repetrel_host.protocol.events import ProbeKind
@@ -282,7 +282,10 @@ def test_a_second_stop_abandons_the_safe_stop() -> None:
     assert not pump.stop(1.0)
     assert pump.poke(1.0) == b""  # line 1 still owes its ok; the safe stop waits its turn
     assert pump.stop(1.1)
-    assert run.outcome is Outcome.CANCELLED
+    # Never called a clean cancel: the safe stop was not confirmed.
+    assert run.outcome is None and isinstance(run.error, SafeStopError)
+    assert "abandoned before the controller confirmed M104 S0, M84" in str(run.error)
+    assert "still holds the job's lines from job.gcode:1 on" in str(run.error)
     assert run.safe_stop_missing == ["M104 S0", "M84"]
 
 

@@ -361,13 +361,15 @@ def test_a_controller_error_or_link_failure_gives_the_resume_hint_too(tmp_path: 
         result = hyrel_send(str(job), "--port", fake.port, "--no-history")
         hang = tmp_path / "hang.gcode"
         hang.write_text("G28\nG1 X1\n!!DEBUG:hang\nG1 X2\n")
-        silent = hyrel_send(str(hang), "--port", fake.port, "--reply-timeout", "1")
+        silent = hyrel_send(
+            str(hang), "--port", fake.port, "--reply-timeout", "1", "--reconnect-wait", "1"
+        )
     assert result.returncode == 4, result.stderr
     (command,) = resume_hint(result.stdout)
     assert command[1:-2] == [str(job), "--port", fake.port, "--no-history"]
     assert command[-2:] == ["--from-line", "31"]  # after G1 X29, the last acknowledged
     assert result.stderr.splitlines()[-1].startswith("controller error:")  # as before
-    assert silent.returncode == 3, silent.stderr
+    assert silent.returncode == 5, silent.stderr  # hung: the safe stop could not go
     (command,) = resume_hint(silent.stdout)
     assert command[-2:] == ["--from-line", "3"]  # G1 X1, line 2, is the last acknowledged
 
@@ -377,8 +379,10 @@ def test_no_hint_when_nothing_of_the_job_was_acknowledged(tmp_path: Path) -> Non
     job = tmp_path / "job.gcode"
     job.write_text("!!DEBUG:hang\nG1 X2\n")
     with BuiltInFake(tmp_path / "fake.log") as fake:
-        result = hyrel_send(str(job), "--port", fake.port, "--reply-timeout", "1")
-    assert result.returncode == 3, result.stderr
+        result = hyrel_send(
+            str(job), "--port", fake.port, "--reply-timeout", "1", "--reconnect-wait", "1"
+        )
+    assert result.returncode == 5, result.stderr
     assert "To resume" not in result.stdout
 
 

@@ -353,6 +353,68 @@ def test_sigterm_stops_the_job_with_its_safe_stop_and_exits(
         assert client.get("/v1/printers/bench").json()["held"] is True
 
 
+HEAT = (Path(__file__).parent / "data" / "heat.gcode").read_text()  # M190 S60, M109 S200...
+
+
+def heater_targets(fake: BuiltInFake) -> dict[str, float]:
+    return {name: float(t) for name, (_, t) in fake.request("status")["temperatures"].items()}
+
+
+def test_a_cancel_during_the_heat_up_breaks_the_wait_and_is_answered_when_safe(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
+) -> None:
+    fake = bench("--heat-rate", "1")
+    server = servers({"bench": fake.port})
+    with server.client() as client:
+        job_id = client.post(
+            "/v1/printers/bench/jobs", files={"file": ("heat.gcode", HEAT)}
+        ).json()["id"]
+        wait_for(lambda: "M140 S60" in executed(fake.log_path), what="the bed heating")
+        started = time.monotonic()
+        answer = client.delete(f"/v1/jobs/{job_id}")
+        assert answer.status_code == 200, answer.text
+        assert time.monotonic() - started < 10  # M108 ended M190's wait (and M109's)
+        record = answer.json()
+        assert record["state"] == "cancelled" and record["error"] is None
+        assert record["safe_stop"] is None
+        done = [c for c in executed(fake.log_path) if c != "M108"]
+        assert done[-7:] == MARLIN_SAFE_STOP and heater_targets(fake) == {"T": 0.0, "B": 0.0}
+        # What the controller ran after the cancel is on record: a resume runs none twice.
+        ran = done[done.index("G21") : -7]
+        assert ran == commands_of(HEAT)[1 : len(ran) + 1] and record["last_line"] == len(ran) + 1
+
+
+def test_a_stop_nothing_can_break_is_owed_across_a_restart(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
+) -> None:
+    fake = bench("--heat-rate", "1", "--no-emergency-parser")
+    server = servers({"bench": fake.port})
+    with server.client() as client:
+        job_id = client.post(
+            "/v1/printers/bench/jobs", files={"file": ("heat.gcode", HEAT)}
+        ).json()["id"]
+        wait_for(lambda: "M140 S60" in executed(fake.log_path), what="the bed heating")
+        answer = client.delete(f"/v1/jobs/{job_id}")
+        # Answered at once: accepted, still stopping, and why.
+        assert answer.status_code == 202, answer.text
+        assert "waiting for a heater (M190 S60" in answer.json()["stopping"]
+        assert "no emergency parser" in answer.json()["stopping"]
+        started = time.monotonic()
+        assert server.stop(signal.SIGTERM) == 0
+        assert time.monotonic() - started < 20
+    assert heater_targets(fake)["B"] == 60.0  # truly still on
+    fake.request("heat_rate none")  # the wait ends; what the controller held runs
+    restarted = servers({"bench": fake.port})
+    with restarted.client() as client:
+        wait_for(
+            lambda: job_state(client, job_id)["safe_stop"] == "sent", what="the owed safe stop"
+        )
+        record = job_state(client, job_id)
+    assert record["state"] == "cancelled" and "the safe stop was abandoned" in record["error"]
+    assert executed(fake.log_path)[-7:] == MARLIN_SAFE_STOP
+    assert heater_targets(fake) == {"T": 0.0, "B": 0.0}
+
+
 def test_a_vanished_link_comes_back_and_the_next_job_runs(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
 ) -> None:

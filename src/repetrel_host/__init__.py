@@ -17,6 +17,7 @@ from repetrel_host.errors import (
     JobError,
     LinkError,
     ProtocolError,
+    SafeStopError,
     UsageError,
 )
 from repetrel_host.events import (
@@ -33,6 +34,7 @@ from repetrel_host.events import (
     Resumed,
     State,
     StateChanged,
+    StopDelayed,
     Temperatures,
 )
 from repetrel_host.protocol.events import ProbeKind
@@ -72,8 +74,10 @@ __all__ = [
     "Report",
     "Resend",
     "Resumed",
+    "SafeStopError",
     "State",
     "StateChanged",
+    "StopDelayed",
     "Summary",
     "Temperatures",
     "UsageError",

@@ -25,7 +25,7 @@ import typer
 from repetrel_host import __version__
 from repetrel_host import history as print_history
 from repetrel_host.config import UserConfig, load_user_config
-from repetrel_host.console import ConsoleActions, read_line, summary_text
+from repetrel_host.console import ConsoleActions, read_line, stop_delayed_text, summary_text
 from repetrel_host.errors import (
     ConfigError,
     ControllerError,
@@ -33,9 +33,10 @@ from repetrel_host.errors import (
     JobError,
     LinkError,
     ProtocolError,
+    SafeStopError,
     UsageError,
 )
-from repetrel_host.events import Message, Notice, Paused, PauseReason, Resend, State
+from repetrel_host.events import Message, Notice, Paused, PauseReason, Resend, State, StopDelayed
 from repetrel_host.gcode.lint import Finding, Severity
 from repetrel_host.gcode.marks import scan_marks
 from repetrel_host.job import HostAction
@@ -60,7 +61,7 @@ from repetrel_host.protocol.events import ProbeKind
 from repetrel_host.protocol.flow import FlowMode
 from repetrel_host.pump import Outcome, Summary
 from repetrel_host.resume import RESUME_SOURCE, HomeAxes
-from repetrel_host.session import Printer, PrintJob, connect
+from repetrel_host.session import RECONNECT_WAIT, Printer, PrintJob, connect
 from repetrel_host.terminal import CONSOLE_HELP, ConsoleOptions, run_console
 
 if TYPE_CHECKING:
@@ -74,6 +75,7 @@ EXIT_OK = 0
 EXIT_BAD_INPUT = 2  # also what typer uses for a bad option
 EXIT_LINK_FAILURE = 3
 EXIT_CONTROLLER_ERROR = 4
+EXIT_NOT_SAFE = 5  # stopped, but the safe stop was not confirmed: go and look at the machine
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, as shells report Ctrl-C
 
 PROGRESS_REFRESH = 0.1  # seconds between progress bar updates
@@ -122,6 +124,7 @@ class Options:
     port: str | None
     link: LinkRequest
     reply_timeout: float
+    reconnect_wait: float
     history: Path | None
     no_history: bool
     fake_log: Path | None
@@ -192,6 +195,15 @@ def send(
             metavar="SECONDS",
         ),
     ] = DEFAULT_REPLY_TIMEOUT,
+    reconnect_wait: Annotated[
+        float,
+        typer.Option(
+            help="After the link failed mid-job (unplugged, reset, silent), how long to keep "
+            "reopening the port to send the safe stop before giving up.",
+            min=0,
+            metavar="SECONDS",
+        ),
+    ] = RECONNECT_WAIT,
     loadout: Annotated[
         Path | None,
         typer.Option(
@@ -411,6 +423,7 @@ def send(
             port,
             LinkRequest(baud, flow, rx_buffer, max_lines, _value(protocol)),
             reply_timeout,
+            reconnect_wait,
             history,
             no_history,
             fake_log,
@@ -422,6 +435,9 @@ def send(
     except (JobError, ConfigError, UsageError) as exc:
         errors.print(f"error: {exc}", markup=False)
         code = EXIT_BAD_INPUT
+    except SafeStopError as exc:
+        errors.print(f"not safe: {exc}", markup=False)
+        code = EXIT_NOT_SAFE
     except LinkError as exc:
         errors.print(f"link failure: {exc}", markup=False)
         code = EXIT_LINK_FAILURE
@@ -450,7 +466,10 @@ def _with_server(console: Out, url: str, request: ServerRequest) -> int:
     server = client.ServerClient(url, request.api_key)
     if request.cancel is not None:
         ended = client.cancel(server, request.cancel)
-        console.print(f"job {request.cancel} ({ended['name']}): {ended['state']}", markup=False)
+        stopping = f" (stopping: {ended['stopping']})" if ended.get("stopping") else ""
+        console.print(
+            f"job {request.cancel} ({ended['name']}): {ended['state']}{stopping}", markup=False
+        )
         return EXIT_OK
     name = server.printer(request.printer)
     job = request.job
@@ -563,7 +582,9 @@ async def _send(
         protocol=link.protocol,
         checksum=link.checksum,
         config=user,
-        reconnect=False,
+        # A link that fails mid-job is reopened only to send the safe stop it missed: the
+        # job ends then (or after reconnect_wait), and the session with it.
+        reconnect_wait=options.reconnect_wait,
         poll_interval=TEMPERATURE_POLL,
         poll_while_printing=True,
         reply_timeout=options.reply_timeout,
@@ -572,7 +593,7 @@ async def _send(
     try:
         plan = _plan_for(printer, plan, user, errors, options.force)
         job = await _stream(console, errors, printer, plan, user, options)
-    except (LinkError, ControllerError, ProtocolError):
+    except (LinkError, ControllerError, ProtocolError, SafeStopError):
         if printer.last_job is not None:  # the job failed: then the failure's sentence
             _print_resume_hint(console, printer.last_job, options)
         raise
@@ -681,18 +702,15 @@ async def _stream(
     def interrupt() -> None:
         nonlocal interrupts
         interrupts += 1
+        if job.reconnecting_for_safe_stop:
+            console.print("giving up: the safe stop will not be sent")
+            job.stop()
+            return
         if interrupts == 1:
             console.print("stopping: sending the safe-stop sequence (Ctrl-C again to abandon it)")
             job.stop()
             return
-        if job.stop():
-            missing = job.safe_stop_missing
-            if missing:
-                console.print(
-                    "safe stop abandoned: the controller did not confirm "
-                    f"{', '.join(missing)} - check the machine (heaters, motors)",
-                    markup=False,
-                )
+        job.stop()  # abandoned (or the wait for a reconnect given up): the end says what
 
     async def pause_or_resume() -> None:
         with contextlib.suppress(UsageError):  # the job ended meanwhile
@@ -710,6 +728,11 @@ async def _stream(
             enter = None
         elif pressed in "pP":
             tasks.add(loop.create_task(pause_or_resume()))
+        elif pressed in "eE" and job.stopping and not job.done:
+            # Only while a stop is under way (and said to be held up): never by a stray key.
+            console.print("emergency stop: M112 sent (the controller halts until it is reset)")
+            with contextlib.suppress(HostError):
+                printer.emergency_stop()
 
     async def wait_for_enter() -> bool:
         """Enter at the keyboard (or p); False when standard input is closed."""
@@ -743,7 +766,7 @@ async def _stream(
     if console.console.is_terminal:  # where the status line shows (the scan costs ~1 µs a line)
         tasks.add(loop.create_task(status.read_marks()))
     refresher = asyncio.create_task(refresh())
-    watcher = asyncio.create_task(_watch(console, printer, job, actions, wait_for_enter))
+    watcher = asyncio.create_task(_watch(console, printer, job, actions, wait_for_enter, keyboard))
     try:
         summary = await job.wait()
     finally:
@@ -765,12 +788,20 @@ async def _watch(
     job: PrintJob,
     actions: ConsoleActions,
     wait_for_enter: Callable[[], Awaitable[bool]],
+    keyboard: bool = False,
 ) -> None:
     """Show what the job tells, and answer an M0 at the keyboard."""
     from rich.markup import escape
 
     async for event in job.events():
-        if isinstance(event, Message):
+        if isinstance(event, StopDelayed):
+            emergency = "press e" if keyboard else "send M112 (hyrel-send --console)"
+            console.print(
+                f"[bold yellow]warning:[/] {escape(stop_delayed_text(event))}. Wait for it; "
+                f"or, to stop the machine at once, {emergency} for an emergency stop; or "
+                "press Ctrl-C again to leave without it (what is on stays on)."
+            )
+        elif isinstance(event, Message):
             actions.log(event.text)
             console.print(f"[dim]controller:[/] {escape(event.text)}")
         elif isinstance(event, Resend):

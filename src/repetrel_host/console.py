@@ -17,6 +17,7 @@ from typing import Protocol, TextIO
 
 from repetrel_host.camera import Camera
 from repetrel_host.config import HostSettings
+from repetrel_host.events import StopDelayed
 from repetrel_host.job import ActionKind, HostAction
 from repetrel_host.pump import Outcome, Summary
 
@@ -192,3 +193,9 @@ def summary_text(name: str, summary: Summary, where: str) -> str:
         f"({rate:.0f} lines/s), {summary.resends} resend requests, "
         f"{summary.retransmissions} lines sent again"
     )
+
+
+def stop_delayed_text(event: StopDelayed) -> str:
+    """A held-up stop in words: by what, and the heaters that may be on meanwhile."""
+    on = f"; heaters that may be on: {', '.join(event.heaters)}" if event.heaters else ""
+    return f"the safe stop is held up: {event.reason}{on}"

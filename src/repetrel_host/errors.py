@@ -27,3 +27,8 @@ class ControllerError(HostError):
 
 class ConfigError(HostError):
     """A configuration value is missing or invalid."""
+
+
+class SafeStopError(HostError):
+    """A job stopped, but its safe stop was not confirmed: the machine may not be safe
+    (heaters on, the head on the part). The sentence says what may be on and what to do."""

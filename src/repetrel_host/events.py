@@ -28,6 +28,7 @@ __all__ = [
     "Resumed",
     "State",
     "StateChanged",
+    "StopDelayed",
     "Temperatures",
 ]
 
@@ -114,6 +115,16 @@ class Resumed:
 
 
 @dataclass(frozen=True, slots=True)
+class StopDelayed:
+    """The job is stopping, but its safe stop is held up: ``reason`` says by what, and
+    ``heaters`` names those that may be on meanwhile. It still goes as soon as the
+    controller takes it; an emergency stop (M112) would end it all at once."""
+
+    reason: str
+    heaters: tuple[str, ...]
+
+
+@dataclass(frozen=True, slots=True)
 class Report:
     """The controller's M773 job report (sent at M30 after ``M772 S1``), before Done."""
 
@@ -135,4 +146,16 @@ class Failed:
 
 
 PrinterEvent = StateChanged | Temperatures | Message | Notice
-JobEvent = Progress | Resend | Message | Notice | Action | Paused | Resumed | Report | Done | Failed
+JobEvent = (
+    Progress
+    | Resend
+    | Message
+    | Notice
+    | Action
+    | Paused
+    | Resumed
+    | StopDelayed
+    | Report
+    | Done
+    | Failed
+)

@@ -21,7 +21,7 @@ from dataclasses import asdict, dataclass, fields
 from datetime import datetime
 from pathlib import Path
 
-from repetrel_host.errors import ControllerError, HostError, LinkError, ProtocolError
+from repetrel_host.errors import ControllerError, HostError, LinkError, ProtocolError, SafeStopError
 
 log = logging.getLogger(__name__)
 
@@ -74,6 +74,8 @@ class Record:
 
 def error_kind(error: HostError) -> str:
     """The failure's kind as hyrel-send names it (and its exit code tells)."""
+    if isinstance(error, SafeStopError):
+        return "not safe"
     if isinstance(error, LinkError):
         return "link failure"
     if isinstance(error, ControllerError | ProtocolError):

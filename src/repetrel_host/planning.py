@@ -25,7 +25,7 @@ from repetrel_host.config import (
 )
 from repetrel_host.errors import ConfigError, JobError, UsageError
 from repetrel_host.gcode import addressing
-from repetrel_host.gcode.header import header_commands, safe_stop_commands
+from repetrel_host.gcode.header import header_commands, safe_stop_commands, safe_stop_for_either
 from repetrel_host.gcode.lint import Finding, Linter, Severity
 from repetrel_host.gcode.marks import scan_marks
 from repetrel_host.job import Job, JobItem, JobLine
@@ -59,9 +59,13 @@ class Profile:
     machine: Machine | None
     source: str  # "--machine", "the loadout", "the firmware: ...", "the slicer: ..."
     explicit: bool  # given by the user (a firmware's identity does not replace it)
+    # Nothing said which firmware it is: the safe stop is one that is safe on Hyrel's and
+    # Marlin's alike (heaters off without T words the other one misreads).
+    fallback: bool = False
 
     def describe(self) -> str:
-        return f"{self.name or 'none'} ({self.source})"
+        either = "; its safe stop is one for Hyrel's and Marlin's firmware alike" * self.fallback
+        return f"{self.name or 'none'} ({self.source}){either}"
 
 
 @dataclass(frozen=True, slots=True)
@@ -174,7 +178,7 @@ def plan_job(
         JobLine(0, 0, command, 0, origin)
         for command, origin in (header_commands(loadout) if loadout and request.header else [])
     ]
-    return JobPlan(job, profile, loadout, header, safe_stop(machine, user))
+    return JobPlan(job, profile, loadout, header, safe_stop(machine, user, both=profile.fallback))
 
 
 def resumed(plan: JobPlan, line: int, home: HomeAxes = HomeAxes.XY) -> JobPlan:
@@ -209,10 +213,13 @@ def layer_line(path: Path, layer: int) -> int:
     raise UsageError(f"{path.name} has {len(marks.layers)} layers: there is no layer {layer}")
 
 
-def safe_stop(machine: Machine | None, user: UserConfig) -> list[str]:
-    """The safe-stop sequence: the configuration's, else the machine's, else the reference's."""
+def safe_stop(machine: Machine | None, user: UserConfig, *, both: bool = False) -> list[str]:
+    """The safe-stop sequence: the configuration's, else the machine's, else the reference's;
+    ``both``: the firmware is not known, so one safe on Hyrel's and Marlin's alike."""
     if user.host.safe_stop is not None:
         commands = user.host.safe_stop
+    elif both:
+        commands = safe_stop_for_either()
     elif machine is None:
         commands = safe_stop_commands("v5")
     else:
@@ -272,7 +279,11 @@ def _known_profile(
         name = HYREL_PROFILE if is_hyrel_firmware(firmware.identity) else MARLIN_PROFILE
         return Profile(name, _machine(library, name), f"from the firmware: {firmware.name}", False)
     return Profile(
-        HYREL_PROFILE, _machine(library, HYREL_PROFILE), "default: no machine given", False
+        HYREL_PROFILE,
+        _machine(library, HYREL_PROFILE),
+        "default: no machine given",
+        False,
+        fallback=True,
     )
 
 

@@ -12,6 +12,12 @@ action (M0, M792...) waits until every line before it is confirmed, and a stop
 drops what is queued (what the controller holds too, where the link can) and sends
 the safe-stop sequence ahead of anything else. A pause holds the controller where the
 link can (Hyrel's), else stops feeding and lets the controller run what it has.
+
+A stop is over only once the controller confirmed its safe stop: lines of the job it
+still runs meanwhile are counted as they are acknowledged (so that the record and the
+resume point stay true), a heat wait among them is broken where the firmware can
+(Marlin's emergency parser: ``M108``, again for each wait), and a stop held up (by a wait
+nothing can break, or for long) is told at once, never ended as if it had gone.
 """
 
 from __future__ import annotations
@@ -28,8 +34,11 @@ from repetrel_host.errors import (
     JobError,
     LinkError,
     ProtocolError,
+    SafeStopError,
     UsageError,
 )
+from repetrel_host.gcode.commands import command_word
+from repetrel_host.gcode.heaters import WAITS, HeaterLog, complete_safe_stop
 from repetrel_host.job import ActionKind, HostAction, JobItem, JobLine
 from repetrel_host.protocol import replies
 from repetrel_host.protocol.dialect import Dialect
@@ -45,10 +54,16 @@ from repetrel_host.protocol.events import (
     ResendRequested,
 )
 
-# After a stop, how long the safe-stop lines (and those already sent) may take to be
-# acknowledged: a heater's M109 ahead of them can hold the queue.
+# A stop whose safe stop is not confirmed this long after it began is told as held up
+# (it goes on: the safe stop goes whenever the controller takes it). Closing a session
+# waits this long for a stop under way.
 CANCEL_DRAIN_TIMEOUT = 30.0
+STOP_PATIENCE = 10.0
+# M108 goes again this often while a heat wait holds a stop (it may come before the wait
+# began, and Marlin forgets it then).
+BREAK_REPEAT = 1.0
 SAFE_STOP_SOURCE = "safe stop"
+_MOVES = frozenset({"G0", "G1", "G2", "G3"})
 
 
 class Outcome(Enum):
@@ -105,6 +120,14 @@ class Listener:
     def paused(self) -> None:
         """A pause asked for is reached: every line sent so far is confirmed."""
 
+    def stop_delayed(self, run: Run, reason: str) -> None:
+        """The safe stop of a stopping run is held up (``reason``: by what); it still goes
+        as soon as the controller takes it."""
+
+    def safe_stop_confirmed(self, command: str) -> None:
+        """A safe-stop line of a run that already ended was confirmed (an abandoned stop's
+        lines still go when the controller takes them)."""
+
     def finished(self, run: Run) -> None:
         """The run ended: :attr:`Run.outcome` or :attr:`Run.error` says how."""
 
@@ -135,8 +158,16 @@ class Run:
         self.pause_requested = False
         self.paused = False
         self.held = False  # the controller holds the job (a pause on Hyrel's link)
-        self.stop_deadline: float | None = None
+        self.stop_deadline: float | None = None  # when a stop not confirmed is told as late
         self.stop_requests = 0
+        self.safe_stop_queued = False  # the stop began: its safe stop went to the dialect
+        self.safe_stop_lines: list[JobLine] = []  # queued at the stop, not yet confirmed
+        self.safe_stop_unsent: list[JobLine] = []  # of those, never on the wire (a failure)
+        self.breaking: JobLine | None = None  # the heat wait M108 went for, and when
+        self.broke_at = 0.0
+        self.held_by: JobLine | None = None  # the wait told as holding the stop up
+        self.cancelled_stop = False  # stopped without an error, then the stream failed
+        self.emergency = False  # ended by M112: the controller halted, heaters off
         # Progress: the job line with the highest index acknowledged so far.
         self.lines = 0
         self.offset = 0
@@ -155,7 +186,25 @@ class Run:
     @property
     def safe_stop_missing(self) -> list[str]:
         """Safe-stop commands not acknowledged (all of them before a stop began)."""
-        return self.safe_stop[self.safe_stop_acknowledged :]
+        if not self.safe_stop_queued:
+            return list(self.safe_stop)
+        return [line.command for line in self.safe_stop_lines]
+
+    @property
+    def owed_safe_stop(self) -> list[str]:
+        """What of the safe stop the controller must still be sent, should this stream end
+        now: the lines it did not confirm, but for a move already on the wire (it may
+        have run: a second lift would lift twice). None after an emergency stop."""
+        if self.emergency:
+            return []
+        if not self.safe_stop_queued:
+            return list(self.safe_stop)
+        unsent = [id(line) for line in self.safe_stop_unsent]
+        return [
+            line.command
+            for line in self.safe_stop_lines
+            if command_word(line.command) not in _MOVES or id(line) in unsent
+        ]
 
     @property
     def resume_line(self) -> int | None:
@@ -182,12 +231,24 @@ class Run:
 
 
 class Pump:
-    """Feeds ``dialect`` from the current run and commands; reports to ``listener``."""
+    """Feeds ``dialect`` from the current run and commands; reports to ``listener``.
 
-    def __init__(self, dialect: Dialect, listener: Listener | None = None) -> None:
+    ``heaters`` is told every command sent (the safe stop turns off every heater in it);
+    ``hotends``: how many the controller has; ``breaks_waits``: ``M108`` ends a heat wait
+    (Marlin's emergency parser), so that a stop need not wait for it."""
+
+    def __init__(
+        self,
+        dialect: Dialect,
+        listener: Listener | None = None,
+        heaters: HeaterLog | None = None,
+    ) -> None:
         self.dialect = dialect
         self.listener = listener or Listener()
         self.run: Run | None = None
+        self.heaters = heaters if heaters is not None else HeaterLog()
+        self.hotends = 1
+        self.breaks_waits = False
 
     # --- driving ------------------------------------------------------------
 
@@ -202,15 +263,18 @@ class Pump:
     def timeout(self, now: float) -> None:
         run = self.run
         if run is not None and run.stop_deadline is not None and now >= run.stop_deadline:
-            self._finish_stopped(run, now)  # the safe stop took too long
+            run.stop_deadline = None  # told once; the stop goes on
+            self._tell_late(run)
         self.dialect.handle_timeout(now)
 
     @property
     def deadline(self) -> float | None:
         deadline = self.dialect.next_deadline()
         run = self.run
-        if run is not None and run.stop_deadline is not None:
-            deadline = run.stop_deadline if deadline is None else min(deadline, run.stop_deadline)
+        if run is not None:
+            for due in (run.stop_deadline, run.broke_at + BREAK_REPEAT if run.breaking else None):
+                if due is not None:
+                    deadline = due if deadline is None else min(deadline, due)
         return deadline
 
     def poke(self, now: float) -> bytes:
@@ -238,6 +302,7 @@ class Pump:
     def command(self, command: str, tag: object) -> None:
         """Send one command outside any job; :meth:`Listener.command_done` gets ``tag``
         once the controller ran it (its reply is complete then)."""
+        self.heaters.note(command)
         self.dialect.send(command, tag, confirm=True)
 
     def pause(self, at_layer_end: bool = False) -> None:
@@ -315,12 +380,28 @@ class Pump:
             return False
         run.stop_requests += 1
         if run.stop_requests > 1:
-            self._finish(run, Outcome.CANCELLED, now)
+            missing = ", ".join(run.safe_stop_missing)
+            cause = f" (the job had stopped: {run.error})" if run.error is not None else ""
+            awaited = self.dialect.awaiting
+            held = awaited[1] if awaited is not None else None
+            if isinstance(held, JobLine) and held.source != SAFE_STOP_SOURCE:
+                cause += (
+                    f"; the controller still holds the job's lines from {held.position} on, "
+                    "which run unless it is reset"
+                )
+            self._finish(
+                run,
+                SafeStopError(
+                    f"the safe stop was abandoned before the controller confirmed {missing}{cause}"
+                ),
+                now,
+            )
             return True
         if error is not None and run.error is None:
             run.error = error
         self._stop_feeding(run)
-        run.stop_deadline = now + CANCEL_DRAIN_TIMEOUT
+        run.stop_deadline = now + STOP_PATIENCE
+        self._break_waits(run, now)
         return False
 
     def abort(self, now: float, error: HostError) -> None:
@@ -328,9 +409,18 @@ class Pump:
         (the link is gone, or an emergency stop was sent)."""
         run = self.run
         if run is not None:
+            run.cancelled_stop = run.stopping and run.error is None
             run.stopping = True
             self._drop_pending()
             self._finish(run, error, now)
+
+    def emergency_stop(self, now: float, error: HostError) -> None:
+        """M112 went: the controller halted (its heaters off, say the firmwares): the job
+        ends with ``error``, and no safe stop is owed."""
+        run = self.run
+        if run is not None:
+            run.emergency = True
+        self.abort(now, error)
 
     # --- inside ---------------------------------------------------------------
 
@@ -366,6 +456,7 @@ class Pump:
                     run.fed = item.index
                 else:
                     run.header_fed += 1
+                self.heaters.note(item.command)
                 dialect.send(item.command, item)
             elif not item.is_marker:
                 run.barrier = item
@@ -387,6 +478,7 @@ class Pump:
                 if isinstance(tag, JobLine):
                     self._acknowledged(tag)
                 else:
+                    self.heaters.note(event.command, confirmed=True)
                     listener.command_done(tag, event.data)
             elif isinstance(event, ControllerMessage):
                 named = event.tag
@@ -405,11 +497,14 @@ class Pump:
                 self._refused(event, now)
             elif isinstance(event, Failed):
                 run = self.run
+                self._drop_pending()  # first: what never went is known before the run ends
                 if run is not None:
+                    run.cancelled_stop = run.stopping and run.error is None
                     self._finish(run, failure_error(event, run), now)
-                self._drop_pending()
                 listener.failed(event)
                 return False
+        if self.run is not None and self.run.stopping:
+            self._break_waits(self.run, now)
         return True
 
     def _refused(self, event: LineRefused, now: float) -> None:
@@ -426,8 +521,12 @@ class Pump:
             self.listener.command_refused(tag, event.reason)
 
     def _acknowledged(self, line: JobLine) -> None:
+        if line.command.startswith("M1"):  # M104, M140, M109...: a heater may be off now
+            self.heaters.note(line.command, confirmed=True)
         run = self.run
         if run is None:
+            if line.source == SAFE_STOP_SOURCE:  # an abandoned stop's, going on
+                self.listener.safe_stop_confirmed(line.command)
             return
         if line.index > run.lines:
             run.lines = line.index
@@ -435,6 +534,8 @@ class Pump:
             run.last = line
         elif line.source == SAFE_STOP_SOURCE:
             run.safe_stop_acknowledged += 1
+            if line in run.safe_stop_lines:
+                run.safe_stop_lines.remove(line)
         elif line.index == 0:
             run.header_acknowledged += 1
         self.listener.acknowledged(line)
@@ -494,15 +595,61 @@ class Pump:
         urgent = self.dialect.abort()  # where the link can: what the controller holds too
         if waiting:
             self.dialect.end_wait()  # should the abort not have ended the hold as well
+        # Every heater the session set, by its index (Marlin's M104 S0 is the active one's).
+        run.safe_stop = complete_safe_stop(run.safe_stop, self.heaters, self.hotends)
+        run.safe_stop_queued = True
         for command in run.safe_stop:
             line = JobLine(0, 0, command, 0, SAFE_STOP_SOURCE)
+            run.safe_stop_lines.append(line)
             self.dialect.send(command, line, urgent=urgent)
+
+    def _break_waits(self, run: Run, now: float) -> None:
+        """While a stop waits behind a heat wait of the job: M108 where the firmware takes
+        it (again every :data:`BREAK_REPEAT` s, and for each wait in turn), else say at
+        once that the safe stop waits for it."""
+        awaited = self.dialect.awaiting
+        line = awaited[1] if awaited is not None else None
+        if (
+            not isinstance(line, JobLine)
+            or line.source == SAFE_STOP_SOURCE
+            or command_word(line.command) not in WAITS
+        ):
+            run.breaking = None
+            return
+        if self.breaks_waits:
+            if line is not run.breaking or now >= run.broke_at + BREAK_REPEAT:
+                run.breaking, run.broke_at = line, now
+                self.dialect.send_urgent("M108")
+        elif line is not run.held_by:
+            run.held_by = line
+            self.listener.stop_delayed(
+                run,
+                f"the controller is waiting for a heater ({line.command}, {line.position}) "
+                "and its firmware cannot be interrupted (it has no emergency parser to take "
+                "M108): the safe stop goes once that wait ends",
+            )
+
+    def _tell_late(self, run: Run) -> None:
+        awaited = self.dialect.awaiting
+        line = awaited[1] if awaited is not None else None
+        where = (
+            f": the controller has yet to confirm {line.command} ({line.position})"
+            if isinstance(line, JobLine)
+            else ""
+        )
+        self.listener.stop_delayed(
+            run, f"the safe stop is not confirmed {STOP_PATIENCE:g} s after the stop{where}"
+        )
 
     def _drop_pending(self) -> None:
         """Drop what is queued and not on the wire; commands among it are told."""
-        dropped = [t for _, t in self.dialect.cancel_pending() if not isinstance(t, JobLine)]
-        if dropped:
-            self.listener.commands_dropped(dropped)
+        dropped = self.dialect.cancel_pending()
+        run = self.run
+        if run is not None:
+            run.safe_stop_unsent += [t for _, t in dropped if t in run.safe_stop_lines]
+        commands = [t for _, t in dropped if not isinstance(t, JobLine)]
+        if commands:
+            self.listener.commands_dropped(commands)
 
     def _finish_stopped(self, run: Run, now: float) -> None:
         """A stopped job ends cancelled, or with its error (a bad line, a failed action)."""

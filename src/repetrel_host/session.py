@@ -33,7 +33,14 @@ from typing import TYPE_CHECKING, Any, BinaryIO, Generic, TypeVar
 
 from repetrel_host import history as print_history
 from repetrel_host.config import UserConfig, load_user_config
-from repetrel_host.errors import ControllerError, HostError, JobError, LinkError, UsageError
+from repetrel_host.errors import (
+    ControllerError,
+    HostError,
+    JobError,
+    LinkError,
+    SafeStopError,
+    UsageError,
+)
 from repetrel_host.events import (
     Action,
     Done,
@@ -50,9 +57,11 @@ from repetrel_host.events import (
     Resumed,
     State,
     StateChanged,
+    StopDelayed,
     Temperatures,
 )
 from repetrel_host.gcode.commands import command_word
+from repetrel_host.gcode.heaters import HeaterLog, complete_safe_stop
 from repetrel_host.job import MAX_COMMAND_LENGTH, ActionKind, HostAction, JobItem, JobLine
 from repetrel_host.links import Link, make_link
 from repetrel_host.planning import (
@@ -93,8 +102,12 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-# A controller that does not answer M115 this fast is used without knowing its name.
-FIRMWARE_TIMEOUT = 2.0
+# M115 is asked again when its answer names no firmware (garbled), and waited for this
+# long in all: a slow controller's answer decides the profile (and so its safe stop), not
+# a short timeout. An answer that comes later still does.
+FIRMWARE_TIMEOUT = 2.0  # for the M155 that follows it
+FIRMWARE_PATIENCE = 12.0
+FIRMWARE_ATTEMPTS = 3
 # Temperatures are asked for this often while idle (M105), unless the firmware reports them.
 POLL_INTERVAL = 5.0
 # After an unplug, the port is tried again after this long, doubling up to the maximum.
@@ -106,6 +119,9 @@ QUIET = 0.3
 QUIET_MAX = 5.0
 # How long each line of an owed safe stop may take to be answered after a reconnect.
 SAFE_STOP_TIMEOUT = 30.0
+# A job whose link failed before its safe stop was confirmed ends once the safe stop went
+# after a reconnect, or after this long without one (connect's reconnect_wait).
+RECONNECT_WAIT = 30.0
 # Closing waits this long for the snapshots a job's markers asked for (M790, M791).
 MARKER_TIMEOUT = 30.0
 # A job's progress goes to its event subscribers at most this often.
@@ -146,6 +162,7 @@ class SessionSettings:
     request: JobRequest = field(default_factory=JobRequest)
     checksum: bool = False  # Hyrel's link: the additive checksum on every line
     poll_while_printing: bool = False  # M105 between a job's lines, as OctoPrint does
+    reconnect_wait: float = RECONNECT_WAIT
 
 
 class _Hub(Generic[E]):
@@ -312,6 +329,13 @@ class PrintJob:
         return self._run.stop_requests > 0
 
     @property
+    def reconnecting_for_safe_stop(self) -> bool:
+        """The link failed before the safe stop went: the job ends once it went after a
+        reconnect (or after ``reconnect_wait``); :meth:`stop` gives up waiting."""
+        owing = self.printer._owing
+        return owing is not None and owing[0] is self
+
+    @property
     def safe_stop_missing(self) -> list[str]:
         """Safe-stop commands the controller did not confirm (after an abandoned stop)."""
         return self._run.safe_stop_missing
@@ -370,7 +394,7 @@ class PrintJob:
         last = self._run.last
         return Progress(self.lines, self.offset, self.size, last.position if last else "")
 
-    def _finish(self, run: Run) -> None:
+    def _finish(self, run: Run, error: HostError | None, summary: Summary | None) -> None:
         if self._done.done():
             return
         self._publish(self._progress())
@@ -384,19 +408,18 @@ class PrintJob:
         if history is not None and print_history.parse_run(history) is not None:
             # How it ended, beside a stream in a history folder (--history-list); not
             # beside a file of the caller's own naming (history=Path("/dev/null")...).
-            print_history.write_record(history, self._record(run))
-        if run.error is not None:
-            self._publish(Failed(run.error))
-            self._done.set_exception(run.error)
+            print_history.write_record(history, self._record(error, summary))
+        if error is not None:
+            self._publish(Failed(error))
+            self._done.set_exception(error)
             self._done.exception()  # retrieved: a job nobody waits for is no error
         else:
-            assert run.summary is not None
-            self._publish(Done(run.summary))
-            self._done.set_result(run.summary)
+            assert summary is not None
+            self._publish(Done(summary))
+            self._done.set_result(summary)
         self._hub.close()
 
-    def _record(self, run: Run) -> print_history.Record:
-        error, summary = run.error, run.summary
+    def _record(self, error: HostError | None, summary: Summary | None) -> print_history.Record:
         if error is not None:
             outcome = print_history.FAILED
         elif summary is not None and summary.outcome is Outcome.CANCELLED:
@@ -449,10 +472,16 @@ class Printer:
         self._polling: asyncio.Task[None] | None = None
         self._autoreport = False
         self._greeting = ""  # what the controller said of itself as it was greeted
+        self._signs: list[str] = []  # its M115 lines, whatever command they came with
+        self._signed = asyncio.Event()
         self._closing = False
         self._last_data_at = 0.0
-        # The safe stop a job that failed (the link, the controller) could not send.
+        # The safe stop a job that failed (the link, the controller) could not send, and
+        # the job that waits for it to go (after a reconnect) before it ends.
         self._owed_safe_stop: list[str] = []
+        self._owing: tuple[PrintJob, Run] | None = None
+        self._owing_timer: asyncio.TimerHandle | None = None
+        self._heaters = HeaterLog()  # every heater the session's commands set
         self._wire_taps: list[Callable[[bool, bytes], None]] = []
 
     @property
@@ -477,8 +506,39 @@ class Printer:
 
     @property
     def safe_stop(self) -> list[str]:
-        """The profile's safe-stop sequence (fans, heaters, motors off; a lift)."""
-        return safe_stop_for(self.profile.machine, self.settings.user)
+        """The profile's safe-stop sequence (fans, heaters, motors off; a lift), turning
+        off every hotend by its index where the controller has several or the session
+        heated several (and a chamber it heated)."""
+        profile = self.profile
+        commands = safe_stop_for(profile.machine, self.settings.user, both=profile.fallback)
+        return complete_safe_stop(commands, self._heaters, self._hotends())
+
+    @property
+    def owed_safe_stop(self) -> list[str]:
+        """Safe-stop commands a job could not send (its link failed), still to go: they go
+        first once the controller answers again."""
+        return list(self._owed_safe_stop)
+
+    def heaters_on(self) -> list[str]:
+        """The heaters that may be on: set above zero by a command the session sent (and
+        not turned off since, as far as the controller confirmed), or reported with a
+        target above zero."""
+        log = self._heaters
+        named = {_heater_name(h.kind, h.index): h.describe() for h in log.on()}
+        for sensor, (current, target) in self.temperatures.items():
+            kind = {"T": "hotend", "B": "bed", "C": "chamber"}.get(sensor[:1])
+            if not target or kind is None:
+                continue
+            index = int(sensor[1:]) if sensor[1:].isdigit() else None
+            if kind == "hotend" and index is None:
+                index = log.tool
+            name = _heater_name(kind, index)
+            named.setdefault(name, f"{name} (reported {current:g} °C, target {target:g} °C)")
+        return list(named.values())
+
+    def _hotends(self) -> int:
+        count = self.firmware.fields.get("EXTRUDER_COUNT", "1") if self.firmware else "1"
+        return int(count) if count.isdigit() and int(count) > 0 else 1
 
     def events(self) -> AsyncIterator[PrinterEvent]:
         """State changes (the current state first), temperatures, controller messages."""
@@ -503,7 +563,7 @@ class Printer:
         command = _clean_command(line)
         word = command_word(command)
         if word == "M112":
-            self._emergency_stop()
+            self.emergency_stop()
             return Reply(command, [], "")
         if word == "M108":
             if self._pump is not None and self._pump.controller_holds:
@@ -518,6 +578,11 @@ class Printer:
             return await self._command(command, timeout)
 
     async def _command(self, command: str, timeout: float | None) -> Reply:
+        pending = self._send_command(command)
+        # Shielded: a timeout leaves it pending, so that its late lines are still its own.
+        return await asyncio.wait_for(asyncio.shield(pending.future), timeout)
+
+    def _send_command(self, command: str) -> _Command:
         pump = self._pump
         if pump is None:
             raise LinkError(f"{self.port} is not connected")
@@ -525,8 +590,39 @@ class Printer:
         self._commands.append(pending)
         pump.command(command, pending)
         self._poke()
-        # Shielded: a timeout leaves it pending, so that its late lines are still its own.
-        return await asyncio.wait_for(asyncio.shield(pending.future), timeout)
+        return pending
+
+    def _sign(self, text: str) -> None:
+        """A line that says which firmware this is (M115's ``FIRMWARE_NAME:`` and ``Cap:``
+        lines), whichever command it came with or after: a slow controller's answer still
+        decides, once it comes."""
+        self._signs.append(text)
+        found = Firmware.parse(self._signs)
+        known = self.firmware
+        if found is None or (
+            known is not None
+            and (known.fields, known.capabilities) == (found.fields, found.capabilities)
+        ):
+            return
+        late = self.state is not State.CONNECTING and (
+            self.firmware is None or self.firmware.name != found.name
+        )
+        self.firmware = found
+        self._signed.set()
+        self._use_firmware()
+        if late:
+            self._hub.publish(Notice(f"the controller said who it is: {found.name}"))
+
+    def _use_firmware(self) -> None:
+        """What the pump takes from the firmware: its hotends, whether M108 ends a wait."""
+        pump, firmware = self._pump, self.firmware
+        if pump is not None:
+            pump.hotends = self._hotends()
+            pump.breaks_waits = (
+                firmware is not None
+                and firmware.can("EMERGENCY_PARSER")
+                and not pump.dialect.acks_say_received  # Hyrel's link aborts instead
+            )
 
     def _check_can_command(self) -> None:
         state = self.state
@@ -554,11 +650,17 @@ class Printer:
         pump.dialect.send_urgent(command_word(command))  # as emergency parsers read it
         self._poke()
 
-    def _emergency_stop(self) -> None:
+    def emergency_stop(self) -> None:
+        """M112 at once, unnumbered: the controller halts (its heaters off) until reset; a
+        job ends with a ControllerError, and no safe stop is owed."""
         self._urgent("M112")
+        self._owed_safe_stop = []  # the controller halted: its heaters are off
         if self._pump is not None:
-            error = ControllerError("stopped by an emergency stop (M112)")
-            self._pump.abort(self._loop.time(), error)
+            error = ControllerError(
+                "stopped by an emergency stop (M112): the controller halted (heaters off) "
+                "and needs a reset"
+            )
+            self._pump.emergency_stop(self._loop.time(), error)
             self._poke()
 
     # --- jobs -------------------------------------------------------------------
@@ -686,6 +788,8 @@ class Printer:
             self._pump.pause(at_layer_end)
             self._poke()
         await self._until(lambda: self.state is not State.PRINTING or job.done)
+        if self.state not in (State.PAUSED,):  # (a tuple: the await changed it)
+            raise UsageError(f"{job.name} ended before the pause could hold it")
 
     async def resume(self) -> None:
         """Go on with a paused job (paused by :meth:`pause` or by an M0)."""
@@ -712,6 +816,9 @@ class Printer:
             await job.wait()
 
     def _stop_job(self, job: PrintJob, error: HostError | None) -> bool:
+        if self._owing is not None and self._owing[0] is job:
+            self._give_up_owed("given up before the controller answered again")
+            return True
         if job is not self._job or self._pump is None:
             return False
         job._drop_m0()
@@ -750,26 +857,124 @@ class Printer:
             self._polling = self._spawn(self._poll(interval))
 
     async def _send_owed_safe_stop(self) -> None:
-        """What a failed job could not send: heaters off before anything else."""
-        owed, self._owed_safe_stop = self._owed_safe_stop, []
+        """What a failed job could not send: heaters off before anything else. Each line
+        is owed until the controller confirms it; the job that waits for them ends then."""
+        owed = list(self._owed_safe_stop)
         if not owed:
             return
-        self._hub.publish(Notice(f"sending the safe stop the interrupted job missed: {owed}"))
+        self._tell_owing(Notice(f"sending the safe stop the interrupted job missed: {owed}"))
         for command in owed:
-            with contextlib.suppress(HostError, TimeoutError):
+            try:
                 await self._command(command, SAFE_STOP_TIMEOUT)
+            except (HostError, TimeoutError):
+                return  # the rest goes at the next greeting
+            with contextlib.suppress(ValueError):
+                self._owed_safe_stop.remove(command)
+        if self._owing is not None:
+            job, run = self._owing
+            ended = self._delivered(run)
+            self._stop_owing()
+            job._finish(run, *ended)
+
+    def _tell_owing(self, event: Notice) -> None:
+        self._hub.publish(event)
+        if self._owing is not None:
+            self._owing[0]._publish(event)
+
+    def _owe(self, job: PrintJob, run: Run) -> None:
+        """The job's link failed before its safe stop was confirmed: it ends once the safe
+        stop went after a reconnect, or after ``reconnect_wait`` seconds without one."""
+        wait = self.settings.reconnect_wait
+        self._owing = (job, run)
+        self._owing_timer = self._loop.call_later(
+            wait, self._give_up_owed, f"the controller did not answer again within {wait:g} s"
+        )
+        self._tell_owing(
+            Notice(
+                f"{run.error}. The safe stop did not go: trying to reach the controller again "
+                f"to send it (for up to {wait:g} s)"
+            )
+        )
+
+    def _stop_owing(self) -> None:
+        self._owing = None
+        if self._owing_timer is not None:
+            self._owing_timer.cancel()
+            self._owing_timer = None
+
+    def _give_up_owed(self, why: str) -> None:
+        """The job waiting for its safe stop ends without it (it stays owed: it goes at
+        the session's next greeting, should there be one)."""
+        if self._owing is None:
+            return
+        job, run = self._owing
+        self._stop_owing()
+        job._finish(
+            run, self._unsafe(f"{run.error}; the safe stop could not be sent ({why})"), None
+        )
+
+    def _delivered(self, run: Run) -> tuple[HostError | None, Summary | None]:
+        """How a job whose safe stop went after a reconnect ended: cancelled, if that is
+        how it was stopping; else its failure, saying the safe stop went."""
+        if run.cancelled_stop:
+            self._tell_owing(Notice("the safe stop completed once the controller answered again"))
+            stats = run.resends_before, run.retransmissions_before
+            seconds = self._loop.time() - run.started_at
+            return None, Summary(Outcome.CANCELLED, run.lines, seconds, *stats)
+        assert run.error is not None
+        went = "the safe stop went once the controller answered again"
+        return type(run.error)(f"{run.error}; {went}"), None
+
+    def _unsafe(self, cause: str) -> SafeStopError:
+        """The sentence for a stop not confirmed: what may be on, and what to do."""
+        heaters = self.heaters_on()
+        on = f"; heaters that may be on: {', '.join(heaters)}" if heaters else ""
+        return SafeStopError(
+            f"{cause}{on}; check the machine: M112 (an emergency stop) or its power switch "
+            "stops it at once"
+        )
+
+    def _ended(self, run: Run, connection_ends: bool) -> tuple[HostError | None, Summary | None]:
+        """How a run that just ended is reported (a reconnect aside)."""
+        error = run.error
+        if error is None or run.emergency:
+            return error, run.summary
+        if isinstance(error, SafeStopError):  # abandoned by the caller
+            going = "" if connection_ends else "; they still go as the controller takes them"
+            return self._unsafe(f"{error}{going}"), None
+        if self._owed_safe_stop and connection_ends:
+            return self._unsafe(f"{error}; the safe stop was not sent"), None
+        return error, None
 
     async def _identify(self) -> None:
         self.firmware = None
         self._autoreport = False
+        self._signs = []
+        self._signed.clear()
         # Without an answer to M115, the greeting's own (Hyrel's ping: ">Hy: ...").
-        greeting = [f"FIRMWARE_NAME:{self._greeting}"] if self._greeting else []
-        try:
-            reply = await self._command("M115", FIRMWARE_TIMEOUT)
-        except TimeoutError:
-            self.firmware = Firmware.parse(greeting)  # or none: it does not say who it is
+        greeting = Firmware.parse([f"FIRMWARE_NAME:{self._greeting}"] if self._greeting else [])
+        deadline = self._loop.time() + FIRMWARE_PATIENCE
+        for _ in range(FIRMWARE_ATTEMPTS):
+            pending = self._send_command("M115")
+            with contextlib.suppress(TimeoutError):
+                reply = await asyncio.wait_for(
+                    asyncio.shield(pending.future), max(0.0, deadline - self._loop.time())
+                )
+                self.firmware = Firmware.parse([*reply.lines, reply.ok]) or self.firmware
+                if self.firmware is not None:
+                    break
+                # Confirmed, its answer perhaps still to come (a probe found the line taken
+                # before it ran), or garbled: a while for it, then ask again.
+                left = min(FIRMWARE_TIMEOUT, deadline - self._loop.time())
+                await asyncio.wait_for(self._signed.wait(), max(0.0, left))
+            if self.firmware is not None or self._loop.time() >= deadline:
+                break
+        if self.firmware is None:
+            # Not yet: an answer that comes later still decides (see _sign).
+            self.firmware = greeting  # or none: it does not say who it is
+        self._use_firmware()
+        if self.firmware is None:
             return
-        self.firmware = Firmware.parse([*reply.lines, reply.ok]) or Firmware.parse(greeting)
         interval = self.settings.poll_interval
         if interval and self.firmware is not None and self.firmware.can("AUTOREPORT_TEMP"):
             with contextlib.suppress(TimeoutError):  # then it is polled instead
@@ -792,7 +997,7 @@ class Printer:
             reply_timeout=settings.reply_timeout,
             checksum=settings.checksum,
         )
-        self._pump = Pump(dialect, self._listener)
+        self._pump = Pump(dialect, self._listener, self._heaters)
         self._write(self._pump.start(self._loop.time()))
         self._arm_timer(self._pump.deadline)
 
@@ -993,6 +1198,7 @@ class Printer:
                 job.stop()  # a stop under way goes on: a second one would abandon it
             with contextlib.suppress(HostError, TimeoutError):
                 await asyncio.wait_for(job.wait(), CANCEL_DRAIN_TIMEOUT + 5)
+        self._give_up_owed("the session was closed")
         markers = {task for task in self._markers if not task.done()}
         if markers:  # a snapshot the job's last lines asked for is still taken
             await asyncio.wait(markers, timeout=MARKER_TIMEOUT)
@@ -1061,6 +1267,8 @@ class _PumpListener(Listener):
 
     def _message(self, text: str, reply: replies.Reply) -> None:
         printer = self.printer
+        if text.startswith("Cap:") or "FIRMWARE_NAME:" in text:
+            printer._sign(text)
         reported = self._temperatures(text, text)
         if printer._commands and not (reported and printer._autoreport):
             printer._commands[0].lines.append(text)
@@ -1104,20 +1312,35 @@ class _PumpListener(Listener):
             job._publish(Paused(PauseReason.REQUEST, "", last.position if last else ""))
             printer._set_state(State.PAUSED, "paused")
 
+    def stop_delayed(self, run: Run, reason: str) -> None:
+        printer = self.printer
+        job = printer._job
+        if job is not None:
+            job._publish(StopDelayed(reason, tuple(printer.heaters_on())))
+
+    def safe_stop_confirmed(self, command: str) -> None:
+        with contextlib.suppress(ValueError):
+            self.printer._owed_safe_stop.remove(command)
+
     def finished(self, run: Run) -> None:
         printer = self.printer
         job, printer._job = printer._job, None
         if printer._wire_log is not None:
             printer._wire_log.close()
             printer._wire_log = None
-        if run.error is not None and run.stop_requests < 2 and run.safe_stop_missing:
-            # Failed before its safe stop went (and nobody abandoned it): owed on the
-            # next greeting, so that no heater stays on while the session waits.
-            printer._owed_safe_stop = run.safe_stop
+        pump = printer._pump
+        connection_ends = pump is None or pump.dialect.failure is not None
+        if run.error is not None:
+            # What of the safe stop was not confirmed is owed: it goes first at the next
+            # greeting (or, on a link that goes on, as the controller takes it).
+            printer._owed_safe_stop = run.owed_safe_stop
         if job is not None:
             job._drop_m0()
-            job._finish(run)
-        pump = printer._pump
+            owes = bool(printer._owed_safe_stop) and connection_ends and not run.emergency
+            if owes and printer.settings.reconnect and not printer._closing:
+                printer._owe(job, run)
+            else:
+                job._finish(run, *printer._ended(run, connection_ends))
         healthy = pump is not None and pump.dialect.failure is None
         if healthy and (printer.state is State.PRINTING or printer.state is State.PAUSED):
             printer._set_state(State.READY, "the job ended")
@@ -1174,6 +1397,10 @@ async def _mark(job: PrintJob, on_action: ActionHandler, action: HostAction) -> 
         job._publish(Notice(f"{action.position}: the host action failed ({exc!r})"))
 
 
+def _heater_name(kind: str, index: int | None) -> str:
+    return kind if index is None else f"{kind} T{index}"
+
+
 def _clean_command(line: str) -> str:
     if _FRAMED.search(line.split(";", 1)[0]):
         raise UsageError(
@@ -1222,6 +1449,7 @@ def connect(
     baud: int | None = None,
     reply_timeout: float = DEFAULT_REPLY_TIMEOUT,
     reconnect: bool = True,
+    reconnect_wait: float = RECONNECT_WAIT,
     poll_interval: float | None = POLL_INTERVAL,
     poll_while_printing: bool = False,
     protocol: str | None = None,
@@ -1244,7 +1472,8 @@ def connect(
     every line (else as the profile says; without it). ``poll_interval``: seconds between
     temperature polls while idle (``poll_while_printing``: while a job prints too), None
     for silence. ``reconnect=False``: a lost port stays
-    lost.
+    lost. ``reconnect_wait``: a job whose link failed before its safe stop was confirmed
+    ends once the safe stop went after a reconnect, or after this many seconds.
     """
 
     async def opening() -> Printer:
@@ -1277,6 +1506,7 @@ def connect(
             request,
             chosen.checksum if checksum is None else checksum,
             poll_while_printing,
+            reconnect_wait,
         )
         printer = Printer(opened, settings)
         try:

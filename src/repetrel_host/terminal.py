@@ -27,8 +27,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from repetrel_host.config import UserConfig
-from repetrel_host.console import ConsoleActions, read_line, summary_text
-from repetrel_host.errors import HostError, JobError, UsageError
+from repetrel_host.console import ConsoleActions, read_line, stop_delayed_text, summary_text
+from repetrel_host.errors import HostError, JobError, SafeStopError, UsageError
 from repetrel_host.events import (
     Message,
     Notice,
@@ -38,6 +38,7 @@ from repetrel_host.events import (
     Resumed,
     State,
     StateChanged,
+    StopDelayed,
     Temperatures,
 )
 from repetrel_host.gcode.commands import command_word
@@ -398,11 +399,17 @@ class PrinterConsole:
 
     def _cancel(self) -> None:
         job = self.printer.job
+        last = self.printer.last_job
+        if job is None and last is not None and last.reconnecting_for_safe_stop:
+            self.say(f"{last.name}: no longer waiting to send the safe stop")
+            last.stop()
+            return
         if job is None:
             self.say("error: no job is running")
             return
         if job.stopping:
-            self.say(f"{job.name} is already stopping")
+            self.say(f"{job.name}: no longer waiting for the safe stop (it still goes)")
+            job.stop()  # abandoned: the job's watcher says what was not confirmed
             return
         self.say(f"cancelling {job.name}: sending the safe-stop sequence")
         job.stop()  # the job's watcher says how it ended
@@ -485,8 +492,15 @@ class PrinterConsole:
                     self._paused(job, event)
                 elif isinstance(event, Resumed):
                     self.say("resumed")
+                elif isinstance(event, StopDelayed):
+                    self.say(
+                        f"warning: {stop_delayed_text(event)}. Wait for it; or type M112 for an "
+                        "emergency stop; or !cancel again to stop waiting for it"
+                    )
             try:
                 summary = await job.wait()
+            except SafeStopError as exc:
+                self.say(f"{job.name}: not safe: {exc}")
             except HostError as exc:
                 self.say(f"{job.name}: failed: {exc}")
             else:
@@ -526,12 +540,7 @@ class PrinterConsole:
             return
         if self._interrupts == 1:
             self.say("stopping: sending the safe-stop sequence (Ctrl-C again to abandon it)")
-            job.stop()
-        elif job.stop() and job.safe_stop_missing:
-            self.say(
-                "safe stop abandoned: the controller did not confirm "
-                f"{', '.join(job.safe_stop_missing)} - check the machine (heaters, motors)"
-            )
+        job.stop()  # a second one abandons it: the job's watcher says what was not confirmed
 
     def _spawn(self, coroutine: Coroutine[Any, Any, None]) -> None:
         task = asyncio.create_task(coroutine)

@@ -75,3 +75,18 @@ def safe_stop_commands(firmware: addressing.Firmware) -> list[str]:
         "G90",  # absolute coordinates
         "M84",  # motors: off
     ]
+
+
+def safe_stop_for_either() -> list[str]:
+    """A safe stop for a controller whose firmware is not known: Hyrel's (v5 group
+    addresses) with Marlin's heater lines beside its own. Each firmware takes the other's
+    lines harmlessly: Marlin refuses ``M104 T47`` (no such hotend) and ignores the unknown
+    ``M620`` and ``M5``; Hyrel's ``M104 S0`` and ``M140 S0`` turn off the current head and
+    the primary bed. (A bare ``M104 S0`` names every hotend once Marlin says how many.)"""
+    hyrel = safe_stop_commands("v5")
+    either: list[str] = []
+    for command in hyrel:
+        either.append(command)
+        if command.startswith(("M104 ", "M140 ")):
+            either.append(command.split()[0] + " S0")
+    return either

@@ -81,6 +81,11 @@ class Dialect(Protocol):
         """Drop queued lines not yet on the wire; return them (command, tag)."""
 
     @property
+    def awaiting(self) -> tuple[str, object] | None:
+        """The oldest line on the wire the controller has yet to confirm (command, tag),
+        the host's own aside: what it is working on, or will be next."""
+
+    @property
     def wants_lines(self) -> bool:
         """The queue is short enough that a new line could go out soon."""
 

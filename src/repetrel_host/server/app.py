@@ -52,7 +52,7 @@ from repetrel_host.config import UserConfig
 from repetrel_host.server.events import EventHub
 from repetrel_host.server.mqtt import MqttSettings
 from repetrel_host.server.printers import PrinterConfig, PrinterService, Refused
-from repetrel_host.server.store import JobRecord, JobState, Store
+from repetrel_host.server.store import ACTIVE, JobRecord, JobState, Store
 
 log = logging.getLogger("repetrel_host.server")
 
@@ -104,9 +104,16 @@ class PrintServer:
                 record.printer,
                 record.last_line,
             )
-            owner = self.services.get(record.printer)
-            if owner is not None:
-                owner.owed_safe_stop = True
+        for service in self.services.values():
+            owing = self.store.owing(service.name)
+            if owing:  # interrupted, or ended without its safe stop confirmed
+                service.owed_safe_stop = True
+                log.warning(
+                    "printer %s: the safe stop of job %s is owed: it goes as soon as the "
+                    "printer answers",
+                    service.name,
+                    ", ".join(map(str, owing)),
+                )
         # After an interrupted job nothing starts by itself: a part may be on the bed.
         for service in self.services.values():
             last = self.store.last_started(service.name)
@@ -505,15 +512,20 @@ def _native_router() -> APIRouter:
         return record.as_json()
 
     @router.delete("/jobs/{job_id}", dependencies=[Keyed])
-    async def cancel_job(request: Request, job_id: int) -> dict[str, Any]:
+    async def cancel_job(request: Request, job_id: int) -> Any:
         server = _server(request)
         record = server.store.job(job_id)
         if record is None:
             raise HTTPException(404, f"no job {job_id}")
-        if not await server.service(record.printer).cancel(job_id):
+        service = server.service(record.printer)
+        if not await service.cancel(job_id):
             raise HTTPException(409, f"job {job_id} is {record.state.value}: nothing to cancel")
         ended = server.store.job(job_id)
         assert ended is not None
+        if ended.state in ACTIVE:
+            # Still stopping: its safe stop is held up (or slow). Accepted, and why.
+            stopping = service.stop_held or "the safe stop is not confirmed yet"
+            return JSONResponse({**ended.as_json(), "stopping": stopping}, status_code=202)
         return ended.as_json()
 
     @router.post("/jobs/{job_id}/move", dependencies=[Keyed])

@@ -21,6 +21,7 @@ API_KEY_ENV = "HYREL_API_KEY"
 TIMEOUT = 30.0
 # How a job's end maps to hyrel-send's exit codes.
 ENDED = {"completed": 0, "cancelled": 130, "failed": 4, "interrupted": 4}
+NOT_SAFE = 5  # hyrel-send's exit code when a safe stop was not confirmed
 
 
 class ServerClient:
@@ -167,6 +168,12 @@ def _follow(
                 line = record["last_line"]
                 summary = f"{path.name}: {state}: {record['lines']} lines (to line {line})"
                 show(f"{summary}: {record['error']}" if record["error"] else summary)
+                if record.get("safe_stop") == "owed":
+                    show(
+                        f"not safe: job {job_id}'s safe stop was not confirmed; the server "
+                        "sends it as soon as the printer answers"
+                    )
+                    return NOT_SAFE
                 return ENDED[state]
             if state != "queued":  # said already
                 show(f"{path.name}: {state}")

@@ -41,7 +41,11 @@ RECONNECT_FIRST = 0.5
 RECONNECT_MAX = 10.0
 POLL_INTERVAL = 2.0  # temperatures, for the API and the page
 SAFE_STOP_TIMEOUT = 30.0
-SERVER_STOPPED = "the server was stopped: the job was stopped with its safe stop"
+# A cancel is answered once the job ended, or after this long (or once its safe stop is
+# said to be held up): 202, the job still stopping, and why.
+CANCEL_ANSWER = 10.0
+SERVER_STOPPED = "the server was stopped"
+STOPPED_SAFELY = "the server was stopped: the job was stopped with its safe stop, confirmed"
 COMMAND_TIMEOUT = 60.0
 CONTROLS = ("pause", "resume", "cancel", "hold", "release")
 
@@ -179,6 +183,9 @@ class PrinterService:
         self._starting: int | None = None  # the job being started
         self._cancel_starting = False
         self._ended = asyncio.Event()  # a job ended and was recorded
+        self._held = asyncio.Event()  # the running job's safe stop is held up
+        self.stop_held = ""  # why, while it is
+        self._cancelling: int | None = None  # the job a cancel was asked for
         # After a job ends, start the next one by itself (a farm with an automatic bed
         # change); else the queue is held until released (Moonraker's automatic_transition).
         self.automatic_transition = False
@@ -209,9 +216,15 @@ class PrinterService:
         self._wake.set()
         running = self.running
         if running is not None and not running.job.done:
-            running.job.stop(rh.JobError(SERVER_STOPPED))
-            with contextlib.suppress(rh.HostError, TimeoutError):
-                await asyncio.wait_for(running.job.wait(), SAFE_STOP_TIMEOUT + 5)
+            if not running.job.stopping:
+                running.job.stop(rh.JobError(SERVER_STOPPED))
+            if not await self._ending(SAFE_STOP_TIMEOUT):
+                # Held up (a heat wait nothing breaks, a silent controller): the server does
+                # not wait for it. The job is recorded so, and its safe stop owed.
+                log.warning("printer %s: leaving the safe stop unconfirmed", self.name)
+                running.job.stop()
+                with contextlib.suppress(rh.HostError, TimeoutError):
+                    await asyncio.wait_for(running.job.wait(), 5)
         if self._task is not None:
             # The loop records how the job ended, then sees it is stopping.
             done, _ = await asyncio.wait([self._task], timeout=2.0)
@@ -250,6 +263,12 @@ class PrinterService:
         assert printer is not None
         if self.owed_safe_stop and printer.state is rh.State.READY:
             await self._send_safe_stop()
+        elif (
+            printer.state is rh.State.READY
+            and not printer.owed_safe_stop
+            and self.store.owing(self.name)
+        ):
+            self._sent()  # the session sent it, once the printer answered
         record = None
         if printer.state is rh.State.READY and not self.held:
             record = self.store.next_queued(self.name)
@@ -277,6 +296,24 @@ class PrinterService:
             self._forwarding = asyncio.get_running_loop().create_task(self._forward(self.printer))
             return
 
+    async def _ending(self, patience: float) -> bool:
+        """Wait until the running job ended, for at most ``patience`` seconds, or until its
+        safe stop is said to be held up; True when it ended."""
+        running = self.running
+        if running is None:
+            return True
+        ending: asyncio.Future[Any] = asyncio.ensure_future(running.job.wait())
+        held: asyncio.Future[Any] = asyncio.ensure_future(self._held.wait())
+        try:
+            await asyncio.wait([ending, held], timeout=patience, return_when="FIRST_COMPLETED")
+        finally:
+            held.cancel()
+            if not ending.done():
+                ending.cancel()
+            elif not ending.cancelled():
+                ending.exception()  # retrieved: the loop records how it ended
+        return running.job.done
+
     async def _send_safe_stop(self) -> None:
         printer = self.printer
         assert printer is not None
@@ -289,6 +326,13 @@ class PrinterService:
             log.warning("printer %s: the safe stop did not go: %s", self.name, exc)
             return
         self.owed_safe_stop = False
+        self._sent()
+
+    def _sent(self) -> None:
+        """The safe stop the printer was owed went: its jobs' records say so."""
+        for job_id in self.store.safe_stop_sent(self.name):
+            log.info("printer %s: job %d's safe stop went", self.name, job_id)
+            self.job_changed(job_id)
 
     async def _print(self, record: JobRecord) -> None:
         printer = self.printer
@@ -320,7 +364,11 @@ class PrinterService:
         finally:
             self._starting = None
         running = self.running = Running(record, job)
+        self._held.clear()
+        self.stop_held = ""
+        watching = asyncio.ensure_future(self._watch(job))
         if self._cancel_starting:
+            self._cancelling = record.id
             job.stop()
         self._paused = False
         log.info("printer %s: printing job %d (%s)", self.name, record.id, record.name)
@@ -336,15 +384,27 @@ class PrinterService:
             summary = ending.result()
             if summary.outcome is rh.Outcome.CANCELLED:
                 state = JobState.CANCELLED
+                if self._stopping and self._cancelling != record.id:
+                    state, error = JobState.INTERRUPTED, STOPPED_SAFELY
         except rh.HostError as exc:
             state, error = JobState.FAILED, str(exc)
-            if self._stopping:
+            if self._cancelling == record.id:
+                state = JobState.CANCELLED  # cancelled, its safe stop not confirmed: said
+            elif self._stopping:
                 state = JobState.INTERRUPTED
+                if str(exc).startswith(SERVER_STOPPED) and not printer.owed_safe_stop:
+                    error = STOPPED_SAFELY
         finally:
             self._record_progress(record, job)
             self.running = None
+            watching.cancel()
         report = job.report  # the controller's M773 report, kept with the job
         self.store.set_state(record.id, state, error, report.text if report else None)
+        if printer.owed_safe_stop or isinstance(ending.exception(), rh.SafeStopError):
+            # Owed to the printer's next contact, whatever the job is recorded as (and
+            # after a restart too): the session sends it once the printer answers.
+            self.store.owe_safe_stop(record.id)
+            log.warning("printer %s: job %d's safe stop is owed", self.name, record.id)
         why = f": {error}" if error else ""
         log.info("printer %s: job %d %s%s", self.name, record.id, state, why)
         if not self.automatic_transition:
@@ -355,6 +415,16 @@ class PrinterService:
             {"type": "printer", "printer": self.name, "state": self.state, "held": self.held}
         )
         self._ended.set()
+
+    async def _watch(self, job: rh.PrintJob) -> None:
+        """The job's word that its safe stop is held up: logged, told, and remembered."""
+        async for event in job.events():
+            if isinstance(event, rh.StopDelayed):
+                on = f"; heaters that may be on: {', '.join(event.heaters)}" * bool(event.heaters)
+                self.stop_held = f"the safe stop is held up: {event.reason}{on}"
+                log.warning("printer %s: %s", self.name, self.stop_held)
+                self._tell(self.stop_held)
+                self._held.set()
 
     def _record_progress(self, record: JobRecord, job: rh.PrintJob) -> None:
         last = job.last
@@ -535,6 +605,7 @@ class PrinterService:
         running = self.running
         if running is not None and job_id in (None, running.record.id):
             self._ended.clear()
+            self._cancelling = running.record.id
             if not running.job.stopping:
                 running.job.stop()
                 log.info(
@@ -542,8 +613,9 @@ class PrinterService:
                     self.name,
                     running.record.id,
                 )
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._ended.wait(), SAFE_STOP_TIMEOUT + 10)
+            if await self._ending(CANCEL_ANSWER):
+                with contextlib.suppress(TimeoutError):  # then recorded, at once
+                    await asyncio.wait_for(self._ended.wait(), 5)
             return True
         if self._starting is not None and job_id in (None, self._starting):
             self._cancel_starting = True  # stopped as soon as it exists

@@ -39,12 +39,14 @@ CREATE TABLE IF NOT EXISTS jobs (
     last_line INTEGER NOT NULL DEFAULT 0,  -- file line of the last acknowledged one
     total_lines INTEGER NOT NULL DEFAULT 0,
     error TEXT,
-    report TEXT                   -- the controller's M773 report (Hyrel), as it came
+    report TEXT,                  -- the controller's M773 report (Hyrel), as it came
+    safe_stop TEXT                -- 'owed': not confirmed (goes at the next contact); 'sent'
 );
 CREATE INDEX IF NOT EXISTS jobs_by_printer ON jobs (printer, state, position);
 """
 # Columns added since the first schema, added to an older data folder's table as it opens.
-_ADDED_COLUMNS = {"report": "TEXT"}
+_ADDED_COLUMNS = {"report": "TEXT", "safe_stop": "TEXT"}
+OWED, SENT = "owed", "sent"
 
 
 class JobState(StrEnum):
@@ -77,6 +79,7 @@ class JobRecord:
     total_lines: int
     error: str | None
     report: str | None = None  # the M773 report's text
+    safe_stop: str | None = None  # OWED: its safe stop was not confirmed; SENT: went later
 
     def as_json(self) -> dict[str, object]:
         return {
@@ -92,6 +95,7 @@ class JobRecord:
             "total_lines": self.total_lines,
             "error": self.error,
             "report": _report_json(self.report),
+            "safe_stop": self.safe_stop,
         }
 
 
@@ -265,17 +269,41 @@ class Store:
         return _record(row) if row is not None else None
 
     def interrupt_active(self) -> list[JobRecord]:
-        """At start: jobs that were streaming when the server stopped become interrupted."""
+        """At start: jobs that were streaming when the server stopped become interrupted,
+        their safe stop owed."""
         with self._transaction() as db:
             rows = db.execute(
                 "SELECT id FROM jobs WHERE state IN ('printing', 'paused')"
             ).fetchall()
             db.execute(
-                "UPDATE jobs SET state = 'interrupted', ended = ?, error = ? "
+                "UPDATE jobs SET state = 'interrupted', ended = ?, error = ?, safe_stop = ? "
                 "WHERE state IN ('printing', 'paused')",
-                (time.time(), CRASHED),
+                (time.time(), CRASHED, OWED),
             )
         return [record for row in rows if (record := self.job(row[0])) is not None]
+
+    def owe_safe_stop(self, job_id: int) -> None:
+        """The job ended without its safe stop confirmed: owed to the printer's next contact,
+        whatever state the job is recorded in (kept across restarts)."""
+        with self._transaction() as db:
+            db.execute("UPDATE jobs SET safe_stop = ? WHERE id = ?", (OWED, job_id))
+
+    def owing(self, printer: str) -> list[int]:
+        """The printer's jobs whose safe stop is owed."""
+        rows = self._db.execute(
+            "SELECT id FROM jobs WHERE printer = ? AND safe_stop = ? ORDER BY id", (printer, OWED)
+        ).fetchall()
+        return [row[0] for row in rows]
+
+    def safe_stop_sent(self, printer: str) -> list[int]:
+        """The safe stop the printer was owed went (and was confirmed); returns those jobs."""
+        owed = self.owing(printer)
+        with self._transaction() as db:
+            db.execute(
+                "UPDATE jobs SET safe_stop = ? WHERE printer = ? AND safe_stop = ?",
+                (SENT, printer, OWED),
+            )
+        return owed
 
 
 def _record(row: sqlite3.Row) -> JobRecord:

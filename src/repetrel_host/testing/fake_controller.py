@@ -359,6 +359,23 @@ def build_parser() -> argparse.ArgumentParser:
         "wait (default: targets are reached at once)",
     )
     parser.add_argument(
+        "--extruders",
+        type=int,
+        default=1,
+        metavar="N",
+        help="hotends T0..T<N-1>: M104 T<i> for one it does not have is refused, as Marlin "
+        "refuses it (Marlin's link only)",
+    )
+    parser.add_argument(
+        "--chamber", action="store_true", help="a heated chamber (M141, M191; C: in reports)"
+    )
+    parser.add_argument(
+        "--no-emergency-parser",
+        action="store_true",
+        help="without Marlin's EMERGENCY_PARSER: M108 and M112 run in their turn, so M108 "
+        "cannot end a heat wait it queues behind (M115 says Cap:EMERGENCY_PARSER:0)",
+    )
+    parser.add_argument(
         "--stats",
         type=Path,
         metavar="FILE",
@@ -386,9 +403,10 @@ def build_parser() -> argparse.ArgumentParser:
 def settings_from_args(args: argparse.Namespace) -> ControllerSettings:
     if args.rx_buffer is None:
         args.rx_buffer = HYREL_RX_BUFFER if args.protocol == "hyrel" else 128
-    if args.rx_buffer < 2 or args.slots < 1 or args.planner < 1:
+    if args.rx_buffer < 2 or args.slots < 1 or args.planner < 1 or args.extruders < 1:
         raise SystemExit(
-            "hyrel-fake-controller: --rx-buffer, --slots and --planner must be positive"
+            "hyrel-fake-controller: --rx-buffer, --slots, --planner and --extruders must be "
+            "positive"
         )
     try:
         faults = Faults.parse(args.faults)
@@ -409,6 +427,9 @@ def settings_from_args(args: argparse.Namespace) -> ControllerSettings:
         advanced_ok=args.advanced_ok,
         heat_rate=args.heat_rate,
         faults=faults,
+        extruders=args.extruders,
+        chamber=args.chamber,
+        emergency_parser=not args.no_emergency_parser,
     )
 
 

@@ -274,6 +274,13 @@ class HyrelControllerSimulator(ControllerSimulator):
     def _holding(self) -> bool:
         return self._held
 
+    def _heater_for(self, kind: str, command: _Command, now: float) -> str | None:
+        """Hyrel's T words address heads and beds (T47: every head): one heater of each
+        kind here."""
+        if kind == "C":
+            return "C" if "C" in self.heaters else None
+        return kind
+
     def _process_head(self, now: float) -> bool:
         if self._held:
             return False

@@ -29,15 +29,21 @@ from repetrel_host.protocol.controller import Accepted, ControllerProtocol, Reje
 _MOVES = frozenset({"G0", "G1", "G2", "G3", "G5"})
 _DWELL = re.compile(r"\b([PS])\s*(\d+(?:\.\d*)?)", re.IGNORECASE)
 _S_VALUE = re.compile(r"\bS\s*(-?\d+(?:\.\d*)?)", re.IGNORECASE)
-# What each temperature command sets: the hotend (T) or the bed (B), and whether it waits.
-_HEATERS = {"M104": ("T", False), "M109": ("T", True), "M140": ("B", False), "M190": ("B", True)}
+# What each temperature command sets: a hotend (T), the bed (B) or the chamber (C), and
+# whether it waits for it.
+_HEATERS = {
+    "M104": ("T", False), "M109": ("T", True),
+    "M140": ("B", False), "M190": ("B", True),
+    "M141": ("C", False), "M191": ("C", True),
+}  # fmt: skip
+_T_WORD = re.compile(r"\bT\s*(\d+)", re.IGNORECASE)
 AMBIENT = 21.0
-# Marlin's M115: the identity line, then its capabilities.
+# Marlin's M115: the identity line (its EXTRUDER_COUNT filled in), then its capabilities.
 M115_REPLY = (
-    b"FIRMWARE_NAME:repetrel-host fake controller (Marlin replies) "
-    b"PROTOCOL_VERSION:1.0 MACHINE_TYPE:Fake EXTRUDER_COUNT:1\n"
-    b"Cap:AUTOREPORT_TEMP:1\n"
-    b"Cap:EMERGENCY_PARSER:1\n"
+    "FIRMWARE_NAME:repetrel-host fake controller (Marlin replies) "
+    "PROTOCOL_VERSION:1.0 MACHINE_TYPE:Fake EXTRUDER_COUNT:{extruders}\n"
+    "Cap:AUTOREPORT_TEMP:1\n"
+    "Cap:EMERGENCY_PARSER:{parser}\n"
 )
 KILLED = b"Error:Printer halted. kill() called!\n"
 DEBUG_PREFIX = "!!DEBUG:"
@@ -116,6 +122,12 @@ class ControllerSettings:
     # None: temperatures reach their targets at once.
     heat_rate: float | None = None
     faults: Faults = field(default_factory=Faults)
+    extruders: int = 1  # hotends T0..T<n-1> (Marlin's EXTRUDER_COUNT)
+    chamber: bool = False  # a heated chamber (M141, M191; C: in reports)
+    # Marlin's EMERGENCY_PARSER: M108, M112 and M410 act as they arrive, ahead of the
+    # queue (M108's line still runs in its turn, and draws its ok). Without it they run
+    # in their turn, like any line: M108 cannot end the heat wait it queues behind.
+    emergency_parser: bool = True
 
 
 @dataclass(slots=True)
@@ -197,8 +209,13 @@ class ControllerSimulator:
         )
         self._idle_from = now  # when the last piece of work finished
         self.link = LinkCounters()
-        # Heater: [current, target, when current was last moved toward target]
-        self.heaters = {name: [AMBIENT, 0.0, now] for name in ("T", "B")}
+        # Heater: [current, target, when current was last moved toward target]. The first
+        # hotend is T (as a one-hotend Marlin reports it), the others T1, T2...
+        names = ["T", *(f"T{i}" for i in range(1, self.settings.extruders)), "B"]
+        self.heaters = {name: [AMBIENT, 0.0, now] for name in names}
+        if self.settings.chamber:
+            self.heaters["C"] = [AMBIENT, 0.0, now]
+        self.tool = 0  # the active hotend (T0, T1...)
         self._report_every: float | None = None  # M155 S<n>
         self._next_report = now
         if self.settings.banner:
@@ -350,13 +367,14 @@ class ControllerSimulator:
 
     def _arrived(self, data: bytes, now: float) -> None:
         """Bytes that reached the receive buffer."""
-        # Marlin's emergency parser acts on these as the bytes arrive.
-        if data.lstrip().startswith(b"M112"):
-            self._kill(now)
-            return
-        if data.lstrip().startswith(b"M108"):
-            self._break_heat_wait(now)
-            return
+        # Marlin's emergency parser acts on these as the bytes arrive; M108's line then
+        # goes on into the buffer, to run in its turn (as a no-op) and draw its ok.
+        if self.settings.emergency_parser:
+            if data.lstrip().startswith(b"M112"):
+                self._kill(now)
+                return
+            if data.lstrip().startswith(b"M108"):
+                self._break_heat_wait(now)
         self._buffer(data)
 
     def _buffer(self, data: bytes) -> None:
@@ -461,7 +479,8 @@ class ControllerSimulator:
     def _duration(self, command: _Command) -> float:
         heater = _HEATERS.get(command.word)
         if heater is not None and heater[1]:
-            return self._set_target(heater[0], command.text, self._last_step)
+            name = self._heater_for(heater[0], command, self._last_step)
+            return 0.0 if name is None else self._set_target(name, command.text, self._last_step)
         if command.word == "G4":
             match = _DWELL.search(command.text[2:])
             if match is not None:
@@ -471,11 +490,28 @@ class ControllerSimulator:
         return self.settings.command_time
 
     def _set_heater(self, command: _Command, now: float) -> None:
-        """M104 and M140 set their heater's target as they run (M109 and M190 did as they
-        began to wait)."""
+        """M104, M140 and M141 set their heater's target as they run (M109, M190 and M191
+        did as they began to wait)."""
         heater = _HEATERS.get(command.word)
         if heater is not None and not heater[1]:
-            self._set_target(heater[0], command.text, now)
+            name = self._heater_for(heater[0], command, now)
+            if name is not None:
+                self._set_target(name, command.text, now)
+
+    def _heater_for(self, kind: str, command: _Command, now: float) -> str | None:
+        """The heater a temperature command sets, as Marlin reads it: a hotend by its T word
+        (else the active tool's; one it does not have is refused), the bed whatever T says,
+        the chamber if there is one."""
+        if kind == "C":
+            return "C" if "C" in self.heaters else None
+        if kind == "B":
+            return "B"
+        match = _T_WORD.search(command.text[len(command.word) :])
+        index = int(match.group(1)) if match else self.tool
+        if index >= self.settings.extruders:
+            self._reply(f"echo:{command.word} Invalid extruder {index}\n".encode(), now)
+            return None
+        return "T" if index == 0 else f"T{index}"
 
     def _answer(self, command: _Command, now: float) -> None:
         word = command.word
@@ -483,8 +519,19 @@ class ControllerSimulator:
         if word == "M105":
             self._ok(f"ok {self._temperatures(now)}\n".encode(), now)
             return
+        if word == "M112":  # in its turn: without the emergency parser
+            self._kill(now)
+            return
+        if word[:1] == "T" and word[1:].isdigit():
+            if int(word[1:]) < self.settings.extruders:
+                self.tool = int(word[1:])
+            else:
+                self._reply(f"echo:{word} Invalid extruder {word[1:]}\n".encode(), now)
         if word == "M115":
-            self._reply(M115_REPLY, now)
+            settings = self.settings
+            parser = int(settings.emergency_parser)
+            reply = M115_REPLY.format(extruders=settings.extruders, parser=parser)
+            self._reply(reply.encode(), now)
         elif word == "M155":
             match = _S_VALUE.search(command.text)
             seconds = float(match.group(1)) if match else 0.0
@@ -524,6 +571,13 @@ class ControllerSimulator:
                 self._heat(name, now)  # up to now at the old rate
             rate = None if argument.strip() in ("", "none") else _number(argument, "heat_rate")
             self.settings = replace(self.settings, heat_rate=rate)
+            head = self._queue[0] if self._queue else None
+            heater = _HEATERS.get(head.word) if head is not None else None
+            if head is not None and head.started and heater is not None and heater[1]:
+                # The wait under way lasts as long as the new rate takes to its target.
+                waited = self._heater_for(heater[0], head, now)
+                left = self._set_target(waited, head.text, now) if waited else 0.0
+                self._busy_until = now + left
         else:
             raise ValueError(
                 f"unknown control '{verb}' (known: set, reset, hang, link_drop, heat_rate)"
@@ -566,11 +620,22 @@ class ControllerSimulator:
         return (heater[1] - heater[0]) / rate
 
     def _temperatures(self, now: float) -> str:
-        hotend, bed = self._heat("T", now), self._heat("B", now)
-        return f"T:{hotend[0]:.1f} /{hotend[1]:.1f} B:{bed[0]:.1f} /{bed[1]:.1f} @:0 B@:0"
+        """As Marlin reports them: the active hotend as T, the bed, the chamber, then each
+        hotend by its index where there are several."""
+        active = "T" if self.tool == 0 else f"T{self.tool}"
+        hotend, bed = self._heat(active, now), self._heat("B", now)
+        text = f"T:{hotend[0]:.1f} /{hotend[1]:.1f} B:{bed[0]:.1f} /{bed[1]:.1f}"
+        if "C" in self.heaters:
+            chamber = self._heat("C", now)
+            text += f" C:{chamber[0]:.1f} /{chamber[1]:.1f}"
+        if self.settings.extruders > 1:
+            for index in range(self.settings.extruders):
+                current, target, _ = self._heat("T" if index == 0 else f"T{index}", now)
+                text += f" T{index}:{current:.1f} /{target:.1f}"
+        return text + " @:0 B@:0"
 
     def _break_heat_wait(self, now: float) -> None:
-        """M108: an M109 or M190 waiting for its heater stops waiting (its ok goes now)."""
+        """M108: an M109, M190 or M191 waiting for its heater stops waiting (its ok goes now)."""
         head = self._queue[0] if self._queue else None
         if head is not None and head.started and _HEATERS.get(head.word, ("", False))[1]:
             self._busy_until = min(self._busy_until, now)
@@ -588,6 +653,9 @@ class ControllerSimulator:
 
     def _reboot(self, now: float) -> None:
         self.protocol = self._new_protocol()
+        for heater in self.heaters.values():  # a reset turns every heater off
+            heater[1] = 0.0
+        self.tool = 0
         self._queue.clear()
         self._planner.clear()
         self._rx.clear()

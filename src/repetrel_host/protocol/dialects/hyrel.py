@@ -242,6 +242,14 @@ class HyrelDialect:
         return dropped
 
     @property
+    def awaiting(self) -> tuple[str, object] | None:
+        waiting = [queue[0] for queue in (self._unran, self._awaiting) if queue]
+        if not waiting:
+            return None
+        oldest = min(waiting, key=lambda sent: sent.seq)
+        return oldest.command, oldest.tag
+
+    @property
     def wants_lines(self) -> bool:
         return self._phase is not Phase.FAILED and len(self._pending) < self._line_limit
 

@@ -213,10 +213,18 @@ class RepRapDialect:
 
     def send_urgent(self, command: str) -> None:
         """Write ``command`` unnumbered, ahead of everything (Marlin's emergency parser
-        reads M112, M108 and M410 as they arrive, whatever the line numbers)."""
+        reads M112, M108 and M410 as they arrive, whatever the line numbers).
+
+        The line still goes on into the receive buffer and runs in its turn, as any
+        unnumbered line: M108 and M410 then draw an ok (OctoPrint counts it too), which is
+        counted in flight so that it acknowledges none of the host's lines; M112 halts."""
         data = command.encode("ascii") + b"\n"
-        self.stats.bytes_sent += len(data)
-        self._outgoing += data
+        if command_word(command) == "M112" or self._phase is not Phase.RUNNING:
+            self.stats.bytes_sent += len(data)
+            self._outgoing += data
+            return
+        line = Line(-1, command, None, data, False, transmitted=True, is_host_line=True)
+        self._push(Transmission(line, data, self._last_sent_at, -1))
 
     def abort(self) -> bool:
         return False  # no way to take back what the controller holds
@@ -240,6 +248,14 @@ class RepRapDialect:
         self._pending.clear()
         self._candidate = None
         return dropped
+
+    @property
+    def awaiting(self) -> tuple[str, object] | None:
+        for transmission in self._window.in_flight:
+            line = transmission.line
+            if not transmission.stale and line is not None and not line.is_host_line:
+                return line.command, line.tag
+        return None
 
     @property
     def wants_lines(self) -> bool:
