@@ -668,7 +668,9 @@ class Printer:
             path = Path(history)
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
-            self._wire_log = path.open("wb")
+            # Unbuffered: what is written reaches the OS at once (_write), so that a killed
+            # host leaves every byte the port got in the stream.
+            self._wire_log = path.open("wb", buffering=0)
         except OSError as exc:
             raise JobError(f"cannot write the print history {path}: {exc.strerror}") from None
         return path
@@ -918,9 +920,12 @@ class Printer:
         log.debug("sending %r", data)
         for tap in self._wire_taps:
             tap(True, data)
+        wire_log = self._wire_log
+        if wire_log is not None:  # first: the history is never behind the wire
+            written = wire_log.write(data)  # one write(2) a call (unbuffered)
+            while written < len(data):  # a short one (a signal): the rest, or ENOSPC raised
+                written += wire_log.write(data[written:]) or len(data) - written
         connection.transport.write(data)
-        if self._wire_log is not None:
-            self._wire_log.write(data)
 
     def _poke(self) -> None:
         pump = self._pump
