@@ -243,6 +243,7 @@ class PrintJob:
         self._m0: asyncio.Future[None] | None = None  # an M0 waiting for resume()
         self._reports = ReportReader()
         self.started = datetime.now()
+        self._keeper: print_history.ProgressKeeper | None = None  # the progress record
 
     @property
     def report(self) -> JobReport | None:
@@ -369,6 +370,25 @@ class PrintJob:
     def _progress(self) -> Progress:
         last = self._run.last
         return Progress(self.lines, self.offset, self.size, last.position if last else "")
+
+    def _keep_progress(self) -> None:
+        """The progress in the run's record as the job streams, every PROGRESS_INTERVAL
+        (written when it moved): a killed run resumes from it (``--history-list``)."""
+        keeper = self._keeper
+        if keeper is None or self.done:
+            return
+        last = self._run.last
+        acknowledged = last.source_line if last else 0
+        keeper.update(
+            self.lines,
+            self.where(),
+            acknowledged,
+            self.resume_line,
+            self.resume_known_to_run,
+            self.all_sent,
+            self.printer._pump.dialect.last_sent if self.printer._pump else None,
+        )
+        asyncio.get_running_loop().call_later(print_history.PROGRESS_INTERVAL, self._keep_progress)
 
     def _finish(self, run: Run) -> None:
         if self._done.done():
@@ -588,6 +608,7 @@ class Printer:
         on_warning: Callable[[str], None] | None = None,
         report: bool = False,
         from_line: int | None = None,
+        command_line: Iterable[str] = (),
     ) -> PrintJob:
         """Start streaming ``job`` (a path, or a plan from :meth:`plan`); returns at once.
 
@@ -602,7 +623,8 @@ class Printer:
         ``report``: send ``M772 S1`` first, so that a Hyrel controller sends its M773 job
         report at M30 (:attr:`PrintJob.report`, kept beside the history).
         ``from_line``: resume a failed print there (see :meth:`plan`; a failed job's
-        :attr:`PrintJob.resume_line` says where).
+        :attr:`PrintJob.resume_line` says where). ``command_line``: hyrel-send's arguments,
+        kept with the progress so that ``--history-list`` offers a killed run's resume.
         """
         if self._job is not None or self.state is State.PRINTING or self.state is State.PAUSED:
             raise UsageError("a job is already running on this printer")
@@ -634,6 +656,17 @@ class Printer:
             if plan.resume is not None:  # progress by bytes goes on from the skipped part
                 run.offset = plan.resume.start_offset
             print_job = PrintJob(self, plan, run, on_action, path)
+            if path is not None and print_history.parse_run(path) is not None:
+                # Its progress in the run's record, written before the first line goes.
+                print_job._keeper = print_history.ProgressKeeper(
+                    path,
+                    plan.job.path,
+                    command_line,
+                    self.port,
+                    print_job.started,
+                    pump.dialect.last_sent,
+                )
+                print_job._keep_progress()
             self._job = self._last_job = print_job
             pump.begin(run)
             self._set_state(State.PRINTING, plan.job.name)
