@@ -31,7 +31,8 @@ def cpu_seconds() -> float:
 def run_ours(port: str, job: str, options: list[str]) -> int:
     from repetrel_host.cli import app  # imported already: the clock has not started
 
-    arguments = [job, "--port", port, "--no-history", "--no-header", *options]
+    keep = "--history" in options  # bench/run.py --history: the stream is kept
+    arguments = [job, "--port", port, *([] if keep else ["--no-history"]), "--no-header", *options]
     code = app(arguments, standalone_mode=False)
     return int(code or 0)
 

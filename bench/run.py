@@ -144,7 +144,14 @@ def stop_fake(fake: subprocess.Popen[str]) -> None:
     fake.wait(timeout=10)
 
 
-def run_host(host: str, profile: Profile, job: Path, commands: list[str], folder: Path) -> Result:
+def run_host(
+    host: str,
+    profile: Profile,
+    job: Path,
+    commands: list[str],
+    folder: Path,
+    history: bool = False,
+) -> Result:
     tag = f"{profile.name}-{host}"
     fake, port = start_fake(profile, folder, tag, HYREL_FAKE if host == "ours-hyrel" else ())
     try:
@@ -157,6 +164,8 @@ def run_host(host: str, profile: Profile, job: Path, commands: list[str], folder
             flow = host.removeprefix("ours-")
             options = list(profile.options) if flow == "buffered" else []
             argv = [sys.executable, str(PEER), "ours", port, str(job), "--flow", flow, *options]
+        if history and host.startswith("ours"):  # the stream kept, as hyrel-send does by default
+            argv += ["--history", str(folder / f"history-{tag}")]
         done = subprocess.run(argv, capture_output=True, text=True, timeout=3600)
     finally:
         stop_fake(fake)
@@ -280,6 +289,12 @@ def main() -> int:
     parser.add_argument("--profile", action="append", help="only these link profiles")
     parser.add_argument("--host", action="append", help="only these hosts")
     parser.add_argument("--no-big", action="store_true", help="skip the big job")
+    parser.add_argument(
+        "--history",
+        action="store_true",
+        help="our hosts keep the print history (the stream and its records), as hyrel-send "
+        "does by default; without it they run with --no-history",
+    )
     args = parser.parse_args()
     try:
         import printrun.printcore  # noqa: F401
@@ -303,7 +318,7 @@ def main() -> int:
             for host in hosts:
                 if args.host and host not in args.host:
                     continue
-                results.append(run_host(host, profile, job, commands, folder))
+                results.append(run_host(host, profile, job, commands, folder, args.history))
                 print(
                     f"  {results[-1].host} on {profile.name}: {results[-1].rate:,.0f} lines/s",
                     file=sys.stderr,

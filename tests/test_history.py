@@ -4,7 +4,10 @@ built-in fake, and the history module's pure parts on their own."""
 
 from __future__ import annotations
 
+import dataclasses
 import os
+import re
+import shlex
 import signal
 import subprocess
 import sys
@@ -15,7 +18,9 @@ import pytest
 
 from repetrel_host import history
 from repetrel_host.errors import ControllerError, JobError, LinkError
-from tests.helpers import CONE, EXAMPLE, hyrel_send
+from repetrel_host.job import Job
+from repetrel_host.testing.fake_controller import BuiltInFake
+from tests.helpers import CONE, EXAMPLE, hyrel_send, start_streaming
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -34,6 +39,39 @@ def record(**changes: object) -> history.Record:
     }
     values.update(changes)
     return history.Record(**values)  # type: ignore[arg-type]
+
+
+def progress(**changes: object) -> history.Progress:
+    values: dict[str, object] = {
+        "job": "cube.gcode",
+        "path": "/jobs/cube.gcode",
+        "command": ("cube.gcode", "--port", "/dev/ttyACM0", "--from-line", "5"),
+        "cwd": "/jobs",
+        "pid": os.getpid(),
+        "process": history.process_identity(os.getpid()),
+        "host": history.this_host(),
+        "port": "/dev/ttyACM0",
+        "started": "2025-03-04T10:11:12",
+        "updated": "2025-03-04T10:11:15",
+        "seconds": 3.25,
+        "lines": 12,
+        "where": "the last line the controller acknowledged is cube.gcode:14 (command 12 "
+        "of the job, G1 X5)",
+        "acknowledged": 14,
+        "resume_line": 15,
+        "known_to_run": False,
+        "all_sent": False,
+        "sent": 20,
+        "stream_bytes": 0,
+    }
+    values.update(changes)
+    return history.Progress(**values)  # type: ignore[arg-type]
+
+
+def a_dead_process() -> int:
+    process = subprocess.Popen([sys.executable, "-c", "pass"])
+    process.wait()
+    return process.pid
 
 
 def make_run(folder: Path, stamp: str, job: str, size: int, with_record: bool = True) -> Path:
@@ -65,6 +103,62 @@ def test_a_record_reads_back_and_garbage_is_no_record(tmp_path: Path) -> None:
     for text in ("{", "[]", '{"job": "x"}', ""):
         assert history.Record.from_json(text) is None
     assert history.read_record(tmp_path / "20250304-101113-none.gcode") is None
+
+
+def test_a_progress_reads_back_in_the_records_place_until_the_record_replaces_it(
+    tmp_path: Path,
+) -> None:
+    stream = tmp_path / "20250304-101112-cube.gcode"
+    kept = progress()
+    assert history.write_progress(stream, kept)
+    assert history.read_state(stream) == kept
+    assert history.read_record(stream) is None  # no outcome yet
+    assert [p.name for p in tmp_path.iterdir()] == ["20250304-101112-cube.json"]
+    written = record()
+    history.write_record(stream, written)
+    assert history.read_state(stream) == written == history.read_record(stream)
+    for text in ("{", '{"outcome": "streaming"}', '{"outcome": "streaming", "command": 1}'):
+        assert history.Progress.from_json(text) is None
+    # A record that says "streaming" is no record.
+    assert history.Record.from_json(dataclasses.replace(written, outcome="streaming").to_json())
+    history.write_record(stream, dataclasses.replace(written, outcome="streaming"))
+    assert history.read_state(stream) is None
+    assert not history.write_progress(tmp_path / "none" / "20250304-101112-x.gcode", kept)
+
+
+def test_a_progress_process_is_alive_gone_or_another_machines() -> None:
+    assert history.is_alive(progress()) is True
+    assert history.is_alive(progress(pid=a_dead_process())) is False
+    if history.process_identity(os.getpid()):  # Linux: a number given to a later process
+        assert history.is_alive(progress(process="another boot:1")) is False
+    assert history.is_alive(progress(host="elsewhere")) is None
+
+
+def test_a_streaming_and_a_killed_run_in_one_line() -> None:
+    run = history.parse_run(Path("20250304-101112-cube.gcode"))
+    assert run is not None
+    where = progress().where
+    assert history.describe(run, None, progress(), alive=True) == (
+        f"2025-03-04 10:11:12  cube.gcode  streaming (process {os.getpid()}): 12 lines "
+        f"acknowledged in 3.2 s so far; {where}"
+    )
+    assert history.describe(run, None, progress(), alive=False) == (
+        "2025-03-04 10:11:12  cube.gcode  killed (its host stopped while it streamed: no safe "
+        f"stop went): 12 lines acknowledged in 3.2 s; {where}"
+    )
+    elsewhere = history.describe(run, None, progress(host="lab2"), alive=None)
+    assert f"  cube.gcode  streaming on lab2 (process {os.getpid()}), or its host " in elsewhere
+    entry = history.Entry(run, None, progress(), alive=False)
+    assert entry.killed and not history.Entry(run, None, progress(), alive=None).killed
+
+
+def test_the_stream_after_a_progress_record(tmp_path: Path) -> None:
+    stream = tmp_path / "s.gcode"
+    stream.write_bytes(b"N1 G28*18\nN2 G1 X1*99\nN3 G1 X2*98\n")
+    assert history.lines_after(stream, 0) == 3
+    assert history.lines_after(stream, 10) == 2
+    assert history.lines_after(stream, stream.stat().st_size) == 0
+    assert history.lines_after(tmp_path / "none", 0) is None
 
 
 def test_error_kinds_are_hyrel_sends() -> None:
@@ -134,6 +228,17 @@ def test_prune_removes_whole_runs_and_nothing_else(tmp_path: Path) -> None:
     assert running.exists() and current.exists()
 
 
+def test_prune_keeps_a_run_whose_process_still_streams_however_old(tmp_path: Path) -> None:
+    folder = tmp_path / "history"
+    killed = make_run(folder, "20250101-080000", "a", 6000, with_record=False)
+    history.write_progress(killed, progress(pid=a_dead_process()))
+    paused = make_run(folder, "20250102-080000", "b", 6000, with_record=False)
+    history.write_progress(paused, progress())  # this process: alive
+    current = make_run(folder, "20250105-080000", "e", 6000)
+    assert history.prune(folder, 0.000001, current) == [killed]
+    assert paused.exists()
+
+
 def test_history_list_is_newest_first_and_short(tmp_path: Path) -> None:
     for day in range(1, 24):
         make_run(tmp_path, f"202501{day:02d}-080000", f"part{day}", 6)
@@ -185,6 +290,49 @@ def test_history_list_after_a_completed_and_a_failed_run(tmp_path: Path) -> None
     assert saved is not None and saved.port == "fake" and saved.started <= saved.ended
 
 
+@pytest.mark.timeout(60)
+def test_history_list_offers_a_killed_runs_resume(tmp_path: Path) -> None:
+    folder = tmp_path / "history"
+    folder.mkdir()
+    gone = a_dead_process()
+    hyrel = folder / "20250304-101112-cube.gcode"
+    hyrel.write_bytes(b"N1 G28\n" * 10)
+    history.write_progress(
+        hyrel,
+        progress(pid=gone, stream_bytes=35, cwd=os.getcwd(), resume_line=9, known_to_run=True),
+    )
+    library = folder / "20250305-101112-cube.gcode"
+    library.write_bytes(b"")
+    history.write_progress(library, progress(pid=gone, command=(), cwd=os.getcwd()))
+    unsent = folder / "20250306-101112-cube.gcode"
+    unsent.write_bytes(b"N1 G28\n")
+    history.write_progress(unsent, progress(pid=gone, resume_line=None, sent=0, lines=0))
+    done = folder / "20250307-101112-cube.gcode"
+    done.write_bytes(b"")
+    history.write_progress(done, progress(pid=gone, resume_line=None, all_sent=True))
+    streaming = folder / "20250308-101112-cube.gcode"
+    streaming.write_bytes(b"")
+    history.write_progress(streaming, progress())
+    lines = history_list(folder)
+    assert lines[0].startswith("2025-03-08 10:11:12  cube.gcode  streaming (process ")
+    assert lines[1].startswith("2025-03-07 10:11:12  cube.gcode  killed (its host stopped")
+    assert lines[2] == "  nothing to resume: every line of the job was acknowledged"
+    assert lines[4] == (
+        "  no line is known to have run: to start again (uncertain: no line of the job was "
+        "sent when last recorded; the stream has 1 lines after that, sent later): cd /jobs && "
+        "hyrel-send cube.gcode --port /dev/ttyACM0 --from-line 5"
+    )
+    assert lines[6] == (
+        "  to resume (uncertain: lines up to 20 were sent and may have run): "
+        "print('/jobs/cube.gcode', from_line=15)"
+    )  # a library user's run: no command line
+    assert lines[8] == (
+        "  to resume (uncertain: lines up to 20 were sent and may have run; the stream has 5 "
+        "lines after that, sent later): hyrel-send cube.gcode --port /dev/ttyACM0 --from-line 9"
+    )
+    assert len(lines) == 9
+
+
 def start_on_the_builtin_fake(job: Path, folder: Path, log: Path) -> subprocess.Popen[str]:
     """hyrel-send on the built-in fake (logging to ``log``), once lines are executing."""
     environment = {k: v for k, v in os.environ.items() if k != "HYREL_PORT"}
@@ -221,10 +369,94 @@ def test_history_list_after_ctrl_c_and_after_a_killed_host(tmp_path: Path) -> No
     process = start_on_the_builtin_fake(CONE, folder, tmp_path / "killed.log")
     process.kill()  # no Ctrl-C, no safe stop: the host is gone
     process.communicate(timeout=30)
-    killed, _ = history_list(folder)
-    assert killed.endswith(
-        f"  {CONE.stem}  unknown (no record: the host stopped before the job ended)"
+    killed, resume, _ = history_list(folder)
+    assert f"  {CONE.name}  killed (its host stopped while it streamed: no safe stop went): " in (
+        killed
     )
+    # Killed at once: the record may still say no line ran (then it starts again).
+    assert resume.startswith(("  to resume (uncertain: ", "  no line is known to have run: "))
+    assert f"): hyrel-send {CONE} --history {folder} --fake-log " in resume
+
+
+def stream_commands(stream: Path) -> list[str]:
+    """The commands of a kept stream, without their framing (N<n>, *checksum, Hyrel's
+    control bytes)."""
+    text = stream.read_bytes().decode("ascii")
+    lines = (re.sub(r"[\x00-\x1f]", "", line) for line in text.split("\n"))
+    return [re.sub(r"^N\d+ |\*\d+$", "", line) for line in lines if line]
+
+
+def drained(fake: BuiltInFake) -> None:
+    """Wait until the fake ran what it holds (the host is gone: nothing more comes)."""
+    done = -1
+    for _ in range(60):
+        commands = fake.request("status")["commands"]
+        if commands == done:
+            return
+        done = commands
+        time.sleep(0.5)
+
+
+@pytest.mark.timeout(90)
+@pytest.mark.parametrize("protocol", ["reprap", "hyrel"])
+def test_a_killed_host_left_all_it_sent_in_the_stream_and_a_resume_that_skips_nothing(
+    tmp_path: Path, protocol: str
+) -> None:
+    folder, log = tmp_path / "history", tmp_path / "fake.log"
+    fake_args = ["--move-time", "0.005"]
+    link = ["--protocol", "hyrel"] if protocol == "hyrel" else []
+    with BuiltInFake(log, [*fake_args, *link], control=True) as fake:
+        args = ["--history", str(folder), *link]
+        process = start_streaming(CONE, fake.port, log, *args)
+        try:
+            time.sleep(1.2)  # the progress record rewritten since the start
+            (streaming,) = history_list(folder)
+            assert f"  {CONE.name}  streaming (process {process.pid}): " in streaming
+        finally:
+            process.kill()  # kill -9: no safe stop, no record
+            process.communicate(timeout=30)
+        drained(fake)
+    (stream,) = folder.glob("*.gcode")
+    executed = log.read_text().splitlines()
+    kept = stream_commands(stream)
+    # The greeting (M110, M115...) came before the job's stream began.
+    start = next(i for i, command in enumerate(executed) if command == kept[0])
+    assert start <= 5, executed[:10]
+    # Every command the controller executed is in the stream, in order (with what went
+    # again after a resend request, and what was sent but not yet run, besides).
+    position = 0
+    for number, command in enumerate(executed[start:]):
+        while position < len(kept) and kept[position] != command:
+            position += 1
+        assert position < len(kept), (
+            f"executed command {number} ({command}) is not in the kept stream, which ends "
+            f"{kept[-3:]}, {len(executed) - start - number} commands before the controller"
+        )
+        position += 1
+    # The first job line the controller did not run...
+    job = list(Job(CONE).lines())
+    ran = 0
+    for command in executed[start:]:
+        if ran < len(job) and job[ran].command == command:
+            ran += 1
+    assert 0 < ran < len(job)
+    not_run = job[ran].source_line
+    killed, resume = history_list(folder)
+    assert f"  {CONE.name}  killed (its host stopped while it streamed: no safe stop went): " in (
+        killed
+    )
+    # ... is not skipped by the resume offered: what may have run is said to be uncertain.
+    match = re.fullmatch(
+        r"  to resume \(uncertain: lines up to (\d+) were sent and may have run(; .*)?\): (.*)",
+        resume,
+    )
+    assert match is not None, resume
+    command = shlex.split(match[3])
+    expected = [str(CONE), "--port", fake.port, "--history", str(folder), *link]
+    assert command[:-2] == ["hyrel-send", *expected] and command[-2] == "--from-line"
+    from_line = int(command[-1])
+    assert 1 < from_line <= not_run
+    assert int(match[1]) >= from_line - 1
 
 
 @pytest.mark.timeout(90)

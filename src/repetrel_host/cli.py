@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import os
 import re
 import shlex
 import signal
@@ -559,13 +560,48 @@ def _history_list(console: Out, folder: Path | None, config: Path | None) -> Non
     """hyrel-send --history-list: the newest runs, how each ended."""
     user = load_user_config(config)
     folder = folder or user.host.history_dir or default_history_dir()
-    lines = print_history.history_list(folder)
-    if not lines:
+    entries = print_history.entries(folder)
+    if not entries:
         console.print(f"no prints in {folder} yet", markup=False)
         return
     console.print(f"Print history in {folder} (newest first):", markup=False)
-    for line in lines:
+    for entry in entries:
+        line = print_history.describe(entry.run, entry.record, entry.progress, entry.alive)
         console.print(line, markup=False)
+        if entry.killed and entry.progress is not None:
+            console.print(f"  {_killed_resume(entry.progress, entry.run.stream)}", markup=False)
+
+
+def _killed_resume(progress: print_history.Progress, stream: Path) -> str:
+    """How a killed run resumes: from its progress record's line, uncertainly (what was
+    sent after the last acknowledged line may have run, and the record may be a moment
+    behind the stream)."""
+    line = progress.resume_line
+    if line is None and progress.all_sent:
+        ran = "known to have run" if progress.known_to_run else "acknowledged"
+        return f"nothing to resume: every line of the job was {ran}"
+    after = print_history.lines_after(stream, progress.stream_bytes)
+    later = (
+        ""
+        if after == 0
+        else f"; the stream has {after if after is not None else 'more'} lines after that, "
+        "sent later"
+    )
+    if progress.sent:
+        uncertain = f"uncertain: lines up to {progress.sent} were sent and may have run{later}"
+    else:
+        uncertain = f"uncertain: no line of the job was sent when last recorded{later}"
+    what = "to resume" if line is not None else "no line is known to have run: to start again"
+    if not progress.command:  # a library user's run: the line only
+        where = f"print({progress.path!r}, from_line={line})" if line is not None else "again"
+        return f"{what} ({uncertain}): {where}"
+    if line is not None:
+        command = resume_command(progress.command, line)
+    else:
+        command = shlex.join(["hyrel-send", *progress.command])
+    if progress.cwd and progress.cwd != os.getcwd():  # a job's relative path is from there
+        command = f"cd {shlex.quote(progress.cwd)} && {command}"
+    return f"{what} ({uncertain}): {command}"
 
 
 async def _send(
@@ -675,6 +711,7 @@ async def _stream(
         on_action=actions.perform,
         on_warning=lambda text: errors.print(text, markup=False),
         report=options.report,
+        command_line=options.command_line,
     )
     _announce(console, printer, plan)
     from rich.markup import escape

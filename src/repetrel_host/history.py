@@ -3,8 +3,12 @@
 A *run* is a stream as transmitted, ``<date>-<time>-<job>.gcode`` (see
 ``planning.history_file``), and its siblings under the same stem: ``-reports.log``
 (M719), ``-report.txt`` (the M773 job report), ``-snapshots/`` (M791, M790) and the
-outcome record ``.json`` the session writes when the job ends. A run without a record
-is one whose host stopped before the job ended (killed, or a power cut).
+outcome record ``.json`` the session writes when the job ends. While the job streams,
+that file holds its progress instead (:class:`Progress`: the process, the command line,
+the last lines acknowledged and sent), rewritten at most every :data:`PROGRESS_INTERVAL`
+and replaced by the record at the end: a run left with its progress, its process gone,
+was killed (``kill -9``, a power cut) and can be resumed from there, uncertainly. A run
+with neither is one whose host stopped before its first line went.
 """
 
 from __future__ import annotations
@@ -15,13 +19,16 @@ import logging
 import os
 import re
 import shutil
+import socket
 import time
 from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass, fields
 from datetime import datetime
 from pathlib import Path
+from typing import Any
 
 from repetrel_host.errors import ControllerError, HostError, LinkError, ProtocolError, SafeStopError
+from repetrel_host.job import JobLine
 
 log = logging.getLogger(__name__)
 
@@ -36,6 +43,11 @@ LIST_LENGTH = 20  # hyrel-send --history-list: the newest runs
 STILL_RUNNING = 3600.0
 NO_RECORD = "unknown (no record: the host stopped before the job ended)"
 COMPLETED, CANCELLED, FAILED = "completed", "cancelled", "failed"
+STREAMING = "streaming"  # the outcome of a progress record: the job had not ended
+# A streaming run's progress record is rewritten this often while lines are acknowledged.
+PROGRESS_INTERVAL = 0.5
+# --history-list counts the stream's lines after the last progress record up to this far.
+TAIL_LIMIT = 8_000_000
 
 
 @dataclass(frozen=True, slots=True)
@@ -102,11 +114,215 @@ def write_record(stream: Path, record: Record) -> None:
 
 
 def read_record(stream: Path) -> Record | None:
+    """How the run ended; None while it streams, or when its host stopped first."""
+    found = read_state(stream)
+    return found if isinstance(found, Record) else None
+
+
+def read_state(stream: Path) -> Record | Progress | None:
+    """The run's record, or its progress (a job that had not ended), or None."""
     try:
         text = record_path(stream).read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError):
         return None
-    return Record.from_json(text)
+    progress = Progress.from_json(text)
+    if progress is not None:
+        return progress
+    record = Record.from_json(text)
+    return record if record is not None and record.outcome != STREAMING else None
+
+
+# --- a streaming run's progress ----------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class Progress:
+    """Where a job stood as it streamed, in ``<run>.json`` until its record replaces it."""
+
+    job: str  # the job's file name
+    path: str  # the job's path, absolute
+    command: tuple[str, ...]  # hyrel-send's arguments; () for a library user's run
+    cwd: str  # where they were given
+    pid: int  # the host's process
+    process: str  # that process's identity (boot and start time), "" where unknown
+    host: str  # the machine it runs on
+    port: str
+    started: str  # ISO 8601, local time
+    updated: str
+    seconds: float  # since the start, when this was written
+    lines: int  # job lines acknowledged
+    where: str  # the last line the controller acknowledged (PrintJob.where())
+    acknowledged: int  # the source line of the last job line acknowledged; 0: none
+    resume_line: int | None  # PrintJob.resume_line: where a resume starts
+    known_to_run: bool  # resume_line follows a line known to have run (Hyrel's link)
+    all_sent: bool  # the job was read to its end (PrintJob.all_sent)
+    sent: int  # the source line of the last job line transmitted; 0: none
+    stream_bytes: int  # the kept stream's size when this was written
+    outcome: str = STREAMING
+
+    def to_json(self) -> str:
+        return json.dumps(asdict(self), indent=1) + "\n"
+
+    @classmethod
+    def from_json(cls, text: str) -> Progress | None:
+        """The progress in ``text``; None when it is none (a record, cut short...)."""
+        try:
+            data = json.loads(text)
+        except ValueError:
+            return None
+        if not isinstance(data, dict) or data.get("outcome") != STREAMING:
+            return None
+        command = data.get("command")
+        if not isinstance(command, list) or not all(isinstance(a, str) for a in command):
+            return None
+        values: dict[str, Any] = {f.name: data[f.name] for f in fields(cls) if f.name in data}
+        values["command"] = tuple(command)
+        try:
+            return cls(**values)
+        except TypeError:  # a field missing
+            return None
+
+
+def write_progress(stream: Path, progress: Progress) -> bool:
+    """Write the progress whole or not at all, as :func:`write_record`; False on failure
+    (not logged: the caller says so once, not every time)."""
+    path = record_path(stream)
+    partial = path.with_name(path.name + ".part")
+    try:
+        partial.write_text(progress.to_json(), encoding="utf-8")
+        os.replace(partial, path)
+    except OSError:
+        with contextlib.suppress(OSError):
+            partial.unlink()
+        return False
+    return True
+
+
+def process_identity(pid: int) -> str:
+    """What tells process ``pid`` from a later one given the same number: the boot's id
+    and the process's start time (Linux's /proc); "" where that cannot be read."""
+    try:
+        boot = Path("/proc/sys/kernel/random/boot_id").read_text().strip()
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return ""
+    after_name = stat.rsplit(")", 1)[-1].split()
+    return f"{boot}:{after_name[19]}" if len(after_name) > 19 else ""  # field 22: starttime
+
+
+def this_host() -> str:
+    return socket.gethostname()
+
+
+def is_alive(progress: Progress) -> bool | None:
+    """Whether the process streaming the run is still there; None when that cannot be
+    told from here (another machine's)."""
+    if progress.host != this_host():
+        return None
+    try:
+        os.kill(progress.pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        pass  # another user's process: there
+    except OSError:
+        return None
+    identity = process_identity(progress.pid)
+    return not (progress.process and identity and identity != progress.process)
+
+
+class ProgressKeeper:
+    """A streaming run's progress, written to its record's place (``<run>.json``) when it
+    moved; the session calls :meth:`update` every :data:`PROGRESS_INTERVAL`, and the
+    outcome record replaces it at the end."""
+
+    def __init__(
+        self,
+        stream: Path,
+        job: Path,
+        command: Iterable[str],
+        port: str,
+        started: datetime,
+        sent_before: object = None,
+    ) -> None:
+        self.stream = stream
+        self.started = started
+        self.sent: JobLine | None = None  # the job's last line transmitted
+        self._sent_before = sent_before  # the dialect's last_sent as the job began
+        pid = os.getpid()
+        self._fixed: dict[str, Any] = {
+            "job": job.name,
+            "path": str(job.absolute()),
+            "command": tuple(command),
+            "cwd": os.getcwd(),
+            "pid": pid,
+            "process": process_identity(pid),
+            "host": this_host(),
+            "port": port,
+            "started": started.isoformat(timespec="seconds"),
+        }
+        self._written: tuple[object, ...] | None = None
+        self._warned = False
+
+    def update(
+        self,
+        lines: int,
+        where: str,
+        acknowledged: int,
+        resume_line: int | None,
+        known_to_run: bool,
+        all_sent: bool,
+        last_sent: object,
+    ) -> None:
+        """Write the progress if it moved since it was last written (``last_sent``: the
+        dialect's, the last line transmitted: a job line of this job is kept)."""
+        if (
+            isinstance(last_sent, JobLine)
+            and last_sent.index
+            and last_sent is not self._sent_before
+        ):
+            self.sent = last_sent
+        sent = self.sent
+        key = (lines, acknowledged, resume_line, sent.index if sent else 0, all_sent)
+        if key == self._written:
+            return
+        now = datetime.now()
+        try:
+            stream_bytes = self.stream.stat().st_size
+        except OSError:
+            stream_bytes = 0
+        progress = Progress(
+            **self._fixed,
+            updated=now.isoformat(timespec="seconds"),
+            seconds=round((now - self.started).total_seconds(), 3),
+            lines=lines,
+            where=where,
+            acknowledged=acknowledged,
+            resume_line=resume_line,
+            known_to_run=known_to_run,
+            all_sent=all_sent,
+            sent=sent.source_line if sent is not None else 0,
+            stream_bytes=stream_bytes,
+        )
+        if write_progress(self.stream, progress):
+            self._written = key
+        elif not self._warned:
+            self._warned = True
+            log.warning("cannot write the run's progress %s", record_path(self.stream))
+
+
+def lines_after(stream: Path, offset: int) -> int | None:
+    """Lines in ``stream`` past byte ``offset`` (what went after a progress record was
+    written); None when that is more than :data:`TAIL_LIMIT` bytes, or unreadable."""
+    try:
+        with stream.open("rb") as handle:
+            size = os.fstat(handle.fileno()).st_size
+            if size - offset > TAIL_LIMIT:
+                return None
+            handle.seek(max(offset, 0))
+            return handle.read().count(b"\n")
+    except OSError:
+        return None
 
 
 @dataclass(frozen=True, slots=True)
@@ -151,9 +367,46 @@ def runs(folder: Path) -> list[Run]:
 # --- the list -------------------------------------------------------------------
 
 
-def describe(run: Run, record: Record | None) -> str:
+@dataclass(frozen=True, slots=True)
+class Entry:
+    """One run as ``--history-list`` shows it: its record, or its progress and whether
+    its process is alive (None: on another machine)."""
+
+    run: Run
+    record: Record | None
+    progress: Progress | None
+    alive: bool | None = None
+
+    @property
+    def killed(self) -> bool:
+        """Its host stopped while the job streamed (no record, its process gone)."""
+        return self.progress is not None and self.alive is False
+
+
+def entry(run: Run) -> Entry:
+    found = read_state(run.stream)
+    if isinstance(found, Progress):
+        return Entry(run, None, found, is_alive(found))
+    return Entry(run, found, None)
+
+
+def describe(
+    run: Run, record: Record | None, progress: Progress | None = None, alive: bool | None = None
+) -> str:
     """One line of ``hyrel-send --history-list``."""
     when = f"{run.started:%Y-%m-%d %H:%M:%S}"
+    if progress is not None and record is None:
+        counts = f"{progress.lines} lines acknowledged in {progress.seconds:.1f} s"
+        if alive:
+            state = f"streaming (process {progress.pid}): {counts} so far"
+        elif alive is None:
+            state = (
+                f"streaming on {progress.host} (process {progress.pid}), or its host was "
+                f"stopped: {counts} when last told"
+            )
+        else:
+            state = f"killed (its host stopped while it streamed: no safe stop went): {counts}"
+        return f"{when}  {progress.job}  {state}; {progress.where}"
     if record is None:
         return f"{when}  {run.job}  {NO_RECORD}"
     counts = f"{record.lines} lines acknowledged in {record.seconds:.1f} s"
@@ -168,8 +421,12 @@ def describe(run: Run, record: Record | None) -> str:
 
 def history_list(folder: Path, length: int = LIST_LENGTH) -> list[str]:
     """The newest ``length`` runs in ``folder``, newest first, one line each."""
-    newest = list(reversed(runs(folder)))[:length]
-    return [describe(run, read_record(run.stream)) for run in newest]
+    return [describe(e.run, e.record, e.progress, e.alive) for e in entries(folder, length)]
+
+
+def entries(folder: Path, length: int = LIST_LENGTH) -> list[Entry]:
+    """The newest ``length`` runs in ``folder``, newest first, with what they left."""
+    return [entry(run) for run in list(reversed(runs(folder)))[:length]]
 
 
 # --- pruning --------------------------------------------------------------------
@@ -228,8 +485,11 @@ def prune(folder: Path, limit_mb: float, current: Path, now: float | None = None
 
 
 def _may_be_running(run: Run, now: float) -> bool:
-    if record_path(run.stream).exists():
+    found = read_state(run.stream)
+    if isinstance(found, Record):
         return False
+    if isinstance(found, Progress) and is_alive(found):
+        return True  # streaming (paused for hours, perhaps); on another machine: its mtime
     try:
         return now - run.stream.stat().st_mtime < STILL_RUNNING
     except OSError:

@@ -260,6 +260,7 @@ class PrintJob:
         self._m0: asyncio.Future[None] | None = None  # an M0 waiting for resume()
         self._reports = ReportReader()
         self.started = datetime.now()
+        self._keeper: print_history.ProgressKeeper | None = None  # the progress record
 
     @property
     def report(self) -> JobReport | None:
@@ -393,6 +394,25 @@ class PrintJob:
     def _progress(self) -> Progress:
         last = self._run.last
         return Progress(self.lines, self.offset, self.size, last.position if last else "")
+
+    def _keep_progress(self) -> None:
+        """The progress in the run's record as the job streams, every PROGRESS_INTERVAL
+        (written when it moved): a killed run resumes from it (``--history-list``)."""
+        keeper = self._keeper
+        if keeper is None or self.done:
+            return
+        last = self._run.last
+        acknowledged = last.source_line if last else 0
+        keeper.update(
+            self.lines,
+            self.where(),
+            acknowledged,
+            self.resume_line,
+            self.resume_known_to_run,
+            self.all_sent,
+            self.printer._pump.dialect.last_sent if self.printer._pump else None,
+        )
+        asyncio.get_running_loop().call_later(print_history.PROGRESS_INTERVAL, self._keep_progress)
 
     def _finish(self, run: Run, error: HostError | None, summary: Summary | None) -> None:
         if self._done.done():
@@ -690,6 +710,7 @@ class Printer:
         on_warning: Callable[[str], None] | None = None,
         report: bool = False,
         from_line: int | None = None,
+        command_line: Iterable[str] = (),
     ) -> PrintJob:
         """Start streaming ``job`` (a path, or a plan from :meth:`plan`); returns at once.
 
@@ -704,7 +725,8 @@ class Printer:
         ``report``: send ``M772 S1`` first, so that a Hyrel controller sends its M773 job
         report at M30 (:attr:`PrintJob.report`, kept beside the history).
         ``from_line``: resume a failed print there (see :meth:`plan`; a failed job's
-        :attr:`PrintJob.resume_line` says where).
+        :attr:`PrintJob.resume_line` says where). ``command_line``: hyrel-send's arguments,
+        kept with the progress so that ``--history-list`` offers a killed run's resume.
         """
         if self._job is not None or self.state is State.PRINTING or self.state is State.PAUSED:
             raise UsageError("a job is already running on this printer")
@@ -736,6 +758,17 @@ class Printer:
             if plan.resume is not None:  # progress by bytes goes on from the skipped part
                 run.offset = plan.resume.start_offset
             print_job = PrintJob(self, plan, run, on_action, path)
+            if path is not None and print_history.parse_run(path) is not None:
+                # Its progress in the run's record, written before the first line goes.
+                print_job._keeper = print_history.ProgressKeeper(
+                    path,
+                    plan.job.path,
+                    command_line,
+                    self.port,
+                    print_job.started,
+                    pump.dialect.last_sent,
+                )
+                print_job._keep_progress()
             self._job = self._last_job = print_job
             pump.begin(run)
             self._set_state(State.PRINTING, plan.job.name)
@@ -770,7 +803,9 @@ class Printer:
             path = Path(history)
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
-            self._wire_log = path.open("wb")
+            # Unbuffered: what is written reaches the OS at once (_write), so that a killed
+            # host leaves every byte the port got in the stream.
+            self._wire_log = path.open("wb", buffering=0)
         except OSError as exc:
             raise JobError(f"cannot write the print history {path}: {exc.strerror}") from None
         return path
@@ -1123,9 +1158,12 @@ class Printer:
         log.debug("sending %r", data)
         for tap in self._wire_taps:
             tap(True, data)
+        wire_log = self._wire_log
+        if wire_log is not None:  # first: the history is never behind the wire
+            written = wire_log.write(data)  # one write(2) a call (unbuffered)
+            while written < len(data):  # a short one (a signal): the rest, or ENOSPC raised
+                written += wire_log.write(data[written:]) or len(data) - written
         connection.transport.write(data)
-        if self._wire_log is not None:
-            self._wire_log.write(data)
 
     def _poke(self) -> None:
         pump = self._pump

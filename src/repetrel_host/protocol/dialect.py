@@ -42,6 +42,9 @@ class Dialect(Protocol):
     # command sent with confirm) known to have run; an abort drops what was not known to
     # have run by then.
     last_ran: object | None
+    # The tag of the last line (not the host's own) transmitted for the first time: what
+    # reached the wire, for a killed host's progress record.
+    last_sent: object | None
 
     def start(self, now: float) -> None:
         """Greet the controller: the first bytes to send set up the numbering."""

@@ -147,6 +147,7 @@ class HyrelDialect:
         self._awaiting: deque[_Sent] = deque()  # confirm lines not yet known to have run
         self._unran: deque[_Sent] = deque()  # the caller's plain lines not known to have run
         self.last_ran: object | None = None  # the tag of the last of them known to have run
+        self.last_sent: object | None = None  # the tag of the caller's last line transmitted
         self._mcodes: deque[_Sent] = deque(maxlen=RECENT)  # M-codes a notice may name
         # Every M115 on the wire, the caller's and the host's syncs, in order: each
         # "FIRMWARE_NAME:" answer is the oldest one's.
@@ -365,6 +366,7 @@ class HyrelDialect:
         if not host_line:
             self._last_caller_seq = seq
             self.stats.lines_sent += 1
+            self.last_sent = tag
             if confirm:
                 self._awaiting.append(sent)
             else:  # a command (an M105 poll among a job's lines) is told once it ran

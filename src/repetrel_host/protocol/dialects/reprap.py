@@ -141,6 +141,7 @@ class RepRapDialect:
 
     acks_say_received = False  # an ok comes once the controller took the line to run
     last_ran: object | None = None
+    last_sent: object | None = None  # the tag of the last caller's line first transmitted
 
     def __init__(
         self,
@@ -838,7 +839,9 @@ class RepRapDialect:
             self._guard.sent_again(line.number, now)
         else:
             line.transmitted = True
-            self.stats.lines_sent += not line.is_host_line
+            if not line.is_host_line:
+                self.stats.lines_sent += 1
+                self.last_sent = line.tag
         self._push(Transmission(line, line.wire, now, line.number, retransmitted=retransmitted))
 
     def _send_probe(self, now: float) -> None:
