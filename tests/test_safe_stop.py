@@ -109,7 +109,7 @@ def test_without_an_emergency_parser_the_held_stop_is_told_at_once(tmp_path: Pat
     assert sender.returncode == 5, stdout + stderr
     warning = " ".join(stdout.split())
     assert "the safe stop is held up: the controller is waiting for a heater (M190 S60" in warning
-    assert "no emergency parser" in warning and "bed" in warning and "M112" in warning
+    assert "no emergency parser" in warning and "bed" in warning and "power switch" in warning
     last = " ".join(stderr.split())
     assert last.startswith("not safe: the safe stop was abandoned before the controller confirmed")
     assert "heaters that may be on: bed" in last and "hotend T0" in last
@@ -258,3 +258,34 @@ def test_a_pause_that_comes_as_the_job_ends_says_so(tmp_path: Path) -> None:
     path = tmp_path / "short.gcode"
     path.write_text("G1 X1\nG1 X2\nG1 X3\n")  # all of it in flight at once
     asyncio.run(scenario(path))
+
+
+def test_a_stop_held_up_too_long_offers_the_e_key_for_an_emergency_stop(tmp_path: Path) -> None:
+    from tests.terminal import Screen
+
+    job = tmp_path / "dwell.gcode"
+    job.write_text("M104 S200\nG28\nG4 S120\nG1 X10\nG1 X20\n")  # M108 breaks no dwell
+    log = tmp_path / "fake.log"
+    with BuiltInFake(log, [], control=True) as fake:
+        screen = Screen(str(job), "--port", fake.port, "--no-history", home=tmp_path)
+        try:
+            screen.expect("Keys: p pauses")
+            wait_for_log(log, "G28")
+            screen.send("e")  # a stray e while printing does nothing
+            screen.send("\x03")
+            screen.expect("stopping: sending the safe-stop sequence")
+            screen.expect("the safe stop is not confirmed 10 s after the stop", timeout=20)
+            screen.expect("G4 S120")
+            screen.expect("press e for an emergency stop")
+            assert "M112" not in executed(log)
+            screen.send("e")
+            screen.expect("emergency stop: M112 sent")
+            status = screen.wait(timeout=30)
+        finally:
+            screen.child.close(force=True)
+        heaters = targets(fake)
+        hung = fake.request("status")["hung"]
+    text = " ".join(screen.text().split())
+    assert status == 4, text[-2000:]
+    assert "stopped by an emergency stop (M112)" in text
+    assert hung and heaters == {"T": 0.0, "B": 0.0}

@@ -832,11 +832,16 @@ async def _watch(
 
     async for event in job.events():
         if isinstance(event, StopDelayed):
-            emergency = "press e" if keyboard else "send M112 (hyrel-send --console)"
+            if event.can_emergency_stop and keyboard:
+                now = "press e for an emergency stop (M112)"
+            elif event.can_emergency_stop:
+                now = "use its power switch (an emergency stop, M112, needs the e key here)"
+            else:
+                now = "use its power switch (M112 would wait its turn too)"
             console.print(
                 f"[bold yellow]warning:[/] {escape(stop_delayed_text(event))}. Wait for it; "
-                f"or, to stop the machine at once, {emergency} for an emergency stop; or "
-                "press Ctrl-C again to leave without it (what is on stays on)."
+                f"or, to stop the machine at once, {now}; or press Ctrl-C again to leave "
+                "without it (what is on stays on)."
             )
         elif isinstance(event, Message):
             actions.log(event.text)

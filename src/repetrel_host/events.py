@@ -122,6 +122,9 @@ class StopDelayed:
 
     reason: str
     heaters: tuple[str, ...]
+    # M112 would act at once (Marlin's emergency parser, Hyrel's urgent line); without
+    # it M112 too waits its turn behind what holds the stop: only the power switch helps.
+    can_emergency_stop: bool = True
 
 
 @dataclass(frozen=True, slots=True)

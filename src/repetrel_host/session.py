@@ -975,7 +975,8 @@ class Printer:
         if error is None or run.emergency:
             return error, run.summary
         if isinstance(error, SafeStopError):  # abandoned by the caller
-            going = "" if connection_ends else "; they still go as the controller takes them"
+            going = "" if connection_ends else "; they still go as the controller takes them, "
+            going += "while the session stays open" * (not connection_ends)
             return self._unsafe(f"{error}{going}"), None
         if self._owed_safe_stop and connection_ends:
             return self._unsafe(f"{error}; the safe stop was not sent"), None
@@ -1354,7 +1355,9 @@ class _PumpListener(Listener):
         printer = self.printer
         job = printer._job
         if job is not None:
-            job._publish(StopDelayed(reason, tuple(printer.heaters_on())))
+            pump = printer._pump
+            urgent = pump is not None and (pump.breaks_waits or pump.dialect.acks_say_received)
+            job._publish(StopDelayed(reason, tuple(printer.heaters_on()), urgent))
 
     def safe_stop_confirmed(self, command: str) -> None:
         with contextlib.suppress(ValueError):

@@ -270,6 +270,13 @@ class PrinterConsole:
             self.say(f"stopping {job.name} with the safe-stop sequence first")
         await self.printer.close()
         await self._wait_for_job()
+        owed = self.printer.owed_safe_stop
+        if owed:
+            heaters = ", ".join(self.printer.heaters_on()) or "none known"
+            self.say(
+                f"warning: leaving without the safe stop ({', '.join(owed)} not confirmed); "
+                f"heaters that may be on: {heaters}: check the machine"
+            )
         for task in [*self._tasks, self._printer_watcher]:
             if task is not None:
                 task.cancel()
@@ -493,9 +500,14 @@ class PrinterConsole:
                 elif isinstance(event, Resumed):
                     self.say("resumed")
                 elif isinstance(event, StopDelayed):
+                    now = (
+                        "type M112 for an emergency stop"
+                        if event.can_emergency_stop
+                        else "use its power switch to stop it at once (M112 would wait too)"
+                    )
                     self.say(
-                        f"warning: {stop_delayed_text(event)}. Wait for it; or type M112 for an "
-                        "emergency stop; or !cancel again to stop waiting for it"
+                        f"warning: {stop_delayed_text(event)}. Wait for it; or {now}; or "
+                        "!cancel again to stop waiting for it"
                     )
             try:
                 summary = await job.wait()
