@@ -64,6 +64,7 @@ STOP_PATIENCE = 10.0
 BREAK_REPEAT = 1.0
 SAFE_STOP_SOURCE = "safe stop"
 _MOVES = frozenset({"G0", "G1", "G2", "G3"})
+_HEATER_OR_TOOL = ("M1", "T")  # M104, M109, M140, M190, M141, M191; T1 (a tool change)
 
 
 class Outcome(Enum):
@@ -177,7 +178,6 @@ class Run:
         self.ran: JobLine | None = None
         self.acks_say_received = False
         self.ran_before: object | None = None  # what had run when the job began: not its
-        self.safe_stop_acknowledged = 0
         self.header_acknowledged = 0
         self.outcome: Outcome | None = None
         self.summary: Summary | None = None
@@ -456,7 +456,8 @@ class Pump:
                     run.fed = item.index
                 else:
                     run.header_fed += 1
-                self.heaters.note(item.command)
+                if item.command.startswith(_HEATER_OR_TOOL):  # a test, not a parse, a line
+                    self.heaters.note(item.command)
                 dialect.send(item.command, item)
             elif not item.is_marker:
                 run.barrier = item
@@ -521,7 +522,7 @@ class Pump:
             self.listener.command_refused(tag, event.reason)
 
     def _acknowledged(self, line: JobLine) -> None:
-        if line.command.startswith("M1"):  # M104, M140, M109...: a heater may be off now
+        if line.command.startswith("M1"):  # M104, M140...: confirmed, a heater may be off
             self.heaters.note(line.command, confirmed=True)
         run = self.run
         if run is None:
@@ -533,7 +534,6 @@ class Pump:
             run.offset = line.end_offset
             run.last = line
         elif line.source == SAFE_STOP_SOURCE:
-            run.safe_stop_acknowledged += 1
             if line in run.safe_stop_lines:
                 run.safe_stop_lines.remove(line)
         elif line.index == 0:

@@ -964,10 +964,7 @@ class Printer:
         """The sentence for a stop not confirmed: what may be on, and what to do."""
         heaters = self.heaters_on()
         on = f"; heaters that may be on: {', '.join(heaters)}" if heaters else ""
-        return SafeStopError(
-            f"{cause}{on}; check the machine: M112 (an emergency stop) or its power switch "
-            "stops it at once"
-        )
+        return SafeStopError(f"{cause}{on}; check the machine (its power switch stops it)")
 
     def _ended(self, run: Run, connection_ends: bool) -> tuple[HostError | None, Summary | None]:
         """How a run that just ended is reported (a reconnect aside)."""
@@ -975,8 +972,8 @@ class Printer:
         if error is None or run.emergency:
             return error, run.summary
         if isinstance(error, SafeStopError):  # abandoned by the caller
-            going = "" if connection_ends else "; they still go as the controller takes them, "
-            going += "while the session stays open" * (not connection_ends)
+            going = "; they still go as the controller takes them, while the session is open"
+            going = "" if connection_ends else going
             return self._unsafe(f"{error}{going}"), None
         if self._owed_safe_stop and connection_ends:
             return self._unsafe(f"{error}; the safe stop was not sent"), None
