@@ -416,3 +416,28 @@ def test_what_ran_of_a_job_is_its_line_not_a_command_confirmed_after_it() -> Non
     assert dialect.data_to_send(0.0) == b"N1 G1 X1\nN2 M105\nN3 M115\n"
     dialect.receive_data(bytes([Control.ACK]) * 3 + b">ST: T0:21.0/0\n" + M115_REPLY, 0.1)
     assert dialect.last_ran is line
+
+
+# --- what ran: the notices of the M-codes the controller reports, and the syncs ---------
+
+
+def sent_lines(dialect: HyrelDialect, commands: list[str], now: float) -> bytes:
+    """``commands`` queued (tagged with their indexes) and what goes on the wire."""
+    for command in commands:
+        dialect.send(command, command)
+    return dialect.data_to_send(now)
+
+
+def test_m_codes_the_controller_never_notices_hold_back_no_notice_after_them() -> None:
+    # PrusaSlicer's M73 (progress) first: the controller says nothing of it, nor of M82.
+    dialect = greeted()
+    job = ["M73 P0 R12", "M104 S200", "M82", "G1 X1", "M106 S255", "G1 X2"]
+    assert sent_lines(dialect, job, 0.0) == (
+        b"N1 M73 P0 R12\nN2 M104 S200\nN3 M82\nN4 G1 X1\nN5 M106 S255\nN6 G1 X2\n"
+    )
+    dialect.receive_data(b"\x06" * 6, 0.1)
+    assert dialect.last_ran is None  # received, not run
+    dialect.receive_data(b">MC:M104: S200:\n", 0.2)
+    assert dialect.last_ran == "M104 S200"
+    dialect.receive_data(b">MC:M106: S255:\n", 0.3)
+    assert dialect.last_ran == "M106 S255"

@@ -32,6 +32,13 @@ class Control(IntEnum):
     WATCHDOG = 0x0E  # the host is alive
 
 
+# The M-codes whose processing the controller reports with a ``>MC:`` notice: those the
+# notes name (M0, M6, M30, M104, M109, M140, M190: "many M-codes ..."), and M1, M106, M107
+# and M772, which the fake reports too. Only these are awaited by the host, and the fake
+# notices exactly these.
+NOTICED = frozenset(
+    {"M0", "M1", "M6", "M30", "M104", "M106", "M107", "M109", "M140", "M190", "M772"}
+)
 _CONTROL_BYTES = frozenset(int(byte) for byte in Control) - {Control.URGENT}
 _NUMBER = re.compile(rb"N(\d+)\s*")
 _NOTICE_FIELD = re.compile(r"([A-Za-z])\s*(-?\d+(?:\.\d*)?)")

@@ -9,7 +9,8 @@ its place, so the stream fails, naming it.
 An ACK says "received", not "run". What has run is learned from what the controller
 writes as it runs commands, in order: ``M115``'s identity line (``FIRMWARE_NAME:>Hy:
 ...``), which says that every line before that M115 ran too, and the ``>MC:M<n>: ...``
-notices of M-codes (one names the oldest M-code line not yet known to have run, with its
+notices of the M-codes it reports (:data:`~repetrel_host.protocol.hyrel.NOTICED`; no
+others are awaited: one names the oldest of them not yet known to have run, with its
 values, or is taken for nothing: a command's reply is complete then). Where every line sent
 must be known to have run (the end of a job, before a host action, a command's reply) the
 host sends an ``M115`` of its own after the last of them: a *sync*; one goes among every
@@ -54,6 +55,7 @@ from repetrel_host.protocol.events import (
 )
 from repetrel_host.protocol.flow import HYREL_WINDOW, FlowControl
 from repetrel_host.protocol.hyrel import (
+    NOTICED,
     Control,
     HostReceiver,
     Notice,
@@ -147,7 +149,7 @@ class HyrelDialect:
         self._awaiting: deque[_Sent] = deque()  # confirm lines not yet known to have run
         self._unran: deque[_Sent] = deque()  # the caller's plain lines not known to have run
         self.last_ran: object | None = None  # the tag of the last of them known to have run
-        self._mcodes: deque[_Sent] = deque(maxlen=RECENT)  # M-codes a notice may name
+        self._mcodes: deque[_Sent] = deque(maxlen=RECENT)  # noticed M-codes a notice may name
         # Every M115 on the wire, the caller's and the host's syncs, in order: each
         # "FIRMWARE_NAME:" answer is the oldest one's.
         self._m115s: deque[_Sent] = deque()
@@ -361,7 +363,7 @@ class HyrelDialect:
                 self._awaiting.append(sent)
             else:  # a command (an M105 poll among a job's lines) is told once it ran
                 self._unran.append(sent)
-            if word[:1] == "M" and word != "M115":
+            if word in NOTICED:
                 self._mcodes.append(sent)
         return sent
 
