@@ -441,3 +441,120 @@ def test_m_codes_the_controller_never_notices_hold_back_no_notice_after_them() -
     assert dialect.last_ran == "M104 S200"
     dialect.receive_data(b">MC:M106: S255:\n", 0.3)
     assert dialect.last_ran == "M106 S255"
+
+
+def test_a_lost_notice_holds_back_none_after_it() -> None:
+    dialect = greeted()
+    job = ["M104 S200", "G1 X1", "M106 S255", "G1 X2", "M107", "G1 X3"]
+    sent_lines(dialect, job, 0.0)
+    dialect.receive_data(b"\x06" * 6, 0.1)
+    # The M104's notice was lost (or garbled): the controller runs lines in order, so the
+    # M106's says the M104 ran too.
+    dialect.receive_data(b">MC:M106: S255:\n", 0.2)
+    assert dialect.last_ran == "M106 S255"
+    dialect.receive_data(b">MC:M107:\n", 0.3)
+    assert dialect.last_ran == "M107"
+
+
+def test_a_notice_is_taken_only_for_a_line_it_may_be_about() -> None:
+    dialect = greeted()
+    job = ["M106 S128", "G1 X1", "M104 S200", "G1 X2", "M106 S128", "G1 X3", "M104 S0", "G1 X4"]
+    for index, command in enumerate(job):
+        dialect.send(command, index)
+    assert dialect.data_to_send(0.0) == b"".join(
+        f"N{number} {command}\n".encode() for number, command in enumerate(job, start=1)
+    )
+    # No ACK yet: the controller has none of these lines, no notice is about one of them.
+    dialect.receive_data(b">MC:M106: S128:\n", 0.1)
+    assert dialect.last_ran is None
+    dialect.receive_data(b"\x06" * 4, 0.2)  # the first four received
+    for notice in (
+        b">MC:M104: S210:\n",  # values no line has
+        b">MC:M109: S200:\n",  # a code the host did not send
+        b">MC:M104: S2\xb10:\n",  # a byte garbled: what it says cannot be told
+        b">MC:M104:\n",  # cut short by a byte garbled into a newline: no line's with an S
+    ):
+        dialect.receive_data(notice, 0.3)
+        assert dialect.last_ran is None, notice
+    # The second M106 S128's, the first's lost? It is taken for the first, no further.
+    dialect.receive_data(b">MC:M106: S128:\n", 0.4)
+    assert dialect.last_ran == 0
+    # The M104 S0 is not received yet: no notice is about it.
+    dialect.receive_data(b">MC:M104: S0:\n", 0.5)
+    assert dialect.last_ran == 0
+    # Received, it ran: so did the lines before it whose notices were lost.
+    dialect.receive_data(b"\x06" * 4 + b">MC:M104: S0:\n", 0.6)
+    assert dialect.last_ran == 6
+    # A notice of a line known to have run (late, repeated) is taken for nothing.
+    dialect.receive_data(b">MC:M106: S128:\n", 0.7)
+    assert dialect.last_ran == 6
+
+
+def watch_what_ran(commands: list[str], settings: ControllerSettings) -> tuple[int, int]:
+    """Stream ``commands`` (tagged 1, 2, ...) to the simulated controller; return how far
+    :attr:`HyrelDialect.last_ran` ever was ahead of what the controller ran (never past
+    it: 0 at most) and behind it, at every step."""
+    ran = 0
+
+    def executed(command: str) -> None:
+        nonlocal ran
+        ran += command != "M115"
+
+    dialect = HyrelDialect(HYREL_WINDOW)
+    controller = HyrelControllerSimulator(settings, on_execute=executed)
+    lines = iter(enumerate(commands, start=1))
+    now, wire, queued = 0.0, bytearray(), False
+    ahead, behind = -len(commands), 0
+    dialect.start(now)
+    while not (queued and dialect.is_done):
+        assert dialect.failure is None
+        while not queued and dialect.wants_lines:
+            line = next(lines, None)
+            if line is None:
+                dialect.request_sync()
+                queued = True
+            else:
+                dialect.send(line[1], line[0])
+        dialect.handle_timeout(now)
+        sent = dialect.data_to_send(now)
+        wire += sent
+        controller.receive_from(wire, now)
+        controller.advance(now)
+        received = controller.take_output(now)
+        dialect.receive_data(received, now)
+        while dialect.next_event() is not None:
+            pass
+        last = dialect.last_ran
+        assert last is None or isinstance(last, int)
+        ahead, behind = max(ahead, (last or 0) - ran), max(behind, ran - (last or 0))
+        if not (sent or received):
+            upcoming = [
+                t for t in (controller.next_wakeup(), dialect.next_deadline()) if t is not None
+            ]
+            now = max(min(upcoming), now + 1e-9)
+    return ahead, behind
+
+
+# Notices of all kinds among moves, some without values: a garbled byte must not make one
+# pass for a later line's.
+CODES = ["M107", "M106", "M106 S255", "M104 S200", "M73 P1", "M82", "M104 S0"]
+NOTICED_JOB = [
+    command
+    for i in range(3000)
+    for command in (f"G1 X{i % 100} Y{i % 7} E{i * 0.01:.2f}", *(CODES[i % 7],) * (i % 5 == 0))
+]
+
+
+@pytest.mark.parametrize("seed", range(16))
+def test_garbled_notices_and_lost_acks_never_put_what_ran_ahead(seed: int) -> None:
+    faults = Faults(drop_ok=0.1, garble=0.2, seed=seed)
+    settings = ControllerSettings(
+        rx_buffer=8192,
+        banner=False,
+        move_time=0.005,
+        latency=0.001,
+        bandwidth=11_520,
+        faults=faults,
+    )
+    ahead, _ = watch_what_ran(NOTICED_JOB, settings)
+    assert ahead <= 0

@@ -10,12 +10,14 @@ An ACK says "received", not "run". What has run is learned from what the control
 writes as it runs commands, in order: ``M115``'s identity line (``FIRMWARE_NAME:>Hy:
 ...``), which says that every line before that M115 ran too, and the ``>MC:M<n>: ...``
 notices of the M-codes it reports (:data:`~repetrel_host.protocol.hyrel.NOTICED`; no
-others are awaited: one names the oldest of them not yet known to have run, with its
-values, or is taken for nothing: a command's reply is complete then). Where every line sent
-must be known to have run (the end of a job, before a host action, a command's reply) the
-host sends an ``M115`` of its own after the last of them: a *sync*; one goes among every
-:data:`SYNC_EVERY` lines too, so that what ran is known as the job goes, and one just
-before an ``M0`` (which waits; what follows it waits behind it). Up to 8 KB of job may wait
+others are awaited). A notice says that a received line of its code and values ran: the
+host takes it for the oldest such line not known to have run (so for every line before it,
+whose own notices were lost or garbled), and for nothing when none agrees; a command's reply
+is complete then. Where every line sent must be known to have run (the end of a job, before
+a host action, a command's reply) the host sends an ``M115`` of its own after the last of
+them: a *sync*; one goes among every :data:`SYNC_EVERY` lines too, so that what ran is
+known as the job goes, and one just before an ``M0`` (which waits; what follows it waits
+behind it). Up to 8 KB of job may wait
 in the controller when the last ACK comes: a job ends once a sync's answer says its last
 line ran, and with it all the controller wrote meanwhile.
 
@@ -83,10 +85,11 @@ SYNC_EVERY = 256
 # sync past the window), and against a few ACKs that come late (taken for the next line's,
 # each lets one line too many go; a full buffer has no other byte to spare).
 HOST_RESERVE = 128
-RECENT = 1024  # lines remembered by number (an error names one), M-codes awaiting notices
+RECENT = 1024  # lines remembered by number (an error names one)
 _LINE_NUMBER = re.compile(r"\bline\s+(\d+)|\bN(\d+)\b", re.IGNORECASE)
 _FATAL = re.compile(r"checksum|watchdog", re.IGNORECASE)
 _FIELD = re.compile(r"([A-Za-z])\s*(-?\d+(?:\.\d*)?)")
+_NOTICE_VALUES = "TS"  # the values a notice gives of its line (">MC:M<n>: T<t>: S<s>:")
 
 
 class Phase(Enum):
@@ -149,7 +152,9 @@ class HyrelDialect:
         self._awaiting: deque[_Sent] = deque()  # confirm lines not yet known to have run
         self._unran: deque[_Sent] = deque()  # the caller's plain lines not known to have run
         self.last_ran: object | None = None  # the tag of the last of them known to have run
-        self._mcodes: deque[_Sent] = deque(maxlen=RECENT)  # noticed M-codes a notice may name
+        # Noticed M-codes not known to have run: a notice may name one. (Few: an answer
+        # confirms them all, and one comes every SYNC_EVERY lines at most.)
+        self._mcodes: deque[_Sent] = deque()
         # Every M115 on the wire, the caller's and the host's syncs, in order: each
         # "FIRMWARE_NAME:" answer is the oldest one's.
         self._m115s: deque[_Sent] = deque()
@@ -479,13 +484,20 @@ class HyrelDialect:
             self._release(in_flight.popleft())
 
     def _noticed(self, notice: Notice) -> None:
-        """``>MC:`` for an M-code: the oldest M-code line not known to have run ran now, if
-        the notice names it and its values (a notice garbled, or of an M-code the host did
-        not send, confirms nothing). A command's reply is complete then; a job is done
-        only once an answer says so."""
-        mcodes = self._mcodes
-        if mcodes and mcodes[0].word == notice.code and _agrees(notice, mcodes[0].command):
-            self._confirm_through(mcodes[0].seq)
+        """``>MC:`` for an M-code: a line of its code and values ran, and every line before
+        it. It is taken for the oldest such line not known to have run that the controller
+        received (its ACK came: a line is ACKed before it runs), or for nothing (a notice
+        garbled, of a line an answer confirmed, of an M-code the host did not send). The
+        line it is about is that one or a later one: the notices of those before were lost
+        or garbled, or never sent. A command's reply is complete then; a job is done only
+        once an answer says so."""
+        received = self._in_flight[0].seq if self._in_flight else self._seq + 1
+        for sent in self._mcodes:
+            if sent.seq >= received:
+                return
+            if sent.word == notice.code and _agrees(notice, sent.command):
+                self._confirm_through(sent.seq)
+                return
 
     def _confirm_through(self, seq: int) -> None:
         """Every line up to ``seq`` ran: commands up to it have their reply."""
@@ -575,9 +587,15 @@ class HyrelDialect:
 
 
 def _agrees(notice: Notice, command: str) -> bool:
-    """Every value the notice gives is the command's: ``T11: S200:`` and ``M104 T11 S200.0``."""
+    """The notice gives the command's values: every value it gives is the command's, and it
+    gives the command's T and S (``T11: S200:`` and ``M104 T11 S200.0``). A notice cut
+    short by a garbled byte (``>MC:M104:``), or another code's garbled, is no line's with
+    values."""
     values = {letter.upper(): float(value) for letter, value in _FIELD.findall(command[1:])}
-    return all(values.get(letter) == float(value) for letter, value in notice.fields.items())
+    given = {letter: float(value) for letter, value in notice.fields.items()}
+    return all(values.get(letter) == value for letter, value in given.items()) and all(
+        given.get(letter) == values[letter] for letter in _NOTICE_VALUES if letter in values
+    )
 
 
 def _named(text: str) -> int | None:
