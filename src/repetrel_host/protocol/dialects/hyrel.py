@@ -15,11 +15,12 @@ host takes it for the oldest such line not known to have run (so for every line 
 whose own notices were lost or garbled), and for nothing when none agrees; a command's reply
 is complete then. Where every line sent must be known to have run (the end of a job, before
 a host action, a command's reply) the host sends an ``M115`` of its own after the last of
-them: a *sync*; one goes among every :data:`SYNC_EVERY` lines too, so that what ran is
-known as the job goes, and one just before an ``M0`` (which waits; what follows it waits
-behind it). Up to 8 KB of job may wait
-in the controller when the last ACK comes: a job ends once a sync's answer says its last
-line ran, and with it all the controller wrote meanwhile.
+them: a *sync*; one goes among the lines too, after as many of them as the answers say run
+in :data:`SYNC_INTERVAL` seconds (at most :data:`SYNC_EVERY`), so that what ran (the resume
+point) follows the job, fast or slow, and one just before an ``M0`` (which waits; what
+follows it waits behind it). Up to 8 KB of job may wait in the controller when the last ACK
+comes: a job ends once a sync's answer says its last line ran, and with it all the
+controller wrote meanwhile.
 
 The controller stops its extruders after 30 s without a byte from the host: the dialect
 sends the watchdog byte whenever it has been quiet for :data:`KEEPALIVE` seconds, through
@@ -78,9 +79,20 @@ STATUS_AFTER = 5.0  # lines waiting this long for an ACK: ask whether the contro
 SYNC_AFTER = 0.5
 SYNC_COMMAND = "M115"  # answered when run: every line before it ran
 SYNC_RETRY = 30.0  # an M115 unanswered this long: its answer may be lost, another may go
-# A sync among every this many lines: its answer says how far the controller got, and
-# releases lines whose ACK was lost before they fill the window (0.4 % more lines).
+# Syncs among the lines: each answer says how far the controller got (the resume point
+# after a stop: what ran since the last one runs again), and releases lines whose ACK was
+# lost before they fill the window. One goes after as many lines as run in SYNC_INTERVAL
+# seconds, as the answers tell: on a slow job 256 lines are minutes of printing. (Not
+# after a time since the last one: lines do not flow as they run, but in bursts of the
+# headroom, ACKed once 2 KB of the buffer are free, and at once while it fills.) One M115
+# a second costs some 12 bytes to the controller and 100 back, under 1 % of a 115,200 baud
+# link; on a fast job one among every SYNC_EVERY lines (0.4 % more lines).
+SYNC_INTERVAL = 1.0
 SYNC_EVERY = 256
+# Until answers tell (a job's start, after a wait): a sync among every this many lines,
+# whose count doubles at most with each answer (the first lines fill the planner at once).
+SYNC_EVERY_MIN = 16
+RATE_AFTER = 0.1  # seconds since the last answer that told how fast lines run
 # Bytes of the headroom the caller's lines leave free: room for the host's own lines (a
 # sync past the window), and against a few ACKs that come late (taken for the next line's,
 # each lets one line too many go; a full buffer has no other byte to spare).
@@ -169,6 +181,9 @@ class HyrelDialect:
         self._sync_requested = False
         self._sync_sent_at: float | None = None  # an M115 after the last caller line
         self._since_m115 = 0  # caller lines sent since the last M115
+        self._sync_every = SYNC_EVERY_MIN  # lines that run in SYNC_INTERVAL, as told
+        self._told_at = 0.0  # the answer that told it last, and the line it confirmed
+        self._told_seq = 0
         self._stalled = False  # lines waited for their ACK: a sync may go past the window
         self._acked_at = 0.0  # the last ACK, or the first line to wait for one since
         self._receiver = HostReceiver()
@@ -289,7 +304,8 @@ class HyrelDialect:
                 sent = self._transmit(command, word, tag, now, confirm=confirm, urgent=urgent_line)
                 if sync is not None:
                     sync.reaches = sent.seq
-                if self._since_m115 >= SYNC_EVERY and self._has_room(SYNC_COMMAND, False, True):
+                due = self._since_m115 >= self._sync_every
+                if due and self._has_room(SYNC_COMMAND, False, True):
                     self._transmit(SYNC_COMMAND, SYNC_COMMAND, None, now, host_line=True)
             if self._wants_sync() and self._has_room(SYNC_COMMAND, False, host_line=True):
                 self._transmit(SYNC_COMMAND, SYNC_COMMAND, None, now, host_line=True)
@@ -473,6 +489,7 @@ class HyrelDialect:
         if not self._m115s:
             self._sync_sent_at = None
         seq = max(m115.seq, m115.reaches)
+        self._learn_rate(seq, now)
         self._synced_seq = max(self._synced_seq, seq)
         self._confirm_through(seq)
         # What ran was received: an ACK not here yet for it was lost. (It cannot be on
@@ -482,6 +499,15 @@ class HyrelDialect:
         while in_flight and in_flight[0].seq <= seq:
             self.stats.lost_acks += 1
             self._release(in_flight.popleft())
+
+    def _learn_rate(self, seq: int, now: float) -> None:
+        """Lines that run in SYNC_INTERVAL: those confirmed since the answer that last told,
+        over the time since (a pause, a wait for lines counts: more syncs, for a while)."""
+        elapsed = now - self._told_at
+        if elapsed >= RATE_AFTER:
+            ran = int((seq - self._told_seq) * SYNC_INTERVAL / elapsed)
+            self._sync_every = max(SYNC_EVERY_MIN, min(SYNC_EVERY, 2 * self._sync_every, ran))
+            self._told_at, self._told_seq = now, seq
 
     def _noticed(self, notice: Notice) -> None:
         """``>MC:`` for an M-code: a line of its code and values ran, and every line before
