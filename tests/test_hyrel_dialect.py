@@ -259,6 +259,20 @@ def test_an_answer_garbled_or_cut_in_two_is_still_one_answer() -> None:
     assert dialect.is_done
 
 
+def test_an_answer_whose_newline_was_garbled_runs_into_the_next_and_both_count() -> None:
+    dialect = greeted()
+    dialect.send("G1 X1", confirm=True)
+    assert dialect.data_to_send(0.0) == b"N1 G1 X1\nN2 M115\n"
+    dialect.send("G1 X2", confirm=True)
+    assert dialect.data_to_send(0.1) == b"N3 G1 X2\nN4 M115\n"
+    # The first answer's newline garbled into an "r": it runs into the second. Counted
+    # once, every answer after it would be taken for the M115 before its own.
+    dialect.receive_data(b"\x06\x06FIRMWARE_NAME:>Hy: Hydra PROTOCOL_VERSION:1.0r", 0.2)
+    dialect.receive_data(b"\x06\x06FIRMWARE_NAME:>Hy: Hydra PROTOCOL_VERSION:1.0\n", 0.3)
+    assert dialect.is_done and dialect.stats.lost_acks == 0
+    assert [type(e) for e in iter(dialect.next_event, None)] == [LineAcknowledged] * 2
+
+
 def test_cancel_aborts_and_what_the_aborted_lines_still_earn_is_not_taken_for_the_safe_stop() -> (
     None
 ):

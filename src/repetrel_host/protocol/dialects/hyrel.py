@@ -436,8 +436,10 @@ class HyrelDialect:
         self._last_progress_at = now
         self._status_asked = 0
         hyrel = reply if isinstance(reply, replies.HyrelReport) else None
-        if self._is_answer(text):  # first: an answer cut by a garbled ':' reads ">Hy: ..."
-            self._answered(reply, text, now)
+        answers = self._answers_in(text)  # first: one cut by a garbled ':' reads ">Hy: ..."
+        if answers:
+            for _ in range(answers):
+                self._answered(reply, text, now)
             return
         if hyrel is not None and hyrel.tag == "HY":
             self._identity(text, now)
@@ -466,14 +468,15 @@ class HyrelDialect:
         else:
             self._fail(FailureKind.RESET, f"the controller reset (it says: {text})")
 
-    def _is_answer(self, text: str) -> bool:
-        """An M115 answer, even with a byte garbled: its name or its version field (not
-        both halves of one answer that a garbled newline cut in two)."""
-        named = "FIRMWARE_NAME:" in text
-        versioned = "PROTOCOL_VERSION:" in text
-        answer = named or (versioned and not self._answer_fragment)
-        self._answer_fragment = named and not versioned
-        return answer
+    def _answers_in(self, text: str) -> int:
+        """M115 answers in a line, even with a byte garbled: each has its name or its
+        version field (both halves of one that a garbled newline cut in two count once;
+        one whose newline was garbled runs into the next line, another answer maybe)."""
+        named = text.count("FIRMWARE_NAME:")
+        versioned = text.count("PROTOCOL_VERSION:")
+        answers = max(named, versioned - self._answer_fragment)
+        self._answer_fragment = named > versioned
+        return answers
 
     def _answered(self, reply: replies.Reply, text: str, now: float) -> None:
         """An M115 ran, so did every line before it (whatever ACKs were lost on the way)."""
