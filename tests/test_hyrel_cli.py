@@ -8,6 +8,8 @@ from pathlib import Path
 
 import pytest
 
+from repetrel_host.job import Job
+from repetrel_host.protocol.dialects.hyrel import SYNC_EVERY_MIN, SYNC_INTERVAL
 from repetrel_host.testing.fake_controller import BuiltInFake
 from tests.helpers import CONE, EXAMPLE, hyrel_send, job_commands, start_streaming
 
@@ -95,4 +97,47 @@ def test_a_framed_dry_run_shows_hyrels_wire() -> None:
     lines = result.stdout.splitlines()
     assert lines[0] == "<0x07>N1 M107"  # the ping, then numbered lines
     assert lines[-1].endswith(" M115")  # the sync that confirms the end
-    assert len(lines) == len(job_commands(EXAMPLE)) + 2  # one sync among 256 lines
+    # And one among every SYNC_EVERY_MIN lines: the simulated controller runs them in no
+    # time, so no answer says how many run in a second.
+    commands = len(job_commands(EXAMPLE))
+    syncs = [line for line in lines if line.endswith(" M115")]
+    assert len(syncs) == commands // SYNC_EVERY_MIN + 1 and len(lines) == commands + len(syncs)
+
+
+MOVE_TIME = 0.02  # 50 moves a second: a slow job, as a fake can run it
+
+
+@pytest.mark.parametrize("progress", [False, True], ids=["as-sliced", "m73-first"])
+@pytest.mark.timeout(90)
+def test_ctrl_c_names_a_resume_line_close_behind_what_ran_and_never_past_it(
+    tmp_path: Path, progress: bool
+) -> None:
+    job = CONE  # its M82 (line 20) is never noticed; with PrusaSlicer's M73 first, nor that
+    if progress:
+        job = tmp_path / "cone-m73.gcode"
+        job.write_text("M73 P0 R12\n" + CONE.read_text())
+    log = tmp_path / "fake.log"
+    fake_args = ["--protocol", "hyrel", "--move-time", str(MOVE_TIME)]
+    with BuiltInFake(log, fake_args, control=True) as fake:
+        process = start_streaming(job, fake.port, log, "--protocol", "hyrel", "--no-history")
+        deadline = time.monotonic() + 30
+        while len(ran(log)) < 250 and time.monotonic() < deadline:
+            time.sleep(0.05)  # a few hundred lines in: before the first 256 lines ran
+        process.send_signal(signal.SIGINT)
+        stdout, stderr = process.communicate(timeout=30)
+        fake.request("status")  # the fake's log is complete
+    assert process.returncode == 130, stderr
+    prefix = "To resume from the first line not known to have run: "
+    (hint,) = [line for line in stdout.splitlines() if line.startswith(prefix)]
+    assert hint.split()[-2] == "--from-line"
+    resume = int(hint.split()[-1])
+    lines = list(Job(job).lines())
+    done = ran(log)[: -len(HYREL_SAFE_STOP)]
+    assert done == [line.command for line in lines[: len(done)]]  # once each, in order
+    claimed = [line for line in lines if line.source_line < resume]
+    # Every line the hint says ran did: resuming skips none.
+    assert len(claimed) <= len(done)
+    # And it is close behind: what ran since the last answer that said so, at most what
+    # runs in a SYNC_INTERVAL between two syncs, and as much again (the answer on its way
+    # as the stop came, and the lines the controller had taken, that the abort stopped).
+    assert len(done) - len(claimed) <= 2 * SYNC_INTERVAL / MOVE_TIME, (resume, len(done))

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from repetrel_host.protocol.hyrel import Control, HostReceiver, frame, mark_urgent
+from repetrel_host.protocol.hyrel import NOTICED, Control, HostReceiver, frame, mark_urgent
 from repetrel_host.protocol.reports import ReportReader
 from repetrel_host.testing.fake_controller import BuiltInFake
 from repetrel_host.testing.hyrel_simulator import (
@@ -48,6 +48,15 @@ def test_every_line_earns_an_ack_and_m_codes_are_noticed_as_they_run() -> None:
     assert controller.executed == ["G28", "M104 T11 S200", "G1 X5"]
     assert wire.lines == [">MC:M104: T11: S200:"]
     assert controller.temperatures(0.1)["T"][1] == 200.0
+
+
+@pytest.mark.parametrize("code", sorted(NOTICED | {"M73", "M82", "M204", "M220", "M221"}))
+def test_the_fake_notices_exactly_the_m_codes_the_host_awaits_notices_of(code: str) -> None:
+    wire = Wire(HyrelControllerSimulator())
+    wire.send(frame(f"{code} S1"))
+    wire.run(0.1)
+    notices = [line for line in wire.lines if line.startswith(">MC:")]
+    assert notices == ([f">MC:{code}: S1:"] if code in NOTICED else [])
 
 
 def test_acks_wait_for_headroom_in_the_receive_buffer() -> None:

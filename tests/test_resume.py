@@ -314,7 +314,7 @@ def test_an_interrupted_job_names_the_command_that_resumes_it(
         assert command[-2] == "--from-line"
         line = int(command[-1])
         # RepRap: the line after the last ok. Hyrel's link says what ran at its answers
-        # (an M115 among every 256 lines, an M-code's notice): here at least the M109's.
+        # (an M115 among the lines, an M-code's notice): here at least the M109's.
         assert (7 if protocol == "reprap" else 2) < line <= len(lines)
         again = hyrel_send(*command[1:])
         assert again.returncode == 0, again.stderr

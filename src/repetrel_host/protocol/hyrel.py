@@ -32,6 +32,14 @@ class Control(IntEnum):
     WATCHDOG = 0x0E  # the host is alive
 
 
+# The M-codes whose processing the controller reports with a ``>MC:`` notice: those the
+# notes name (M0, M6, M30, M104, M109, M140, M190: "many M-codes ..."), and M1, M106, M107
+# and M772, which the fake reports too. Only these are awaited by the host, and the fake
+# notices exactly these. The host never relies on the set being complete or exact: a notice
+# confirms through the oldest awaited line it may be about, whatever came before it.
+NOTICED = frozenset(
+    {"M0", "M1", "M6", "M30", "M104", "M106", "M107", "M109", "M140", "M190", "M772"}
+)
 _CONTROL_BYTES = frozenset(int(byte) for byte in Control) - {Control.URGENT}
 _NUMBER = re.compile(rb"N(\d+)\s*")
 _NOTICE_FIELD = re.compile(r"([A-Za-z])\s*(-?\d+(?:\.\d*)?)")
@@ -96,16 +104,18 @@ class Notice:
 
 
 def parse_notice(text: str) -> Notice | None:
-    """The text after ``>MC:`` as a :class:`Notice`; None when it names no M-code."""
+    """The text after ``>MC:`` as a :class:`Notice`; None when it names no M-code, or a
+    part of it is no field (a byte garbled: what it says cannot be told)."""
     parts = [part.strip() for part in text.split(":")]
     code = parts[0].upper() if parts else ""
     if not re.fullmatch(r"M\d+", code):
         return None
     fields: dict[str, str] = {}
-    for part in parts[1:]:
+    for part in filter(None, parts[1:]):
         match = _NOTICE_FIELD.fullmatch(part)
-        if match is not None:
-            fields[match.group(1).upper()] = match.group(2)
+        if match is None:
+            return None
+        fields[match.group(1).upper()] = match.group(2)
     return Notice(f"M{int(code[1:])}", fields)
 
 

@@ -11,7 +11,8 @@ heaters, faults); the link is Hyrel's:
   is dropped), pause at the end of the move or layer (held until end-wait), end-wait
   (ends a pause or a heat-up; echoed), status (``>ST: ...``), the watchdog byte;
   0x09 as a line's first byte runs it ahead of the queue;
-- ``>MC:M<n>: ...:`` as M-codes are processed, ``M115`` answered with a ``>Hy:`` identity;
+- ``>MC:M<n>: ...:`` as the M-codes in :data:`~repetrel_host.protocol.hyrel.NOTICED` are
+  processed (no others), ``M115`` answered with a ``>Hy:`` identity;
 - the watchdog: after ``watchdog`` seconds without a byte from the host, every extruder
   stops (here: the head's heater target goes to 0) and ``>ER:`` says so;
 - ``M0``/``M1`` wait until end-wait; ``M772 S<mask>`` resets the job metrics and, with
@@ -36,7 +37,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, fields
 
 from repetrel_host.gcode.commands import command_word
-from repetrel_host.protocol.hyrel import Control, read_line
+from repetrel_host.protocol.hyrel import NOTICED, Control, read_line
 from repetrel_host.testing.simulator import (
     ControllerSettings,
     ControllerSimulator,
@@ -53,10 +54,6 @@ M115_REPLY = (
 )
 PING_REPLY = b">Hy: repetrel-host fake controller (Hyrel link)\n"
 RESTART_REPLY = b">Hy: repetrel-host fake controller (Hyrel link) restarted\n"
-# M-codes whose processing the controller reports with a >MC: notice.
-NOTICED = frozenset(
-    {"M0", "M1", "M6", "M30", "M104", "M106", "M107", "M109", "M140", "M190", "M772"}
-)
 _CONTROL_BYTES = frozenset(int(byte) for byte in Control) - {Control.URGENT, Control.ACK}
 # Faults of this link: lines corrupted on the way, replies garbled, ACKs lost. (An ACK sent
 # twice cannot be told from two: no host could keep the buffer from overflowing.)

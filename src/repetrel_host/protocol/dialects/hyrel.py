@@ -9,14 +9,18 @@ its place, so the stream fails, naming it.
 An ACK says "received", not "run". What has run is learned from what the controller
 writes as it runs commands, in order: ``M115``'s identity line (``FIRMWARE_NAME:>Hy:
 ...``), which says that every line before that M115 ran too, and the ``>MC:M<n>: ...``
-notices of M-codes (one names the oldest M-code line not yet known to have run, with its
-values, or is taken for nothing: a command's reply is complete then). Where every line sent
-must be known to have run (the end of a job, before a host action, a command's reply) the
-host sends an ``M115`` of its own after the last of them: a *sync*; one goes among every
-:data:`SYNC_EVERY` lines too, so that what ran is known as the job goes, and one just
-before an ``M0`` (which waits; what follows it waits behind it). Up to 8 KB of job may wait
-in the controller when the last ACK comes: a job ends once a sync's answer says its last
-line ran, and with it all the controller wrote meanwhile.
+notices of the M-codes it reports (:data:`~repetrel_host.protocol.hyrel.NOTICED`; no
+others are awaited). A notice says that a received line of its code and values ran: the
+host takes it for the oldest such line not known to have run (so for every line before it,
+whose own notices were lost or garbled), and for nothing when none agrees; a command's reply
+is complete then. Where every line sent must be known to have run (the end of a job, before
+a host action, a command's reply) the host sends an ``M115`` of its own after the last of
+them: a *sync*; one goes among the lines too, after as many of them as the answers say run
+in :data:`SYNC_INTERVAL` seconds (at most :data:`SYNC_EVERY`), so that what ran (the resume
+point) follows the job, fast or slow, and one just before an ``M0`` (which waits; what
+follows it waits behind it). Up to 8 KB of job may wait in the controller when the last ACK
+comes: a job ends once a sync's answer says its last line ran, and with it all the
+controller wrote meanwhile.
 
 The controller stops its extruders after 30 s without a byte from the host: the dialect
 sends the watchdog byte whenever it has been quiet for :data:`KEEPALIVE` seconds, through
@@ -54,6 +58,7 @@ from repetrel_host.protocol.events import (
 )
 from repetrel_host.protocol.flow import HYREL_WINDOW, FlowControl
 from repetrel_host.protocol.hyrel import (
+    NOTICED,
     Control,
     HostReceiver,
     Notice,
@@ -74,17 +79,29 @@ STATUS_AFTER = 5.0  # lines waiting this long for an ACK: ask whether the contro
 SYNC_AFTER = 0.5
 SYNC_COMMAND = "M115"  # answered when run: every line before it ran
 SYNC_RETRY = 30.0  # an M115 unanswered this long: its answer may be lost, another may go
-# A sync among every this many lines: its answer says how far the controller got, and
-# releases lines whose ACK was lost before they fill the window (0.4 % more lines).
+# Syncs among the lines: each answer says how far the controller got (the resume point
+# after a stop: what ran since the last one runs again), and releases lines whose ACK was
+# lost before they fill the window. One goes after as many lines as run in SYNC_INTERVAL
+# seconds, as the answers tell: on a slow job 256 lines are minutes of printing. (Not
+# after a time since the last one: lines do not flow as they run, but in bursts of the
+# headroom, ACKed once 2 KB of the buffer are free, and at once while it fills.) One M115
+# a second costs some 12 bytes to the controller and 100 back, under 1 % of a 115,200 baud
+# link; on a fast job one among every SYNC_EVERY lines (0.4 % more lines).
+SYNC_INTERVAL = 1.0
 SYNC_EVERY = 256
+# Until answers tell (a job's start, after a wait): a sync among every this many lines,
+# whose count doubles at most with each answer (the first lines fill the planner at once).
+SYNC_EVERY_MIN = 16
+RATE_AFTER = 0.1  # seconds since the last answer that told how fast lines run
 # Bytes of the headroom the caller's lines leave free: room for the host's own lines (a
 # sync past the window), and against a few ACKs that come late (taken for the next line's,
 # each lets one line too many go; a full buffer has no other byte to spare).
 HOST_RESERVE = 128
-RECENT = 1024  # lines remembered by number (an error names one), M-codes awaiting notices
+RECENT = 1024  # lines remembered by number (an error names one)
 _LINE_NUMBER = re.compile(r"\bline\s+(\d+)|\bN(\d+)\b", re.IGNORECASE)
 _FATAL = re.compile(r"checksum|watchdog", re.IGNORECASE)
 _FIELD = re.compile(r"([A-Za-z])\s*(-?\d+(?:\.\d*)?)")
+_NOTICE_VALUES = "TS"  # the values a notice gives of its line (">MC:M<n>: T<t>: S<s>:")
 
 
 class Phase(Enum):
@@ -148,7 +165,9 @@ class HyrelDialect:
         self._unran: deque[_Sent] = deque()  # the caller's plain lines not known to have run
         self.last_ran: object | None = None  # the tag of the last of them known to have run
         self.last_sent: object | None = None  # the tag of the caller's last line transmitted
-        self._mcodes: deque[_Sent] = deque(maxlen=RECENT)  # M-codes a notice may name
+        # Noticed M-codes not known to have run: a notice may name one. (Few: an answer
+        # confirms them all, and one comes every SYNC_EVERY lines at most.)
+        self._mcodes: deque[_Sent] = deque()
         # Every M115 on the wire, the caller's and the host's syncs, in order: each
         # "FIRMWARE_NAME:" answer is the oldest one's.
         self._m115s: deque[_Sent] = deque()
@@ -163,6 +182,9 @@ class HyrelDialect:
         self._sync_requested = False
         self._sync_sent_at: float | None = None  # an M115 after the last caller line
         self._since_m115 = 0  # caller lines sent since the last M115
+        self._sync_every = SYNC_EVERY_MIN  # lines that run in SYNC_INTERVAL, as told
+        self._told_at = 0.0  # the answer that told it last, and the line it confirmed
+        self._told_seq = 0
         self._stalled = False  # lines waited for their ACK: a sync may go past the window
         self._acked_at = 0.0  # the last ACK, or the first line to wait for one since
         self._receiver = HostReceiver()
@@ -291,7 +313,8 @@ class HyrelDialect:
                 sent = self._transmit(command, word, tag, now, confirm=confirm, urgent=urgent_line)
                 if sync is not None:
                     sync.reaches = sent.seq
-                if self._since_m115 >= SYNC_EVERY and self._has_room(SYNC_COMMAND, False, True):
+                due = self._since_m115 >= self._sync_every
+                if due and self._has_room(SYNC_COMMAND, False, True):
                     self._transmit(SYNC_COMMAND, SYNC_COMMAND, None, now, host_line=True)
             if self._wants_sync() and self._has_room(SYNC_COMMAND, False, host_line=True):
                 self._transmit(SYNC_COMMAND, SYNC_COMMAND, None, now, host_line=True)
@@ -371,7 +394,7 @@ class HyrelDialect:
                 self._awaiting.append(sent)
             else:  # a command (an M105 poll among a job's lines) is told once it ran
                 self._unran.append(sent)
-            if word[:1] == "M" and word != "M115":
+            if word in NOTICED:
                 self._mcodes.append(sent)
         return sent
 
@@ -423,8 +446,10 @@ class HyrelDialect:
         self._last_progress_at = now
         self._status_asked = 0
         hyrel = reply if isinstance(reply, replies.HyrelReport) else None
-        if self._is_answer(text):  # first: an answer cut by a garbled ':' reads ">Hy: ..."
-            self._answered(reply, text, now)
+        answers = self._answers_in(text)  # first: one cut by a garbled ':' reads ">Hy: ..."
+        if answers:
+            for _ in range(answers):
+                self._answered(reply, text, now)
             return
         if hyrel is not None and hyrel.tag == "HY":
             self._identity(text, now)
@@ -453,14 +478,15 @@ class HyrelDialect:
         else:
             self._fail(FailureKind.RESET, f"the controller reset (it says: {text})")
 
-    def _is_answer(self, text: str) -> bool:
-        """An M115 answer, even with a byte garbled: its name or its version field (not
-        both halves of one answer that a garbled newline cut in two)."""
-        named = "FIRMWARE_NAME:" in text
-        versioned = "PROTOCOL_VERSION:" in text
-        answer = named or (versioned and not self._answer_fragment)
-        self._answer_fragment = named and not versioned
-        return answer
+    def _answers_in(self, text: str) -> int:
+        """M115 answers in a line, even with a byte garbled: each has its name or its
+        version field (both halves of one that a garbled newline cut in two count once;
+        one whose newline was garbled runs into the next line, another answer maybe)."""
+        named = text.count("FIRMWARE_NAME:")
+        versioned = text.count("PROTOCOL_VERSION:")
+        answers = max(named, versioned - self._answer_fragment)
+        self._answer_fragment = named > versioned
+        return answers
 
     def _answered(self, reply: replies.Reply, text: str, now: float) -> None:
         """An M115 ran, so did every line before it (whatever ACKs were lost on the way)."""
@@ -476,6 +502,7 @@ class HyrelDialect:
         if not self._m115s:
             self._sync_sent_at = None
         seq = max(m115.seq, m115.reaches)
+        self._learn_rate(seq, now)
         self._synced_seq = max(self._synced_seq, seq)
         self._confirm_through(seq)
         # What ran was received: an ACK not here yet for it was lost. (It cannot be on
@@ -486,14 +513,30 @@ class HyrelDialect:
             self.stats.lost_acks += 1
             self._release(in_flight.popleft())
 
+    def _learn_rate(self, seq: int, now: float) -> None:
+        """Lines that run in SYNC_INTERVAL: those confirmed since the answer that last told,
+        over the time since (a pause, a wait for lines counts: more syncs, for a while)."""
+        elapsed = now - self._told_at
+        if elapsed >= RATE_AFTER:
+            ran = int((seq - self._told_seq) * SYNC_INTERVAL / elapsed)
+            self._sync_every = max(SYNC_EVERY_MIN, min(SYNC_EVERY, 2 * self._sync_every, ran))
+            self._told_at, self._told_seq = now, seq
+
     def _noticed(self, notice: Notice) -> None:
-        """``>MC:`` for an M-code: the oldest M-code line not known to have run ran now, if
-        the notice names it and its values (a notice garbled, or of an M-code the host did
-        not send, confirms nothing). A command's reply is complete then; a job is done
-        only once an answer says so."""
-        mcodes = self._mcodes
-        if mcodes and mcodes[0].word == notice.code and _agrees(notice, mcodes[0].command):
-            self._confirm_through(mcodes[0].seq)
+        """``>MC:`` for an M-code: a line of its code and values ran, and every line before
+        it. It is taken for the oldest such line not known to have run that the controller
+        received (its ACK came: a line is ACKed before it runs), or for nothing (a notice
+        garbled, of a line an answer confirmed, of an M-code the host did not send). The
+        line it is about is that one or a later one: the notices of those before were lost
+        or garbled, or never sent. A command's reply is complete then; a job is done only
+        once an answer says so."""
+        received = self._in_flight[0].seq if self._in_flight else self._seq + 1
+        for sent in self._mcodes:
+            if sent.seq >= received:
+                return
+            if sent.word == notice.code and _agrees(notice, sent.command):
+                self._confirm_through(sent.seq)
+                return
 
     def _confirm_through(self, seq: int) -> None:
         """Every line up to ``seq`` ran: commands up to it have their reply."""
@@ -583,9 +626,15 @@ class HyrelDialect:
 
 
 def _agrees(notice: Notice, command: str) -> bool:
-    """Every value the notice gives is the command's: ``T11: S200:`` and ``M104 T11 S200.0``."""
+    """The notice gives the command's values: every value it gives is the command's, and it
+    gives the command's T and S (``T11: S200:`` and ``M104 T11 S200.0``). A notice cut
+    short by a garbled byte (``>MC:M104:``), or another code's garbled, is no line's with
+    values."""
     values = {letter.upper(): float(value) for letter, value in _FIELD.findall(command[1:])}
-    return all(values.get(letter) == float(value) for letter, value in notice.fields.items())
+    given = {letter: float(value) for letter, value in notice.fields.items()}
+    return all(values.get(letter) == value for letter, value in given.items()) and all(
+        given.get(letter) == values[letter] for letter in _NOTICE_VALUES if letter in values
+    )
 
 
 def _named(text: str) -> int | None:
