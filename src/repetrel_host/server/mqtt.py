@@ -30,7 +30,7 @@ import aiomqtt
 from repetrel_host.server.printers import Refused
 
 if TYPE_CHECKING:
-    from repetrel_host.server.app import PrintServer
+    from repetrel_host.server.core import PrintServer
     from repetrel_host.server.events import Event
 
 log = logging.getLogger("repetrel_host.server")

@@ -1,0 +1,249 @@
+"""The print server's state: its printers, their store, the uploads folder, and what
+every face of its API (native, OctoPrint's) does with them."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import re
+from collections.abc import Awaitable
+from pathlib import Path
+from typing import Any, TypeVar
+
+from fastapi import (
+    HTTPException,
+    Request,
+    UploadFile,
+)
+
+import repetrel_host as rh
+from repetrel_host.config import UserConfig
+from repetrel_host.server.events import EventHub
+from repetrel_host.server.mqtt import MqttSettings
+from repetrel_host.server.printers import PrinterConfig, PrinterService, Refused
+from repetrel_host.server.store import JobRecord, JobState, Store
+
+log = logging.getLogger("repetrel_host.server")
+
+G_CODE_SUFFIXES = (".gcode", ".gco", ".g")
+_SAFE_NAME = re.compile(r"[^A-Za-z0-9._ ()+-]")
+T = TypeVar("T")
+
+
+class PrintServer:
+    """The printers, their store and the data folder; started and stopped with the app."""
+
+    def __init__(
+        self,
+        data_dir: Path,
+        printers: dict[str, PrinterConfig],
+        api_key: str,
+        max_upload: int,
+        user: UserConfig | None = None,
+        mqtt: MqttSettings | None = None,
+        automatic_transition: bool = False,
+    ) -> None:
+        self.data_dir = data_dir
+        self.files = data_dir / "files"
+        self.files.mkdir(parents=True, exist_ok=True)
+        self.api_key = api_key
+        self.max_upload = max_upload
+        self.user = user or UserConfig()
+        self.store = Store(data_dir / "jobs.sqlite")
+        self.events = EventHub()
+        self.mqtt = mqtt
+        self._bridge: asyncio.Task[None] | None = None
+        self.services = {
+            name: PrinterService(name, config, self.store, data_dir, self.user, self.events.publish)
+            for name, config in printers.items()
+        }
+        for service in self.services.values():
+            service.automatic_transition = automatic_transition
+        self.default = next(iter(self.services))
+        for record in self.store.interrupt_active():
+            log.warning(
+                "job %d (%s) on printer %s was interrupted: acknowledged through at least "
+                "line %d; its safe stop goes first",
+                record.id,
+                record.name,
+                record.printer,
+                record.last_line,
+            )
+        for service in self.services.values():
+            owing = self.store.owing(service.name)
+            if owing:  # interrupted, or ended without its safe stop confirmed
+                service.owed_safe_stop = True
+                log.warning(
+                    "printer %s: the safe stop of job %s is owed: it goes as soon as the "
+                    "printer answers",
+                    service.name,
+                    ", ".join(map(str, owing)),
+                )
+        # After an interrupted job nothing starts by itself: a part may be on the bed.
+        for service in self.services.values():
+            last = self.store.last_started(service.name)
+            if last is not None and last.state is JobState.INTERRUPTED:
+                service.held = True
+                log.warning(
+                    "printer %s: the queue is held after interrupted job %d "
+                    "(POST /v1/printers/%s/release, or OctoPrint's job start, releases it)",
+                    service.name,
+                    last.id,
+                    service.name,
+                )
+
+    async def start(self) -> None:
+        for service in self.services.values():
+            service.start()
+        if self.mqtt is not None:
+            from repetrel_host.server.mqtt import MqttBridge
+
+            bridge = MqttBridge(self, self.mqtt)
+            self._bridge = asyncio.get_running_loop().create_task(bridge.run(), name="mqtt")
+
+    async def stop(self) -> None:
+        await asyncio.gather(*(service.stop() for service in self.services.values()))
+        if self._bridge is not None:  # after the printers: their last events go out
+            await asyncio.sleep(0.2)
+            self._bridge.cancel()
+            await asyncio.gather(self._bridge, return_exceptions=True)
+        self.store.close()
+
+    def service(self, name: str | None) -> PrinterService:
+        service = self.services.get(name or self.default)
+        if service is None:
+            raise HTTPException(404, f"no printer '{name}' (printers: {', '.join(self.services)})")
+        return service
+
+
+def server_of(request: Request) -> PrintServer:
+    server: PrintServer = request.app.state.server
+    return server
+
+
+def safe_file_name(name: str) -> str:
+    """The upload's own name, without folders, in safe characters; 400 if nothing is left
+    or it is not a G-code file."""
+    base = name.replace("\\", "/").rsplit("/", 1)[-1].strip()
+    cleaned = _SAFE_NAME.sub("_", base).lstrip(".")
+    if not cleaned or not cleaned.lower().endswith(G_CODE_SUFFIXES):
+        raise HTTPException(400, f"'{name}' is not a G-code file name (.gcode, .gco, .g)")
+    return cleaned
+
+
+def safe_folder(path: str) -> Path:
+    """OctoPrint's ``path`` field: a folder below the uploads; no '..', no absolute path."""
+    parts = [part for part in path.replace("\\", "/").split("/") if part not in ("", ".")]
+    if any(part == ".." for part in parts) or path.startswith(("/", "\\")):
+        raise HTTPException(400, f"path '{path}' leaves the upload folder")
+    return Path(*(_SAFE_NAME.sub("_", part) for part in parts)) if parts else Path()
+
+
+async def save_upload(
+    server: PrintServer, printer: str, upload: UploadFile, folder: str = ""
+) -> tuple[Path, list[str], int]:
+    """Write the upload into the data folder (a new name if taken, never over another
+    file), and check it: the stored path, the lint's findings, its number of commands.
+    A file with errors is removed and refused (400, with the findings)."""
+    name = safe_file_name(upload.filename or "")
+    target_dir = server.files / safe_folder(folder)
+    target_dir.mkdir(parents=True, exist_ok=True)
+    target = target_dir / name
+    stem, suffix = target.stem, target.suffix
+    number = 1
+    while target.exists():  # a queued job may point at it
+        number += 1
+        target = target_dir / f"{stem}-{number}{suffix}"
+    size = 0
+    try:
+        with target.open("xb") as out:
+            while chunk := await upload.read(1 << 20):
+                size += len(chunk)
+                if size > server.max_upload:
+                    raise HTTPException(413, f"the upload is over {server.max_upload} bytes")
+                out.write(chunk)
+            out.flush()
+            # On disk before the client hears it is there; checked in a thread: a big file
+            # must not hold the event loop (and every printer's stream) up.
+            await asyncio.to_thread(os.fsync, out.fileno())
+        findings, commands = await asyncio.to_thread(check, server, printer, target)
+        errors = [f for f in findings if f.startswith("error")]
+        if errors:
+            raise HTTPException(
+                400, {"error": f"{name}: refused ({len(errors)} errors)", "findings": findings}
+            )
+    except BaseException:
+        target.unlink(missing_ok=True)
+        raise
+    return target, findings, commands
+
+
+def queue(server: PrintServer, printer: str, path: Path, commands: int) -> JobRecord:
+    record = server.store.submit(printer, path.name, relative(server, path), commands)
+    log.info("job %d (%s) queued on printer %s", record.id, path.name, printer)
+    service = server.services[printer]
+    service.job_changed(record.id)
+    service.wake()
+    return record
+
+
+def relative(server: PrintServer, path: Path) -> str:
+    return path.relative_to(server.data_dir).as_posix()
+
+
+def uploaded(server: PrintServer, location: str) -> Path:
+    """An uploaded file by its place below the uploads; 404 when there is none."""
+    path = server.files / safe_folder(location)
+    if not path.is_file():
+        raise HTTPException(404, f"no file '{location}'")
+    return path
+
+
+def delete_upload(server: PrintServer, location: str) -> None:
+    """Remove an uploaded file; 409 while a queued or running job prints it."""
+    path = uploaded(server, location)
+    users = server.store.jobs_using(relative(server, path))
+    if users:
+        jobs = ", ".join(str(job) for job in users)
+        raise HTTPException(409, f"'{location}' is used by job {jobs}: cancel it first")
+    path.unlink()
+    for service in server.services.values():
+        service.forget(path)
+        if service.selected == path:
+            service.selected = None
+    log.info("file %s deleted", location)
+
+
+def check(server: PrintServer, printer: str, path: Path) -> tuple[list[str], int]:
+    """The job lint's findings (``error: file:line: ...``) and the number of lines to send."""
+    try:
+        plan, findings = server.services[printer].check(path)
+    except rh.HostError as exc:  # named by the file's name, not its place on the server
+        return [f"error: {str(exc).replace(str(path), path.name)}"], 0
+    commands = sum(1 for _ in plan.job.lines())  # what goes on the wire: host codes do not
+    return [f"{f.severity}: {f.format(path.name)}" for f in findings], commands
+
+
+async def answered(call: Awaitable[T]) -> T:
+    """What the printer's ``call`` gives; its :class:`Refused` as an HTTP error."""
+    try:
+        return await call
+    except Refused as exc:
+        raise HTTPException(exc.status, str(exc)) from None
+
+
+def file_json(server: PrintServer, path: Path) -> dict[str, Any]:
+    return {
+        "name": path.name,
+        "display": path.name,
+        "path": path.relative_to(server.files).as_posix(),
+        "origin": "local",
+        "type": "machinecode",
+        "size": path.stat().st_size,
+        "date": int(path.stat().st_mtime),
+    }
+
+
+def uploads_json(server: PrintServer) -> list[dict[str, Any]]:
+    return [file_json(server, p) for p in sorted(server.files.rglob("*")) if p.is_file()]

@@ -1,0 +1,223 @@
+"""The native API, under ``/v1``: printers, their queues and jobs, files, snapshots,
+commands, and a stream of server-sent events."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import re
+from collections.abc import AsyncIterator
+from typing import Annotated, Any
+
+from fastapi import (
+    APIRouter,
+    File,
+    HTTPException,
+    Request,
+    UploadFile,
+)
+from fastapi.responses import (
+    FileResponse,
+    JSONResponse,
+    Response,
+    StreamingResponse,
+)
+from pydantic import BaseModel
+
+from repetrel_host.server import core
+from repetrel_host.server.auth import Keyed
+from repetrel_host.server.core import answered, server_of
+from repetrel_host.server.printers import PrinterService
+from repetrel_host.server.store import ACTIVE
+
+KEEPALIVE = 15.0  # seconds of quiet before the event stream says it is alive
+_SNAPSHOT = re.compile(r"[A-Za-z0-9_-]+\.(jpg|png|gif|webp)")
+
+
+def _printer_json(service: PrinterService) -> dict[str, Any]:
+    printer = service.printer
+    running = service.running
+    return {
+        "name": service.name,
+        "port": service.port,
+        "state": service.state,
+        "held": service.held,
+        "error": service.last_error or None,
+        "firmware": printer.firmware.name if printer and printer.firmware else None,
+        "protocol": printer.settings.protocol if printer else None,  # the link's: reprap, hyrel
+        "temperatures": {
+            sensor: {"actual": actual, "target": target}
+            for sensor, (actual, target) in (printer.temperatures if printer else {}).items()
+        },
+        "job": _running_json(service) if running is not None else None,
+        "camera": service.camera is not None,
+        "snapshot": _latest_snapshot(service),
+    }
+
+
+def _latest_snapshot(service: PrinterService) -> str | None:
+    images = service.camera.images()[:1] if service.camera is not None else []
+    return service.url(images[0]) if images else None
+
+
+def _running_json(service: PrinterService) -> dict[str, Any]:
+    running = service.running
+    assert running is not None
+    job = running.job
+    record = running.record
+    last = job.last
+    return {
+        **record.as_json(),
+        "state": "paused" if service.state == "paused" else "printing",
+        "lines": job.lines,
+        "last_line": last.source_line if last else 0,
+        "bytes": job.offset,
+        "size": job.size,
+        "layer": running.layer,
+        "layers": len(running.layers),
+    }
+
+
+def _sse(event: dict[str, Any]) -> str:
+    return f"event: {event['type']}\ndata: {json.dumps(event)}\n\n"
+
+
+class Move(BaseModel):
+    before: int | None = None  # a queued job's id; None: to the end
+
+
+class Command(BaseModel):
+    command: str
+
+
+def router() -> APIRouter:
+    router = APIRouter(prefix="/v1")
+
+    @router.get("/printers")
+    async def printers(request: Request) -> list[dict[str, Any]]:
+        return [_printer_json(s) for s in server_of(request).services.values()]
+
+    @router.get("/printers/{name}")
+    async def printer(request: Request, name: str) -> dict[str, Any]:
+        return _printer_json(server_of(request).service(name))
+
+    @router.get("/printers/{name}/jobs")
+    async def printer_jobs(request: Request, name: str) -> list[dict[str, Any]]:
+        server = server_of(request)
+        server.service(name)
+        return [r.as_json() for r in server.store.jobs(name)]
+
+    @router.post("/printers/{name}/jobs", status_code=201, dependencies=[Keyed])
+    async def submit(
+        request: Request, name: str, file: Annotated[UploadFile, File()]
+    ) -> dict[str, Any]:
+        server = server_of(request)
+        service = server.service(name)
+        path, findings, commands = await core.save_upload(server, service.name, file)
+        return {**core.queue(server, service.name, path, commands).as_json(), "findings": findings}
+
+    @router.get("/files")
+    async def files(request: Request) -> list[dict[str, Any]]:
+        server = server_of(request)
+        return core.uploads_json(server)
+
+    @router.delete("/files/{location:path}", status_code=204, dependencies=[Keyed])
+    async def delete_file(request: Request, location: str) -> Response:
+        core.delete_upload(server_of(request), location)
+        return Response(status_code=204)
+
+    @router.get("/events")
+    async def events(request: Request, printer: str | None = None) -> StreamingResponse:
+        """Server-sent events: each printer as it stands first, then printer states, jobs,
+        progress, temperatures and controller messages as they come (JSON data)."""
+        server = server_of(request)
+        names = [server.service(printer).name] if printer else list(server.services)
+
+        async def stream() -> AsyncIterator[str]:
+            async with server.events.subscribe() as queue:
+                for name in names:
+                    now = {
+                        "type": "printer",
+                        "printer": name,
+                        **_printer_json(server.services[name]),
+                    }
+                    yield _sse(now)
+                while True:
+                    try:
+                        event = await asyncio.wait_for(queue.get(), KEEPALIVE)
+                    except TimeoutError:
+                        yield ": keepalive\n\n"  # proxies keep the stream open
+                        continue
+                    if event.get("printer") in names:
+                        yield _sse(event)
+
+        return StreamingResponse(stream(), media_type="text/event-stream")
+
+    @router.get("/jobs/{job_id}")
+    async def job(request: Request, job_id: int) -> dict[str, Any]:
+        record = server_of(request).store.job(job_id)
+        if record is None:
+            raise HTTPException(404, f"no job {job_id}")
+        return record.as_json()
+
+    @router.delete("/jobs/{job_id}", dependencies=[Keyed])
+    async def cancel_job(request: Request, job_id: int) -> Any:
+        server = server_of(request)
+        record = server.store.job(job_id)
+        if record is None:
+            raise HTTPException(404, f"no job {job_id}")
+        service = server.service(record.printer)
+        if not await service.cancel(job_id):
+            raise HTTPException(409, f"job {job_id} is {record.state.value}: nothing to cancel")
+        ended = server.store.job(job_id)
+        assert ended is not None
+        if ended.state in ACTIVE:
+            # Still stopping: its safe stop is held up (or slow). Accepted, and why.
+            stopping = service.stop_held or "the safe stop is not confirmed yet"
+            return JSONResponse({**ended.as_json(), "stopping": stopping}, status_code=202)
+        return ended.as_json()
+
+    @router.post("/jobs/{job_id}/move", dependencies=[Keyed])
+    async def move(request: Request, job_id: int, move: Move) -> list[dict[str, Any]]:
+        server = server_of(request)
+        record = server.store.job(job_id)
+        if record is None or not server.store.move(job_id, move.before):
+            where = f" or job {move.before} is not" if move.before is not None else ""
+            raise HTTPException(409, f"job {job_id} is not queued{where}")
+        return [r.as_json() for r in server.store.jobs(record.printer)]
+
+    @router.get("/printers/{name}/snapshots")
+    async def snapshots(request: Request, name: str) -> list[dict[str, Any]]:
+        """The printer's camera snapshots, newest first."""
+        service = server_of(request).service(name)
+        images = service.camera.images() if service.camera is not None else []
+        return [{"file": path.name, "url": service.url(path)} for path in images]
+
+    @router.get("/printers/{name}/snapshots/{file}")
+    async def snapshot_image(request: Request, name: str, file: str) -> FileResponse:
+        service = server_of(request).service(name)
+        camera = service.camera
+        path = camera.folder / file if camera is not None else None
+        if path is None or not _SNAPSHOT.fullmatch(file) or not path.is_file():
+            raise HTTPException(404, f"no snapshot '{file}' of printer {service.name}")
+        return FileResponse(path, headers={"Cache-Control": "max-age=86400, immutable"})
+
+    @router.post("/printers/{name}/snapshots", status_code=201, dependencies=[Keyed])
+    async def take_snapshot(request: Request, name: str) -> dict[str, Any]:
+        """A snapshot now (the camera's settings, tried out)."""
+        service = server_of(request).service(name)
+        path = await answered(service.snapshot())
+        return {"file": path.name, "url": service.url(path)}
+
+    @router.post("/printers/{name}/command", dependencies=[Keyed])
+    async def command(request: Request, name: str, body: Command) -> dict[str, Any]:
+        reply = await answered(server_of(request).service(name).command(body.command))
+        return {"command": reply.command, "lines": reply.lines, "ok": reply.ok}
+
+    @router.post("/printers/{name}/{action}", status_code=204, dependencies=[Keyed])
+    async def control(request: Request, name: str, action: str) -> Response:
+        service = server_of(request).service(name)
+        await answered(service.control(action))
+        return Response(status_code=204)
+
+    return router

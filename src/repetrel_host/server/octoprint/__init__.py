@@ -1,0 +1,1 @@
+"""OctoPrint's face of the print server: its REST API, push socket and app keys."""
