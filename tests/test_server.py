@@ -167,7 +167,11 @@ def test_an_upload_made_as_prusaslicer_makes_it_is_printed_exactly_once(
         assert [f["name"] for f in listed] == ["cube.gcode"]
         resource = client.get(body["files"]["local"]["refs"]["resource"]).json()
         assert resource["size"] == len(text)
-        assert client.get("/api/job").json()["state"] == "Operational"
+        # OctoPrint keeps the finished job's file and progress; the held queue says so.
+        job = client.get("/api/job").json()
+        assert job["state"] == "Operational (bed not cleared)"
+        assert job["job"]["file"]["name"] == "cube.gcode"
+        assert job["progress"]["completion"] == 100.0
     fake.request("status")  # the log is complete
     assert executed(fake.log_path)[-401:] == commands_of(text)
     assert executed(fake.log_path).count("G28") == 1
@@ -195,8 +199,37 @@ def test_upload_without_print_waits_until_selected_and_started(
             what="the started job",
         )
         assert jobs[0]["name"] == "part.gcode"
+        # The part is on the bed: a start says so (a slicer shows OctoPrint's "error").
         refused = client.post("/api/job", json={"command": "start"})
-        assert refused.status_code == 409 and "no file selected" in refused.json()["detail"]
+        assert refused.status_code == 409 and "still on the bed" in refused.json()["error"]
+        # Once released, start prints the last job's file again, as OctoPrint's does.
+        assert client.post("/v1/printers/bench/release").status_code == 204
+        assert client.post("/api/job", json={"command": "start"}).status_code == 204
+        wait_for(
+            lambda: (
+                len([j for j in client.get("/v1/printers/bench/jobs").json()]) == 2
+                and client.get("/v1/printers/bench/jobs").json()[0]["state"] == "completed"
+            ),
+            what="the job printed again",
+        )
+        client.post("/v1/printers/bench/release")
+        assert (
+            client.post("/api/files/local/part.gcode", json={"command": "unselect"}).status_code
+            == 409
+        )
+        # Nothing selected and no last job to print again: nothing to start.
+        assert (
+            client.post("/api/files/local/part.gcode", json={"command": "select"}).status_code
+            == 204
+        )
+        assert (
+            client.post("/api/files/local/part.gcode", json={"command": "unselect"}).status_code
+            == 204
+        )
+        refused = client.post("/api/job", json={"command": "start"})
+        assert refused.status_code == 409 and "no file is selected" in refused.json()["error"]
+    fake.request("status")
+    assert executed(fake.log_path).count("G1 X5") == 2
 
 
 def test_the_event_stream_tells_states_jobs_progress_and_temperatures(
@@ -474,7 +507,9 @@ def test_uploaded_files_are_deleted_unless_a_job_still_needs_them(
         client.post("/v1/printers/bench/release")
         wait_for(lambda: job_state(client, kept.json()["id"])["state"] == "completed")
         assert client.delete("/api/files/local/kept.gcode").status_code == 204  # done with it
-        assert client.get("/api/files").json()["files"] == []
+        assert [(f["name"], f["type"]) for f in client.get("/api/files").json()["files"]] == [
+            ("old", "folder")
+        ]
     assert (server.data_dir / "jobs.sqlite").exists()
 
 

@@ -10,9 +10,11 @@ PrusaSlicer's ``OctoPrint.cpp`` uses it; Moonraker's queue endpoints.
 
 from __future__ import annotations
 
+import re
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from importlib import resources
+from typing import Any
 
 from fastapi import (
     FastAPI,
@@ -23,6 +25,7 @@ from fastapi.responses import (
     HTMLResponse,
     JSONResponse,
 )
+from starlette.exceptions import HTTPException
 
 import repetrel_host as rh
 from repetrel_host.server import native
@@ -45,6 +48,15 @@ def create_app(server: PrintServer) -> FastAPI:
     app = FastAPI(title="repetrel-host print server", version=rh.__version__, lifespan=lifespan)
     app.state.server = server
     app.add_middleware(RequestGuard, server=server)
+    app.add_middleware(SingleSlashes)
+
+    @app.exception_handler(HTTPException)
+    async def refused(request: Request, exc: HTTPException) -> JSONResponse:
+        # OctoPrint's clients read "error"; FastAPI's read "detail": both say it.
+        detail = exc.detail
+        error = detail.get("error", detail) if isinstance(detail, dict) else detail
+        body = {"error": error, "detail": detail}
+        return JSONResponse(body, exc.status_code, headers=exc.headers)
 
     @app.exception_handler(RequestValidationError)
     async def bad_request(request: Request, exc: RequestValidationError) -> JSONResponse:
@@ -64,4 +76,20 @@ def create_app(server: PrintServer) -> FastAPI:
     octoprint = rest.router()
     app.include_router(octoprint)
     app.include_router(octoprint, prefix="/printers/{printer}")
+    app.include_router(rest.downloads())
+    app.include_router(rest.downloads(), prefix="/printers/{printer}")
     return app
+
+
+class SingleSlashes:
+    """``//api/printer/bed`` is ``/api/printer/bed`` (Home Assistant's client joins its
+    base URL and paths with one slash too many), as OctoPrint's server takes it."""
+
+    def __init__(self, app: Any) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
+        if scope["type"] in ("http", "websocket") and "//" in scope["path"]:
+            path = re.sub("/{2,}", "/", scope["path"])
+            scope = {**scope, "path": path, "raw_path": path.encode()}
+        await self.app(scope, receive, send)

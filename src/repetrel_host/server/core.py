@@ -4,10 +4,15 @@ every face of its API (native, OctoPrint's) does with them."""
 from __future__ import annotations
 
 import asyncio
+import hashlib
+import json
 import logging
 import os
 import re
+import secrets
+import uuid
 from collections.abc import Awaitable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -29,6 +34,7 @@ log = logging.getLogger("repetrel_host.server")
 G_CODE_SUFFIXES = (".gcode", ".gco", ".g")
 _SAFE_NAME = re.compile(r"[^A-Za-z0-9._ ()+-]")
 T = TypeVar("T")
+_HASHES: dict[tuple[Path, int, int], str] = {}
 
 
 class PrintServer:
@@ -110,6 +116,18 @@ class PrintServer:
             await asyncio.gather(self._bridge, return_exceptions=True)
         self.store.close()
 
+    def printer_uuid(self, name: str) -> str:
+        """A printer's UUID, the same across restarts (OctoPrint's discovery ``upnpUuid``,
+        which Home Assistant takes for the printer's identity)."""
+        path = self.data_dir / "uuids.json"
+        known: dict[str, str] = json.loads(path.read_text()) if path.exists() else {}
+        if name not in known:
+            known[name] = str(uuid.uuid4())
+            partial = path.with_suffix(".part")
+            partial.write_text(json.dumps(known, indent=1))
+            partial.replace(path)
+        return known[name]
+
     def service(self, name: str | None) -> PrinterService:
         service = self.services.get(name or self.default)
         if service is None:
@@ -140,47 +158,99 @@ def safe_folder(path: str) -> Path:
     return Path(*(_SAFE_NAME.sub("_", part) for part in parts)) if parts else Path()
 
 
+@dataclass(frozen=True)
+class Upload:
+    """A stored upload: where, the lint's findings, its commands, and what became of a
+    file of the same name (``note``)."""
+
+    path: Path
+    findings: list[str]
+    commands: int
+    note: str = ""
+
+
 async def save_upload(
     server: PrintServer, printer: str, upload: UploadFile, folder: str = ""
-) -> tuple[Path, list[str], int]:
-    """Write the upload into the data folder (a new name if taken, never over another
-    file), and check it: the stored path, the lint's findings, its number of commands.
-    A file with errors is removed and refused (400, with the findings)."""
+) -> Upload:
+    """Write the upload into the data folder and check it. A file of the same name is
+    replaced, as OctoPrint does, unless a queued or running job prints it: then the upload
+    gets a new name (``part-2.gcode``). A file with errors is refused (400, with the
+    findings), and one of the same name stays as it was."""
     name = safe_file_name(upload.filename or "")
     target_dir = server.files / safe_folder(folder)
     target_dir.mkdir(parents=True, exist_ok=True)
-    target = target_dir / name
-    stem, suffix = target.stem, target.suffix
-    number = 1
-    while target.exists():  # a queued job may point at it
-        number += 1
-        target = target_dir / f"{stem}-{number}{suffix}"
+    # Written beside it under a hidden name first: a failed upload replaces nothing.
+    partial = target_dir / f".upload-{secrets.token_hex(8)}.part"
     size = 0
+    digest = hashlib.sha1(usedforsecurity=False)
     try:
-        with target.open("xb") as out:
+        with partial.open("xb") as out:
             while chunk := await upload.read(1 << 20):
                 size += len(chunk)
                 if size > server.max_upload:
                     raise HTTPException(413, f"the upload is over {server.max_upload} bytes")
                 out.write(chunk)
+                digest.update(chunk)
             out.flush()
             # On disk before the client hears it is there; checked in a thread: a big file
             # must not hold the event loop (and every printer's stream) up.
             await asyncio.to_thread(os.fsync, out.fileno())
-        findings, commands = await asyncio.to_thread(check, server, printer, target)
+        findings, commands = await asyncio.to_thread(check, server, printer, partial)
+        findings = [f.replace(partial.name, name) for f in findings]
         errors = [f for f in findings if f.startswith("error")]
         if errors:
             raise HTTPException(
                 400, {"error": f"{name}: refused ({len(errors)} errors)", "findings": findings}
             )
+        target, note = _free_name(server, target_dir / name)
+        partial.replace(target)
     except BaseException:
-        target.unlink(missing_ok=True)
+        partial.unlink(missing_ok=True)
         raise
-    return target, findings, commands
+    for service in server.services.values():
+        service.renamed(partial, target)
+    _HASHES[_stat_key(target)] = digest.hexdigest()
+    return Upload(target, findings, commands, note)
 
 
-def queue(server: PrintServer, printer: str, path: Path, commands: int) -> JobRecord:
-    record = server.store.submit(printer, path.name, relative(server, path), commands)
+def _stat_key(path: Path) -> tuple[Path, int, int]:
+    stat = path.stat()
+    return path, stat.st_size, stat.st_mtime_ns
+
+
+def file_hash(path: Path) -> str:
+    """The file's SHA-1 (OctoPrint's ``hash``), remembered while the file is unchanged;
+    an upload's is computed as it is written."""
+    key = _stat_key(path)
+    known = _HASHES.get(key)
+    if known is None:
+        digest = hashlib.sha1(usedforsecurity=False)
+        with path.open("rb") as handle:
+            while chunk := handle.read(1 << 20):
+                digest.update(chunk)
+        known = _HASHES[key] = digest.hexdigest()
+    return known
+
+
+def _free_name(server: PrintServer, target: Path) -> tuple[Path, str]:
+    """Where an upload named ``target`` goes: there, unless a job uses the file there."""
+    users = server.store.jobs_using(relative(server, target)) if target.exists() else []
+    if not users:
+        return target, f"replaced the earlier {target.name}" if target.exists() else ""
+    stem, suffix = target.stem, target.suffix
+    number = 1
+    chosen = target
+    while chosen.exists():
+        number += 1
+        chosen = target.with_name(f"{stem}-{number}{suffix}")
+    jobs = ", ".join(map(str, users))
+    return chosen, f"{target.name} is used by job {jobs}: stored as {chosen.name}"
+
+
+def queue(
+    server: PrintServer, printer: str, path: Path, commands: int, user: str | None = None
+) -> JobRecord:
+    record = server.store.submit(printer, path.name, relative(server, path), commands, user)
     log.info("job %d (%s) queued on printer %s", record.id, path.name, printer)
     service = server.services[printer]
     service.job_changed(record.id)

@@ -113,8 +113,9 @@ def router() -> APIRouter:
     ) -> dict[str, Any]:
         server = server_of(request)
         service = server.service(name)
-        path, findings, commands = await core.save_upload(server, service.name, file)
-        return {**core.queue(server, service.name, path, commands).as_json(), "findings": findings}
+        upload = await core.save_upload(server, service.name, file)
+        record = core.queue(server, service.name, upload.path, upload.commands)
+        return {**record.as_json(), "findings": upload.findings, "note": upload.note or None}
 
     @router.get("/files")
     async def files(request: Request) -> list[dict[str, Any]]:
@@ -195,8 +196,13 @@ def router() -> APIRouter:
 
     @router.get("/printers/{name}/snapshots/{file}")
     async def snapshot_image(request: Request, name: str, file: str) -> FileResponse:
+        """A snapshot by its name; ``latest``: the newest (OctoPrint's snapshot URL)."""
         service = server_of(request).service(name)
         camera = service.camera
+        if file == "latest" and camera is not None:
+            newest = camera.images()[:1]
+            if newest:
+                return FileResponse(newest[0], headers={"Cache-Control": "no-cache"})
         path = camera.folder / file if camera is not None else None
         if path is None or not _SNAPSHOT.fullmatch(file) or not path.is_file():
             raise HTTPException(404, f"no snapshot '{file}' of printer {service.name}")

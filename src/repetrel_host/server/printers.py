@@ -13,6 +13,8 @@ import asyncio
 import bisect
 import contextlib
 import logging
+import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import datetime
@@ -21,8 +23,9 @@ from typing import Any
 
 import repetrel_host as rh
 from repetrel_host.camera import Camera, SnapshotFailed
-from repetrel_host.config import UserConfig
+from repetrel_host.config import Loadout, UserConfig, find_loadout, load_library, load_loadout
 from repetrel_host.gcode.lint import Finding, Severity
+from repetrel_host.gcode.marks import SlicerMarks, scan_marks
 from repetrel_host.job import ActionKind, HostAction
 from repetrel_host.planning import (
     JobPlan,
@@ -40,6 +43,7 @@ log = logging.getLogger("repetrel_host.server")
 RECONNECT_FIRST = 0.5
 RECONNECT_MAX = 10.0
 POLL_INTERVAL = 2.0  # temperatures, for the API and the page
+TEMPERATURE_SAMPLES = 1800  # reports kept: 30 min at a report a second
 SAFE_STOP_TIMEOUT = 30.0
 # A cancel is answered once the job ended, or after this long (or once its safe stop is
 # said to be held up): 202, the job still stopping, and why.
@@ -109,11 +113,20 @@ class Running:
     job: rh.PrintJob
     layers: list[int] = field(default_factory=list)  # byte offsets where layers begin
     new_layers: int = 0  # the M790s reached
+    marks: SlicerMarks | None = None  # the slicer's (layers, Z, estimates), once read
 
     @property
     def layer(self) -> int:
         """The layer the acknowledged lines have reached (0: before the first marker)."""
         return bisect.bisect_right(self.layers, self.job.offset)
+
+    @property
+    def z(self) -> float | None:
+        """Z of the last acknowledged line, as the slicer marked it."""
+        last = self.job.last
+        if self.marks is None or last is None:
+            return None
+        return self.marks.at(last.source_line).z
 
 
 # How slicers mark a new layer: PrusaSlicer and its kin, Cura, and Hyrel's M790.
@@ -174,12 +187,24 @@ class PrinterService:
         self.held = False  # the queue waits for a release (after an interrupted job)
         self.owed_safe_stop = False
         self.selected: Path | None = None  # OctoPrint's selected file, started by "start"
+        # The last job, kept after it ended (OctoPrint shows its file and final progress
+        # until another file is selected), with how and when it ended.
+        self.finished: Running | None = None
+        self.finished_state: JobState | None = None
+        self.finished_at: float | None = None
+        self.phase = ""  # "pausing", "resuming": asked for, not reached yet
+        # The temperature reports of the last half hour or so (time, sensor: (actual, target)).
+        self.temperature_history: deque[tuple[float, dict[str, tuple[float, float | None]]]] = (
+            deque(maxlen=TEMPERATURE_SAMPLES)
+        )
+        self.offsets: dict[str, float] = {}  # OctoPrint's temperature offsets (kept, told)
         self.last_error = ""
         self._wake = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
         self._stopping = False
         self._paused = False
         self._forwarding: asyncio.Task[None] | None = None
+        self._connecting: asyncio.Task[None] | None = None
         self._starting: int | None = None  # the job being started
         self._cancel_starting = False
         self._ended = asyncio.Event()  # a job ended and was recorded
@@ -194,6 +219,7 @@ class PrinterService:
         # Files checked for this printer (as they were on disk, and the check's settings):
         # a job is checked once, at its upload, not again (on the event loop) as it starts.
         self._checked: dict[Path, tuple[object, ...]] = {}
+        self._loadout: tuple[Path, Loadout] | None = None
         self.camera: Camera | None = None
         if config.camera is not None:
             self.camera = Camera(
@@ -375,6 +401,7 @@ class PrinterService:
         self.job_changed(record.id)
         with contextlib.suppress(rh.HostError):  # read while the job streams: a big file
             running.layers = await asyncio.to_thread(layer_offsets, path)
+        running.marks = await asyncio.to_thread(scan_marks, path)
         state, error = JobState.COMPLETED, None
         ending = asyncio.ensure_future(job.wait())
         try:
@@ -396,6 +423,8 @@ class PrinterService:
                     error = STOPPED_SAFELY
         finally:
             self._record_progress(record, job)
+            self.finished, self.finished_state, self.finished_at = running, state, time.time()
+            self.selected = None
             self.running = None
             watching.cancel()
         report = job.report  # the controller's M773 report, kept with the job
@@ -468,6 +497,26 @@ class PrinterService:
         if not any(f.severity is Severity.ERROR for f in findings):
             self._checked[path] = before
         return plan, findings
+
+    def plan_loadout(self) -> Loadout | None:
+        """The printer's loadout (its heads), as a job's plan reads it; None without one or
+        when it cannot be read (a job then says why)."""
+        path = self.request.loadout or self.user.printer.loadout
+        if path is None:
+            return None
+        if self._loadout is None or self._loadout[0] != path:
+            try:
+                loadout = load_loadout(find_loadout(path), load_library(self.user))
+            except rh.HostError:
+                return None
+            self._loadout = (path, loadout)
+        return self._loadout[1]
+
+    def renamed(self, old: Path, new: Path) -> None:
+        """``old`` is now ``new`` (the same file): its check goes with it."""
+        checked = self._checked.pop(old, None)
+        if checked is not None:
+            self._checked[new] = checked
 
     def forget(self, path: Path) -> None:
         """``path`` is gone: its check with it."""
@@ -546,6 +595,7 @@ class PrinterService:
                 )
                 self.wake()  # READY again: the queue may go on
             elif isinstance(event, rh.Temperatures):
+                self.temperature_history.append((time.time(), dict(event.readings)))
                 readings = {sensor: list(value) for sensor, value in event.readings.items()}
                 self.publish({"type": "temperatures", "printer": name, "readings": readings})
             else:
@@ -553,16 +603,36 @@ class PrinterService:
 
     # --- control ----------------------------------------------------------------------
 
+    def _state_changed(self) -> None:
+        self.publish(
+            {"type": "printer", "printer": self.name, "state": self.state, "held": self.held}
+        )
+
+    def select(self, path: Path | None) -> None:
+        """OctoPrint's selected file (None: unselect); the last job's is forgotten."""
+        self.selected = path
+        if path is not None or self.running is None:
+            self.finished = None
+
+    def last_print_time(self, path: Path) -> float | None:
+        """How long the last completed print of ``path`` took, in seconds."""
+        try:
+            file = path.relative_to(self.data_dir).as_posix()
+        except ValueError:
+            return None
+        last = self.store.prints(file).get("last")
+        return last.get("printTime") if last else None
+
     def hold(self) -> None:
         """Start no more jobs (the running one goes on) until :meth:`release`."""
         self.held = True
-        self.publish({"type": "printer", "printer": self.name, "state": self.state, "held": True})
+        self._state_changed()
 
     def release(self) -> None:
         """Let the queue run again (after an interrupted job was looked at)."""
         self.held = False
         self.wake()
-        self.publish({"type": "printer", "printer": self.name, "state": self.state, "held": False})
+        self._state_changed()
 
     async def control(self, action: str) -> None:
         """pause, resume, cancel (the running job), hold or release; :class:`Refused` when
@@ -579,11 +649,39 @@ class PrinterService:
             elif action in ("pause", "resume"):
                 if printer is None:
                     raise Refused(f"printer {self.name} is not connected")
-                await (printer.pause() if action == "pause" else printer.resume())
+                self.phase = f"{action[:-1]}ing"  # until reached: OctoPrint's Pausing...
+                self._state_changed()
+                try:
+                    await (printer.pause() if action == "pause" else printer.resume())
+                finally:
+                    self.phase = ""
+                    self._state_changed()
             else:
                 raise Refused(f"no action '{action}' ({', '.join(CONTROLS)})", 404)
         except rh.UsageError as exc:
             raise Refused(str(exc)) from None
+
+    async def disconnect(self) -> None:
+        """Close the port until :meth:`connect` (OctoPrint's disconnect); refused while a
+        job runs (cancel it first: its safe stop needs the port)."""
+        if self.running is not None or self._starting is not None:
+            raise Refused(f"printer {self.name} is printing: cancel the job before disconnecting")
+        printer = self.printer
+        if printer is None or printer.state is rh.State.CLOSED:
+            return
+        if self._forwarding is not None:
+            self._forwarding.cancel()
+        await printer.close()
+        log.info("printer %s: disconnected (the port is free until connect)", self.name)
+        self._state_changed()
+
+    def connect(self) -> None:
+        """Open the port again after :meth:`disconnect` (in the background, as OctoPrint)."""
+        printer = self.printer
+        if printer is not None and printer.state is not rh.State.CLOSED:
+            return
+        if self._connecting is None or self._connecting.done():
+            self._connecting = asyncio.get_running_loop().create_task(self._connect())
 
     async def command(self, line: str) -> rh.Reply:
         """One G-code line to a printer that is not printing, with the controller's reply."""

@@ -17,6 +17,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from enum import StrEnum
 from pathlib import Path
+from typing import Any
 
 from repetrel_host.protocol.reports import JobReport
 
@@ -45,7 +46,7 @@ CREATE TABLE IF NOT EXISTS jobs (
 CREATE INDEX IF NOT EXISTS jobs_by_printer ON jobs (printer, state, position);
 """
 # Columns added since the first schema, added to an older data folder's table as it opens.
-_ADDED_COLUMNS = {"report": "TEXT", "safe_stop": "TEXT"}
+_ADDED_COLUMNS = {"report": "TEXT", "safe_stop": "TEXT", "user": "TEXT"}
 OWED, SENT = "owed", "sent"
 
 
@@ -80,6 +81,7 @@ class JobRecord:
     error: str | None
     report: str | None = None  # the M773 report's text
     safe_stop: str | None = None  # OWED: its safe stop was not confirmed; SENT: went later
+    user: str | None = None  # who submitted it (the API key's user or app)
 
     def as_json(self) -> dict[str, object]:
         return {
@@ -96,6 +98,7 @@ class JobRecord:
             "error": self.error,
             "report": _report_json(self.report),
             "safe_stop": self.safe_stop,
+            "user": self.user,
         }
 
 
@@ -162,6 +165,27 @@ class Store:
         ).fetchall()
         return [row[0] for row in rows]
 
+    def prints(self, file: str) -> dict[str, Any]:
+        """OctoPrint's ``prints`` of a file (relative to the data folder): how often it
+        ended completed or not, and when and how it last ended."""
+        rows = self._db.execute(
+            "SELECT printer, state, started, ended FROM jobs WHERE file = ? AND ended IS NOT NULL"
+            " AND started IS NOT NULL ORDER BY ended",
+            (file,),
+        ).fetchall()
+        done = [row for row in rows if row["state"] == JobState.COMPLETED]
+        answer: dict[str, Any] = {"success": len(done), "failure": len(rows) - len(done)}
+        if rows:
+            last = rows[-1]
+            answer["last"] = {
+                "date": last["ended"],
+                "success": last["state"] == JobState.COMPLETED,
+                "printerProfile": last["printer"],
+            }
+            if last["state"] == JobState.COMPLETED:
+                answer["last"]["printTime"] = last["ended"] - last["started"]
+        return answer
+
     def next_queued(self, printer: str) -> JobRecord | None:
         row = self._db.execute(
             "SELECT * FROM jobs WHERE printer = ? AND state = 'queued' ORDER BY position LIMIT 1",
@@ -171,16 +195,18 @@ class Store:
 
     # --- changing -----------------------------------------------------------------
 
-    def submit(self, printer: str, name: str, file: str, total_lines: int) -> JobRecord:
+    def submit(
+        self, printer: str, name: str, file: str, total_lines: int, user: str | None = None
+    ) -> JobRecord:
         """Queue a job at the end of its printer's queue."""
         with self._transaction() as db:
             (last,) = db.execute(
                 "SELECT COALESCE(MAX(position), 0) FROM jobs WHERE printer = ?", (printer,)
             ).fetchone()
             cursor = db.execute(
-                "INSERT INTO jobs (printer, name, file, state, position, submitted, total_lines)"
-                " VALUES (?, ?, ?, 'queued', ?, ?, ?)",
-                (printer, name, file, last + 1, time.time(), total_lines),
+                "INSERT INTO jobs (printer, name, file, state, position, submitted, total_lines,"
+                " user) VALUES (?, ?, ?, 'queued', ?, ?, ?, ?)",
+                (printer, name, file, last + 1, time.time(), total_lines, user),
             )
             job_id = cursor.lastrowid
         assert job_id is not None

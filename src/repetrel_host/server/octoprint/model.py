@@ -1,0 +1,194 @@
+"""A printer's state in OctoPrint's shapes: the state text and flags, the job, its
+progress, the temperatures; what ``/api/job``, ``/api/printer`` and the push socket's
+``current`` message say (OctoPrint 1.11: ``octoprint/printer/standard.py``'s
+``get_current_data``, ``octoprint/util/comm.py``'s states).
+
+Each function reads the printer's service as it stands now; none changes it."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+from repetrel_host.server.printers import PrinterService, Running
+from repetrel_host.server.store import JobState
+
+# OctoPrint's states whose "printing" flag is set: a job is under way.
+_PRINTING = ("Starting", "Printing", "Pausing", "Resuming", "Finishing", "Cancelling")
+_OPERATIONAL = (*_PRINTING, "Operational", "Paused")
+HELD_TEXT = "Operational (bed not cleared)"
+HELD_REASON = (
+    "the part from the last job is still on the bed: release the queue (button on the "
+    "status page, hyrel-send --release, or --automatic-transition)"
+)
+
+
+def state_text(service: PrinterService) -> str:
+    """OctoPrint's state string: Operational, Printing, Pausing, Paused, Resuming,
+    Finishing, Cancelling, Connecting, Offline, Offline after error."""
+    state = service.state
+    running = service.running
+    if running is not None and state in ("printing", "paused"):
+        job = running.job
+        if job.stopping:
+            return "Cancelling"
+        if service.phase == "pausing":
+            return "Pausing"
+        if service.phase == "resuming":
+            return "Resuming"
+        if state == "paused":
+            return "Paused"
+        return "Finishing" if job.all_sent else "Printing"
+    if state == "ready":
+        return HELD_TEXT if service.held else "Operational"
+    if state == "connecting":
+        return "Connecting"
+    return "Offline after error" if service.last_error else "Offline"
+
+
+def flags(service: PrinterService, text: str | None = None) -> dict[str, bool]:
+    """OctoPrint's state flags, each true while its phase lasts; ``held``: the queue waits
+    for the bed to be cleared (ours)."""
+    text = text or state_text(service)
+    return {
+        "operational": text in _OPERATIONAL or text == HELD_TEXT,
+        "printing": text in _PRINTING,
+        "cancelling": text == "Cancelling",
+        "pausing": text == "Pausing",
+        "resuming": text == "Resuming",
+        "finishing": text == "Finishing",
+        "closedOrError": text.startswith("Offline"),
+        "error": text == "Offline after error",
+        "paused": text == "Paused",
+        "ready": text == "Operational",
+        "sdReady": False,
+        "held": service.held,
+    }
+
+
+def state(service: PrinterService) -> dict[str, Any]:
+    """``{"text", "flags", "error"}``, as OctoPrint's ``current`` and ``/api/printer``."""
+    text = state_text(service)
+    return {"text": text, "flags": flags(service, text), "error": service.last_error}
+
+
+def _shown(service: PrinterService) -> Running | None:
+    """The job /api/job shows: the running one, else the last one (until another file is
+    selected), as OctoPrint keeps a finished job's file and progress."""
+    return service.running or service.finished
+
+
+def file_entry(service: PrinterService, path: Path | None) -> dict[str, Any]:
+    """The job's ``file``: its name and place below the uploads, size and date."""
+    if path is None or not path.is_file():
+        return {"name": None, "path": None, "display": None, "origin": None, "size": None}
+    stat = path.stat()
+    try:
+        location = path.relative_to(service.data_dir / "files").as_posix()
+    except ValueError:
+        location = path.name
+    return {
+        "name": path.name,
+        "path": location,
+        "display": path.name,
+        "origin": "local",
+        "size": stat.st_size,
+        "date": int(stat.st_mtime),
+    }
+
+
+def job(service: PrinterService) -> dict[str, Any]:
+    """OctoPrint's ``job``: the file, the slicer's estimate, the last print's time."""
+    shown = _shown(service)
+    path = service.selected
+    if shown is not None and (service.running is not None or path is None):
+        path = service.data_dir / shown.record.file
+    estimate = None
+    if shown is not None and shown.marks is not None:
+        estimate = shown.marks.total_seconds
+    last = service.last_print_time(path) if path is not None else None
+    return {
+        "file": file_entry(service, path),
+        "estimatedPrintTime": estimate,
+        "averagePrintTime": last,
+        "lastPrintTime": last,
+        "filament": None,
+        "user": shown.record.user if shown is not None else None,
+    }
+
+
+def progress(service: PrinterService) -> dict[str, Any]:
+    """OctoPrint's ``progress``: completion (%), file position, print time and time left
+    (the slicer's estimate where the file has one: origin ``analysis``; else the rate so
+    far: ``linear``)."""
+    shown = _shown(service)
+    none = {"completion": None, "filepos": None, "printTime": None, "printTimeLeft": None}
+    if shown is None or (service.running is None and service.selected is not None):
+        return {**none, "printTimeLeftOrigin": None}
+    record, job = shown.record, shown.job
+    started = record.started or time.time()
+    ended = None if service.running is not None else (service.finished_at or time.time())
+    elapsed = (ended or time.time()) - started
+    size = max(job.size, 1)
+    completed = ended is not None and service.finished_state is JobState.COMPLETED
+    fraction = 1.0 if completed else min(job.offset / size, 1.0)
+    left: float | None = 0.0 if completed else None
+    origin: str | None = None
+    if left is None and ended is None:
+        last = job.last
+        if shown.marks is not None and last is not None:
+            left = shown.marks.at(last.source_line, fraction).seconds_left
+            origin = "analysis" if left is not None else None
+        if left is None and fraction > 0.005 and elapsed > 5:
+            left, origin = elapsed * (1 - fraction) / fraction, "linear"
+    return {
+        "completion": 100.0 * fraction,
+        "filepos": job.size if completed else job.offset,
+        "printTime": int(elapsed),
+        "printTimeLeft": int(left) if left is not None else None,
+        "printTimeLeftOrigin": origin,
+    }
+
+
+def tool_key(sensor: str) -> str:
+    """The session's sensor name (``T``, ``T1``, ``B``, ``C``) as OctoPrint's key."""
+    if sensor == "B":
+        return "bed"
+    if sensor == "C":
+        return "chamber"
+    if sensor.startswith("T"):
+        return f"tool{sensor[1:] or '0'}"
+    return sensor
+
+
+def temperatures(service: PrinterService) -> dict[str, dict[str, float | None]]:
+    """``{"tool0": {"actual", "target", "offset"}, "bed": ...}`` as the session heard them."""
+    printer = service.printer
+    readings = printer.temperatures if printer is not None else {}
+    return {
+        tool_key(sensor): {"actual": actual, "target": target, "offset": 0}
+        for sensor, (actual, target) in readings.items()
+    }
+
+
+def current(service: PrinterService) -> dict[str, Any]:
+    """The push socket's ``current`` payload but for its buffers (temps, logs, messages),
+    which the socket adds: what changed since its last message."""
+    job_now = job(service)
+    running = service.running
+    z = running.z if running is not None else None
+    return {
+        "state": state(service),
+        "job": job_now,
+        "progress": progress(service),
+        "currentZ": z,
+        "offsets": {},
+        "resends": {"count": 0, "transmitted": 0, "ratio": 0},
+        "busyFiles": [
+            {"origin": "local", "path": job_now["file"]["path"]}
+            for _ in [0]
+            if running is not None and job_now["file"]["path"] is not None
+        ],
+        "serverTime": time.time(),
+    }
