@@ -162,14 +162,30 @@ def tool_key(sensor: str) -> str:
     return sensor
 
 
+def tool_count(service: PrinterService) -> int:
+    """How many tools the printer has: the loadout's heads, else the firmware's
+    EXTRUDER_COUNT, else one."""
+    loadout = service.plan_loadout()
+    if loadout is not None:
+        return max(len(loadout.heads), 1)
+    printer = service.printer
+    firmware = printer.firmware if printer is not None else None
+    count = firmware.fields.get("EXTRUDER_COUNT", "1") if firmware is not None else "1"
+    return int(count) if count.isdigit() and int(count) > 0 else 1
+
+
 def temperatures(service: PrinterService) -> dict[str, dict[str, float | None]]:
-    """``{"tool0": {"actual", "target", "offset"}, "bed": ...}`` as the session heard them."""
+    """``{"tool0": {"actual", "target", "offset"}, "bed": ...}`` as the session heard them;
+    every tool and the bed are there (None until a report names them), as clients expect."""
     printer = service.printer
     readings = printer.temperatures if printer is not None else {}
-    return {
-        tool_key(sensor): {"actual": actual, "target": target, "offset": 0}
-        for sensor, (actual, target) in readings.items()
+    heaters: dict[str, dict[str, float | None]] = {
+        key: {"actual": None, "target": None, "offset": 0}
+        for key in [*(f"tool{i}" for i in range(tool_count(service))), "bed"]
     }
+    for sensor, (actual, target) in readings.items():
+        heaters[tool_key(sensor)] = {"actual": actual, "target": target, "offset": 0}
+    return heaters
 
 
 def current(service: PrinterService) -> dict[str, Any]:

@@ -34,6 +34,7 @@ _TOOL = re.compile(r"tool(\d+)")
 _TOOL_OR_CURRENT = re.compile(r"tool(\d*)")
 _TRUE = ("true", "1", "yes", "y")
 NOT_OPERATIONAL = "Printer is not operational"
+_AXIS_SPEEDS = {"x": 6000, "y": 6000, "z": 200, "e": 300}  # mm/min, the printer profile's
 
 
 class Command(BaseModel):
@@ -90,32 +91,33 @@ def _number(value: object, what: str) -> float:
     return float(value)
 
 
-def _tools(service: PrinterService) -> int:
-    """How many tools the printer has: the loadout's heads, else the firmware's
-    EXTRUDER_COUNT, else one."""
-    loadout = service.plan_loadout()
-    if loadout is not None:
-        return max(len(loadout.heads), 1)
-    printer = service.printer
-    firmware = printer.firmware if printer is not None else None
-    count = firmware.fields.get("EXTRUDER_COUNT", "1") if firmware is not None else "1"
-    return int(count) if count.isdigit() and int(count) > 0 else 1
-
-
 def _tool_index(service: PrinterService, key: str, pattern: re.Pattern[str], what: str) -> int:
     match = pattern.fullmatch(key) if isinstance(key, str) else None
     if match is None:
         raise HTTPException(400, f"{what} contains invalid tool")
     index = int(match[1] or 0)
-    if index >= _tools(service):
-        raise HTTPException(409, f"printer {service.name} has no {key} (it has {_tools(service)})")
+    if index >= model.tool_count(service):
+        tools = model.tool_count(service)
+        raise HTTPException(409, f"printer {service.name} has no {key} (it has {tools})")
     return index
 
 
 async def _send(service: PrinterService, commands: list[str]) -> None:
-    """Commands to a printer not streaming a job, each after the last one ran."""
+    """Commands to a printer not streaming a job, each after the last one ran; after a
+    heater's new target, M105, so that the next read shows it."""
     for command in commands:
         await answered(service.command(command))
+    if any(command.startswith(("M104", "M140", "M141")) for command in commands):
+        await answered(service.command("M105"))
+
+
+def _rate(factor: object) -> int:
+    """OctoPrint's feed and flow factor: a percentage (an int) or a fraction (a float)."""
+    value = _number(factor, "factor")
+    percent = int(value * 100) if isinstance(factor, float) else int(value)
+    if percent < 1:
+        raise HTTPException(400, "factor is invalid")
+    return percent
 
 
 def _format(value: float) -> str:
@@ -460,8 +462,10 @@ def router() -> APIRouter:
             for key, value in targets.items():
                 index = _tool_index(service, key, _TOOL_OR_CURRENT, "targets")
                 degrees = _number(value, "targets contains invalid value; a target")
-                tool = f" T{index}" if _TOOL.fullmatch(key) else ""
-                commands.append(f"M104{tool} S{_format(degrees)}")
+                if degrees < 0:
+                    raise HTTPException(400, "targets contains invalid value")
+                several = _TOOL.fullmatch(key) and model.tool_count(service) > 1
+                commands.append(f"M104{f' T{index}' if several else ''} S{_format(degrees)}")
         elif body.command == "offset":
             offsets = body.get("offsets")
             if not isinstance(offsets, dict):
@@ -478,13 +482,11 @@ def router() -> APIRouter:
         elif body.command == "extrude":
             amount = _number(body.get("amount"), "amount")
             speed = body.get("speed")
-            feed = _number(speed, "speed") if speed is not None else 300.0
-            commands += ["G91", "M83", f"G1 E{_format(amount)} F{_format(feed)}", "M82", "G90"]
+            feed = float(_AXIS_SPEEDS["e"])
+            feed = min(_number(speed, "speed"), feed) if speed is not None else feed
+            commands += ["G91", "M83", f"G1 E{_format(amount)} F{feed:.0f}", "M82", "G90"]
         elif body.command == "flowrate":
-            factor = _number(body.get("factor"), "factor")
-            if factor <= 0:
-                raise HTTPException(400, "factor is invalid")
-            commands.append(f"M221 S{_format(factor)}")
+            commands.append(f"M221 S{_rate(body.get('factor'))}")
         else:
             raise HTTPException(
                 400, f"command '{body.command}' is not select, target, offset, extrude, flowrate"
@@ -519,17 +521,21 @@ def router() -> APIRouter:
     async def printhead_command(service: Printer, body: Command) -> Response:
         commands: list[str] = []
         if body.command == "jog":
-            moves = "".join(
-                f" {axis.upper()}{_format(_number(body.get(axis), 'axis value'))}"
+            jogged = {
+                axis: _number(body.get(axis), "axis value")
                 for axis in ("x", "y", "z")
                 if body.get(axis) is not None
-            )
+            }
+            if not jogged:
+                raise HTTPException(400, "At least one axis to jog must be provided")
             speed = body.get("speed")
-            feed = f" F{_format(_number(speed, 'speed'))}" if speed not in (None, False) else ""
+            if speed is None:  # the printer profile's, as OctoPrint
+                speed = min(_AXIS_SPEEDS[axis] for axis in jogged)
+            move = "G0 " + " ".join(f"{axis.upper()}{_format(v)}" for axis, v in jogged.items())
+            if speed is not False:
+                move += f" F{_format(_number(speed, 'speed'))}"
             absolute = _true(body.get("absolute", False))
-            commands = ["G90"] if absolute else ["G91"]
-            commands += [f"G1{moves}{feed}"] if moves else []
-            commands += [] if absolute else ["G90"]
+            commands = ["G90", move] if absolute else ["G91", move, "G90"]
         elif body.command == "home":
             axes = body.get("axes")
             if isinstance(axes, str):
@@ -540,10 +546,7 @@ def router() -> APIRouter:
                 raise HTTPException(400, "axis is invalid")
             commands = ["G91", f"G28 {' '.join(f'{axis.upper()}0' for axis in axes)}", "G90"]
         elif body.command == "feedrate":
-            factor = _number(body.get("factor"), "factor")
-            if factor <= 0:
-                raise HTTPException(400, "factor is invalid")
-            commands = [f"M220 S{_format(factor)}"]
+            commands = [f"M220 S{_rate(body.get('factor'))}"]
         else:
             raise HTTPException(400, f"command '{body.command}' is not jog, home or feedrate")
         _not_printing(service, "Printer is not operational or currently printing")
@@ -723,7 +726,7 @@ def _temperature_profiles(server: PrintServer) -> list[dict[str, Any]]:
 
 def _profile(service: PrinterService) -> dict[str, Any]:
     """One printer profile per printer: its machine, heated bed, its tools."""
-    tools = _tools(service)
+    tools = model.tool_count(service)
     loadout = service.plan_loadout()
     model_name = loadout.machine_name if loadout is not None else (service.config.machine or "")
     return {
@@ -744,10 +747,7 @@ def _profile(service: PrinterService) -> dict[str, Any]:
             "origin": "lowerleft",
             "custom_box": False,
         },
-        "axes": {
-            axis: {"speed": speed, "inverted": False}
-            for axis, speed in (("x", 6000), ("y", 6000), ("z", 200), ("e", 300))
-        },
+        "axes": {axis: {"speed": speed, "inverted": False} for axis, speed in _AXIS_SPEEDS.items()},
         "extruder": {
             "count": tools,
             "offsets": [[0.0, 0.0] for _ in range(tools)],
