@@ -60,6 +60,7 @@ class PrintServer:
         self.events = EventHub()
         self.mqtt = mqtt
         self._bridge: asyncio.Task[None] | None = None
+        self._uuids: dict[str, str] | None = None  # printer_uuid's, once read
         self.services = {
             name: PrinterService(name, config, self.store, data_dir, self.user, self.events.publish)
             for name, config in printers.items()
@@ -120,7 +121,9 @@ class PrintServer:
         """A printer's UUID, the same across restarts (OctoPrint's discovery ``upnpUuid``,
         which Home Assistant takes for the printer's identity)."""
         path = self.data_dir / "uuids.json"
-        known: dict[str, str] = json.loads(path.read_text()) if path.exists() else {}
+        if self._uuids is None:  # read once: clients ask for the settings often
+            self._uuids = json.loads(path.read_text()) if path.exists() else {}
+        known = self._uuids
         if name not in known:
             known[name] = str(uuid.uuid4())
             partial = path.with_suffix(".part")

@@ -193,18 +193,14 @@ def current(service: PrinterService) -> dict[str, Any]:
     which the socket adds: what changed since its last message."""
     job_now = job(service)
     running = service.running
-    z = running.z if running is not None else None
+    printing = job_now["file"]["path"] if running is not None else None
     return {
         "state": state(service),
         "job": job_now,
         "progress": progress(service),
-        "currentZ": z,
+        "currentZ": running.z if running is not None else None,
         "offsets": {},
         "resends": {"count": 0, "transmitted": 0, "ratio": 0},
-        "busyFiles": [
-            {"origin": "local", "path": job_now["file"]["path"]}
-            for _ in [0]
-            if running is not None and job_now["file"]["path"] is not None
-        ],
+        "busyFiles": [{"origin": "local", "path": printing}] if printing is not None else [],
         "serverTime": time.time(),
     }

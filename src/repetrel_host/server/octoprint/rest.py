@@ -495,27 +495,8 @@ def router() -> APIRouter:
         await _send(service, commands)
         return Response(status_code=204)
 
-    @router.get("/printer/bed")
-    async def bed_state(
-        service: Printer, history: str = "false", limit: Annotated[int, Query(ge=0)] = 300
-    ) -> dict[str, Any]:
-        _operational(service)
-        return _temperature(service, _true(history), limit, lambda key: key == "bed")
-
-    @router.post("/printer/bed", status_code=204)
-    async def bed_command(service: Printer, body: Command) -> Response:
-        return await _heater(service, body, "bed", "M140")
-
-    @router.get("/printer/chamber")
-    async def chamber_state(
-        service: Printer, history: str = "false", limit: Annotated[int, Query(ge=0)] = 300
-    ) -> dict[str, Any]:
-        _operational(service)
-        return _temperature(service, _true(history), limit, lambda key: key == "chamber")
-
-    @router.post("/printer/chamber", status_code=204)
-    async def chamber_command(service: Printer, body: Command) -> Response:
-        return await _heater(service, body, "chamber", "M141")
+    _heater_routes(router, "bed", "M140")
+    _heater_routes(router, "chamber", "M141")
 
     @router.post("/printer/printhead", status_code=204)
     async def printhead_command(service: Printer, body: Command) -> Response:
@@ -640,6 +621,22 @@ async def _restart(server: PrintServer, service: PrinterService) -> None:
     if first is not None and first.id != record.id:
         server.store.move(record.id, first.id)
     service.release()
+
+
+def _heater_routes(router: APIRouter, key: str, code: str) -> None:
+    """``/printer/bed`` or ``/printer/chamber``: its temperature (GET), its target or
+    offset (POST, set with ``code``)."""
+
+    @router.get(f"/printer/{key}")
+    async def heater_state(
+        service: Printer, history: str = "false", limit: Annotated[int, Query(ge=0)] = 300
+    ) -> dict[str, Any]:
+        _operational(service)
+        return _temperature(service, _true(history), limit, lambda name: name == key)
+
+    @router.post(f"/printer/{key}", status_code=204)
+    async def heater_command(service: Printer, body: Command) -> Response:
+        return await _heater(service, body, key, code)
 
 
 async def _heater(service: PrinterService, body: Command, key: str, code: str) -> Response:
