@@ -13,6 +13,7 @@ import sqlite3
 import stat
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -759,7 +760,9 @@ def test_requests_without_the_key_are_refused_and_bad_uploads_too(
                 client.post("/v1/printers/demo/command", json={"command": "M105"}).status_code
                 == 403
             )
-        assert anonymous.get("/api/version").status_code == 200  # reading needs no key
+            # Reads too, as on OctoPrint: it is how a slicer's "Test" tells a wrong key.
+            for path in ("/api/version", "/api/job", "/v1/printers", "/v1/files", "/v1/events"):
+                assert client.get(path).status_code == 403, path
     with server.client() as client:
         escape = client.post("/api/files/local", data={"path": "../.."}, files=upload)
         assert escape.status_code == 400 and "leaves the upload folder" in escape.json()["detail"]
@@ -997,6 +1000,20 @@ def test_mqtt_publishes_states_jobs_progress_retained_and_takes_commands(
 CHROMIUM, CHROMEDRIVER = shutil.which("chromium"), shutil.which("chromedriver")
 
 
+def ask_for_a_key(server: Server, app: str, granted: list[str]) -> None:
+    """An application asking for a key as OctoPrint's appkeys plugin has it: a request,
+    then a poll a second until a person decided."""
+    with server.client(key=None) as client:
+        token = client.post("/plugin/appkeys/request", json={"app": app}).json()["app_token"]
+        for _ in range(30):
+            answer = client.get(f"/plugin/appkeys/request/{token}")
+            if answer.status_code != 202:
+                if answer.status_code == 200:
+                    granted.append(answer.json()["api_key"])
+                return
+            time.sleep(1)
+
+
 @pytest.mark.skipif(
     CHROMIUM is None or CHROMEDRIVER is None,
     reason="needs Debian's chromium and chromium-driver (.ci/run installs them)",
@@ -1032,12 +1049,26 @@ def test_the_status_page_shows_a_job_live_and_its_buttons_work(
                 browser.find_element(By.CSS_SELECTOR, f"[data-printer=bench] {selector}").text
             )
 
-        wait.until(lambda _: text(".state") == "ready")
-        # Without the key, a button says why it did nothing.
-        browser.find_element(By.CSS_SELECTOR, "[data-printer=bench] [data-action=cancel]").click()
+        # Without the key, the page asks for it (and shows nothing); given once, it is kept.
         wait.until(lambda _: "API key" in browser.find_element(By.ID, "notice").text)
+        assert not browser.find_elements(By.CSS_SELECTOR, "[data-printer=bench]")
         key = browser.find_element(By.ID, "key")
         key.send_keys(KEY, Keys.TAB)
+        wait.until(lambda _: text(".state") == "ready")
+        # An app asks for a key: the page shows the request; Allow grants it, Revoke ends it.
+        granted: list[str] = []
+        asking = threading.Thread(target=ask_for_a_key, args=(server, "Phone app", granted))
+        asking.start()
+        requests = browser.find_element(By.ID, "requests")
+        wait.until(lambda _: "Phone app asks for access" in requests.text)
+        requests.find_element(By.XPATH, ".//button[text()='Allow']").click()
+        asking.join(30)
+        assert granted and httpx.get(f"{server.url}/api/job?apikey={granted[0]}").is_success
+        keys = browser.find_element(By.ID, "appkeys")
+        wait.until(lambda _: "Phone app" in keys.text)
+        keys.find_element(By.XPATH, ".//button[text()='Revoke']").click()
+        wait.until(lambda _: "Phone app" not in keys.text)
+        assert httpx.get(f"{server.url}/api/job?apikey={granted[0]}").status_code == 403
         upload = browser.find_element(By.CSS_SELECTOR, "[data-printer=bench] input[type=file]")
         upload.send_keys(str(job))
         browser.find_element(By.CSS_SELECTOR, "[data-printer=bench] form button").click()

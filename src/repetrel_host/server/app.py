@@ -31,7 +31,7 @@ import repetrel_host as rh
 from repetrel_host.server import native
 from repetrel_host.server.auth import RequestGuard
 from repetrel_host.server.core import PrintServer
-from repetrel_host.server.octoprint import rest
+from repetrel_host.server.octoprint import appkeys, rest
 
 __all__ = ["PrintServer", "create_app"]
 
@@ -73,6 +73,8 @@ def create_app(server: PrintServer) -> FastAPI:
         return HTMLResponse(page)
 
     app.include_router(native.router())
+    app.include_router(appkeys.router())
+    app.include_router(appkeys.router(), prefix="/printers/{printer}")
     octoprint = rest.router()
     app.include_router(octoprint)
     app.include_router(octoprint, prefix="/printers/{printer}")

@@ -1,62 +1,100 @@
-"""Who may do what: the API key on every request that changes something, checked before
-a body is read."""
+"""Who may do what: every request names a valid key or session (reads too, as on
+OctoPrint, unless the server opens reads on purpose), checked before a body is read."""
 
 from __future__ import annotations
 
 import hmac
-from typing import Annotated, Any
+import re
+from http.cookies import SimpleCookie
+from typing import Any
 from urllib.parse import parse_qsl
 
-from fastapi import (
-    Depends,
-    Header,
-    HTTPException,
-    Query,
-    Request,
-)
+from fastapi import Request
 from fastapi.responses import (
     JSONResponse,
 )
 
-from repetrel_host.server.core import PrintServer, server_of
+from repetrel_host.server.core import PrintServer
+
+SESSION_COOKIE = "hyrel_session"
+CSRF_COOKIE = "hyrel_csrf"
+NO_KEY = "a valid API key is needed (the X-Api-Key header)"
+# Open to anyone: the page (it asks for the key), asking for an app key (OctoPrint's
+# appkeys plugin: an app has no key yet), logging in, and the API's own description.
+_OPEN = re.compile(
+    r"(/printers/[^/]+)?(/|/favicon\.ico|/api/login|/api/logout"
+    r"|/plugin/appkeys/(probe|request|request/[^/]+))"
+    r"|/openapi\.json|/docs|/docs/oauth2-redirect|/redoc"
+)
+_READS = ("GET", "HEAD", "OPTIONS")
 
 
-def require_key(
-    request: Request,
-    x_api_key: Annotated[str | None, Header()] = None,
-    apikey: Annotated[str | None, Query()] = None,
-) -> None:
-    """State-changing requests carry the API key."""
-    given = x_api_key or apikey or ""
-    if not hmac.compare_digest(given.encode(), server_of(request).api_key.encode()):
-        raise HTTPException(403, "a valid API key is needed (the X-Api-Key header)")
+def user_of(request: Request) -> str | None:
+    """Who made ``request`` (its key's or session's user); None when nobody is named (the
+    server opens reads, or the route is open)."""
+    user: str | None = request.scope.get("state", {}).get("user")
+    return user
 
 
-Keyed = Depends(require_key)
+def session_of(request: Request) -> str | None:
+    """The login session ``request`` came with (its cookie), if any."""
+    session: str | None = request.scope.get("state", {}).get("session")
+    return session
+
+
+def identify(server: PrintServer, scope: Any) -> tuple[str | None, str | None]:
+    """``(user, session)`` that the request names: a key (``X-Api-Key``, ``apikey`` in the
+    query, ``Authorization: Bearer``), else the login's session cookie (with the CSRF token
+    a change needs, as OctoPrint asks of a cookie)."""
+    headers = {key.decode("latin-1").lower(): value for key, value in scope["headers"]}
+    query = dict(parse_qsl(scope.get("query_string", b"").decode("latin-1")))
+    given = headers.get("x-api-key", b"").decode("latin-1") or query.get("apikey", "")
+    bearer = headers.get("authorization", b"").decode("latin-1")
+    if not given and bearer.lower().startswith("bearer "):
+        given = bearer[7:].strip()
+    if given:
+        return server.access.user_for_key(given), None
+    cookies = SimpleCookie()
+    cookies.load(headers.get("cookie", b"").decode("latin-1"))
+    session = cookies[SESSION_COOKIE].value if SESSION_COOKIE in cookies else ""
+    user = server.access.user_for_session(session)
+    if user is None:
+        return None, None
+    if scope.get("method", "GET") not in _READS:
+        csrf = cookies[CSRF_COOKIE].value if CSRF_COOKIE in cookies else ""
+        token = headers.get("x-csrf-token", b"").decode("latin-1")
+        if not csrf or not hmac.compare_digest(csrf.encode(), token.encode()):
+            return None, None
+    return user, session
 
 
 class RequestGuard:
-    """Before any body is read: a request that changes something needs the key (403), and
-    a body over the upload limit is refused (413), chunked or not. FastAPI's own checks
-    come after the body was parsed, which would let anyone fill the disk."""
+    """Before any body is read: a request needs a valid key or session (403; reads pass
+    without one where the server opens them), and a body over the upload limit is refused
+    (413), chunked or not. FastAPI's own checks come after the body was parsed, which
+    would let anyone fill the disk. Who asked goes into the request's state."""
 
     def __init__(self, app: Any, server: PrintServer) -> None:
         self.app = app
         self.server = server
 
     async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
-        if scope["type"] != "http" or scope["method"] in ("GET", "HEAD", "OPTIONS"):
-            await self.app(scope, receive, send)
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)  # the push socket asks for its own auth
             return
         server = self.server
+        user, session = identify(server, scope)
+        scope["state"] = {**scope.get("state", {}), "user": user, "session": session}
+        open_route = _OPEN.fullmatch(scope["path"]) is not None
+        reading = scope["method"] in _READS
+        if user is None and not open_route and not (reading and server.access.public_read):
+            await JSONResponse({"error": NO_KEY, "detail": NO_KEY}, 403)(scope, receive, send)
+            return
+        if reading:
+            await self.app(scope, receive, send)
+            return
         limit = server.max_upload + 65536  # the form's own bytes
         headers = {key.decode("latin-1").lower(): value for key, value in scope["headers"]}
-        query = dict(parse_qsl(scope.get("query_string", b"").decode("latin-1")))
-        given = headers.get("x-api-key", b"").decode("latin-1") or query.get("apikey", "")
-        if not hmac.compare_digest(given.encode(), server.api_key.encode()):
-            detail = "a valid API key is needed (the X-Api-Key header)"
-            await JSONResponse({"detail": detail}, 403)(scope, receive, send)
-            return
         length = headers.get("content-length", b"")
         too_big = {"detail": f"the upload is over {server.max_upload} bytes"}
         if length.isdigit() and int(length) > limit:

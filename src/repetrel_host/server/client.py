@@ -91,7 +91,10 @@ class ServerClient:
     def events(self, printer: str) -> Iterator[dict[str, Any]]:
         """The server's events for ``printer``, as they come."""
         query = urlencode({"printer": printer})
-        request = Request(f"{self.url}/v1/events?{query}", headers={"Accept": "text/event-stream"})
+        headers = {"Accept": "text/event-stream"}
+        if self.api_key:
+            headers["X-Api-Key"] = self.api_key
+        request = Request(f"{self.url}/v1/events?{query}", headers=headers)
         with self._reaching():
             response = urlopen(request, timeout=None)
         with response:
@@ -109,6 +112,8 @@ def _refused(exc: HTTPError) -> Exception:
     if isinstance(detail, dict):  # a refused job: the lint's findings
         detail = "; ".join([str(detail.get("error")), *detail.get("findings", [])])
     message = f"the print server refused: {detail} (HTTP {exc.code})"
+    if exc.code == 403:
+        message += f": give --api-key KEY or set {API_KEY_ENV}"
     return JobError(message) if exc.code in (400, 404, 409, 413) else UsageError(message)
 
 

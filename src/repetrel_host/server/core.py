@@ -24,6 +24,7 @@ from fastapi import (
 
 import repetrel_host as rh
 from repetrel_host.config import UserConfig
+from repetrel_host.server.access import Access
 from repetrel_host.server.events import EventHub
 from repetrel_host.server.mqtt import MqttSettings
 from repetrel_host.server.printers import PrinterConfig, PrinterService, Refused
@@ -33,6 +34,9 @@ log = logging.getLogger("repetrel_host.server")
 
 G_CODE_SUFFIXES = (".gcode", ".gco", ".g")
 _SAFE_NAME = re.compile(r"[^A-Za-z0-9._ ()+-]")
+# An upload's name: the filesystem takes 255 bytes; room is left for "-2" and its kin.
+MAX_NAME = 200
+MAX_PATH = 1024
 T = TypeVar("T")
 _HASHES: dict[tuple[Path, int, int], str] = {}
 
@@ -49,11 +53,12 @@ class PrintServer:
         user: UserConfig | None = None,
         mqtt: MqttSettings | None = None,
         automatic_transition: bool = False,
+        public_read: bool = False,
     ) -> None:
         self.data_dir = data_dir
         self.files = data_dir / "files"
         self.files.mkdir(parents=True, exist_ok=True)
-        self.api_key = api_key
+        self.access = Access(data_dir, api_key, public_read)
         self.max_upload = max_upload
         self.user = user or UserConfig()
         self.store = Store(data_dir / "jobs.sqlite")
@@ -143,21 +148,35 @@ def server_of(request: Request) -> PrintServer:
     return server
 
 
-def safe_file_name(name: str) -> str:
-    """The upload's own name, without folders, in safe characters; 400 if nothing is left
-    or it is not a G-code file."""
+def safe_file_name(name: str) -> tuple[str, str]:
+    """The upload's own name, without folders, in safe characters, and a note when it was
+    shortened to fit the filesystem; 400 if nothing is left or it is not a G-code file."""
     base = name.replace("\\", "/").rsplit("/", 1)[-1].strip()
     cleaned = _SAFE_NAME.sub("_", base).lstrip(".")
     if not cleaned or not cleaned.lower().endswith(G_CODE_SUFFIXES):
-        raise HTTPException(400, f"'{name}' is not a G-code file name (.gcode, .gco, .g)")
-    return cleaned
+        raise HTTPException(400, f"'{_shown(name)}' is not a G-code file name (.gcode, .gco, .g)")
+    if len(cleaned) <= MAX_NAME:
+        return cleaned, ""
+    stem, dot, suffix = cleaned.rpartition(".")
+    short = f"{stem[: MAX_NAME - len(suffix) - 1]}{dot}{suffix}"
+    return short, f"the name was over {MAX_NAME} characters: shortened to {short}"
+
+
+def _shown(text: str, most: int = 80) -> str:
+    """``text`` as an error quotes it: a long one cut, so the sentence stays one line."""
+    return text if len(text) <= most else f"{text[: most - 3]}..."
 
 
 def safe_folder(path: str) -> Path:
-    """OctoPrint's ``path`` field: a folder below the uploads; no '..', no absolute path."""
+    """OctoPrint's ``path`` field: a folder below the uploads; no '..', no absolute path,
+    no name too long for the filesystem."""
     parts = [part for part in path.replace("\\", "/").split("/") if part not in ("", ".")]
     if any(part == ".." for part in parts) or path.startswith(("/", "\\")):
-        raise HTTPException(400, f"path '{path}' leaves the upload folder")
+        raise HTTPException(400, f"path '{_shown(path)}' leaves the upload folder")
+    if len(path) > MAX_PATH or any(len(part) > MAX_NAME + 20 for part in parts):
+        raise HTTPException(
+            400, f"path '{_shown(path)}' is too long (names of at most {MAX_NAME} characters)"
+        )
     return Path(*(_SAFE_NAME.sub("_", part) for part in parts)) if parts else Path()
 
 
@@ -179,7 +198,7 @@ async def save_upload(
     replaced, as OctoPrint does, unless a queued or running job prints it: then the upload
     gets a new name (``part-2.gcode``). A file with errors is refused (400, with the
     findings), and one of the same name stays as it was."""
-    name = safe_file_name(upload.filename or "")
+    name, shortened = safe_file_name(upload.filename or "")
     target_dir = server.files / safe_folder(folder)
     target_dir.mkdir(parents=True, exist_ok=True)
     # Written beside it under a hidden name first: a failed upload replaces nothing.
@@ -213,7 +232,7 @@ async def save_upload(
     for service in server.services.values():
         service.renamed(partial, target)
     _HASHES[_stat_key(target)] = digest.hexdigest()
-    return Upload(target, findings, commands, note)
+    return Upload(target, findings, commands, "; ".join(filter(None, (shortened, note))))
 
 
 def _stat_key(path: Path) -> tuple[Path, int, int]:

@@ -67,6 +67,7 @@ class ServerSettings(BaseModel):
     api_key: str | None = None
     max_upload_mb: int = Field(default=1024, gt=0)
     automatic_transition: bool = False  # start the next job by itself after one ends
+    public_read: bool = False  # reads without a key (OctoPrint asks for one on every request)
     mqtt: str | None = None  # HOST[:PORT] of a broker
     mqtt_prefix: str = "hyrel"
     mqtt_commands: bool = False
@@ -88,6 +89,7 @@ def _settings(
     max_upload_mb: int | None,
     mqtt: tuple[str | None, str | None, bool],
     automatic_transition: bool,
+    public_read: bool = False,
 ) -> ServerSettings:
     values: dict[str, object] = {}
     if config is not None:
@@ -115,6 +117,7 @@ def _settings(
         "mqtt_prefix": mqtt[1],
         "mqtt_commands": mqtt[2] or None,
         "automatic_transition": automatic_transition or None,
+        "public_read": public_read or None,
     }
     values.update({key: value for key, value in given.items() if value is not None})
     if not printers:
@@ -220,6 +223,14 @@ def serve(
             "held until released, as the part is still on the bed).",
         ),
     ] = False,
+    public_read: Annotated[
+        bool,
+        typer.Option(
+            "--public-read",
+            help="Answer reads (states, files, snapshots) without a key. Default: every "
+            "request needs the key or an app key, as on OctoPrint.",
+        ),
+    ] = False,
     config: Annotated[Path | None, typer.Option(help="A TOML file with these settings.")] = None,
     version: Annotated[bool, typer.Option("--version", help="Print the version.")] = False,
 ) -> None:
@@ -236,6 +247,7 @@ def serve(
         max_upload_mb,
         (mqtt, mqtt_prefix, mqtt_commands),
         automatic_transition,
+        public_read,
     )
     host, port = _address(settings.bind, "--bind", example=DEFAULT_BIND)
     logging.basicConfig(
@@ -270,6 +282,7 @@ def serve(
         settings.max_upload_mb * 1024 * 1024,
         mqtt=_mqtt(settings),
         automatic_transition=settings.automatic_transition,
+        public_read=settings.public_read,
     )
     # uvicorn shuts down gracefully on SIGTERM and SIGINT, then raises the signal again
     # with the handlers found before it started: these, so that a stop asked for exits
@@ -288,8 +301,67 @@ def serve(
     )
 
 
+keys = typer.Typer(
+    add_completion=False,
+    pretty_exceptions_enable=False,
+    rich_markup_mode=None,
+    help="The app keys granted on the status page (OctoPrint's appkeys).",
+)
+DataDir = Annotated[Path | None, typer.Option(help="The server's data folder (or give --config).")]
+ConfigFile = Annotated[Path | None, typer.Option(help="The server's TOML file.")]
+
+
+def _data_dir(data_dir: Path | None, config: Path | None) -> Path:
+    if data_dir is None and config is not None:
+        try:
+            found = read_toml(config).get("data_dir")
+        except ConfigError as exc:
+            _fail(str(exc))
+        data_dir = Path(found) if isinstance(found, str) else None
+    if data_dir is None:
+        _fail("give --data-dir DIR (or --config FILE), the server's data folder")
+        raise  # not reached
+    return data_dir
+
+
+@keys.command("list")
+def list_keys(data_dir: DataDir = None, config: ConfigFile = None) -> None:
+    """The applications that hold a key, one a line: name, user, when granted."""
+    from datetime import datetime
+
+    from repetrel_host.server.access import KEYS_FILE, read_keys
+
+    granted = read_keys(_data_dir(data_dir, config) / KEYS_FILE)
+    for key in granted:
+        typer.echo(f"{key.app}\t{key.user}\t{datetime.fromtimestamp(key.created):%Y-%m-%d %H:%M}")
+    if not granted:
+        typer.echo("no app keys (an application asks for one; allow it on the status page)")
+
+
+@keys.command("revoke")
+def revoke_key(
+    app: Annotated[str, typer.Argument(help="The application's name, as listed.")],
+    data_dir: DataDir = None,
+    config: ConfigFile = None,
+) -> None:
+    """Revoke an application's key: the server refuses it from its next request on."""
+    from repetrel_host.server.access import KEYS_FILE, revoke
+
+    folder = _data_dir(data_dir, config)
+    try:
+        found = revoke(folder / KEYS_FILE, app)
+    except OSError as exc:
+        _fail(f"cannot change the keys in {folder}: {exc.strerror}")
+    if not found:
+        _fail(f"no key for app '{app}' (hyrel-server keys list shows them)")
+    typer.echo(f"revoked the key of {app}")
+
+
 def main() -> None:
-    app()
+    if sys.argv[1:2] == ["keys"]:  # the server itself takes no command name
+        keys(sys.argv[2:], prog_name="hyrel-server keys")
+    else:
+        app()
 
 
 if __name__ == "__main__":

@@ -25,8 +25,10 @@ from fastapi.responses import (
 from pydantic import BaseModel
 
 from repetrel_host.server import core
-from repetrel_host.server.auth import Keyed
+from repetrel_host.server.access import OWNER
+from repetrel_host.server.auth import user_of
 from repetrel_host.server.core import answered, server_of
+from repetrel_host.server.octoprint import appkeys
 from repetrel_host.server.printers import PrinterService
 from repetrel_host.server.store import ACTIVE
 
@@ -90,6 +92,10 @@ class Command(BaseModel):
     command: str
 
 
+class Decision(BaseModel):
+    allow: bool
+
+
 def router() -> APIRouter:
     router = APIRouter(prefix="/v1")
 
@@ -107,7 +113,7 @@ def router() -> APIRouter:
         server.service(name)
         return [r.as_json() for r in server.store.jobs(name)]
 
-    @router.post("/printers/{name}/jobs", status_code=201, dependencies=[Keyed])
+    @router.post("/printers/{name}/jobs", status_code=201)
     async def submit(
         request: Request, name: str, file: Annotated[UploadFile, File()]
     ) -> dict[str, Any]:
@@ -122,7 +128,7 @@ def router() -> APIRouter:
         server = server_of(request)
         return core.uploads_json(server)
 
-    @router.delete("/files/{location:path}", status_code=204, dependencies=[Keyed])
+    @router.delete("/files/{location:path}", status_code=204)
     async def delete_file(request: Request, location: str) -> Response:
         core.delete_upload(server_of(request), location)
         return Response(status_code=204)
@@ -149,10 +155,35 @@ def router() -> APIRouter:
                     except TimeoutError:
                         yield ": keepalive\n\n"  # proxies keep the stream open
                         continue
-                    if event.get("printer") in names:
+                    if event.get("printer", names[0]) in names:  # none: the server's
                         yield _sse(event)
 
         return StreamingResponse(stream(), media_type="text/event-stream")
+
+    @router.get("/appkeys")
+    async def app_keys(request: Request) -> dict[str, Any]:
+        """The app keys granted (never the keys themselves) and the requests waiting."""
+        access = server_of(request).access
+        return {
+            "keys": [appkeys.key_json(key) for key in access.app_keys()],
+            "pending": [pending.public() for pending in access.pending()],
+        }
+
+    @router.post("/appkeys/requests/{user_token}", status_code=204)
+    async def decide(request: Request, user_token: str, decision: Decision) -> Response:
+        """Allow or deny an application's request for a key."""
+        user = user_of(request) or OWNER
+        appkeys.decided(server_of(request), user_token, decision.allow, user)
+        return Response(status_code=204)
+
+    @router.delete("/appkeys/{app}", status_code=204)
+    async def revoke(request: Request, app: str) -> Response:
+        """Revoke the key of an application; it is refused from now on."""
+        server = server_of(request)
+        if not server.access.revoke(app):
+            raise HTTPException(404, f"no key for app '{app}'")
+        appkeys.tell(server, "revoked", app_id=app)
+        return Response(status_code=204)
 
     @router.get("/jobs/{job_id}")
     async def job(request: Request, job_id: int) -> dict[str, Any]:
@@ -161,7 +192,7 @@ def router() -> APIRouter:
             raise HTTPException(404, f"no job {job_id}")
         return record.as_json()
 
-    @router.delete("/jobs/{job_id}", dependencies=[Keyed])
+    @router.delete("/jobs/{job_id}")
     async def cancel_job(request: Request, job_id: int) -> Any:
         server = server_of(request)
         record = server.store.job(job_id)
@@ -178,7 +209,7 @@ def router() -> APIRouter:
             return JSONResponse({**ended.as_json(), "stopping": stopping}, status_code=202)
         return ended.as_json()
 
-    @router.post("/jobs/{job_id}/move", dependencies=[Keyed])
+    @router.post("/jobs/{job_id}/move")
     async def move(request: Request, job_id: int, move: Move) -> list[dict[str, Any]]:
         server = server_of(request)
         record = server.store.job(job_id)
@@ -208,19 +239,19 @@ def router() -> APIRouter:
             raise HTTPException(404, f"no snapshot '{file}' of printer {service.name}")
         return FileResponse(path, headers={"Cache-Control": "max-age=86400, immutable"})
 
-    @router.post("/printers/{name}/snapshots", status_code=201, dependencies=[Keyed])
+    @router.post("/printers/{name}/snapshots", status_code=201)
     async def take_snapshot(request: Request, name: str) -> dict[str, Any]:
         """A snapshot now (the camera's settings, tried out)."""
         service = server_of(request).service(name)
         path = await answered(service.snapshot())
         return {"file": path.name, "url": service.url(path)}
 
-    @router.post("/printers/{name}/command", dependencies=[Keyed])
+    @router.post("/printers/{name}/command")
     async def command(request: Request, name: str, body: Command) -> dict[str, Any]:
         reply = await answered(server_of(request).service(name).command(body.command))
         return {"command": reply.command, "lines": reply.lines, "ok": reply.ok}
 
-    @router.post("/printers/{name}/{action}", status_code=204, dependencies=[Keyed])
+    @router.post("/printers/{name}/{action}", status_code=204)
     async def control(request: Request, name: str, action: str) -> Response:
         service = server_of(request).service(name)
         await answered(service.control(action))
