@@ -14,10 +14,12 @@ import re
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from importlib import resources
-from typing import Any
+from typing import Annotated, Any
 
 from fastapi import (
+    Depends,
     FastAPI,
+    Path,
     Request,
 )
 from fastapi.exceptions import RequestValidationError
@@ -30,7 +32,7 @@ from starlette.exceptions import HTTPException
 import repetrel_host as rh
 from repetrel_host.server import native
 from repetrel_host.server.auth import RequestGuard
-from repetrel_host.server.core import PrintServer
+from repetrel_host.server.core import PrintServer, server_of
 from repetrel_host.server.octoprint import appkeys, rest
 
 __all__ = ["PrintServer", "create_app"]
@@ -73,14 +75,16 @@ def create_app(server: PrintServer) -> FastAPI:
         return HTMLResponse(page)
 
     app.include_router(native.router())
-    app.include_router(appkeys.router())
-    app.include_router(appkeys.router(), prefix="/printers/{printer}")
-    octoprint = rest.router()
-    app.include_router(octoprint)
-    app.include_router(octoprint, prefix="/printers/{printer}")
-    app.include_router(rest.downloads())
-    app.include_router(rest.downloads(), prefix="/printers/{printer}")
+    # OctoPrint's face, for the first printer and for each under /printers/NAME.
+    for router in (appkeys.router(), rest.router(), rest.downloads()):
+        app.include_router(router)
+        app.include_router(router, prefix="/printers/{printer}", dependencies=[Depends(_printer)])
     return app
+
+
+def _printer(request: Request, printer: Annotated[str, Path()]) -> None:
+    """``/printers/NAME/...``: 404 unless NAME is one of the server's printers."""
+    server_of(request).service(printer)
 
 
 class SingleSlashes:

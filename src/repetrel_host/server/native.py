@@ -16,13 +16,14 @@ from fastapi import (
     Request,
     UploadFile,
 )
+from fastapi import Path as PathParameter
 from fastapi.responses import (
     FileResponse,
     JSONResponse,
     Response,
     StreamingResponse,
 )
-from pydantic import BaseModel
+from pydantic import BaseModel, Field
 
 from repetrel_host.server import core
 from repetrel_host.server.access import OWNER
@@ -32,6 +33,8 @@ from repetrel_host.server.octoprint import appkeys
 from repetrel_host.server.printers import PrinterService
 from repetrel_host.server.store import ACTIVE
 
+MAX_ID = 2**63 - 1  # SQLite's largest integer: a job id beyond it is no job
+JobId = Annotated[int, PathParameter(ge=1, le=MAX_ID)]
 KEEPALIVE = 15.0  # seconds of quiet before the event stream says it is alive
 _SNAPSHOT = re.compile(r"[A-Za-z0-9_-]+\.(jpg|png|gif|webp)")
 
@@ -85,7 +88,7 @@ def _sse(event: dict[str, Any]) -> str:
 
 
 class Move(BaseModel):
-    before: int | None = None  # a queued job's id; None: to the end
+    before: Annotated[int, Field(ge=1, le=MAX_ID)] | None = None  # a queued job; None: the end
 
 
 class Command(BaseModel):
@@ -186,14 +189,14 @@ def router() -> APIRouter:
         return Response(status_code=204)
 
     @router.get("/jobs/{job_id}")
-    async def job(request: Request, job_id: int) -> dict[str, Any]:
+    async def job(request: Request, job_id: JobId) -> dict[str, Any]:
         record = server_of(request).store.job(job_id)
         if record is None:
             raise HTTPException(404, f"no job {job_id}")
         return record.as_json()
 
     @router.delete("/jobs/{job_id}")
-    async def cancel_job(request: Request, job_id: int) -> Any:
+    async def cancel_job(request: Request, job_id: JobId) -> Any:
         server = server_of(request)
         record = server.store.job(job_id)
         if record is None:
@@ -210,7 +213,7 @@ def router() -> APIRouter:
         return ended.as_json()
 
     @router.post("/jobs/{job_id}/move")
-    async def move(request: Request, job_id: int, move: Move) -> list[dict[str, Any]]:
+    async def move(request: Request, job_id: JobId, move: Move) -> list[dict[str, Any]]:
         server = server_of(request)
         record = server.store.job(job_id)
         if record is None or not server.store.move(job_id, move.before):
