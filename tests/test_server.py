@@ -13,7 +13,6 @@ import sqlite3
 import stat
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -1000,20 +999,6 @@ def test_mqtt_publishes_states_jobs_progress_retained_and_takes_commands(
 CHROMIUM, CHROMEDRIVER = shutil.which("chromium"), shutil.which("chromedriver")
 
 
-def ask_for_a_key(server: Server, app: str, granted: list[str]) -> None:
-    """An application asking for a key as OctoPrint's appkeys plugin has it: a request,
-    then a poll a second until a person decided."""
-    with server.client(key=None) as client:
-        token = client.post("/plugin/appkeys/request", json={"app": app}).json()["app_token"]
-        for _ in range(30):
-            answer = client.get(f"/plugin/appkeys/request/{token}")
-            if answer.status_code != 202:
-                if answer.status_code == 200:
-                    granted.append(answer.json()["api_key"])
-                return
-            time.sleep(1)
-
-
 @pytest.mark.skipif(
     CHROMIUM is None or CHROMEDRIVER is None,
     reason="needs Debian's chromium and chromium-driver (.ci/run installs them)",
@@ -1055,20 +1040,32 @@ def test_the_status_page_shows_a_job_live_and_its_buttons_work(
         key = browser.find_element(By.ID, "key")
         key.send_keys(KEY, Keys.TAB)
         wait.until(lambda _: text(".state") == "ready")
-        # An app asks for a key: the page shows the request; Allow grants it, Revoke ends it.
-        granted: list[str] = []
-        asking = threading.Thread(target=ask_for_a_key, args=(server, "Phone app", granted))
-        asking.start()
-        requests = browser.find_element(By.ID, "requests")
-        wait.until(lambda _: "Phone app asks for access" in requests.text)
-        requests.find_element(By.XPATH, ".//button[text()='Allow']").click()
-        asking.join(30)
-        assert granted and httpx.get(f"{server.url}/api/job?apikey={granted[0]}").is_success
-        keys = browser.find_element(By.ID, "appkeys")
-        wait.until(lambda _: "Phone app" in keys.text)
-        keys.find_element(By.XPATH, ".//button[text()='Revoke']").click()
-        wait.until(lambda _: "Phone app" not in keys.text)
-        assert httpx.get(f"{server.url}/api/job?apikey={granted[0]}").status_code == 403
+        # A second browser without the key asks for access; this one allows it, then
+        # revokes it.
+        second = webdriver.Chrome(service=Service(str(CHROMEDRIVER)), options=options)
+        try:
+            second.get(f"{server.url}/")
+            WebDriverWait(second, 30).until(
+                lambda _: second.find_element(By.ID, "ask").is_displayed()
+            )
+            second.find_element(By.ID, "ask-access").click()
+            requests = browser.find_element(By.ID, "requests")
+            wait.until(
+                lambda _: "Status page" in requests.text and "asks for access" in requests.text
+            )
+            requests.find_element(By.XPATH, ".//button[text()='Allow']").click()
+            WebDriverWait(second, 30).until(
+                lambda _: second.find_elements(By.CSS_SELECTOR, "[data-printer=bench] .state")
+            )
+            granted = second.execute_script("return localStorage.getItem('hyrel-api-key')")
+            assert granted != KEY and httpx.get(f"{server.url}/api/job?apikey={granted}").is_success
+            keys = browser.find_element(By.ID, "appkeys")
+            wait.until(lambda _: "Status page" in keys.text)
+            keys.find_element(By.XPATH, ".//button[text()='Revoke']").click()
+            wait.until(lambda _: "Status page" not in keys.text)
+            assert httpx.get(f"{server.url}/api/job?apikey={granted}").status_code == 403
+        finally:
+            second.quit()
         upload = browser.find_element(By.CSS_SELECTOR, "[data-printer=bench] input[type=file]")
         upload.send_keys(str(job))
         browser.find_element(By.CSS_SELECTOR, "[data-printer=bench] form button").click()
