@@ -61,7 +61,7 @@ def test_octoprint_cli_status_files_print_temp_and_connection(
             files={"file": ("cone.gcode", CONE.read_bytes())},
         )
         assert upload.status_code == 201, upload.text
-        job = "G28\n" + gcode(600)[5:]
+        job = "G28\n" + "".join(f"G1 X{i / 10:.1f} F3000\n" for i in range(600))
         client.post("/api/files/local", files={"file": ("part.gcode", job.encode())})
 
     version = octoprint_cli(config, "version")

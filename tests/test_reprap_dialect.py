@@ -6,7 +6,12 @@ import pytest
 
 from repetrel_host.errors import UsageError
 from repetrel_host.protocol.controller import Accepted, ControllerProtocol
-from repetrel_host.protocol.dialects.reprap import HELLO_ATTEMPTS, HELLO_TIMEOUT, RepRapDialect
+from repetrel_host.protocol.dialects.reprap import (
+    HELLO_ATTEMPTS,
+    HELLO_TIMEOUT,
+    UNBUFFERED_GRACE,
+    RepRapDialect,
+)
 from repetrel_host.protocol.events import (
     ControllerMessage,
     ControllerReady,
@@ -364,6 +369,21 @@ def test_a_lost_ok_costs_one_retransmission_timeout_and_a_ping() -> None:
     host.receive_data(ping_reply(3), deadline + 0.002)
     assert acked(host) == [1, 2]
     assert host.stats.stalls_recovered == 1
+
+
+def test_a_command_awaited_for_its_reply_is_probed_only_after_the_grace() -> None:
+    # A probe's answer comes before the oks of lines the controller still holds: probing a
+    # slow M115 after one round trip would settle it before its reply's lines came.
+    host = greeted()
+    host.send("M115", "command", confirm=True)
+    host.data_to_send(0.0)
+    deadline = host.next_deadline()
+    assert deadline is not None and deadline >= UNBUFFERED_GRACE
+    host.handle_timeout(2.0)
+    assert host.data_to_send(2.0) == b""
+    host.receive_data(b"FIRMWARE_NAME:Marlin\nok\n", 2.2)
+    acknowledged = [e for e in events(host) if isinstance(e, LineAcknowledged)]
+    assert [(e.number, e.tag) for e in acknowledged] == [(1, "command")]
 
 
 def test_a_silent_controller_fails_after_the_reply_timeout() -> None:

@@ -20,6 +20,9 @@ class Line:
     transmitted: bool = False
     acknowledged: bool = False
     is_host_line: bool = False  # is_reset or is_probe, read for every acknowledgement
+    # A command whose reply someone waits for: probed as late as an unbuffered line, since
+    # a probe's answer comes before the oks of lines the controller still holds.
+    patient: bool = False
 
 
 class History:

@@ -169,7 +169,8 @@ class RepRapDialect:
         self._gap_attempts = 0
         self._greeting_attempts = 0
         self._greeted = False
-        self._pending: deque[tuple[str, object, bool]] = deque()  # command, tag, unbuffered
+        # command, tag, unbuffered, confirm
+        self._pending: deque[tuple[str, object, bool, bool]] = deque()
         self._candidate: Line | None = None  # the next new line, framed, not yet numbered
         self._sync_requested = False
         self._acked_through = -1  # by counting oks: progress
@@ -204,12 +205,15 @@ class RepRapDialect:
     ) -> None:
         """Queue one clean command (see :func:`clean_line`); ``tag`` comes back in events.
 
-        An ok already says that the controller took the line (``confirm``), and nothing
-        goes ahead of what it holds (``urgent``): both are how every line goes here."""
+        An ok already says that the controller ran the line, and nothing goes ahead of
+        what it holds (``urgent``): both are how every line goes here. A ``confirm`` line
+        is probed for a lost ok only after :data:`UNBUFFERED_GRACE`: a probe's answer comes
+        before the oks of lines the controller still holds, and would settle the command
+        before its reply's lines came (they would then answer the next command)."""
         word = command_word(command)
         if word == "M110":
             raise UsageError("M110 sets line numbers, which the host owns; it cannot be queued")
-        self._pending.append((command, tag, word in UNBUFFERED))
+        self._pending.append((command, tag, word in UNBUFFERED, confirm))
         self._sync_requested = False
 
     def send_urgent(self, command: str) -> None:
@@ -245,7 +249,7 @@ class RepRapDialect:
 
     def cancel_pending(self) -> list[tuple[str, object]]:
         """Drop queued lines not yet on the wire; return them (command, tag)."""
-        dropped = [(command, tag) for command, tag, _ in self._pending]
+        dropped = [(command, tag) for command, tag, _, _ in self._pending]
         self._pending.clear()
         self._candidate = None
         return dropped
@@ -355,7 +359,7 @@ class RepRapDialect:
             # Only stale transmissions left, whose replies may never come (flushed).
             deadline = max(window.in_flight[-1].sent_at, self._last_progress_at) + wait
         else:
-            if oldest.line is not None and oldest.line.unbuffered:
+            if oldest.line is not None and oldest.line.patient:
                 wait = max(wait, UNBUFFERED_GRACE)
             deadline = max(oldest.sent_at, self._last_progress_at) + wait
         return deadline if refused is None else min(deadline, refused)
@@ -791,7 +795,9 @@ class RepRapDialect:
         self._greeting_attempts += 1
         command = reset_command(base)
         wire = frame(base, command)
-        reset = Line(base, command, None, wire, True, is_reset=True, is_host_line=True)
+        reset = Line(
+            base, command, None, wire, True, is_reset=True, is_host_line=True, patient=True
+        )
         self._history.restart(reset)
         self._probing.superseded()
 
@@ -812,9 +818,11 @@ class RepRapDialect:
         # Numbered only once it goes out (see _transmit), so that every number
         # below next_number has been on the wire and a probe can follow them.
         if self._candidate is None:
-            command, tag, unbuffered = self._pending[0]
+            command, tag, unbuffered, confirm = self._pending[0]
             number = history.next_number
-            self._candidate = Line(number, command, tag, frame(number, command), unbuffered)
+            wire = frame(number, command)
+            patient = unbuffered or confirm
+            self._candidate = Line(number, command, tag, wire, unbuffered, patient=patient)
         return self._candidate
 
     def _wants_probe(self) -> bool:
