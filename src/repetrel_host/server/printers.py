@@ -101,6 +101,9 @@ class PrinterConfig:
             config=user,
             baud=self.baud,
             poll_interval=POLL_INTERVAL,
+            # During a job too: the API, the socket and the page show the heat-up as it goes
+            # (where the firmware does not report temperatures itself).
+            poll_while_printing=True,
             protocol=self.protocol,
         )
 
