@@ -490,7 +490,8 @@ class Printer:
         self._markers: weakref.WeakSet[asyncio.Task[None]] = weakref.WeakSet()  # snapshots
         self._reconnecting: asyncio.Task[None] | None = None
         self._polling: asyncio.Task[None] | None = None
-        self._autoreport = False
+        self._autoreport = False  # the controller reports temperatures itself (M155 took)
+        self._autoreport_asked: asyncio.Future[Reply] | None = None  # this connection's M155
         self._greeting = ""  # what the controller said of itself as it was greeted
         self._signs: list[str] = []  # its M115 lines, whatever command they came with
         self._signed = asyncio.Event()
@@ -630,6 +631,9 @@ class Printer:
         self.firmware = found
         self._signed.set()
         self._use_firmware()
+        # Its M155, if it has one, also when it said who it is only once a job was under
+        # way: after this dispatch (not inside it), on this connection only.
+        self._loop.call_soon(self._late_autoreport, self._pump)
         if late:
             self._hub.publish(Notice(f"the controller said who it is: {found.name}"))
 
@@ -643,6 +647,41 @@ class Printer:
                 and firmware.can("EMERGENCY_PARSER")
                 and not pump.dialect.acks_say_received  # Hyrel's link aborts instead
             )
+
+    def _ask_autoreport(self) -> asyncio.Future[Reply] | None:
+        """M155 once a connection, where the firmware reports temperatures itself (and the
+        session polls at all): the polls stop once the controller took it, whenever that
+        is (mid-job too: it goes among the job's lines as a poll does, none of them)."""
+        interval = self.settings.poll_interval
+        firmware = self.firmware
+        if (
+            self._autoreport_asked is not None
+            or not interval
+            or firmware is None
+            or not firmware.can("AUTOREPORT_TEMP")
+            or self._pump is None
+        ):
+            return self._autoreport_asked
+        pending = self._send_command(f"M155 S{max(1, math.ceil(interval))}")
+        pending.future.add_done_callback(self._autoreporting)
+        self._autoreport_asked = pending.future
+        return pending.future
+
+    def _late_autoreport(self, pump: Pump | None) -> None:
+        if pump is not None and pump is self._pump:
+            self._ask_autoreport()
+
+    def _autoreporting(self, future: asyncio.Future[Reply]) -> None:
+        if future.cancelled() or future.exception() is not None:
+            return  # refused, or the connection ended: polled instead
+        if future is not self._autoreport_asked:
+            return  # an earlier connection's
+        self._autoreport = True
+        if self.state is not State.CONNECTING:
+            # What came while it waited is the job's (messages), not the M155's.
+            for line in future.result().lines:
+                if not parse_temperatures(line):
+                    self._broadcast(Message(line))
 
     def _check_can_command(self) -> None:
         state = self.state
@@ -982,6 +1021,7 @@ class Printer:
     async def _identify(self) -> None:
         self.firmware = None
         self._autoreport = False
+        self._autoreport_asked = None
         self._signs = []
         self._signed.clear()
         # Without an answer to M115, the greeting's own (Hyrel's ping: ">Hy: ...").
@@ -1006,13 +1046,10 @@ class Printer:
             # Not yet: an answer that comes later still decides (see _sign).
             self.firmware = greeting  # or none: it does not say who it is
         self._use_firmware()
-        if self.firmware is None:
-            return
-        interval = self.settings.poll_interval
-        if interval and self.firmware is not None and self.firmware.can("AUTOREPORT_TEMP"):
-            with contextlib.suppress(TimeoutError):  # then it is polled instead
-                await self._command(f"M155 S{max(1, math.ceil(interval))}", FIRMWARE_TIMEOUT)
-                self._autoreport = True
+        asked = self._ask_autoreport()
+        if asked is not None:
+            with contextlib.suppress(TimeoutError):  # polled until it took (if ever)
+                await asyncio.wait_for(asyncio.shield(asked), FIRMWARE_TIMEOUT)
 
     def _made(self, connection: _Connection) -> None:
         if self._closing:
@@ -1072,17 +1109,22 @@ class Printer:
         self._reconnecting = None
 
     async def _poll(self, interval: float) -> None:
-        """M105 every ``interval`` seconds while no command waits (and the controller does
-        not report temperatures itself): while idle, and between a job's lines when the
-        session was opened with ``poll_while_printing``."""
+        """Temperatures every ``interval`` seconds, unless the controller reports them
+        itself (M155): while idle, and while a job prints or is paused when the session was
+        opened with ``poll_while_printing``. Where the link has a status request that the
+        controller answers at once, whatever it holds (Hyrel's 0x05), that; else M105,
+        while no command waits: among a job's lines it is numbered as they are, but none of
+        them (the job's count and resume point never include it; a resend sends it again as
+        itself; a stop drops it unsent)."""
         while True:
             await asyncio.sleep(interval)
-            if self._autoreport:
+            pump = self._pump
+            if self._autoreport or pump is None or not self._polls_now():
                 continue
-            printing = self.state is State.PRINTING and self.settings.poll_while_printing
-            if not (self.state is State.READY or printing):
+            if pump.dialect.request_status():
+                self._poke()
                 continue
-            if self._lock.locked() or self._commands:
+            if self._lock.locked() or self._commands or pump.controller_holds:
                 continue
             with contextlib.suppress(HostError, TimeoutError):
                 async with self._lock:
@@ -1091,6 +1133,13 @@ class Printer:
                 for line in reply.lines:
                     if not parse_temperatures(line):
                         self._broadcast(Message(line))
+
+    def _polls_now(self) -> bool:
+        state = self.state
+        if state is State.READY:
+            return True
+        job = state is State.PRINTING or state is State.PAUSED
+        return job and self.settings.poll_while_printing
 
     # --- I/O ------------------------------------------------------------------
 

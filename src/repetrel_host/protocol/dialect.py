@@ -77,6 +77,11 @@ class Dialect(Protocol):
     def end_wait(self) -> None:
         """End the controller's wait: a hold, the :attr:`pause_command`."""
 
+    def request_status(self) -> bool:
+        """Ask for a status report (the temperatures) out of band, answered at once
+        whatever the controller holds: no line, no number (Hyrel's 0x05). False when the
+        link has no such request (a poll is then a command: M105)."""
+
     def request_sync(self) -> None:
         """No more lines for now: have the controller confirm every line sent."""
 

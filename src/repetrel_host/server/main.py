@@ -2,10 +2,10 @@
 
 ``hyrel-server --data-dir DIR --printer NAME=PORT [--printer ...] [--bind HOST:PORT]``, or
 the same in a TOML file (``--config server.toml``: ``data_dir``, ``bind``, ``api_key``,
-``max_upload_mb``, and a ``[printers]`` table of ``name = "port"``, or of
-``[printers.NAME]`` tables: ``port``, ``machine``, ``protocol``, ``report``...). Logs go to
-stderr, one line each, without times (journald adds them). SIGTERM or Ctrl-C stops feeding,
-runs the safe stop on a printing machine, and exits.
+``max_upload_mb``, ``mqtt``, ``mqtt_discovery_prefix``..., and a ``[printers]`` table of
+``name = "port"``, or of ``[printers.NAME]`` tables: ``port``, ``machine``, ``protocol``,
+``report``...). Logs go to stderr, one line each, without times (journald adds them).
+SIGTERM or Ctrl-C stops feeding, runs the safe stop on a printing machine, and exits.
 """
 
 from __future__ import annotations
@@ -26,6 +26,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from repetrel_host import __version__
 from repetrel_host.config import CameraCommand, read_toml
 from repetrel_host.errors import ConfigError
+from repetrel_host.server.homeassistant import DEFAULT_PREFIX as DEFAULT_DISCOVERY_PREFIX
 from repetrel_host.server.mqtt import MqttSettings
 from repetrel_host.server.printers import PrinterConfig
 
@@ -73,6 +74,8 @@ class ServerSettings(BaseModel):
     mqtt_commands: bool = False
     mqtt_username: str | None = None
     mqtt_password: str | None = None
+    mqtt_discovery: bool = True  # Home Assistant's discovery configs, each printer a device
+    mqtt_discovery_prefix: str = Field(default=DEFAULT_DISCOVERY_PREFIX, pattern=r"^[^#+]+$")
 
 
 def _fail(message: str) -> None:
@@ -87,7 +90,7 @@ def _settings(
     printer: list[str],
     api_key: str | None,
     max_upload_mb: int | None,
-    mqtt: tuple[str | None, str | None, bool],
+    mqtt: tuple[str | None, str | None, bool, str | None, bool],
     automatic_transition: bool,
     public_read: bool = False,
 ) -> ServerSettings:
@@ -116,6 +119,8 @@ def _settings(
         "mqtt": mqtt[0],
         "mqtt_prefix": mqtt[1],
         "mqtt_commands": mqtt[2] or None,
+        "mqtt_discovery_prefix": mqtt[3],
+        "mqtt_discovery": False if mqtt[4] else None,
         "automatic_transition": automatic_transition or None,
         "public_read": public_read or None,
     }
@@ -169,6 +174,7 @@ def _mqtt(settings: ServerSettings) -> MqttSettings | None:
         settings.mqtt_commands,
         settings.mqtt_username,
         settings.mqtt_password,
+        settings.mqtt_discovery_prefix if settings.mqtt_discovery else None,
     )
 
 
@@ -215,6 +221,17 @@ def serve(
             help="Take commands on PREFIX/PRINTER/command (off: MQTT topics have no secret).",
         ),
     ] = False,
+    mqtt_discovery_prefix: Annotated[
+        str | None,
+        typer.Option(
+            help=f"Home Assistant's MQTT discovery prefix (default {DEFAULT_DISCOVERY_PREFIX}): "
+            "each printer appears there as a device."
+        ),
+    ] = None,
+    no_mqtt_discovery: Annotated[
+        bool,
+        typer.Option("--no-mqtt-discovery", help="Publish no Home Assistant discovery configs."),
+    ] = False,
     automatic_transition: Annotated[
         bool,
         typer.Option(
@@ -245,7 +262,7 @@ def serve(
         printer or [],
         api_key,
         max_upload_mb,
-        (mqtt, mqtt_prefix, mqtt_commands),
+        (mqtt, mqtt_prefix, mqtt_commands, mqtt_discovery_prefix, no_mqtt_discovery),
         automatic_transition,
         public_read,
     )

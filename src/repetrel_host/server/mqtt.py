@@ -2,14 +2,17 @@
 
 - ``state`` (retained): ``{"state": "ready", "held": false}``
 - ``job`` (retained): the printer's current or last job (with its M773 ``report``, if any)
-- ``progress`` (retained): lines, the file line, bytes of the running job
-- ``temperatures`` (retained): ``{"T": [actual, target], "B": [...]}``
+- ``progress`` (retained): lines, the file line, bytes of the running job, its
+  ``completion`` (%) and ``time_left`` (seconds: the slicer's estimate, else the rate)
+- ``temperatures`` (retained): ``{"readings": {"T": [actual, target], "B": [...]}}``
 - ``snapshot`` (retained): the camera's newest image, ``{"file": ..., "url": "/v1/..."}``
 - ``message``: the controller's messages
 - ``<prefix>/server/online`` (retained): ``true``, and ``false`` as the will (the broker says
   it when the server vanishes).
 
-Retained, so a dashboard that starts later sees how things stand. Commands are taken on
+Retained, so a dashboard that starts later sees how things stand. Home Assistant's
+discovery configs (:mod:`repetrel_host.server.homeassistant`) go to its discovery prefix
+unless turned off, so that each printer appears there as a device. Commands are taken on
 ``<prefix>/<printer>/command`` only when allowed (MQTT has no per-topic secret unless the
 broker enforces one): ``pause``, ``resume``, ``cancel``, ``release``, or one G-code line,
 answered on ``<prefix>/<printer>/reply``. The broker may come and go: the bridge connects
@@ -27,6 +30,7 @@ from typing import TYPE_CHECKING, Any
 
 import aiomqtt
 
+from repetrel_host.server.homeassistant import DEFAULT_PREFIX, Discovery
 from repetrel_host.server.printers import Refused
 
 if TYPE_CHECKING:
@@ -57,6 +61,7 @@ class MqttSettings:
     commands: bool = False
     username: str | None = None
     password: str | None = None
+    discovery_prefix: str | None = DEFAULT_PREFIX  # Home Assistant's; None: no discovery
 
 
 class MqttBridge:
@@ -66,6 +71,11 @@ class MqttBridge:
         self.server = server
         self.settings = settings
         self.prefix = settings.prefix.rstrip("/")
+        self.discovery: Discovery | None = None
+        if settings.discovery_prefix is not None:
+            discovery_prefix = settings.discovery_prefix.rstrip("/")
+            self.discovery = Discovery(self.prefix, discovery_prefix, settings.commands)
+        self._heaters: dict[str, set[str]] = {}  # each printer's heaters announced
 
     async def run(self) -> None:
         delay = RECONNECT_FIRST
@@ -98,7 +108,9 @@ class MqttBridge:
     async def _forward(self, client: aiomqtt.Client, online: str) -> None:
         async with self.server.events.subscribe() as queue:  # before the snapshot: none lost
             await client.publish(online, b"true", qos=1, retain=True)
+            self._heaters.clear()  # announced again: the broker may have lost them
             for service in self.server.services.values():
+                await self._announce(client, service.name)
                 await self._publish(client, self._printer_event(service.name))
                 last = self.server.store.last_started(service.name)
                 if last is not None:
@@ -116,11 +128,40 @@ class MqttBridge:
         service = self.server.services[name]
         return {"type": "printer", "printer": name, "state": service.state, "held": service.held}
 
+    async def _announce(self, client: aiomqtt.Client, name: str) -> None:
+        """Home Assistant's discovery configs of printer ``name`` (retained), with every
+        heater it reported so far (its hotend and bed at least)."""
+        if self.discovery is None:
+            return
+        service = self.server.services[name]
+        known = service.printer.temperatures if service.printer is not None else {}
+        heaters = {"T", "B", *known}
+        uuid = self.server.printer_uuid(name)
+        for topic, payload in self.discovery.printer(name, uuid, sorted(heaters)):
+            await client.publish(topic, json.dumps(payload).encode(), 1, True)
+        self._heaters[name] = heaters
+
+    async def _announce_heaters(self, client: aiomqtt.Client, event: Event) -> None:
+        """A heater reported for the first time (a chamber, a second hotend): its sensors."""
+        name = event["printer"]
+        announced = self._heaters.get(name)
+        if self.discovery is None or announced is None:
+            return
+        new = sorted(set(event["readings"]) - announced)
+        if not new:
+            return
+        uuid = self.server.printer_uuid(name)
+        for topic, payload in self.discovery.heaters(name, uuid, new):
+            await client.publish(topic, json.dumps(payload).encode(), 1, True)
+        announced.update(new)
+
     async def _publish(self, client: aiomqtt.Client, event: Event) -> None:
         kind = event["type"]
         retain = _TOPICS.get(kind)
         if retain is None:
             return
+        if kind == "temperatures":
+            await self._announce_heaters(client, event)
         topic = "state" if kind == "printer" else kind
         fields = {k: v for k, v in event.items() if k not in ("type", "printer")}
         text = str(event["text"]) if kind == "message" else json.dumps(fields)

@@ -101,6 +101,9 @@ class PrinterConfig:
             config=user,
             baud=self.baud,
             poll_interval=POLL_INTERVAL,
+            # During a job too: the API, the socket and the page show the heat-up as it goes
+            # (where the firmware does not report temperatures itself).
+            poll_while_printing=True,
             protocol=self.protocol,
         )
 
@@ -127,6 +130,26 @@ class Running:
         if self.marks is None or last is None:
             return None
         return self.marks.at(last.source_line).z
+
+    @property
+    def fraction(self) -> float:
+        """The share of the file's bytes the controller acknowledged (0 to 1)."""
+        return min(self.job.offset / max(self.job.size, 1), 1.0)
+
+    def time_left(self, elapsed: float) -> tuple[float | None, str | None]:
+        """Seconds left of the job after ``elapsed`` seconds of it, and how they were found:
+        the slicer's estimate where the file has one (``analysis``), else the rate so far
+        (``linear``, once 0.5 % and 5 s went); (None, None) before either can tell. One
+        figure for every face: OctoPrint's printTimeLeft, MQTT's progress."""
+        fraction = self.fraction
+        last = self.job.last
+        if self.marks is not None and last is not None:
+            left = self.marks.at(last.source_line, fraction).seconds_left
+            if left is not None:
+                return left, "analysis"
+        if fraction > 0.005 and elapsed > 5:
+            return elapsed * (1 - fraction) / fraction, "linear"
+        return None, None
 
 
 # How slicers mark a new layer: PrusaSlicer and its kin, Cura, and Hyrel's M790.
@@ -422,7 +445,13 @@ class PrinterService:
                 if str(exc).startswith(SERVER_STOPPED) and not printer.owed_safe_stop:
                     error = STOPPED_SAFELY
         finally:
-            self._record_progress(record, job)
+            completed = (
+                state is JobState.COMPLETED
+                and ending.done()
+                and not ending.cancelled()
+                and ending.exception() is None
+            )
+            self._record_progress(record, job, completed)
             self.finished, self.finished_state, self.finished_at = running, state, time.time()
             self.selected = None
             self.running = None
@@ -455,10 +484,21 @@ class PrinterService:
                 self._tell(self.stop_held)
                 self._held.set()
 
-    def _record_progress(self, record: JobRecord, job: rh.PrintJob) -> None:
+    def _record_progress(
+        self, record: JobRecord, job: rh.PrintJob, completed: bool = False
+    ) -> None:
         last = job.last
         last_line = last.source_line if last else 0
         self.store.progress(record.id, job.lines, last_line)
+        running = self.running
+        completion: float | None = None
+        left: float | None = None
+        if completed:
+            completion, left = 100.0, 0.0
+        elif running is not None:
+            completion = 100.0 * running.fraction
+            if not job.done:
+                left = running.time_left(time.time() - (record.started or time.time()))[0]
         self.publish(
             {
                 "type": "progress",
@@ -468,8 +508,10 @@ class PrinterService:
                 "last_line": last_line,
                 "bytes": job.offset,
                 "size": job.size,
-                "layer": self.running.layer if self.running else 0,
-                "layers": len(self.running.layers) if self.running else 0,
+                "layer": running.layer if running else 0,
+                "layers": len(running.layers) if running else 0,
+                "completion": round(completion, 2) if completion is not None else None,
+                "time_left": round(left) if left is not None else None,  # seconds
             }
         )
         paused = self.printer is not None and self.printer.state is rh.State.PAUSED
@@ -590,9 +632,12 @@ class PrinterService:
         async for event in printer.events():
             if isinstance(event, rh.StateChanged):
                 state = event.state.value
-                self.publish(
-                    {"type": "printer", "printer": name, "state": state, "held": self.held}
-                )
+                # READY as a job ends is told once its end is recorded (its last progress
+                # and its job event first): no dashboard sees "ready" at 99 %.
+                if event.state is not rh.State.READY or self.running is None:
+                    self.publish(
+                        {"type": "printer", "printer": name, "state": state, "held": self.held}
+                    )
                 self.wake()  # READY again: the queue may go on
             elif isinstance(event, rh.Temperatures):
                 self.temperature_history.append((time.time(), dict(event.readings)))

@@ -376,6 +376,20 @@ def build_parser() -> argparse.ArgumentParser:
         "cannot end a heat wait it queues behind (M115 says Cap:EMERGENCY_PARSER:0)",
     )
     parser.add_argument(
+        "--no-autoreport",
+        action="store_true",
+        help="without Marlin's AUTOREPORT_TEMP: M115 says Cap:AUTOREPORT_TEMP:0 and M155 is "
+        "an unknown command, so that a host must poll temperatures (M105)",
+    )
+    parser.add_argument(
+        "--identify-time",
+        type=float,
+        default=0.0,
+        metavar="SECONDS",
+        help="the first M115 after a start (or a reset) takes this long to run, holding the "
+        "commands behind it: a controller slow to say who it is (default: 0, at once)",
+    )
+    parser.add_argument(
         "--stats",
         type=Path,
         metavar="FILE",
@@ -403,6 +417,8 @@ def build_parser() -> argparse.ArgumentParser:
 def settings_from_args(args: argparse.Namespace) -> ControllerSettings:
     if args.rx_buffer is None:
         args.rx_buffer = HYREL_RX_BUFFER if args.protocol == "hyrel" else 128
+    if args.identify_time < 0:
+        raise SystemExit("hyrel-fake-controller: --identify-time must not be negative")
     if args.rx_buffer < 2 or args.slots < 1 or args.planner < 1 or args.extruders < 1:
         raise SystemExit(
             "hyrel-fake-controller: --rx-buffer, --slots, --planner and --extruders must be "
@@ -430,6 +446,8 @@ def settings_from_args(args: argparse.Namespace) -> ControllerSettings:
         extruders=args.extruders,
         chamber=args.chamber,
         emergency_parser=not args.no_emergency_parser,
+        autoreport=not args.no_autoreport,
+        identify_time=args.identify_time,
     )
 
 

@@ -42,7 +42,7 @@ AMBIENT = 21.0
 M115_REPLY = (
     "FIRMWARE_NAME:repetrel-host fake controller (Marlin replies) "
     "PROTOCOL_VERSION:1.0 MACHINE_TYPE:Fake EXTRUDER_COUNT:{extruders}\n"
-    "Cap:AUTOREPORT_TEMP:1\n"
+    "Cap:AUTOREPORT_TEMP:{autoreport}\n"
     "Cap:EMERGENCY_PARSER:{parser}\n"
 )
 KILLED = b"Error:Printer halted. kill() called!\n"
@@ -128,6 +128,12 @@ class ControllerSettings:
     # queue (M108's line still runs in its turn, and draws its ok). Without it they run
     # in their turn, like any line: M108 cannot end the heat wait it queues behind.
     emergency_parser: bool = True
+    # Marlin's AUTOREPORT_TEMP: M155 S<n> reports temperatures every n seconds. Without it
+    # M115 says Cap:AUTOREPORT_TEMP:0 and M155 is an unknown command: a host must poll.
+    autoreport: bool = True
+    # The first M115 after a start (or a reset) takes this long to run, holding the queue
+    # behind it: a controller slow to say who it is (busy at boot, a loaded host's fake).
+    identify_time: float = 0.0
 
 
 @dataclass(slots=True)
@@ -218,6 +224,7 @@ class ControllerSimulator:
         self.tool = 0  # the active hotend (T0, T1...)
         self._report_every: float | None = None  # M155 S<n>
         self._next_report = now
+        self._identify_slowly = self.settings.identify_time > 0  # the next M115
         if self.settings.banner:
             self._reply(b"start\n", now)
 
@@ -466,6 +473,11 @@ class ControllerSimulator:
             if self._busy_until > now:
                 self._next_busy = now + (self.faults.busy_interval or 0)
                 return False
+        elif command.word == "M115" and not command.started and self._identify_slowly:
+            command.started = True
+            self._identify_slowly = False
+            self._busy_until = now + self.settings.identify_time
+            return False
         elif not command.started and self.settings.command_time > 0:
             command.started = True
             self._busy_until = now + self.settings.command_time
@@ -530,8 +542,12 @@ class ControllerSimulator:
         if word == "M115":
             settings = self.settings
             parser = int(settings.emergency_parser)
-            reply = M115_REPLY.format(extruders=settings.extruders, parser=parser)
+            reply = M115_REPLY.format(
+                extruders=settings.extruders, parser=parser, autoreport=int(settings.autoreport)
+            )
             self._reply(reply.encode(), now)
+        elif word == "M155" and not self.settings.autoreport:
+            self._reply(f'echo:Unknown command: "{command.text}"\n'.encode(), now)
         elif word == "M155":
             match = _S_VALUE.search(command.text)
             seconds = float(match.group(1)) if match else 0.0
@@ -661,6 +677,7 @@ class ControllerSimulator:
         self._rx.clear()
         self._line.clear()
         self._planner_end = self._busy_until = now
+        self._identify_slowly = self.settings.identify_time > 0
         self._reply(self._boot_banner(), now)
 
     def _boot_banner(self) -> bytes:

@@ -256,6 +256,14 @@ class HyrelDialect:
         if self._phase is Phase.RUNNING:
             self._outgoing.append(Control.END_WAIT)
 
+    def request_status(self) -> bool:
+        """0x05: the controller answers ``>ST: T:... B:...`` as the byte arrives. (An M105
+        would wait its turn behind up to 8 KB of a job: minutes of stale temperatures.)"""
+        if self._phase is not Phase.RUNNING:
+            return False
+        self._outgoing.append(Control.STATUS)
+        return True
+
     def request_sync(self) -> None:
         self._sync_requested = True
 

@@ -240,6 +240,9 @@ class RepRapDialect:
     def end_wait(self) -> None:
         pass
 
+    def request_status(self) -> bool:
+        return False  # M105 is a line like any other here
+
     def request_sync(self) -> None:
         """No more lines for now: confirm that the controller accepted every line sent.
 

@@ -130,18 +130,12 @@ def progress(service: PrinterService) -> dict[str, Any]:
     started = record.started or time.time()
     ended = None if service.running is not None else (service.finished_at or time.time())
     elapsed = (ended or time.time()) - started
-    size = max(job.size, 1)
     completed = ended is not None and service.finished_state is JobState.COMPLETED
-    fraction = 1.0 if completed else min(job.offset / size, 1.0)
+    fraction = 1.0 if completed else shown.fraction
     left: float | None = 0.0 if completed else None
     origin: str | None = None
-    if left is None and ended is None:
-        last = job.last
-        if shown.marks is not None and last is not None:
-            left = shown.marks.at(last.source_line, fraction).seconds_left
-            origin = "analysis" if left is not None else None
-        if left is None and fraction > 0.005 and elapsed > 5:
-            left, origin = elapsed * (1 - fraction) / fraction, "linear"
+    if ended is None:
+        left, origin = shown.time_left(elapsed)
     return {
         "completion": 100.0 * fraction,
         "filepos": job.size if completed else job.offset,
