@@ -9,14 +9,23 @@ through south (it misses arcs that sweep over east), words glued, spaced or in l
 
 from __future__ import annotations
 
+import json
 import math
+import shutil
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
+from octorest import OctoRest
 
 from repetrel_host.gcode import analysis
 from repetrel_host.gcode.analysis import Box, Filament, Summary, analyse
 from repetrel_host.gcode.marks import Layer
+from repetrel_host.testing.fake_controller import BuiltInFake
+from tests.test_server import KEY, Server, bench, servers, wait_for
+
+__all__ = ["bench", "servers"]  # the fixtures, from the server's tests
 
 DATA = Path(__file__).parent / "data"
 CONE = DATA / "cone-prusaslicer.gcode"
@@ -256,3 +265,92 @@ def test_a_summary_is_kept_and_read_back_whole() -> None:
         "travelArea",
     }
     assert summary.as_json()["layers"] == 82
+
+
+# --- through the server: octorest, the native API, a restart -------------------------------
+
+
+def layered_job(layers: int = 3, moves: int = 300) -> str:
+    """A job with Hyrel's M790 beside PrusaSlicer's mark at each layer, relative E."""
+    text = "G28\nM83\n"
+    for layer in range(1, layers + 1):
+        text += f"M790\n;LAYER_CHANGE\n;Z:{layer * 0.2:.1f}\nG1 Z{layer * 0.2:.1f} F600\n"
+        text += "".join(f"G1 X{i + 1} Y{layer} E0.5 F3000\n" for i in range(moves))
+    return text
+
+
+@pytest.mark.timeout(180)
+def test_the_servers_files_and_job_carry_the_analysis_kept_across_a_restart(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
+) -> None:
+    fake = bench("--move-time", "0.01")
+    server = servers({"bench": fake.port})
+    rest = OctoRest(url=server.url, apikey=KEY)
+    with CONE.open("rb") as handle:
+        rest.upload(("cone.gcode", handle))
+    with server.client() as client:  # octorest sends the folder's name as JSON: form data
+        assert client.post("/api/files/local", data={"foldername": "sub"}).status_code == 201
+    rest.move("cone.gcode", "sub")  # its analysis goes with it
+    cone = rest.files_info("local", "sub/cone.gcode")["gcodeAnalysis"]
+    assert cone["estimatedPrintTime"] == 753
+    assert cone["filament"] == {"tool0": {"length": 1083.86, "volume": 2.61}}
+    assert cone["dimensions"] == {"width": 41.242, "depth": 41.242, "height": 24.65}
+    assert cone["printingArea"] == {
+        "minX": 79.379,
+        "minY": 79.379,
+        "minZ": 0,
+        "maxX": 120.621,
+        "maxY": 120.621,
+        "maxZ": 24.65,
+    }
+    with server.client() as client:
+        wait_for(lambda: client.get("/api/job").json()["state"] == "Operational", what="ready")
+        native = {f["path"]: f["analysis"] for f in client.get("/v1/files").json()}
+        assert native["sub/cone.gcode"]["layers"] == 82
+        assert native["sub/cone.gcode"]["slicer"] == "PrusaSlicer 2.5.0"
+        assert native["sub/cone.gcode"]["filament"] == cone["filament"]
+    rest.select("sub/cone.gcode")
+    selected = rest.job_info()["job"]
+    assert selected["estimatedPrintTime"] == 753 and selected["filament"] == cone["filament"]
+
+    # A file put there by hand is listed, and analysed in the background.
+    shutil.copy(SPHERE, server.data_dir / "files" / "sphere.gcode")
+
+    def sphere() -> dict[str, Any] | None:
+        found: dict[str, Any] | None = rest.files_info("local", "sphere.gcode").get("gcodeAnalysis")
+        return found
+
+    assert wait_for(sphere, what="the sphere's analysis")["filament"]["tool0"]["length"] == 6903.72
+
+    # A job with M790 beside each ;LAYER_CHANGE has as many layers as the slicer made.
+    with server.client() as client:  # octorest sends print=true as JSON: form data
+        upload = ("layers.gcode", layered_job().encode())
+        started = client.post("/api/files/local", files={"file": upload}, data={"print": "true"})
+        assert started.status_code == 201, started.text
+
+        def printing_job() -> dict[str, Any] | None:
+            job: dict[str, Any] = client.get("/api/job").json()["job"]
+            return job if job["file"]["name"] == "layers.gcode" and job["filament"] else None
+
+        job = wait_for(printing_job, what="the job's analysis")
+        assert job["file"]["name"] == "layers.gcode"
+        assert job["filament"]["tool0"]["length"] == 450  # 3 x 300 x 0.5, from the moves
+        printing = client.get("/v1/printers/bench").json()["job"]
+        assert printing["layers"] == 3 and 1 <= printing["layer"] <= 3
+        assert job["estimatedPrintTime"] is None  # the file has no estimate
+        wait_for(lambda: client.get("/api/job").json()["progress"]["completion"] == 100)
+        assert client.get("/api/job").json()["job"]["filament"] == job["filament"]
+
+    # Kept in the data folder: a restart reads it from there (the figure written there is
+    # the one answered), not from the file.
+    server.stop()
+    kept = list((server.data_dir / "analysis").glob("*.json"))
+    assert len(kept) == 3  # cone, sphere, layers
+    for path in kept:
+        entry = json.loads(path.read_text())
+        if entry["file"] == "files/sub/cone.gcode":
+            entry["analysis"]["estimated_seconds"] = 1234.0
+            path.write_text(json.dumps(entry))
+    again = servers({"bench": fake.port})
+    answer = OctoRest(url=again.url, apikey=KEY).files_info("local", "sub/cone.gcode")
+    assert answer["gcodeAnalysis"]["estimatedPrintTime"] == 1234.0

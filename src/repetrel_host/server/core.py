@@ -24,6 +24,8 @@ from fastapi import (
 
 import repetrel_host as rh
 from repetrel_host.config import UserConfig
+from repetrel_host.gcode.analysis import analyse
+from repetrel_host.server.analyses import Analyses, describe, stamp
 from repetrel_host.server.events import EventHub
 from repetrel_host.server.mqtt import MqttSettings
 from repetrel_host.server.printers import PrinterConfig, PrinterService, Refused
@@ -61,8 +63,12 @@ class PrintServer:
         self.mqtt = mqtt
         self._bridge: asyncio.Task[None] | None = None
         self._uuids: dict[str, str] | None = None  # printer_uuid's, once read
+        # Each file's analysis, kept in the data folder (made at its upload).
+        self.analyses = Analyses(data_dir / "analysis", data_dir)
         self.services = {
-            name: PrinterService(name, config, self.store, data_dir, self.user, self.events.publish)
+            name: PrinterService(
+                name, config, self.store, data_dir, self.user, self.events.publish, self.analyses
+            )
             for name, config in printers.items()
         }
         for service in self.services.values():
@@ -205,6 +211,9 @@ async def save_upload(
             raise HTTPException(
                 400, {"error": f"{name}: refused ({len(errors)} errors)", "findings": findings}
             )
+        # Analysed now, in a thread (OctoPrint's gcodeAnalysis): a listing need not read it.
+        summary = (await asyncio.to_thread(analyse, partial)).summary
+        made_from = stamp(partial)
         target, note = _free_name(server, target_dir / name)
         partial.replace(target)
     except BaseException:
@@ -213,6 +222,8 @@ async def save_upload(
     for service in server.services.values():
         service.renamed(partial, target)
     _HASHES[_stat_key(target)] = digest.hexdigest()
+    if summary is not None:
+        server.analyses.keep(target, summary, made_from)  # a rename keeps size and time
     return Upload(target, findings, commands, note)
 
 
@@ -281,6 +292,7 @@ def delete_upload(server: PrintServer, location: str) -> None:
         jobs = ", ".join(str(job) for job in users)
         raise HTTPException(409, f"'{location}' is used by job {jobs}: cancel it first")
     path.unlink()
+    server.analyses.forget(path)
     for service in server.services.values():
         service.forget(path)
         if service.selected == path:
@@ -307,6 +319,11 @@ async def answered(call: Awaitable[T]) -> T:
 
 
 def file_json(server: PrintServer, path: Path) -> dict[str, Any]:
+    """A file of the native listing, with its analysis (None until it is made: a file
+    that was not uploaded is analysed in the background)."""
+    summary = None
+    if path.name.lower().endswith(G_CODE_SUFFIXES) and not path.name.startswith("."):
+        summary = server.analyses.summary(path)
     return {
         "name": path.name,
         "display": path.name,
@@ -315,8 +332,10 @@ def file_json(server: PrintServer, path: Path) -> dict[str, Any]:
         "type": "machinecode",
         "size": path.stat().st_size,
         "date": int(path.stat().st_mtime),
+        "analysis": describe(summary),
     }
 
 
 def uploads_json(server: PrintServer) -> list[dict[str, Any]]:
+    """The native listing (call in a thread: it reads the analyses kept on disk)."""
     return [file_json(server, p) for p in sorted(server.files.rglob("*")) if p.is_file()]
