@@ -335,8 +335,13 @@ def test_the_servers_files_and_job_carry_the_analysis_kept_across_a_restart(
         job = wait_for(printing_job, what="the job's analysis")
         assert job["file"]["name"] == "layers.gcode"
         assert job["filament"]["tool0"]["length"] == 450  # 3 x 300 x 0.5, from the moves
-        printing = client.get("/v1/printers/bench").json()["job"]
-        assert printing["layers"] == 3 and 1 <= printing["layer"] <= 3
+        printing = wait_for(
+            lambda: (
+                (now := client.get("/v1/printers/bench").json()["job"]) and now["layer"] and now
+            ),
+            what="the first layer",
+        )
+        assert printing["layers"] == 3 and printing["layer"] <= 3
         assert job["estimatedPrintTime"] is None  # the file has no estimate
         wait_for(lambda: client.get("/api/job").json()["progress"]["completion"] == 100)
         assert client.get("/api/job").json()["job"]["filament"] == job["filament"]
@@ -354,3 +359,24 @@ def test_the_servers_files_and_job_carry_the_analysis_kept_across_a_restart(
     again = servers({"bench": fake.port})
     answer = OctoRest(url=again.url, apikey=KEY).files_info("local", "sub/cone.gcode")
     assert answer["gcodeAnalysis"]["estimatedPrintTime"] == 1234.0
+
+
+def test_numbers_too_big_for_a_float_are_left_out_not_answered_as_infinity(
+    tmp_path: Path,
+) -> None:
+    huge = "9" * 400
+    path = write(
+        tmp_path,
+        f";TIME:{huge}\n;Z:1.2.3\n;Z:{huge}\n"
+        f";LAYER_CHANGE\nM73 P{huge} R5\nM83\nG1 X1 Y1 E1\nG1 X{huge} E1\n"
+        f"G1 Xinf E1\nG1 Ynan Z{huge}\nG1 E{huge}\nT{huge * 20}\n",
+    )
+    found = analyse(path)
+    summary = found.summary
+    assert summary is not None
+    assert summary.estimated_seconds is None
+    assert summary.printing_area is None and summary.travel_area is None
+    assert summary.filament == {}  # an infinite length is none
+    assert found.marks.layers == [Layer(1, 4, 1.2)]  # ;Z:1.2.3 read as far as it goes
+    assert found.marks.progress == [(5, None, 5)]
+    json.dumps(summary.as_json(), allow_nan=False)  # what a JSON answer needs

@@ -49,13 +49,14 @@ _CHUNK = 1 << 20
 DEFAULT_DIAMETER = 1.75  # mm, where the file names none
 MAX_TOOL = 19  # T0..T19 are Hyrel's head addresses; a higher T is a device, not a head
 
+_NUMBER = rb"[-+]?(?:\d+\.?\d*|\.\d+)"  # what float() reads, but inf and nan
 _COMMENT = re.compile(
     rb";(?:"
     rb"(?P<prusa>LAYER_CHANGE)"
     rb"|LAYER:(?P<cura>-?\d+)"
-    rb"| ?layer (?P<s3d>\d+), Z = (?P<s3d_z>-?[\d.]+)"
-    rb"|Z:(?P<z>-?[\d.]+)"
-    rb"|TIME_ELAPSED:(?P<elapsed>[\d.]+)"
+    rb"| ?layer (?P<s3d>\d+), Z = (?P<s3d_z>" + _NUMBER + rb")"
+    rb"|Z:(?P<z>" + _NUMBER + rb")"
+    rb"|TIME_ELAPSED:(?P<elapsed>" + _NUMBER + rb")"
     rb"|TIME:(?P<total>\d+)"
     rb"| estimated printing time \(normal mode\) = (?P<estimate>.+)"
     rb"|[ \t]*filament used \[mm\] = (?P<used_mm>.+)"
@@ -66,12 +67,12 @@ _COMMENT = re.compile(
     rb")",
     re.IGNORECASE,
 )
-_NUMBER = re.compile(rb"[-+]?(?:\d+\.?\d*|\.\d+)")
-_WORD = re.compile(rb"([A-Z])[ \t]*([-+]?(?:\d+\.?\d*|\.\d+))")
+_NUMBERS = re.compile(_NUMBER)
+_WORD = re.compile(rb"([A-Z])[ \t]*(" + _NUMBER + rb")")
 _AXES = re.compile(rb"[XYZ]")
 _GLUED = re.compile(rb"[GMT]\d+(?:\.\d+)?[A-Z]")
 _M73_WORD = re.compile(r"([PR])\s*(\d+(?:\.\d*)?)", re.IGNORECASE)
-_DURATION = re.compile(r"(\d+)\s*([dhms])")
+_DURATION = re.compile(r"(\d{1,9})\s*([dhms])")
 _SECONDS = {"d": 86400, "h": 3600, "m": 60, "s": 1}
 _MOVES = frozenset((b"G0", b"G1", b"G00", b"G01", b"G2", b"G3", b"G02", b"G03"))
 _ARCS = frozenset((b"G2", b"G3", b"G02", b"G03"))
@@ -245,7 +246,14 @@ def _words(line: bytes) -> dict[int, float]:
 
 
 def _numbers(text: bytes) -> list[float]:
-    return [float(number) for number in _NUMBER.findall(text)]
+    """The numbers in ``text`` (one too big for a float: 0)."""
+    return [_finite(number) or 0.0 for number in _NUMBERS.findall(text)]
+
+
+def _finite(text: bytes | str) -> float | None:
+    """A number as a float; None when it is too big for one (JSON has no infinity)."""
+    value = float(text)
+    return value if math.isfinite(value) else None
 
 
 def duration(text: str) -> float | None:
@@ -407,7 +415,7 @@ class _Pass:
                     self.hyrel_layers.append((number, offset + searched))
                     searched += len(raw)
                     continue
-                elif head == 84 and code[1:].isdigit():  # a tool change
+                elif head == 84 and code[1:].isdigit() and len(code) < 5:  # a tool change
                     chosen = int(code[1:])
                     if chosen != tool and chosen <= MAX_TOOL:
                         self.e[tool], self.net[tool], self.peak[tool] = e_now, net, peak
@@ -438,7 +446,7 @@ class _Pass:
                 net += delta
                 if net > peak:
                     peak = net
-            if nz is not None and z_from_moves:
+            if nz is not None and z_from_moves and math.isfinite(z):
                 move_z.append((number, z))
             if nx is None and ny is None and nz is None and not arc:
                 continue  # no move (E alone, F alone)
@@ -507,7 +515,7 @@ class _Pass:
 
     def _progress(self, words: bytes, number: int) -> None:
         """M73's percent done and minutes left."""
-        found = {w.upper(): float(v) for w, v in _M73_WORD.findall(words.decode())}
+        found = {w.upper(): _finite(v) for w, v in _M73_WORD.findall(words.decode())}
         if found:
             self.marks.progress.append((number, found.get("P"), found.get("R")))
 
@@ -526,14 +534,15 @@ class _Pass:
                 start = self.slicer_layers[-1][1] - offset + 1 if self.slicer_layers else 0
                 at = _line_start(data, raw, max(start, 0))
                 self.slicer_layers.append((number, offset + at))
-            if kind == "s3d":
-                self.comment_z.append((number, float(match["s3d_z"])))
-        elif kind == "z":
-            self.comment_z.append((number, float(match["z"])))
-        elif kind == "elapsed":
-            marks.elapsed.append((number, float(match["elapsed"])))
+            z = _finite(match["s3d_z"]) if kind == "s3d" else None
+            if z is not None:
+                self.comment_z.append((number, z))
+        elif kind == "z" and (z := _finite(match["z"])) is not None:
+            self.comment_z.append((number, z))
+        elif kind == "elapsed" and (elapsed := _finite(match["elapsed"])) is not None:
+            marks.elapsed.append((number, elapsed))
         elif kind == "total":
-            self.estimate = float(match["total"])
+            self.estimate = _finite(match["total"])
         elif kind == "estimate" and self.estimate is None:
             self.estimate = duration(match["estimate"].decode(errors="replace"))
         elif kind == "used_mm":
@@ -573,7 +582,7 @@ class _Pass:
         lengths = self.used_mm or self.peak
         used: dict[str, Filament] = {}
         for tool, length in enumerate(lengths):
-            if length <= 0:
+            if not 0 < length < _INF:
                 continue
             if tool < len(self.used_cm3) and self.used_mm:
                 volume = self.used_cm3[tool]
@@ -581,7 +590,8 @@ class _Pass:
                 diameters = self.diameters or [DEFAULT_DIAMETER]
                 diameter = diameters[min(tool, len(diameters) - 1)]
                 volume = length * math.pi * (diameter / 2) ** 2 / 1000
-            used[f"tool{tool}"] = Filament(round(length, 5), round(volume, 5))
+            if math.isfinite(volume):
+                used[f"tool{tool}"] = Filament(round(length, 5), round(volume, 5))
         return used
 
 
@@ -589,7 +599,10 @@ def _box(limits: list[float]) -> Box | None:
     min_x, max_x, min_y, max_y, min_z, max_z = limits
     if min_x > max_x:  # nothing recorded
         return None
-    return Box(min_x, min_y, min_z, max_x, max_y, max(max_z, min_z))
+    box = Box(min_x, min_y, min_z, max_x, max_y, max(max_z, min_z))
+    if not all(math.isfinite(size) for size in box.dimensions().values()):
+        return None  # a move to X1e999: not a box JSON can say
+    return box
 
 
 def _slicer_name(text: str) -> str | None:

@@ -24,7 +24,7 @@ from fastapi import (
 
 import repetrel_host as rh
 from repetrel_host.config import UserConfig
-from repetrel_host.gcode.analysis import analyse
+from repetrel_host.gcode.analysis import Summary, analyse
 from repetrel_host.server.analyses import Analyses, describe, stamp
 from repetrel_host.server.events import EventHub
 from repetrel_host.server.mqtt import MqttSettings
@@ -212,7 +212,7 @@ async def save_upload(
                 400, {"error": f"{name}: refused ({len(errors)} errors)", "findings": findings}
             )
         # Analysed now, in a thread (OctoPrint's gcodeAnalysis): a listing need not read it.
-        summary = (await asyncio.to_thread(analyse, partial)).summary
+        summary = await asyncio.to_thread(_analysed, partial)
         made_from = stamp(partial)
         target, note = _free_name(server, target_dir / name)
         partial.replace(target)
@@ -225,6 +225,15 @@ async def save_upload(
     if summary is not None:
         server.analyses.keep(target, summary, made_from)  # a rename keeps size and time
     return Upload(target, findings, commands, note)
+
+
+def _analysed(path: Path) -> Summary | None:
+    """The upload's analysis; None (and logged) when it fails: the upload is kept."""
+    try:
+        return analyse(path).summary
+    except Exception:
+        log.exception("the analysis of the upload %s failed", path.name)
+        return None
 
 
 def _stat_key(path: Path) -> tuple[Path, int, int]:

@@ -386,8 +386,12 @@ class PrinterService:
         self._paused = False
         log.info("printer %s: printing job %d (%s)", self.name, record.id, record.name)
         self.job_changed(record.id)
-        with contextlib.suppress(OSError):  # read while the job streams: a big file
+        try:  # read while the job streams: a big file
             await asyncio.to_thread(self._read_job, running, path)
+        except OSError:
+            pass  # gone or unreadable: the job streams what it opened, without layers
+        except Exception:  # a bug: the job is followed all the same
+            log.exception("printer %s: job %d's file was not analysed", self.name, record.id)
         state, error = JobState.COMPLETED, None
         ending = asyncio.ensure_future(job.wait())
         try:
