@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from repetrel_host.gcode import marks
+from repetrel_host.gcode import analysis
 from repetrel_host.gcode.marks import Layer, scan_marks
 from repetrel_host.job import Job
 
@@ -59,7 +59,7 @@ def test_line_numbers_agree_with_the_job_whatever_the_line_endings(tmp_path: Pat
 
 def test_chunk_boundaries_do_not_move_lines(tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
     text = "".join(f";LAYER_CHANGE\n;Z:{n}\nG1 X{n}\n" for n in range(1, 200))
-    monkeypatch.setattr(marks, "_CHUNK", 7)
+    monkeypatch.setattr(analysis, "_CHUNK", 7)
     for newline in ("\n", "\r\n", "\r"):
         found = scan_marks(write(tmp_path, text, newline))
         assert [layer.line for layer in found.layers] == list(range(1, 597, 3))
@@ -74,7 +74,7 @@ def test_hyrel_m790_layers_and_an_unreadable_file(tmp_path: Path) -> None:
 
 def test_until_line_reads_no_further_than_needed(tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
     text = "".join(f";LAYER_CHANGE\n;Z:{n}\nG1 Z{n}\n" for n in range(1, 100))
-    monkeypatch.setattr(marks, "_CHUNK", 20)
+    monkeypatch.setattr(analysis, "_CHUNK", 20)
     found = scan_marks(write(tmp_path, text), until_line=10)
     assert 4 <= len(found.layers) < 99  # the piece holding line 10, not the whole file
     assert found.at(10).layer == Layer(4, 10, 4)

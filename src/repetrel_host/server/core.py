@@ -24,7 +24,9 @@ from fastapi import (
 
 import repetrel_host as rh
 from repetrel_host.config import UserConfig
+from repetrel_host.gcode.analysis import Summary, analyse
 from repetrel_host.server.access import Access
+from repetrel_host.server.analyses import Analyses, describe, stamp
 from repetrel_host.server.events import EventHub
 from repetrel_host.server.mqtt import MqttSettings
 from repetrel_host.server.printers import PrinterConfig, PrinterService, Refused
@@ -66,8 +68,12 @@ class PrintServer:
         self.mqtt = mqtt
         self._bridge: asyncio.Task[None] | None = None
         self._uuids: dict[str, str] | None = None  # printer_uuid's, once read
+        # Each file's analysis, kept in the data folder (made at its upload).
+        self.analyses = Analyses(data_dir / "analysis", data_dir)
         self.services = {
-            name: PrinterService(name, config, self.store, data_dir, self.user, self.events.publish)
+            name: PrinterService(
+                name, config, self.store, data_dir, self.user, self.events.publish, self.analyses
+            )
             for name, config in printers.items()
         }
         for service in self.services.values():
@@ -224,6 +230,9 @@ async def save_upload(
             raise HTTPException(
                 400, {"error": f"{name}: refused ({len(errors)} errors)", "findings": findings}
             )
+        # Analysed now, in a thread (OctoPrint's gcodeAnalysis): a listing need not read it.
+        summary = await asyncio.to_thread(_analysed, partial)
+        made_from = stamp(partial)
         target, note = _free_name(server, target_dir / name)
         partial.replace(target)
     except BaseException:
@@ -232,7 +241,18 @@ async def save_upload(
     for service in server.services.values():
         service.renamed(partial, target)
     _HASHES[_stat_key(target)] = digest.hexdigest()
+    if summary is not None:
+        server.analyses.keep(target, summary, made_from)  # a rename keeps size and time
     return Upload(target, findings, commands, "; ".join(filter(None, (shortened, note))))
+
+
+def _analysed(path: Path) -> Summary | None:
+    """The upload's analysis; None (and logged) when it fails: the upload is kept."""
+    try:
+        return analyse(path).summary
+    except Exception:
+        log.exception("the analysis of the upload %s failed", path.name)
+        return None
 
 
 def _stat_key(path: Path) -> tuple[Path, int, int]:
@@ -300,6 +320,7 @@ def delete_upload(server: PrintServer, location: str) -> None:
         jobs = ", ".join(str(job) for job in users)
         raise HTTPException(409, f"'{location}' is used by job {jobs}: cancel it first")
     path.unlink()
+    server.analyses.forget(path)
     for service in server.services.values():
         service.forget(path)
         if service.selected == path:
@@ -326,6 +347,11 @@ async def answered(call: Awaitable[T]) -> T:
 
 
 def file_json(server: PrintServer, path: Path) -> dict[str, Any]:
+    """A file of the native listing, with its analysis (None until it is made: a file
+    that was not uploaded is analysed in the background)."""
+    summary = None
+    if path.name.lower().endswith(G_CODE_SUFFIXES) and not path.name.startswith("."):
+        summary = server.analyses.summary(path)
     return {
         "name": path.name,
         "display": path.name,
@@ -334,8 +360,10 @@ def file_json(server: PrintServer, path: Path) -> dict[str, Any]:
         "type": "machinecode",
         "size": path.stat().st_size,
         "date": int(path.stat().st_mtime),
+        "analysis": describe(summary),
     }
 
 
 def uploads_json(server: PrintServer) -> list[dict[str, Any]]:
+    """The native listing (call in a thread: it reads the analyses kept on disk)."""
     return [file_json(server, p) for p in sorted(server.files.rglob("*")) if p.is_file()]

@@ -129,7 +129,7 @@ def router() -> APIRouter:
     @router.get("/files")
     async def files(request: Request) -> list[dict[str, Any]]:
         server = server_of(request)
-        return core.uploads_json(server)
+        return await asyncio.to_thread(core.uploads_json, server)
 
     @router.delete("/files/{location:path}", status_code=204)
     async def delete_file(request: Request, location: str) -> Response:

@@ -24,8 +24,9 @@ from typing import Any
 import repetrel_host as rh
 from repetrel_host.camera import Camera, SnapshotFailed
 from repetrel_host.config import Loadout, UserConfig, find_loadout, load_library, load_loadout
+from repetrel_host.gcode.analysis import Summary
 from repetrel_host.gcode.lint import Finding, Severity
-from repetrel_host.gcode.marks import SlicerMarks, scan_marks
+from repetrel_host.gcode.marks import SlicerMarks
 from repetrel_host.job import ActionKind, HostAction
 from repetrel_host.planning import (
     JobPlan,
@@ -35,6 +36,7 @@ from repetrel_host.planning import (
     link_settings,
     plan_job,
 )
+from repetrel_host.server.analyses import Analyses
 from repetrel_host.server.events import Event
 from repetrel_host.server.store import PROGRESS_INTERVAL, JobRecord, JobState, Store
 
@@ -114,9 +116,10 @@ class Running:
 
     record: JobRecord
     job: rh.PrintJob
-    layers: list[int] = field(default_factory=list)  # byte offsets where layers begin
+    layers: list[int] = field(default_factory=list)  # byte offsets where marks.layers begin
     new_layers: int = 0  # the M790s reached
     marks: SlicerMarks | None = None  # the slicer's (layers, Z, estimates), once read
+    summary: Summary | None = None  # the file's analysis (filament, boxes), once read
 
     @property
     def layer(self) -> int:
@@ -152,10 +155,6 @@ class Running:
         return None, None
 
 
-# How slicers mark a new layer: PrusaSlicer and its kin, Cura, and Hyrel's M790.
-_LAYER_MARKS = (b";LAYER_CHANGE", b";LAYER:", b"M790")
-
-
 def _fingerprint(plan: JobPlan) -> tuple[object, ...]:
     """The job's file as it is on disk (an edit changes its time, a new file its inode),
     and what its check depends on."""
@@ -171,21 +170,6 @@ def snapshot_name(tail: str) -> str:
     return f"{datetime.now():%Y%m%d-%H%M%S-%f}{tail}"
 
 
-def layer_offsets(path: Path) -> list[int]:
-    """Byte offsets of the lines that mark a new layer in ``path``."""
-    offsets: list[int] = []
-    offset = 0
-    try:
-        with path.open("rb") as handle:
-            for line in handle:
-                if line.lstrip().startswith(_LAYER_MARKS):
-                    offsets.append(offset)
-                offset += len(line)
-    except OSError as exc:
-        raise rh.JobError(f"{path.name}: cannot be read ({exc.strerror})") from None
-    return offsets
-
-
 class PrinterService:
     """A printer's session, and the loop that feeds it its queue."""
 
@@ -197,6 +181,7 @@ class PrinterService:
         data_dir: Path,
         user: UserConfig,
         publish: Callable[[Event], None] = lambda event: None,
+        analyses: Analyses | None = None,
     ) -> None:
         self.name = name
         self.config = config
@@ -205,6 +190,8 @@ class PrinterService:
         self.data_dir = data_dir
         self.user = user
         self.publish = publish  # the server's events
+        # The files' analyses (the server's, shared by its printers).
+        self.analyses = analyses or Analyses(data_dir / "analysis", data_dir)
         self.printer: rh.Printer | None = None
         self.running: Running | None = None
         self.held = False  # the queue waits for a release (after an interrupted job)
@@ -422,9 +409,12 @@ class PrinterService:
         self._paused = False
         log.info("printer %s: printing job %d (%s)", self.name, record.id, record.name)
         self.job_changed(record.id)
-        with contextlib.suppress(rh.HostError):  # read while the job streams: a big file
-            running.layers = await asyncio.to_thread(layer_offsets, path)
-        running.marks = await asyncio.to_thread(scan_marks, path)
+        try:  # read while the job streams: a big file
+            await asyncio.to_thread(self._read_job, running, path)
+        except OSError:
+            pass  # gone or unreadable: the job streams what it opened, without layers
+        except Exception:  # a bug: the job is followed all the same
+            log.exception("printer %s: job %d's file was not analysed", self.name, record.id)
         state, error = JobState.COMPLETED, None
         ending = asyncio.ensure_future(job.wait())
         try:
@@ -473,6 +463,14 @@ class PrinterService:
             {"type": "printer", "printer": self.name, "state": self.state, "held": self.held}
         )
         self._ended.set()
+
+    def _read_job(self, running: Running, path: Path) -> None:
+        """The job's file, read once (in a thread): its layers' marks and offsets, and its
+        summary (kept since its upload; else made now, and kept)."""
+        summary = self.analyses.cached(path)
+        found = self.analyses.analyse(path, moves=summary is None)
+        running.marks, running.layers = found.marks, found.layer_offsets
+        running.summary = summary or found.summary
 
     async def _watch(self, job: rh.PrintJob) -> None:
         """The job's word that its safe stop is held up: logged, told, and remembered."""

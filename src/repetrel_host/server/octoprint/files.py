@@ -11,21 +11,9 @@ from urllib.parse import quote
 
 from fastapi import HTTPException
 
-from repetrel_host.gcode.marks import scan_marks
 from repetrel_host.server import core
+from repetrel_host.server.analyses import stamp
 from repetrel_host.server.core import G_CODE_SUFFIXES, PrintServer
-
-_ESTIMATES: dict[tuple[Path, int, int], float | None] = {}
-
-
-def analysis(path: Path) -> dict[str, Any]:
-    """OctoPrint's ``gcodeAnalysis``: the slicer's estimate, where it wrote one."""
-    stat = path.stat()
-    key = path, stat.st_size, stat.st_mtime_ns
-    if key not in _ESTIMATES:
-        _ESTIMATES[key] = scan_marks(path).total_seconds
-    estimate = _ESTIMATES[key]
-    return {"estimatedPrintTime": estimate} if estimate is not None else {}
 
 
 def _url(base: str, location: str) -> str:
@@ -33,10 +21,11 @@ def _url(base: str, location: str) -> str:
 
 
 def file_entry(server: PrintServer, path: Path, base: str) -> dict[str, Any]:
-    """One file's entry (call in a thread: a new file is read for its hash)."""
+    """One file's entry (call in a thread: a new file is read for its hash, an analysis
+    kept on disk is read)."""
     location = path.relative_to(server.files).as_posix()
     stat = path.stat()
-    return {
+    entry: dict[str, Any] = {
         "name": path.name,
         "display": path.name,
         "path": location,
@@ -50,10 +39,15 @@ def file_entry(server: PrintServer, path: Path, base: str) -> dict[str, Any]:
             "resource": _url(base, location),
             "download": f"{base}/downloads/files/local/{quote(location)}",
         },
-        "gcodeAnalysis": analysis(path),
         "prints": server.store.prints(core.relative(server, path)),
         "statistics": {"averagePrintTime": {}, "lastPrintTime": {}},
     }
+    # Made at its upload; until then (a file put there otherwise) none, as OctoPrint
+    # lists a file whose analysis is still queued.
+    summary = server.analyses.summary(path)
+    if summary is not None:
+        entry["gcodeAnalysis"] = summary.gcode_analysis()
+    return entry
 
 
 def folder_entry(server: PrintServer, path: Path, base: str, depth: int | None) -> dict[str, Any]:
@@ -139,8 +133,11 @@ def copy_or_move(server: PrintServer, location: str, destination: str, move: boo
             jobs = ", ".join(map(str, users))
             raise HTTPException(409, f"'{location}' is used by job {jobs}: it cannot move")
     target.parent.mkdir(parents=True, exist_ok=True)
+    # A file's analysis goes with it (a copy keeps its time: the analysis holds for it).
+    summary = server.analyses.cached(source) if source.is_file() else None
     if move:
         source.rename(target)
+        server.analyses.forget(source)
         for service in server.services.values():
             service.forget(source)
             if service.selected is not None and service.selected.is_relative_to(source):
@@ -149,6 +146,8 @@ def copy_or_move(server: PrintServer, location: str, destination: str, move: boo
         shutil.copytree(source, target)
     else:
         shutil.copy2(source, target)
+    if summary is not None:
+        server.analyses.keep(target, summary, stamp(target))
     return target
 
 

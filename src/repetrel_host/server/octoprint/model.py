@@ -99,21 +99,32 @@ def file_entry(service: PrinterService, path: Path | None) -> dict[str, Any]:
 
 
 def job(service: PrinterService) -> dict[str, Any]:
-    """OctoPrint's ``job``: the file, the slicer's estimate, the last print's time."""
+    """OctoPrint's ``job``: the file, the slicer's estimate and filament (from the file's
+    analysis, None without one), the last print's time."""
     shown = _shown(service)
     path = service.selected
+    summary = estimate = None
     if shown is not None and (service.running is not None or path is None):
         path = service.data_dir / shown.record.file
-    estimate = None
-    if shown is not None and shown.marks is not None:
-        estimate = shown.marks.total_seconds
+        summary = shown.summary
+        estimate = shown.marks.total_seconds if shown.marks is not None else None
+    elif path is not None:
+        summary = service.analyses.known(path)  # read as it was selected
+    if estimate is None and summary is not None:
+        estimate = summary.estimated_seconds
+    filament = None
+    if summary is not None and summary.filament:
+        filament = {
+            tool: {"length": used.length, "volume": used.volume}
+            for tool, used in summary.filament.items()
+        }
     last = service.last_print_time(path) if path is not None else None
     return {
         "file": file_entry(service, path),
         "estimatedPrintTime": estimate,
         "averagePrintTime": last,
         "lastPrintTime": last,
-        "filament": None,
+        "filament": filament,
         "user": shown.record.user if shown is not None else None,
     }
 

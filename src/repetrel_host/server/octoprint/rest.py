@@ -409,6 +409,8 @@ def router() -> APIRouter:
                 core.queue(server, service.name, path, commands)
                 service.select(None)
             else:
+                # Its analysis in memory, for /api/job (read from the data folder, or made).
+                await asyncio.to_thread(server.analyses.summary, path)
                 service.select(path)
             return Response(status_code=204)
         if body.command == "unselect":

@@ -1,0 +1,160 @@
+"""Each uploaded file's analysis (:class:`~repetrel_host.gcode.analysis.Summary`: OctoPrint's
+``gcodeAnalysis``, layers, slicer), kept in the data folder (``analysis/``, a small JSON file
+per file, valid while the file's size and time are those it was made from) so that a restart
+reads no file again.
+
+A file is analysed as it is uploaded (in the upload's thread), or as its job starts when it
+never was; a listing that finds a file without one (put there by hand, moved with its folder)
+shows it without and has it analysed in the background, one file at a time, as OctoPrint
+does. Nothing here runs on the event loop but :meth:`Analyses.known` (memory only)."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import queue
+import threading
+from pathlib import Path
+from typing import Any
+
+from repetrel_host.gcode.analysis import Analysis, Summary, analyse
+
+log = logging.getLogger("repetrel_host.server")
+
+FORMAT = 1  # of the files kept: another number (a changed analysis) makes them stale
+Stamp = tuple[int, int]  # a file's size and modification time (ns)
+
+
+def stamp(path: Path) -> Stamp:
+    stat = path.stat()
+    return stat.st_size, stat.st_mtime_ns
+
+
+class Analyses:
+    """The summaries of the files below ``root``, kept in ``folder``."""
+
+    def __init__(self, folder: Path, root: Path) -> None:
+        self.folder = folder
+        self.root = root
+        self._known: dict[Path, tuple[Stamp, Summary]] = {}
+        self._waiting: queue.SimpleQueue[Path] = queue.SimpleQueue()
+        self._queued: set[Path] = set()
+        self._lock = threading.Lock()
+        self._worker: threading.Thread | None = None
+
+    # --- reading ---------------------------------------------------------------------
+
+    def known(self, path: Path) -> Summary | None:
+        """The summary of ``path`` as it is now, if it is in memory (for the event loop)."""
+        found = self._known.get(path)
+        try:
+            return found[1] if found is not None and found[0] == stamp(path) else None
+        except OSError:
+            return None
+
+    def cached(self, path: Path) -> Summary | None:
+        """The summary of ``path`` as it is now, from memory or the folder; None when there
+        is none (any thread but the event loop's)."""
+        try:
+            now = stamp(path)
+        except OSError:
+            return None
+        found = self._known.get(path)
+        if found is not None and found[0] == now:
+            return found[1]
+        try:
+            kept = json.loads(self._entry(path).read_text())
+            if kept["format"] != FORMAT or kept["file"] != self._name(path):
+                return None
+            if (kept["size"], kept["mtime_ns"]) != now:
+                return None
+            summary = Summary.from_dict(kept["analysis"])
+        except (OSError, ValueError, KeyError, TypeError):
+            return None  # none yet, or unreadable: made again
+        self._known[path] = (now, summary)
+        return summary
+
+    def summary(self, path: Path) -> Summary | None:
+        """:meth:`cached`, or None and the file analysed in the background."""
+        found = self.cached(path)
+        if found is None:
+            self._enqueue(path)
+        return found
+
+    # --- making ----------------------------------------------------------------------
+
+    def analyse(self, path: Path, moves: bool = True) -> Analysis:
+        """``path`` read once, now (any thread but the event loop's): with ``moves``, its
+        summary is kept. :class:`OSError` when it cannot be read."""
+        before = stamp(path)
+        found = analyse(path, moves=moves)
+        if found.summary is not None and stamp(path) == before:  # not changed meanwhile
+            self.keep(path, found.summary, before)
+        return found
+
+    def keep(self, path: Path, summary: Summary, made_from: Stamp) -> None:
+        """``summary`` is that of ``path`` while its size and time are ``made_from``."""
+        self._known[path] = (made_from, summary)
+        entry = {
+            "format": FORMAT,
+            "file": self._name(path),
+            "size": made_from[0],
+            "mtime_ns": made_from[1],
+            "analysis": summary.as_dict(),
+        }
+        target = self._entry(path)
+        try:
+            self.folder.mkdir(parents=True, exist_ok=True)
+            partial = target.with_suffix(".part")
+            partial.write_text(json.dumps(entry))
+            partial.replace(target)
+        except OSError as exc:  # kept in memory all the same
+            log.warning("the analysis of %s was not kept: %s", path.name, exc)
+
+    def forget(self, path: Path) -> None:
+        """``path`` is gone."""
+        self._known.pop(path, None)
+        self._entry(path).unlink(missing_ok=True)
+
+    # --- the background --------------------------------------------------------------
+
+    def _enqueue(self, path: Path) -> None:
+        with self._lock:
+            if path in self._queued:
+                return
+            self._queued.add(path)
+            if self._worker is None or not self._worker.is_alive():
+                # A daemon: a big file being read never holds the server's exit up.
+                self._worker = threading.Thread(target=self._work, name="analysis", daemon=True)
+                self._worker.start()
+        self._waiting.put(path)
+
+    def _work(self) -> None:
+        while True:
+            path = self._waiting.get()
+            try:
+                if self.cached(path) is None:
+                    self.analyse(path)
+            except OSError:
+                pass  # gone meanwhile
+            except Exception:  # a bug: the file goes without, the server on
+                log.exception("the analysis of %s failed", path.name)
+            finally:
+                with self._lock:
+                    self._queued.discard(path)
+
+    def _name(self, path: Path) -> str:
+        try:
+            return path.relative_to(self.root).as_posix()
+        except ValueError:
+            return str(path)
+
+    def _entry(self, path: Path) -> Path:
+        digest = hashlib.sha1(self._name(path).encode(), usedforsecurity=False).hexdigest()
+        return self.folder / f"{digest[:24]}.json"
+
+
+def describe(summary: Summary | None) -> dict[str, Any] | None:
+    """The native API's ``analysis`` of a file: OctoPrint's, with layers and slicer."""
+    return summary.as_json() if summary is not None else None
