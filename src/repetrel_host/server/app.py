@@ -31,12 +31,14 @@ import repetrel_host as rh
 from repetrel_host.server import native
 from repetrel_host.server.auth import RequestGuard
 from repetrel_host.server.core import PrintServer
-from repetrel_host.server.octoprint import appkeys, rest
+from repetrel_host.server.octoprint import appkeys, rest, socket
 
 __all__ = ["PrintServer", "create_app"]
 
 
 def create_app(server: PrintServer) -> FastAPI:
+    push = socket.Push(server)
+
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         await server.start()
@@ -44,6 +46,7 @@ def create_app(server: PrintServer) -> FastAPI:
             yield
         finally:
             await server.stop()  # SIGTERM: running jobs stop with their safe stop
+            await push.stop()
 
     app = FastAPI(title="repetrel-host print server", version=rh.__version__, lifespan=lifespan)
     app.state.server = server
@@ -80,6 +83,9 @@ def create_app(server: PrintServer) -> FastAPI:
     app.include_router(octoprint, prefix="/printers/{printer}")
     app.include_router(rest.downloads())
     app.include_router(rest.downloads(), prefix="/printers/{printer}")
+    sockets = socket.router(push)
+    app.include_router(sockets)
+    app.include_router(sockets, prefix="/printers/{printer}")
     return app
 
 

@@ -199,6 +199,10 @@ class PrinterService:
         )
         self.offsets: dict[str, float] = {}  # OctoPrint's temperature offsets (kept, told)
         self.last_error = ""
+        # Told at once of every change of state or phase (the session's too): the push
+        # socket's current state, which must not miss a short phase. Quick, never awaiting.
+        self.watchers: list[Callable[[], None]] = []
+        self._z: float | None = None  # the job's height last told (OctoPrint's ZChange)
         self._wake = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
         self._stopping = False
@@ -319,6 +323,8 @@ class PrinterService:
                 continue
             log.info("printer %s: connected on %s", self.name, self.port)
             self.last_error = ""
+            self.printer.watch(self.changed)
+            self.changed()
             self._forwarding = asyncio.get_running_loop().create_task(self._forward(self.printer))
             return
 
@@ -390,6 +396,8 @@ class PrinterService:
         finally:
             self._starting = None
         running = self.running = Running(record, job)
+        self._z = None
+        self.changed()
         self._held.clear()
         self.stop_held = ""
         watching = asyncio.ensure_future(self._watch(job))
@@ -426,6 +434,7 @@ class PrinterService:
             self.finished, self.finished_state, self.finished_at = running, state, time.time()
             self.selected = None
             self.running = None
+            self.changed()
             watching.cancel()
         report = job.report  # the controller's M773 report, kept with the job
         self.store.set_state(record.id, state, error, report.text if report else None)
@@ -440,9 +449,7 @@ class PrinterService:
             # The part is still on the bed: the next job waits for someone to say so.
             self.held = True
         self.job_changed(record.id)
-        self.publish(
-            {"type": "printer", "printer": self.name, "state": self.state, "held": self.held}
-        )
+        self._state_changed()
         self._ended.set()
 
     async def _watch(self, job: rh.PrintJob) -> None:
@@ -472,6 +479,10 @@ class PrinterService:
                 "layers": len(self.running.layers) if self.running else 0,
             }
         )
+        z = self.running.z if self.running is not None else None
+        if z is not None and z != self._z:  # a new height, as the slicer marked it
+            self.publish({"type": "z", "printer": self.name, "new": z, "old": self._z})
+            self._z = z
         paused = self.printer is not None and self.printer.state is rh.State.PAUSED
         if paused != self._paused and not job.done:
             self._paused = paused
@@ -603,7 +614,13 @@ class PrinterService:
 
     # --- control ----------------------------------------------------------------------
 
+    def changed(self) -> None:
+        """The state or a phase may have changed: the watchers are told."""
+        for watcher in self.watchers:
+            watcher()
+
     def _state_changed(self) -> None:
+        self.changed()
         self.publish(
             {"type": "printer", "printer": self.name, "state": self.state, "held": self.held}
         )
