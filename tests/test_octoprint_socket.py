@@ -258,7 +258,9 @@ def test_a_farm_managers_raw_websocket_follows_a_print_its_events_and_the_wire(
         # The wire as OctoPrint's terminal shows it: the job's lines and the controller's.
         logs = [line for c in listener.of("current") for line in c["logs"]]
         assert any(line.startswith("Send: N") and " G1 X" in line for line in logs)
-        assert "Recv: ok" in logs and any(line.startswith("Recv: T:") for line in logs)
+        assert "Recv: ok" in logs
+        # Temperatures as Marlin reports them (" T:..." with its space: "Recv:  T:...").
+        assert any(line.startswith("Recv: ") and " T:" in line for line in logs)
         assert any(c["temps"] for c in listener.of("current"))
         sample = next(t for c in listener.of("current") for t in c["temps"])
         assert isinstance(sample["time"], int) and "actual" in sample["tool0"]

@@ -203,6 +203,7 @@ class PrinterService:
         # socket's current state, which must not miss a short phase. Quick, never awaiting.
         self.watchers: list[Callable[[], None]] = []
         self._z: float | None = None  # the job's height last told (OctoPrint's ZChange)
+        self._print_time: tuple[object, float, float | None] | None = None
         self._wake = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
         self._stopping = False
@@ -632,13 +633,20 @@ class PrinterService:
             self.finished = None
 
     def last_print_time(self, path: Path) -> float | None:
-        """How long the last completed print of ``path`` took, in seconds."""
+        """How long the last completed print of ``path`` took, in seconds (asked of the
+        store again after 10 s, or once a job ended: the push socket asks every tick)."""
+        key = (path, self.finished_at)
+        known = self._print_time
+        if known is not None and known[0] == key and time.monotonic() - known[1] < 10.0:
+            return known[2]
         try:
             file = path.relative_to(self.data_dir).as_posix()
         except ValueError:
             return None
         last = self.store.prints(file).get("last")
-        return last.get("printTime") if last else None
+        seconds = last.get("printTime") if last else None
+        self._print_time = (key, time.monotonic(), seconds)
+        return seconds
 
     def hold(self) -> None:
         """Start no more jobs (the running one goes on) until :meth:`release`."""

@@ -201,10 +201,11 @@ def resends(service: PrinterService) -> dict[str, int]:
     return {"count": count, "transmitted": sent, "ratio": round(100 * count / sent) if sent else 0}
 
 
-def current(service: PrinterService) -> dict[str, Any]:
+def current(service: PrinterService, job_now: dict[str, Any] | None = None) -> dict[str, Any]:
     """The push socket's ``current`` payload but for its buffers (temps, logs, messages),
-    which the socket adds: what changed since its last message."""
-    job_now = job(service)
+    which the socket adds: what changed since its last message. ``job_now``: :func:`job`,
+    when the caller has it."""
+    job_now = job_now or job(service)
     running = service.running
     printing = job_now["file"]["path"] if running is not None else None
     return {

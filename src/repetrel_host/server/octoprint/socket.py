@@ -33,10 +33,12 @@ import time
 from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from itertools import islice
 from typing import Any
 
-from fastapi import APIRouter, HTTPException, Request, WebSocket
+from fastapi import APIRouter, HTTPException, Request
 from fastapi.responses import JSONResponse, PlainTextResponse, Response
+from starlette.routing import WebSocketRoute
 from starlette.types import Receive, Scope, Send
 
 import repetrel_host as rh
@@ -61,11 +63,14 @@ LOG_LINES = 300  # OctoPrint's terminal: the log lines a history (and a tick) ca
 MESSAGES_KEPT = 300
 TICKS_KEPT = 40  # ticks whose logs a throttled client still gets (20 s)
 WIRE_PIECES = 1024  # the session's wire tail between two ticks
+JOB_KEPT = 2.0  # s a current's job part is reused while the job shown stays the same
 LINGER = 30.0  # a printer's feed (and its wire tail) outlives its last client (apps reconnect)
 UNAUTHED_BACKLOG = 100  # OctoPrint's: messages held for a client until its auth
 INCOMING_MOST = 64 * 1024  # bytes of one client's message
 _LINKED = ("ready", "printing", "paused")
 _SESSION_ID = re.compile(r"[^/.]+")
+_PREFIXES = (b"\nRecv: ", b"\nSend: ")  # OctoPrint's terminal, by "sent"
+_PREFIX = len("Send: ")
 _STATE_IDS = {
     model.HELD_TEXT: "OPERATIONAL",
     "Offline after error": "CLOSED_WITH_ERROR",
@@ -211,9 +216,12 @@ class Client:
         once the client was closed)."""
         if not self.outbox and not self.closed:
             self.wake.clear()
-            with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(timeout):
-                    await self.wake.wait()
+            if timeout is None:
+                await self.wake.wait()
+            else:
+                with contextlib.suppress(TimeoutError):
+                    async with asyncio.timeout(timeout):
+                        await self.wake.wait()
         frames = list(self.outbox)
         self.outbox.clear()
         return frames
@@ -332,6 +340,7 @@ class Feed:
         self._loop = asyncio.get_running_loop()
         self._timer: asyncio.TimerHandle | None = None
         self._snapshot_due = False
+        self._job_kept: tuple[object, float, dict[str, Any]] | None = None
         self._idle_since: float | None = self._loop.time()
         running = service.running
         record = service.store.job(running.record.id) if running is not None else None
@@ -394,7 +403,7 @@ class Feed:
         if idle is not None and self._loop.time() - idle > LINGER:
             self.push.retire(self)
             return
-        if self.clients:
+        if any(client.registered for client in self.clients):
             try:
                 self.tick(forced=False)
             except Exception:  # a bug here must not end the printer's feed
@@ -407,7 +416,7 @@ class Feed:
         logs = self._read_wire()
         temps, self.temps = self.temps, []
         messages, self.messages = self.messages, []
-        base = model.current(service)
+        base = model.current(service, self._job_now())
         server_time = base.pop("serverTime")
         state = base["state"]
         base_json = _dumps(base)
@@ -440,6 +449,17 @@ class Feed:
             client.last_tick = self.tick_number
             client.offer(frame)
 
+    def _job_now(self) -> dict[str, Any]:
+        """The job's part of a current, made again when the job (or file) shown changed,
+        or after :data:`JOB_KEPT` s (its file's size, the last print's time)."""
+        service = self.service
+        key = (id(service.running), service.selected, id(service.finished), service.finished_at)
+        now = self._loop.time()
+        kept = self._job_kept
+        if kept is None or kept[0] != key or now - kept[1] > JOB_KEPT:
+            kept = self._job_kept = (key, now, model.job(service))
+        return kept[2]
+
     def _current(self, head: str, client: Client) -> str:
         """The ``current`` text for a client: the ticks since its last one (several when it
         throttles), its logs and messages as it subscribed."""
@@ -467,8 +487,10 @@ class Feed:
 
     def _read_wire(self) -> list[str]:
         """The wire since the last tick, as OctoPrint's terminal shows it ("Send: ...",
-        "Recv: ..."), its last :data:`LOG_LINES` lines; the session's tail is swapped for
-        an empty one, so that the session only ever appends."""
+        "Recv: ..."), its last :data:`LOG_LINES` lines. The session's tail is swapped for an
+        empty one (the session only ever appends), and only its newest pieces are read,
+        a piece at a time in C (a line at a time in Python would cost more than the
+        rest of the tick)."""
         printer = self.service.printer
         if printer is not self.tailing:
             if self.tailing is not None:
@@ -478,27 +500,46 @@ class Feed:
             if printer is not None:
                 printer.wire_tail = deque(maxlen=WIRE_PIECES)
             return []
-        pieces = printer.wire_tail if printer is not None else None
-        if printer is None or not pieces:
+        if printer is None or not printer.wire_tail:
             return []
+        pieces = printer.wire_tail
         printer.wire_tail = deque(maxlen=WIRE_PIECES)
-        partial = self.partial
-        parts: list[tuple[bool, list[bytes]]] = []
-        for sent, data in pieces:
-            *complete, partial[sent] = (partial[sent] + data).split(b"\n")
-            if complete:
-                parts.append((sent, complete))
-        lines: list[str] = []
-        for sent, complete in reversed(parts):  # the last lines only: read backwards
-            prefix = "Send: " if sent else "Recv: "
-            for line in reversed(complete):
-                text = line.decode("utf-8", "replace").strip()
-                if text:
-                    lines.append(prefix + text)
-            if len(lines) >= LOG_LINES:
+        # The newest pieces that hold the lines shown (a piece holds a line, or hundreds);
+        # where older ones are left out, a line begun in them is left out too (None).
+        partial: list[bytes | None] = [self.partial[False], self.partial[True]]
+        kept = found = 0
+        for _, data in reversed(pieces):
+            kept += 1
+            found += data.count(b"\n")
+            if found > LOG_LINES:
                 break
-        lines.reverse()
-        return lines[-LOG_LINES:]
+        if kept < len(pieces):
+            pieces = deque(islice(pieces, len(pieces) - kept, None))
+            partial = [None, None]
+        chunks: list[bytes] = []
+        add = chunks.append
+        for sent, data in pieces:
+            before = partial[sent]
+            if before:
+                data = before + data
+                partial[sent] = b""
+            elif before is None:
+                cut = data.find(b"\n")
+                if cut < 0:
+                    continue
+                data, partial[sent] = data[cut + 1 :], b""
+            if data[-1:] == b"\n":  # mostly: a piece of whole lines
+                data = data[:-1]
+            else:
+                data, newline, partial[sent] = data.rpartition(b"\n")
+                if not newline:
+                    continue
+            prefix = _PREFIXES[sent]
+            add(prefix + data.replace(b"\n", prefix))
+        self.partial = {False: partial[False] or b"", True: partial[True] or b""}
+        text = b"".join(chunks).replace(b"\r", b"").decode("utf-8", "replace")
+        lines = text.split("\n")[-LOG_LINES * 2 :]
+        return [line for line in lines if len(line) > _PREFIX][-LOG_LINES:]
 
     # --- events -------------------------------------------------------------------
 
@@ -857,58 +898,71 @@ async def _disconnected(receive: Receive) -> None:
         pass
 
 
-async def _serve_websocket(push: Push, websocket: WebSocket, sockjs: bool) -> None:
-    """A websocket: SockJS framed (``o``, ``h``, ``a[...]``, ``c[...]``) or raw."""
-    try:
-        feed = push.feed(websocket.path_params.get("printer"))
-    except HTTPException:
-        await websocket.close(code=1008)  # no such printer
-        return
-    await websocket.accept()
-    address = websocket.client.host if websocket.client is not None else ""
-    client = Client(feed, f"{address} ({'SockJS' if sockjs else 'raw'} websocket)")
+class SocketEndpoint:
+    """A websocket: SockJS framed (``o``, ``h``, ``a[...]``, ``c[...]``) or raw (one JSON
+    object a message). A plain ASGI app: each message goes out in one ASGI send."""
 
-    async def write() -> None:
-        if sockjs:
-            await websocket.send_text("o")
-        while True:
-            frames = await client.take(HEARTBEAT if sockjs else None)
-            if client.closed:
-                if sockjs:
-                    await websocket.send_text(GO_AWAY)
-                await websocket.close(3000, "Go away!")
-                return
+    def __init__(self, push: Push, sockjs: bool) -> None:
+        self.push = push
+        self.sockjs = sockjs
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if (await receive())["type"] != "websocket.connect":
+            return
+        try:
+            feed = self.push.feed(scope.get("path_params", {}).get("printer"))
+        except HTTPException:
+            await send({"type": "websocket.close", "code": 1008})  # no such printer
+            return
+        await send({"type": "websocket.accept"})
+        sockjs = self.sockjs
+        address = scope["client"][0] if scope.get("client") else ""
+        client = Client(feed, f"{address} ({'SockJS' if sockjs else 'raw'} websocket)")
+
+        async def text(message: str) -> None:
+            await send({"type": "websocket.send", "text": message})
+
+        async def write() -> None:
             if sockjs:
-                await websocket.send_text(_array(frames) if frames else "h")
-            else:
-                for frame in frames:
-                    await websocket.send_text(frame.text)
+                await text("o")
+            while True:
+                frames = await client.take(HEARTBEAT if sockjs else None)
+                if client.closed:
+                    if sockjs:
+                        await text(GO_AWAY)
+                    await send({"type": "websocket.close", "code": 3000, "reason": "Go away!"})
+                    return
+                if sockjs:
+                    await text(_array(frames) if frames else "h")
+                else:
+                    for frame in frames:
+                        await text(frame.text)
 
-    async def read() -> None:
-        while True:
-            message = await websocket.receive()
-            if message["type"] == "websocket.disconnect":
-                client.close(f"the client went (code {message.get('code')})")
-                return
-            text = message.get("text")
-            if text is None:
-                text = (message.get("bytes") or b"").decode("utf-8", "replace")
-            if not text or len(text) > INCOMING_MOST:
-                continue  # SockJS: an empty message is ignored
-            for each in _sockjs_messages(text) if sockjs else (text,):
-                client.receive(each)
+        async def read() -> None:
+            while True:
+                message = await receive()
+                if message["type"] == "websocket.disconnect":
+                    client.close(f"the client went (code {message.get('code')})")
+                    return
+                data = message.get("text")
+                if data is None:
+                    data = (message.get("bytes") or b"").decode("utf-8", "replace")
+                if not data or len(data) > INCOMING_MOST:
+                    continue  # SockJS: an empty message is ignored
+                for each in _sockjs_messages(data) if sockjs else (data,):
+                    client.receive(each)
 
-    writer = asyncio.ensure_future(write())
-    reader = asyncio.ensure_future(read())
-    client.writer = writer
-    feed.add(client)
-    try:
-        await asyncio.wait({writer, reader}, return_when=asyncio.FIRST_COMPLETED)
-    finally:
-        client.close("the connection ended")
-        for task in (writer, reader):
-            task.cancel()
-        await asyncio.gather(writer, reader, return_exceptions=True)
+        writer = asyncio.ensure_future(write())
+        reader = asyncio.ensure_future(read())
+        client.writer = writer
+        feed.add(client)
+        try:
+            await asyncio.wait({writer, reader}, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            client.close("the connection ended")
+            for task in (writer, reader):
+                task.cancel()
+            await asyncio.gather(writer, reader, return_exceptions=True)
 
 
 def router(push: Push) -> APIRouter:
@@ -937,13 +991,9 @@ def router(push: Push) -> APIRouter:
     async def info_options(request: Request) -> Response:
         return Response(status_code=204, headers=_cors(request, "OPTIONS, GET"))
 
-    @router.websocket("/sockjs/websocket")
-    async def raw_websocket(websocket: WebSocket) -> None:
-        await _serve_websocket(push, websocket, sockjs=False)
-
-    @router.websocket("/sockjs/{server_id}/{session_id}/websocket")
-    async def sockjs_websocket(websocket: WebSocket, server_id: str, session_id: str) -> None:
-        await _serve_websocket(push, websocket, sockjs=True)
+    router.routes.append(WebSocketRoute("/sockjs/websocket", SocketEndpoint(push, False)))
+    sockjs = SocketEndpoint(push, True)
+    router.routes.append(WebSocketRoute("/sockjs/{server_id}/{session_id}/websocket", sockjs))
 
     def session_of(request: Request, session_id: str, create: bool) -> XhrSession | None:
         if _SESSION_ID.fullmatch(session_id) is None:
