@@ -9,7 +9,7 @@ server's on this 2-core machine. It prints each printer's lines/s beside the sin
 process's user + system time while the jobs stream, over all their lines).
 
     .venv/bin/python bench/server.py [--profile uart|usb] [--printers 4] [--quick]
-    .venv/bin/python bench/server.py --socket-clients 10 [--repeat 3] [--profile usb]
+    .venv/bin/python bench/server.py --socket-clients 10 [--repeat 5] [--job-times 5]
 
 Jobs are queued while the printers are held, then released together, so the CPU counted
 is the streaming's (the uploads' checks come before).
@@ -17,6 +17,8 @@ is the streaming's (the uploads' checks come before).
 ``--socket-clients N``: the printers' runs with N push socket clients on each printer
 (``bench/socket_clients.py``: each logged in and reading every message) against runs
 without any, alternated ``--repeat`` times; it prints each run and the medians' ratio.
+``--job-times K`` makes each job the profile's K times over: a run that is mostly
+streaming, not a job's start and end (each sends every client its state changes and events).
 """
 
 from __future__ import annotations
@@ -167,9 +169,11 @@ def run(
 
 
 def with_sockets(
-    profiles: list[str], printers: int, clients: int, repeat: int, quick: bool
+    profiles: list[str], printers: int, clients: int, repeat: int, quick: bool, times: int
 ) -> None:
-    """Runs without socket clients and with ``clients`` on each printer, alternated."""
+    """Runs without socket clients and with ``clients`` on each printer, alternated; each
+    printer's job is the profile's ``times`` over (a longer run: the streaming's cost,
+    less the start's and end's)."""
     print(
         "| link | printers | socket clients | run | lines/s (mean of printers) "
         "| server CPU µs/line | messages | currents | events | clients' CPU µs/line |"
@@ -181,6 +185,10 @@ def with_sockets(
         with tempfile.TemporaryDirectory(prefix="hyrel-bench-server-") as name:
             folder = Path(name)
             job, _ = job_file(lines, folder)
+            if times > 1:
+                longer = folder / f"{job.stem}-x{times}.gcode"
+                longer.write_text(job.read_text() * times)
+                job, lines = longer, lines * times
             for number in range(repeat):
                 for count in (0, clients):
                     result = run(profile, printers, job, lines, folder, count)
@@ -216,10 +224,15 @@ def main() -> int:
         "--socket-clients", type=int, default=0, help="push socket clients on each printer"
     )
     parser.add_argument("--repeat", type=int, default=3, help="runs of each (--socket-clients)")
+    parser.add_argument(
+        "--job-times", type=int, default=1, help="each job the profile's this many times over"
+    )
     args = parser.parse_args()
     if args.socket_clients:
         profiles = args.profile or ["uart", "usb"]
-        with_sockets(profiles, args.printers, args.socket_clients, args.repeat, args.quick)
+        with_sockets(
+            profiles, args.printers, args.socket_clients, args.repeat, args.quick, args.job_times
+        )
         return 0
     print(
         "| link | printers | printer | lines | lines/s | % of alone | server CPU µs/line "

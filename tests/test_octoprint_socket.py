@@ -16,6 +16,7 @@ import shutil
 import socket
 import struct
 import threading
+from collections import deque
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -25,6 +26,7 @@ import pytest
 import websocket
 from octorest import WebSocketEventHandler
 
+from repetrel_host.server.octoprint.socket import LOG_LINES, terminal_lines
 from repetrel_host.testing.fake_controller import BuiltInFake
 from tests.helpers import DATA, executed
 from tests.test_server import Server, bench, gcode, servers, wait_for
@@ -125,6 +127,46 @@ def long_lines(count: int) -> str:
     return "G28\n" + "".join(
         f"G1 X{i % 200}.125 Y{(i * 7) % 200}.5 Z0.3 E{i * 0.01:.5f} F1800\n" for i in range(count)
     )
+
+
+# --- the wire, as OctoPrint's terminal shows it ---------------------------------------------
+
+
+def test_the_wire_reads_as_octoprints_terminal_across_reads_and_ticks() -> None:
+    """The session's pieces as they come (a write of several lines, a reply cut across
+    reads, Marlin's CRLF and its report's leading space), over two ticks."""
+    partial = [b"", b""]
+    first = deque(
+        [
+            (True, b"N1 M110 N0*125\n"),
+            (False, b"o"),
+            (True, b"N2 G28*18\nN3 G1 X1*97\n"),
+            (False, b"k\r\nok\r\n T:21.0 /0.0"),
+        ]
+    )
+    assert terminal_lines(first, partial) == [
+        "Send: N1 M110 N0*125",
+        "Send: N2 G28*18",
+        "Send: N3 G1 X1*97",
+        "Recv: ok",
+        "Recv: ok",
+    ]
+    second = deque([(False, b" B:21.0 /0.0\r\n\r\n"), (True, b"N4 M105*36\n")])
+    assert terminal_lines(second, partial) == [
+        "Recv:  T:21.0 /0.0 B:21.0 /0.0",
+        "Send: N4 M105*36",
+    ]
+    assert partial == [b"", b""]
+    # More than a terminal shows: the newest lines, and none cut in two (the line that
+    # "*1" ends began in a piece left out).
+    many = deque([(False, b"an old line's end\n"), (True, b"N5 G1 X2"), (True, b"*1\n")])
+    many += [(True, b"N%d G1\n" % i) for i in range(6, 6 + LOG_LINES - 1)]
+    many.append((False, b"ok\n"))
+    lines = terminal_lines(many, partial)
+    assert lines[0] == "Send: N6 G1" and lines[-1] == "Recv: ok"
+    assert len(lines) == LOG_LINES
+    more = deque([(True, b"N%d G1\n" % i) for i in range(1000, 1000 + 2 * LOG_LINES)])
+    assert terminal_lines(more, partial)[0] == f"Send: N{1000 + LOG_LINES} G1"
 
 
 # --- octorest ----------------------------------------------------------------------------

@@ -172,6 +172,7 @@ class Client:
         self.subscriptions = Subscriptions()
         self.subscribed = False  # sent a subscribe (else it gets everything)
         self.outbox: deque[Frame] = deque()
+        self.waiting_since = 0.0  # when its oldest message waiting was queued
         self.backlog: list[Frame] = []  # plugin messages held until its auth
         self.wake = asyncio.Event()
         self.closed = ""  # why, once closed
@@ -189,9 +190,9 @@ class Client:
         if self.closed:
             return
         outbox = self.outbox
-        if outbox and (
-            len(outbox) >= OUTBOX_MOST or frame.created - outbox[0].created > STUCK_AFTER
-        ):
+        if not outbox:
+            self.waiting_since = frame.created
+        elif len(outbox) >= OUTBOX_MOST or frame.created - self.waiting_since > STUCK_AFTER:
             self.drop(f"it did not read its messages for {STUCK_AFTER:g} s")
             return
         outbox.append(frame)
@@ -208,7 +209,7 @@ class Client:
             return
         if self.may_read:
             self.offer(frame)
-        elif len(self.backlog) < UNAUTHED_BACKLOG:
+        elif len(self.backlog) < UNAUTHED_BACKLOG:  # (offered at its auth: queued then)
             self.backlog.append(frame)  # OctoPrint holds it until the client's auth
 
     async def take(self, timeout: float | None) -> list[Frame]:
@@ -292,7 +293,7 @@ class Client:
             log.info("push socket client %s: %s logged in", self.address, user)
             backlog, self.backlog = self.backlog, []
             for frame in backlog:
-                self.offer(frame)
+                self.offer(Frame(frame.text))
         else:
             log.info("push socket client %s: unknown user or session", self.address)
             self.user = None
@@ -317,6 +318,57 @@ def _items(values: list[Any]) -> str:
     return _dumps(values)[1:-1]
 
 
+def terminal_lines(pieces: deque[tuple[bool, bytes]], partial: list[bytes]) -> list[str]:
+    """The wire's ``pieces`` (sent or not, data) as OctoPrint's terminal shows them ("Send:
+    ...", "Recv: ..."), their last :data:`LOG_LINES` lines; ``partial`` holds the lines not
+    complete yet (received, sent), from the last call and for the next. Only the newest
+    pieces are read, a piece at a time with C's string operations: a line at a time in
+    Python would cost more than the rest of a tick."""
+    # The newest pieces that hold the lines shown (a piece holds a line, or hundreds).
+    before: list[bytes | None] = [partial[False], partial[True]]
+    kept = found = 0
+    for _, data in reversed(pieces):
+        kept += 1
+        found += data.count(b"\n")
+        if found > LOG_LINES:
+            break
+    if kept < len(pieces):
+        # Where older pieces are left out, a line begun in them is too (None: unknown).
+        unknown = {False, True}
+        for sent, data in islice(reversed(pieces), kept, None):
+            if sent in unknown:
+                unknown.discard(sent)
+                before[sent] = b"" if data[-1] == 10 else None
+                if not unknown:
+                    break
+        pieces = deque(islice(pieces, len(pieces) - kept, None))
+    chunks: list[bytes] = []
+    add = chunks.append
+    for sent, data in pieces:
+        begun = before[sent]
+        if begun:
+            data = begun + data
+            before[sent] = b""
+        elif begun is None:
+            cut = data.find(b"\n")
+            if cut < 0:
+                continue
+            data, before[sent] = data[cut + 1 :], b""
+            if not data:
+                continue
+        if data[-1] != 10:  # a line not complete yet (mostly a piece ends with one)
+            data, newline, before[sent] = data.rpartition(b"\n")
+            if not newline:
+                continue
+        # "\nSend: " before each line (and after the last: an empty line, left out)
+        prefix = _PREFIXES[sent]
+        add(prefix + data.replace(b"\n", prefix))
+    partial[:] = [before[False] or b"", before[True] or b""]
+    text = b"".join(chunks).replace(b"\r", b"").decode("utf-8", "replace")
+    lines = text.split("\n")[-LOG_LINES * 2 :]
+    return [line for line in lines if len(line) > _PREFIX][-LOG_LINES:]
+
+
 class Feed:
     """One printer's messages, built once for all its clients."""
 
@@ -336,7 +388,7 @@ class Feed:
         self.jobs: dict[int, str] = {}  # the job states told (print events)
         self.linked = service.state in _LINKED
         self.tailing: rh.Printer | None = None
-        self.partial = {True: b"", False: b""}  # a line of the wire not complete yet
+        self.partial = [b"", b""]  # a line of the wire not complete yet (received, sent)
         self._loop = asyncio.get_running_loop()
         self._timer: asyncio.TimerHandle | None = None
         self._snapshot_due = False
@@ -486,17 +538,14 @@ class Feed:
         return _items([line for tick in ticks for line in lines(tick) if wanted.search(line)])
 
     def _read_wire(self) -> list[str]:
-        """The wire since the last tick, as OctoPrint's terminal shows it ("Send: ...",
-        "Recv: ..."), its last :data:`LOG_LINES` lines. The session's tail is swapped for an
-        empty one (the session only ever appends), and only its newest pieces are read,
-        a piece at a time in C (a line at a time in Python would cost more than the
-        rest of the tick)."""
+        """The wire since the last tick, as OctoPrint's terminal shows it: the session's
+        tail is swapped for an empty one (the session only ever appends to it)."""
         printer = self.service.printer
         if printer is not self.tailing:
             if self.tailing is not None:
                 self.tailing.wire_tail = None
             self.tailing = printer
-            self.partial = {True: b"", False: b""}
+            self.partial = [b"", b""]
             if printer is not None:
                 printer.wire_tail = deque(maxlen=WIRE_PIECES)
             return []
@@ -504,42 +553,7 @@ class Feed:
             return []
         pieces = printer.wire_tail
         printer.wire_tail = deque(maxlen=WIRE_PIECES)
-        # The newest pieces that hold the lines shown (a piece holds a line, or hundreds);
-        # where older ones are left out, a line begun in them is left out too (None).
-        partial: list[bytes | None] = [self.partial[False], self.partial[True]]
-        kept = found = 0
-        for _, data in reversed(pieces):
-            kept += 1
-            found += data.count(b"\n")
-            if found > LOG_LINES:
-                break
-        if kept < len(pieces):
-            pieces = deque(islice(pieces, len(pieces) - kept, None))
-            partial = [None, None]
-        chunks: list[bytes] = []
-        add = chunks.append
-        for sent, data in pieces:
-            before = partial[sent]
-            if before:
-                data = before + data
-                partial[sent] = b""
-            elif before is None:
-                cut = data.find(b"\n")
-                if cut < 0:
-                    continue
-                data, partial[sent] = data[cut + 1 :], b""
-            if data[-1:] == b"\n":  # mostly: a piece of whole lines
-                data = data[:-1]
-            else:
-                data, newline, partial[sent] = data.rpartition(b"\n")
-                if not newline:
-                    continue
-            prefix = _PREFIXES[sent]
-            add(prefix + data.replace(b"\n", prefix))
-        self.partial = {False: partial[False] or b"", True: partial[True] or b""}
-        text = b"".join(chunks).replace(b"\r", b"").decode("utf-8", "replace")
-        lines = text.split("\n")[-LOG_LINES * 2 :]
-        return [line for line in lines if len(line) > _PREFIX][-LOG_LINES:]
+        return terminal_lines(pieces, self.partial)
 
     # --- events -------------------------------------------------------------------
 
