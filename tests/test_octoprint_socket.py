@@ -391,6 +391,15 @@ def test_with_public_reads_a_socket_needs_no_auth(
         assert history["state"]["text"] == "Operational"
         upload(server, "part.gcode", gcode(100), print="true")
         listener.wait(lambda: "PrintDone" in listener.events(), "PrintDone")
+        # OctoPrint's disconnect and connect, told as its Disconnected and Connected.
+        with server.client() as client:
+            for command in ("disconnect", "connect"):
+                answer = client.post("/api/connection", json={"command": command})
+                assert answer.status_code == 204
+                name = command.capitalize() + "ed"
+                listener.wait(lambda name=name: name in listener.events(), name)
+        assert listener.event("Connected")["port"] == fake.port
+        assert listener.states()[-1].startswith("Operational")
     finally:
         listener.close()
 
