@@ -9,21 +9,30 @@ server's on this 2-core machine. It prints each printer's lines/s beside the sin
 process's user + system time while the jobs stream, over all their lines).
 
     .venv/bin/python bench/server.py [--profile uart|usb] [--printers 4] [--quick]
+    .venv/bin/python bench/server.py --socket-clients 10 [--repeat 5] [--job-times 5]
 
 Jobs are queued while the printers are held, then released together, so the CPU counted
 is the streaming's (the uploads' checks come before).
+
+``--socket-clients N``: the printers' runs with N push socket clients on each printer
+(``bench/socket_clients.py``: each logged in and reading every message) against runs
+without any, alternated ``--repeat`` times; it prints each run and the medians' ratio.
+``--job-times K`` makes each job the profile's K times over: a run that is mostly
+streaming, not a job's start and end (each sends every client its state changes and events).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import signal
+import statistics
 import subprocess
 import sys
 import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent.parent))
@@ -42,6 +51,8 @@ class Run:
     lines: int  # per printer
     cpu_seconds: float  # the server's, while the jobs streamed
     fake_cpu_seconds: float  # the fakes' together, the same time
+    sockets: dict[str, int] = field(default_factory=dict)  # what the socket clients got
+    socket_cpu_seconds: float = 0.0  # the socket clients' process, the same time
 
     @property
     def cpu_per_line(self) -> float:
@@ -65,7 +76,9 @@ def free_port() -> int:
         return int(probe.getsockname()[1])
 
 
-def run(profile: Profile, count: int, job: Path, lines: int, folder: Path) -> Run:
+def run(
+    profile: Profile, count: int, job: Path, lines: int, folder: Path, socket_clients: int = 0
+) -> Run:
     fakes = [start_fake(profile, folder, f"{profile.name}-{count}-{i}") for i in range(count)]
     window = dict(zip(profile.options[::2], profile.options[1::2], strict=True))
     port = free_port()
@@ -86,6 +99,7 @@ def run(profile: Profile, count: int, job: Path, lines: int, folder: Path) -> Ru
         stderr=(folder / f"server-{count}.log").open("w"),
     )
     client = ServerClient(f"127.0.0.1:{port}", KEY)
+    readers: subprocess.Popen[str] | None = None
     try:
         names = [f"p{i}" for i in range(count)]
         deadline = time.monotonic() + 30
@@ -102,8 +116,27 @@ def run(profile: Profile, count: int, job: Path, lines: int, folder: Path) -> Ru
         for name in names:
             client.request("POST", f"/v1/printers/{name}/hold")
         jobs = [client.submit(name, job)["id"] for name in names]
+        if socket_clients:
+            script = Path(__file__).parent / "socket_clients.py"
+            readers = subprocess.Popen(
+                [
+                    sys.executable,
+                    str(script),
+                    f"127.0.0.1:{port}",
+                    KEY,
+                    str(socket_clients),
+                    *names,
+                ],
+                stdout=subprocess.PIPE,
+                text=True,
+            )
+            assert readers.stdout is not None
+            if readers.stdout.readline().strip() != "ready":
+                raise SystemExit("bench: the socket clients did not get ready")
+            time.sleep(1.0)  # past their histories: the streaming's cost is counted
         before = cpu_seconds(server.pid)
         fakes_before = sum(cpu_seconds(fake.pid) for fake, _ in fakes)
+        readers_before = cpu_seconds(readers.pid) if readers is not None else 0.0
         for name in names:
             client.request("POST", f"/v1/printers/{name}/release")
         records = []
@@ -119,12 +152,67 @@ def run(profile: Profile, count: int, job: Path, lines: int, folder: Path) -> Ru
         cpu = cpu_seconds(server.pid) - before
         fake_cpu = sum(cpu_seconds(fake.pid) for fake, _ in fakes) - fakes_before
         rates = [lines / (r["ended"] - r["started"]) for r in records]
-        return Run(count, rates, lines, cpu, fake_cpu)
+        result = Run(count, rates, lines, cpu, fake_cpu)
+        if readers is not None:
+            result.socket_cpu_seconds = cpu_seconds(readers.pid) - readers_before
+            readers.send_signal(signal.SIGTERM)
+            out, _ = readers.communicate(timeout=30)
+            result.sockets = json.loads(out.strip().splitlines()[-1])
+        return result
     finally:
+        if readers is not None and readers.poll() is None:
+            readers.kill()
         server.send_signal(signal.SIGTERM)
         server.wait(timeout=60)
         for fake, _ in fakes:
             stop_fake(fake)
+
+
+def with_sockets(
+    profiles: list[str], printers: int, clients: int, repeat: int, quick: bool, times: int
+) -> None:
+    """Runs without socket clients and with ``clients`` on each printer, alternated; each
+    printer's job is the profile's ``times`` over (a longer run: the streaming's cost,
+    less the start's and end's)."""
+    print(
+        "| link | printers | socket clients | run | lines/s (mean of printers) "
+        "| server CPU µs/line | messages | currents | events | clients' CPU µs/line |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for profile in (p for p in PROFILES if p.name in profiles):
+        lines = 300 if quick else profile.lines
+        runs: dict[int, list[Run]] = {0: [], clients: []}
+        with tempfile.TemporaryDirectory(prefix="hyrel-bench-server-") as name:
+            folder = Path(name)
+            job, _ = job_file(lines, folder)
+            if times > 1:
+                longer = folder / f"{job.stem}-x{times}.gcode"
+                longer.write_text(job.read_text() * times)
+                job, lines = longer, lines * times
+            for number in range(repeat):
+                for count in (0, clients):
+                    result = run(profile, printers, job, lines, folder, count)
+                    runs[count].append(result)
+                    got = result.sockets
+                    rate = statistics.mean(result.rates)
+                    readers = result.socket_cpu_seconds / (lines * printers) * 1e6
+                    print(
+                        f"| {profile.name} | {printers} | {count} | {number + 1} | {rate:,.0f} "
+                        f"| {result.cpu_per_line * 1e6:.2f} | {got.get('messages', 0)} "
+                        f"| {got.get('current', 0)} | {got.get('event', 0)} "
+                        f"| {readers:.2f} |",
+                        flush=True,
+                    )
+        rate = {
+            n: statistics.median(statistics.mean(r.rates) for r in rs) for n, rs in runs.items()
+        }
+        cpu = {n: statistics.median(r.cpu_per_line for r in rs) for n, rs in runs.items()}
+        print(
+            f"\n{profile.name}, medians of {repeat}: without socket clients {rate[0]:,.0f} lines/s "
+            f"and {cpu[0] * 1e6:.2f} µs of server CPU a line; with {clients} on each printer "
+            f"{rate[clients]:,.0f} lines/s ({100 * rate[clients] / rate[0] - 100:+.1f} %) and "
+            f"{cpu[clients] * 1e6:.2f} µs ({100 * cpu[clients] / cpu[0] - 100:+.1f} %)\n"
+        )
 
 
 def main() -> int:
@@ -132,7 +220,20 @@ def main() -> int:
     parser.add_argument("--profile", action="append", choices=["uart", "usb"])
     parser.add_argument("--printers", type=int, default=4)
     parser.add_argument("--quick", action="store_true", help="small inputs: checks that it runs")
+    parser.add_argument(
+        "--socket-clients", type=int, default=0, help="push socket clients on each printer"
+    )
+    parser.add_argument("--repeat", type=int, default=3, help="runs of each (--socket-clients)")
+    parser.add_argument(
+        "--job-times", type=int, default=1, help="each job the profile's this many times over"
+    )
     args = parser.parse_args()
+    if args.socket_clients:
+        profiles = args.profile or ["uart", "usb"]
+        with_sockets(
+            profiles, args.printers, args.socket_clients, args.repeat, args.quick, args.job_times
+        )
+        return 0
     print(
         "| link | printers | printer | lines | lines/s | % of alone | server CPU µs/line "
         "| a fake's CPU µs/line |"

@@ -102,6 +102,10 @@ class Listener:
     def command_refused(self, tag: object, reason: str) -> None:
         """The controller will not run a command it received (``reason``: why)."""
 
+    def read_to_end(self) -> None:
+        """The running job was read to its end: what is left is on its way (once a job,
+        and again after a pause held lines back)."""
+
     def resend(self, line: JobLine) -> None:
         """The controller asked for a job line again."""
 
@@ -441,6 +445,7 @@ class Pump:
                 item = next(run.items)
             except StopIteration:
                 run.exhausted = True
+                self.listener.read_to_end()
                 break
             except HostError as exc:
                 # A line that cannot go: the lines before it still do, then the safe stop.

@@ -79,6 +79,7 @@ from repetrel_host.planning import (
 )
 from repetrel_host.planning import safe_stop as safe_stop_for
 from repetrel_host.protocol import replies
+from repetrel_host.protocol.dialect import Statistics
 from repetrel_host.protocol.dialects import create_dialect
 from repetrel_host.protocol.dialects.reprap import DEFAULT_REPLY_TIMEOUT
 from repetrel_host.protocol.events import Failed as DialectFailed
@@ -504,6 +505,11 @@ class Printer:
         self._owing_timer: asyncio.TimerHandle | None = None
         self._heaters = HeaterLog()  # every heater the session's commands set
         self._wire_taps: list[Callable[[bool, bytes], None]] = []
+        # The wire's latest pieces, (sent, data), while a log reads them now and then (the
+        # push socket's terminal): one append a write or read, nothing more, and nothing at
+        # all while it is None. Bounded: a reader that falls behind loses the oldest.
+        self.wire_tail: deque[tuple[bool, bytes]] | None = None
+        self._watchers: list[Callable[[], None]] = []
 
     @property
     def port(self) -> str:
@@ -574,6 +580,24 @@ class Printer:
         received, as it goes; returns what removes the tap. For logs and test reports."""
         self._wire_taps.append(callback)
         return lambda: self._wire_taps.remove(callback)
+
+    def watch(self, callback: Callable[[], None]) -> Callable[[], None]:
+        """Call ``callback()`` whenever the state changes or the job's phase does (read to
+        its end, stopping), at once: for a view that must not miss a short phase. It runs
+        on the session's path, so it must only take note (no I/O, no await). Returns what
+        removes it."""
+        self._watchers.append(callback)
+        return lambda: self._watchers.remove(callback)
+
+    def _changed(self) -> None:
+        for watcher in self._watchers:
+            watcher()
+
+    @property
+    def link_stats(self) -> Statistics | None:
+        """The link's counts (lines sent, resends asked for...), or None while unlinked."""
+        pump = self._pump
+        return pump.dialect.stats if pump is not None else None
 
     # --- commands ---------------------------------------------------------------
 
@@ -899,6 +923,7 @@ class Printer:
         if self.state is State.PAUSED:
             self._set_state(State.PRINTING, "stopping")
         abandoned = self._pump.stop(self._loop.time(), error)
+        self._changed()  # stopping
         self._poke()
         return abandoned
 
@@ -1149,6 +1174,9 @@ class Printer:
         log.debug("received %r", data)
         for tap in self._wire_taps:
             tap(False, data)
+        tail = self.wire_tail
+        if tail is not None:
+            tail.append((False, data))
         self._last_data_at = now = self._loop.time()
         pump = self._pump
         if pump is not None:  # none between a failure and the next greeting: let it drain
@@ -1205,6 +1233,9 @@ class Printer:
         log.debug("sending %r", data)
         for tap in self._wire_taps:
             tap(True, data)
+        tail = self.wire_tail
+        if tail is not None:
+            tail.append((True, data))
         wire_log = self._wire_log
         if wire_log is not None:  # first: the history is never behind the wire
             written = wire_log.write(data)  # one write(2) a call (unbuffered)
@@ -1247,6 +1278,7 @@ class Printer:
             return
         previous, self.state = self.state, state
         self._hub.publish(StateChanged(state, previous, reason))
+        self._changed()
         waiters, self._state_waiters = self._state_waiters, []
         for ready, future in waiters:
             if future.done():
@@ -1333,6 +1365,9 @@ class _PumpListener(Listener):
     def command_refused(self, tag: object, reason: str) -> None:
         if isinstance(tag, _Command):
             self.printer._fail_commands([tag], ControllerError(reason))
+
+    def read_to_end(self) -> None:
+        self.printer._changed()  # what is left is the controller's to run: finishing
 
     def resend(self, line: JobLine) -> None:
         job = self.printer._job

@@ -33,12 +33,14 @@ import repetrel_host as rh
 from repetrel_host.server import native
 from repetrel_host.server.auth import RequestGuard
 from repetrel_host.server.core import PrintServer, server_of
-from repetrel_host.server.octoprint import appkeys, rest
+from repetrel_host.server.octoprint import appkeys, rest, socket
 
 __all__ = ["PrintServer", "create_app"]
 
 
 def create_app(server: PrintServer) -> FastAPI:
+    push = socket.Push(server)
+
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         await server.start()
@@ -46,6 +48,7 @@ def create_app(server: PrintServer) -> FastAPI:
             yield
         finally:
             await server.stop()  # SIGTERM: running jobs stop with their safe stop
+            await push.stop()
 
     app = FastAPI(title="repetrel-host print server", version=rh.__version__, lifespan=lifespan)
     app.state.server = server
@@ -79,6 +82,9 @@ def create_app(server: PrintServer) -> FastAPI:
     for router in (appkeys.router(), rest.router(), rest.downloads()):
         app.include_router(router)
         app.include_router(router, prefix="/printers/{printer}", dependencies=[Depends(_printer)])
+    sockets = socket.router(push)  # its own check of the printer: plain ASGI endpoints
+    app.include_router(sockets)
+    app.include_router(sockets, prefix="/printers/{printer}")
     return app
 
 

@@ -243,6 +243,7 @@ async def save_upload(
     _HASHES[_stat_key(target)] = digest.hexdigest()
     if summary is not None:
         server.analyses.keep(target, summary, made_from)  # a rename keeps size and time
+    file_changed(server, target, "added", "add")
     return Upload(target, findings, commands, "; ".join(filter(None, (shortened, note))))
 
 
@@ -326,6 +327,24 @@ def delete_upload(server: PrintServer, location: str) -> None:
         if service.selected == path:
             service.selected = None
     log.info("file %s deleted", location)
+    file_changed(server, path, "removed", "remove")
+
+
+def file_changed(
+    server: PrintServer, path: Path, what: str, operation: str, folder: bool = False
+) -> None:
+    """An upload (or a folder: ``folder``) was ``added`` or ``removed`` by ``operation``
+    (add, copy, move, remove): on the server's events (OctoPrint's FileAdded...)."""
+    server.events.publish(
+        {
+            "type": "file",
+            "what": what,
+            "path": path.relative_to(server.files).as_posix(),
+            "name": path.name,
+            "folder": folder,
+            "operation": operation,
+        }
+    )
 
 
 def check(server: PrintServer, printer: str, path: Path) -> tuple[list[str], int]:

@@ -315,6 +315,14 @@ def serve(
         # Event streams never end by themselves: after this long they are closed, so that
         # a stop reaches the printers' safe stop.
         timeout_graceful_shutdown=3,
+        # The push socket's messages go uncompressed: deflating each for each client
+        # would cost more CPU than the socket's whole work (the socket's clients are on
+        # the farm's network).
+        ws_per_message_deflate=False,
+        # A websocket client that does not answer a ping within 10 s (it stopped reading:
+        # a stuck app) is closed, whatever the kernel's buffers still take for it.
+        ws_ping_interval=10.0,
+        ws_ping_timeout=10.0,
     )
 
 

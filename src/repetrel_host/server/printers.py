@@ -209,6 +209,11 @@ class PrinterService:
         )
         self.offsets: dict[str, float] = {}  # OctoPrint's temperature offsets (kept, told)
         self.last_error = ""
+        # Told at once of every change of state or phase (the session's too): the push
+        # socket's current state, which must not miss a short phase. Quick, never awaiting.
+        self.watchers: list[Callable[[], None]] = []
+        self._z: float | None = None  # the job's height last told (OctoPrint's ZChange)
+        self._print_time: tuple[object, float, float | None] | None = None
         self._wake = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
         self._stopping = False
@@ -329,6 +334,8 @@ class PrinterService:
                 continue
             log.info("printer %s: connected on %s", self.name, self.port)
             self.last_error = ""
+            self.printer.watch(self.changed)
+            self.changed()
             self._forwarding = asyncio.get_running_loop().create_task(self._forward(self.printer))
             return
 
@@ -400,6 +407,8 @@ class PrinterService:
         finally:
             self._starting = None
         running = self.running = Running(record, job)
+        self._z = None
+        self.changed()
         self._held.clear()
         self.stop_held = ""
         watching = asyncio.ensure_future(self._watch(job))
@@ -445,6 +454,7 @@ class PrinterService:
             self.finished, self.finished_state, self.finished_at = running, state, time.time()
             self.selected = None
             self.running = None
+            self.changed()
             watching.cancel()
         report = job.report  # the controller's M773 report, kept with the job
         self.store.set_state(record.id, state, error, report.text if report else None)
@@ -459,9 +469,7 @@ class PrinterService:
             # The part is still on the bed: the next job waits for someone to say so.
             self.held = True
         self.job_changed(record.id)
-        self.publish(
-            {"type": "printer", "printer": self.name, "state": self.state, "held": self.held}
-        )
+        self._state_changed()
         self._ended.set()
 
     def _read_job(self, running: Running, path: Path) -> None:
@@ -512,6 +520,10 @@ class PrinterService:
                 "time_left": round(left) if left is not None else None,  # seconds
             }
         )
+        z = self.running.z if self.running is not None else None
+        if z is not None and z != self._z:  # a new height, as the slicer marked it
+            self.publish({"type": "z", "printer": self.name, "new": z, "old": self._z})
+            self._z = z
         paused = self.printer is not None and self.printer.state is rh.State.PAUSED
         if paused != self._paused and not job.done:
             self._paused = paused
@@ -646,7 +658,13 @@ class PrinterService:
 
     # --- control ----------------------------------------------------------------------
 
+    def changed(self) -> None:
+        """The state or a phase may have changed: the watchers are told."""
+        for watcher in self.watchers:
+            watcher()
+
     def _state_changed(self) -> None:
+        self.changed()
         self.publish(
             {"type": "printer", "printer": self.name, "state": self.state, "held": self.held}
         )
@@ -658,13 +676,20 @@ class PrinterService:
             self.finished = None
 
     def last_print_time(self, path: Path) -> float | None:
-        """How long the last completed print of ``path`` took, in seconds."""
+        """How long the last completed print of ``path`` took, in seconds (asked of the
+        store again after 10 s, or once a job ended: the push socket asks every tick)."""
+        key = (path, self.finished_at)
+        known = self._print_time
+        if known is not None and known[0] == key and time.monotonic() - known[1] < 10.0:
+            return known[2]
         try:
             file = path.relative_to(self.data_dir).as_posix()
         except ValueError:
             return None
         last = self.store.prints(file).get("last")
-        return last.get("printTime") if last else None
+        seconds = last.get("printTime") if last else None
+        self._print_time = (key, time.monotonic(), seconds)
+        return seconds
 
     def hold(self) -> None:
         """Start no more jobs (the running one goes on) until :meth:`release`."""

@@ -8,11 +8,12 @@ Each function reads the printer's service as it stands now; none changes it."""
 from __future__ import annotations
 
 import time
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 from repetrel_host.server.printers import PrinterService, Running
-from repetrel_host.server.store import JobState
+from repetrel_host.server.store import JobRecord, JobState
 
 # OctoPrint's states whose "printing" flag is set: a job is under way.
 _PRINTING = ("Starting", "Printing", "Pausing", "Resuming", "Finishing", "Cancelling")
@@ -29,6 +30,8 @@ def state_text(service: PrinterService) -> str:
     Finishing, Cancelling, Connecting, Offline, Offline after error."""
     state = service.state
     running = service.running
+    if running is None and state in ("printing", "paused"):
+        return "Starting"  # the session streams; the server has yet to take it on
     if running is not None and state in ("printing", "paused"):
         job = running.job
         if job.stopping:
@@ -193,19 +196,74 @@ def temperatures(service: PrinterService) -> dict[str, dict[str, float | None]]:
     return heaters
 
 
-def current(service: PrinterService) -> dict[str, Any]:
+def resends(service: PrinterService) -> dict[str, int]:
+    """OctoPrint's resend statistics: resends the controller asked for, lines sent."""
+    printer = service.printer
+    stats = printer.link_stats if printer is not None else None
+    if stats is None:
+        return {"count": 0, "transmitted": 0, "ratio": 0}
+    count, sent = stats.resend_requests, stats.lines_sent
+    return {"count": count, "transmitted": sent, "ratio": round(100 * count / sent) if sent else 0}
+
+
+def current(service: PrinterService, job_now: dict[str, Any] | None = None) -> dict[str, Any]:
     """The push socket's ``current`` payload but for its buffers (temps, logs, messages),
-    which the socket adds: what changed since its last message."""
-    job_now = job(service)
+    which the socket adds: what changed since its last message. ``job_now``: :func:`job`,
+    when the caller has it."""
+    job_now = job_now or job(service)
     running = service.running
     printing = job_now["file"]["path"] if running is not None else None
     return {
         "state": state(service),
         "job": job_now,
-        "progress": progress(service),
         "currentZ": running.z if running is not None else None,
-        "offsets": {},
-        "resends": {"count": 0, "transmitted": 0, "ratio": 0},
+        "progress": progress(service),
+        "offsets": dict(service.offsets),
+        "resends": resends(service),
         "busyFiles": [{"origin": "local", "path": printing}] if printing is not None else [],
+        "markings": [],
         "serverTime": time.time(),
     }
+
+
+def temperature_sample(
+    when: float, readings: Mapping[str, Sequence[float | None]]
+) -> dict[str, Any]:
+    """One of OctoPrint's temperature data points: ``{"time", "tool0": {"actual",
+    "target"}, "bed": ...}`` from the session's readings (sensor: (actual, target))."""
+    sample: dict[str, Any] = {"time": int(when)}
+    for sensor, (actual, target) in readings.items():
+        sample[tool_key(sensor)] = {"actual": actual, "target": target}
+    return sample
+
+
+def print_event(
+    service: PrinterService, record: JobRecord, running: Running | None = None
+) -> dict[str, Any]:
+    """The payload of OctoPrint's print events (PrintStarted, PrintDone...): the file's
+    name, path below the uploads, origin, size, owner and user; with ``running`` (the
+    job as it streams or ended), where it stands (``fileposition``, ``progress`` in %)."""
+    path = service.data_dir / record.file
+    try:
+        location = path.relative_to(service.data_dir / "files").as_posix()
+    except ValueError:
+        location = path.name
+    try:
+        size: int | None = path.stat().st_size
+    except OSError:
+        size = None
+    payload: dict[str, Any] = {
+        "name": path.name,
+        "path": location,
+        "origin": "local",
+        "size": size,
+        "owner": record.user,
+        "user": record.user,
+    }
+    if running is not None:
+        job = running.job
+        payload["fileposition"] = job.offset
+        payload["progress"] = int(100 * job.offset / job.size) if job.size else 0
+    if record.started is not None and record.ended is not None:
+        payload["time"] = record.ended - record.started
+    return payload

@@ -301,6 +301,7 @@ def router() -> APIRouter:
             if foldername is None:
                 raise HTTPException(400, "No file to upload and no folder to create")
             folder = files.make_folder(server, path, foldername)
+            core.file_changed(server, folder, "added", "add", folder=True)
             location = folder.relative_to(server.files).as_posix()
             answer: dict[str, Any] = {
                 "folder": {
@@ -387,9 +388,15 @@ def router() -> APIRouter:
             destination = body.get("destination")
             if not isinstance(destination, str) or not destination:
                 raise HTTPException(400, "Mandatory parameter destination missing")
+            moving = body.command == "move"
             target = await asyncio.to_thread(
-                files.copy_or_move, server, location, destination, body.command == "move"
+                files.copy_or_move, server, location, destination, moving
             )
+            folder = target.is_dir()
+            if moving:
+                source = server.files / core.safe_folder(location)
+                core.file_changed(server, source, "removed", "move", folder)
+            core.file_changed(server, target, "added", body.command, folder)
             where = target.relative_to(server.files).as_posix()
             resource = f"{_base(request)}/api/files/local/{where}"
             refs = {"resource": resource}
@@ -436,6 +443,7 @@ def router() -> APIRouter:
         path = server.files / core.safe_folder(location)
         if path.is_dir() and path != server.files:
             await asyncio.to_thread(files.delete_folder, server, location)
+            core.file_changed(server, path, "removed", "remove", folder=True)
         else:
             core.delete_upload(server, location)
         return Response(status_code=204)
