@@ -10,9 +10,12 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from fastapi.routing import APIRoute
+from starlette.routing import WebSocketRoute
 
 from repetrel_host.server.app import create_app
 from repetrel_host.server.core import PrintServer
+from repetrel_host.server.octoprint import socket
 from repetrel_host.server.printers import PrinterConfig
 from tests.test_server import Server, servers
 
@@ -22,12 +25,12 @@ ROOT = Path(__file__).parent.parent
 TABLE = ROOT / "docs" / "octoprint-compatibility.md"
 DOCUMENTED = Path(__file__).parent / "data" / "octoprint-1.11.8-endpoints.txt"
 _ROW = re.compile(
-    r"^\| `(GET|POST|PUT|PATCH|DELETE) (/\S+)` \| (supported|differs|not applicable) \|"
+    r"^\| `(GET|POST|PUT|PATCH|DELETE|WEBSOCKET) (/\S+)` \| (supported|differs|not applicable) \|"
 )
 # OctoPrint's route parameters, as its docs write them: (path:x) spans folders.
 _PARAMETER = re.compile(r"\((\w+):\w+\)|<\w+:\w+>")
 # The OctoPrint face: what its clients call (the native API is /v1, the page is /).
-_FACE = ("/api/", "/plugin/", "/downloads/")
+_FACE = ("/api/", "/plugin/", "/downloads/", "/sockjs")
 
 
 def rows() -> dict[tuple[str, str], str]:
@@ -51,14 +54,27 @@ def pattern(path: str) -> re.Pattern[str]:
 
 
 def routes(tmp_path: Path) -> set[tuple[str, str]]:
-    """The server's routes, from its OpenAPI description, with sample parameters."""
+    """The server's routes, with sample parameters: its OpenAPI description, and the push
+    socket's routes at the root and under ``/printers/sample`` (OpenAPI has no way to say a
+    websocket; the requests below show that they answer there)."""
     server = PrintServer(tmp_path, {"p": PrinterConfig("fake")}, "key", 1)
     found = set()
     for path, operations in create_app(server).openapi()["paths"].items():
-        concrete = re.sub(r"\{[^}]+\}", "sample", path)
-        found.update((method.upper(), concrete) for method in operations)
+        found.update((method.upper(), sample(path)) for method in operations)
+    for route in socket.router(socket.Push(server)).routes:
+        if isinstance(route, WebSocketRoute):
+            methods = {"WEBSOCKET"}
+        else:
+            assert isinstance(route, APIRoute)
+            methods = route.methods - {"OPTIONS"}
+        for prefix in ("", "/printers/sample"):
+            found.update((method, sample(prefix + route.path)) for method in methods)
     server.store.close()
     return found
+
+
+def sample(path: str) -> str:
+    return re.sub(r"\{[^}]+\}", "sample", path.rstrip("/") or "/")
 
 
 def test_every_documented_endpoint_has_a_row() -> None:
@@ -104,3 +120,23 @@ def test_what_is_not_applicable_answers_404_or_405_with_a_sentence(
             answer = client.request(method, concrete, json={})
             assert answer.status_code in (404, 405), f"{method} {concrete}: {answer.status_code}"
             assert answer.json()["error"], f"{method} {concrete}"
+
+
+@pytest.mark.timeout(60)
+def test_the_push_socket_answers_at_the_root_and_for_each_printer(
+    servers: Callable[..., Server],
+) -> None:
+    server = servers({"demo": "fake", "other": "fake"})
+    with server.client() as client:
+        for prefix in ("", "/printers/demo", "/printers/other"):
+            assert client.get(f"{prefix}/sockjs").text == "Welcome to SockJS!\n"
+            assert client.get(f"{prefix}/sockjs/info").json()["websocket"] is True
+            opened = client.post(f"{prefix}/sockjs/000/compat{len(prefix)}/xhr")
+            assert opened.text == "o\n"
+            connected = client.post(f"{prefix}/sockjs/000/compat{len(prefix)}/xhr")
+            # A message is a JSON object in the frame's array, not a string: OctoPrint's
+            # SockJS server (sockjs-tornado) sends its dicts so.
+            assert connected.text.startswith('a[{"connected":{'), connected.text[:80]
+            sent = client.post(f"{prefix}/sockjs/000/compat{len(prefix)}/xhr_send", json=[])
+            assert sent.status_code == 204
+        assert client.get("/printers/nobody/sockjs/info").status_code == 404
