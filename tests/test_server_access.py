@@ -122,6 +122,19 @@ def test_a_passive_login_with_the_key_gives_the_owner_a_session_and_a_cookie(
         assert anonymous.post("/api/login", json={}).status_code == 400
 
 
+def test_a_job_keeps_who_submitted_it(servers: Callable[..., Server]) -> None:
+    server = servers({"demo": "fake"})
+    job = {"file": ("part.gcode", gcode(3).encode())}
+    with server.client() as keyed:
+        uploaded = keyed.post("/api/files/local", data={"print": "true"}, files=job)
+        assert uploaded.status_code == 201, uploaded.text
+        assert uploaded.json()["job"]["user"] == "admin"
+        submitted = keyed.post("/v1/printers/demo/jobs", files=job)
+        assert submitted.status_code == 201 and submitted.json()["user"] == "admin"
+        wait_for(lambda: keyed.get("/api/job").json()["progress"]["completion"] == 100.0)
+        assert keyed.get("/api/job").json()["job"]["user"] == "admin"
+
+
 def test_home_assistant_sets_up_with_a_key_granted_on_the_page(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server], tmp_path: Path
 ) -> None:

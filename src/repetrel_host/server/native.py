@@ -123,7 +123,7 @@ def router() -> APIRouter:
         server = server_of(request)
         service = server.service(name)
         upload = await core.save_upload(server, service.name, file)
-        record = core.queue(server, service.name, upload.path, upload.commands)
+        record = core.queue(server, service.name, upload.path, upload.commands, user_of(request))
         return {**record.as_json(), "findings": upload.findings, "note": upload.note or None}
 
     @router.get("/files")

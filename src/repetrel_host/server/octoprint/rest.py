@@ -327,7 +327,8 @@ def router() -> APIRouter:
         if to_print:
             # Queued: it runs when the printer is free (OctoPrint answers 409 when it is
             # busy; a queue is what this server is for).
-            record = core.queue(server, service.name, stored.path, stored.commands)
+            user = user_of(request)
+            record = core.queue(server, service.name, stored.path, stored.commands, user)
             extra["job"] = record.as_json()
             service.select(None)
         elif to_select and service.running is None:
@@ -413,7 +414,7 @@ def router() -> APIRouter:
                 if service.held:
                     raise HTTPException(409, model.HELD_REASON)
                 _, commands = await asyncio.to_thread(core.check, server, service.name, path)
-                core.queue(server, service.name, path, commands)
+                core.queue(server, service.name, path, commands, user_of(request))
                 service.select(None)
             else:
                 # Its analysis in memory, for /api/job (read from the data folder, or made).
@@ -472,13 +473,13 @@ def router() -> APIRouter:
                 raise HTTPException(
                     409, "Printer already has an active print job, did you mean 'restart'?"
                 )
-            await _start(server, service)
+            await _start(server, service, user_of(request))
         elif body.command == "restart":
             if text != "Paused":
                 raise HTTPException(
                     409, "Printer does not have an active print job or is not paused"
                 )
-            await _restart(server, service)
+            await _restart(server, service, user_of(request))
         elif body.command == "pause":
             if not active:
                 raise HTTPException(
@@ -674,7 +675,7 @@ async def _listing(request: Request, folder: Path, recursive: bool) -> dict[str,
     return {"files": found, "free": usage.free, "total": usage.total}
 
 
-async def _start(server: PrintServer, service: PrinterService) -> None:
+async def _start(server: PrintServer, service: PrinterService, user: str | None) -> None:
     """OctoPrint's start: the selected file (or the last job's, to print it again)."""
     if service.held:
         raise HTTPException(409, model.HELD_REASON)
@@ -684,11 +685,11 @@ async def _start(server: PrintServer, service: PrinterService) -> None:
     if path is None or not path.is_file():
         raise HTTPException(409, f"printer {service.name}: no file is selected")
     _, commands = await asyncio.to_thread(core.check, server, service.name, path)
-    core.queue(server, service.name, path, commands)
+    core.queue(server, service.name, path, commands, user)
     service.select(None)
 
 
-async def _restart(server: PrintServer, service: PrinterService) -> None:
+async def _restart(server: PrintServer, service: PrinterService, user: str | None) -> None:
     """OctoPrint's restart of a paused job: it is cancelled (its safe stop first), and
     its file goes first in the queue, which runs on (it was asked for)."""
     running = service.running
@@ -696,7 +697,7 @@ async def _restart(server: PrintServer, service: PrinterService) -> None:
     path = service.data_dir / running.record.file
     await answered(service.control("cancel"))
     _, commands = await asyncio.to_thread(core.check, server, service.name, path)
-    record = core.queue(server, service.name, path, commands)
+    record = core.queue(server, service.name, path, commands, user)
     first = server.store.next_queued(service.name)
     if first is not None and first.id != record.id:
         server.store.move(record.id, first.id)
