@@ -6,13 +6,15 @@ from __future__ import annotations
 import asyncio
 import json
 import re
-from collections.abc import AsyncIterator
+import time
+from collections.abc import AsyncIterator, Mapping
 from typing import Annotated, Any
 
 from fastapi import (
     APIRouter,
     File,
     HTTPException,
+    Query,
     Request,
     UploadFile,
 )
@@ -35,6 +37,7 @@ from repetrel_host.server.store import ACTIVE
 
 MAX_ID = 2**63 - 1  # SQLite's largest integer: a job id beyond it is no job
 JobId = Annotated[int, PathParameter(ge=1, le=MAX_ID)]
+HISTORY_SHOWN = 1800.0  # s: the temperature reports given without ``since``
 KEEPALIVE = 15.0  # seconds of quiet before the event stream says it is alive
 _SNAPSHOT = re.compile(r"[A-Za-z0-9_-]+\.(jpg|png|gif|webp)")
 
@@ -50,13 +53,17 @@ def _printer_json(service: PrinterService) -> dict[str, Any]:
         "error": service.last_error or None,
         "firmware": printer.firmware.name if printer and printer.firmware else None,
         "protocol": printer.settings.protocol if printer else None,  # the link's: reprap, hyrel
-        "temperatures": {
-            sensor: {"actual": actual, "target": target}
-            for sensor, (actual, target) in (printer.temperatures if printer else {}).items()
-        },
+        "temperatures": _readings(printer.temperatures if printer else {}),
         "job": _running_json(service) if running is not None else None,
         "camera": service.camera is not None,
         "snapshot": _latest_snapshot(service),
+    }
+
+
+def _readings(readings: Mapping[str, tuple[float, float | None]]) -> dict[str, Any]:
+    return {
+        sensor: {"actual": actual, "target": target}
+        for sensor, (actual, target) in readings.items()
     }
 
 
@@ -109,6 +116,25 @@ def router() -> APIRouter:
     @router.get("/printers/{name}")
     async def printer(request: Request, name: str) -> dict[str, Any]:
         return _printer_json(server_of(request).service(name))
+
+    @router.get("/printers/{name}/temperatures")
+    async def temperatures(
+        request: Request,
+        name: str,
+        since: Annotated[float | None, Query(allow_inf_nan=False)] = None,
+    ) -> dict[str, Any]:
+        """The printer's temperature reports kept by the server (the last half hour by
+        default; ``since``: after that time, in seconds since the epoch), oldest first, each
+        heater as ``{"actual", "target"}``: what a chart shows at load, before the event
+        stream's ``temperatures`` events go on from there."""
+        service = server_of(request).service(name)
+        start = time.time() - HISTORY_SHOWN if since is None else since
+        samples = [
+            {"time": when, "readings": _readings(readings)}
+            for when, readings in list(service.temperature_history)
+            if when > start
+        ]
+        return {"printer": service.name, "samples": samples}
 
     @router.get("/printers/{name}/jobs")
     async def printer_jobs(request: Request, name: str) -> list[dict[str, Any]]:

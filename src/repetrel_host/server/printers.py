@@ -650,9 +650,12 @@ class PrinterService:
                     )
                 self.wake()  # READY again: the queue may go on
             elif isinstance(event, rh.Temperatures):
-                self.temperature_history.append((time.time(), dict(event.readings)))
+                now = time.time()
+                self.temperature_history.append((now, dict(event.readings)))
                 readings = {sensor: list(value) for sensor, value in event.readings.items()}
-                self.publish({"type": "temperatures", "printer": name, "readings": readings})
+                self.publish(
+                    {"type": "temperatures", "printer": name, "time": now, "readings": readings}
+                )
             else:
                 self.publish({"type": "message", "printer": name, "text": event.text})
 
