@@ -44,6 +44,7 @@ from pathlib import Path
 from typing import Any, BinaryIO
 
 from repetrel_host.gcode.marks import Layer, SlicerMarks
+from repetrel_host.gcode.thumbnails import Thumbnail
 
 _CHUNK = 1 << 20
 DEFAULT_DIAMETER = 1.75  # mm, where the file names none
@@ -64,6 +65,9 @@ _COMMENT = re.compile(
     rb"|[ \t]*Filament used: (?P<used_m>.+)"  # Cura's, in metres
     rb"|[ \t]*filament_?diameter[ \t]*[=:,][ \t]*(?P<diameter>.+)"
     rb"|[ \t]*(?:G-Code )?generated (?:by|with) (?P<slicer>.+)"
+    rb"|[ \t]*thumbnail(?:_(?P<thumb_format>PNG|JPG|QOI))? begin[ \t]+(?P<thumb_width>\d+)"
+    rb"x(?P<thumb_height>\d+)(?P<thumb_begin>)"
+    rb"|[ \t]*(?P<thumb_end>thumbnail(?:_(?:PNG|JPG|QOI))? end)"
     rb")",
     re.IGNORECASE,
 )
@@ -130,6 +134,7 @@ class Summary:
     travel_area: Box | None = None  # of every move
     layers: int = 0
     slicer: str | None = None  # "PrusaSlicer 2.5.0"
+    thumbnails: tuple[Thumbnail, ...] = ()  # the slicer's preview images, where they lie
 
     def gcode_analysis(self) -> dict[str, Any]:
         """OctoPrint's ``gcodeAnalysis``: without ``estimatedPrintTime`` when the file has no
@@ -152,8 +157,17 @@ class Summary:
         return found
 
     def as_json(self) -> dict[str, Any]:
-        """OctoPrint's ``gcodeAnalysis``, with the layer count and the slicer's name."""
-        return {**self.gcode_analysis(), "layers": self.layers, "slicer": self.slicer}
+        """OctoPrint's ``gcodeAnalysis``, with the layer count, the slicer's name and the
+        embedded thumbnails' formats and sizes."""
+        thumbnails = [
+            {"format": t.format, "width": t.width, "height": t.height} for t in self.thumbnails
+        ]
+        analysis = self.gcode_analysis()
+        return {**analysis, "layers": self.layers, "slicer": self.slicer, "thumbnails": thumbnails}
+
+    def largest_thumbnail(self) -> Thumbnail | None:
+        """The embedded image with the most pixels (the one a page shows), if any."""
+        return max(self.thumbnails, key=lambda t: t.width * t.height, default=None)
 
     def as_dict(self) -> dict[str, Any]:
         """All of it, as JSON that :meth:`from_dict` reads back (a cache's)."""
@@ -178,6 +192,12 @@ class Summary:
             travel_area=box(data["travel_area"]),
             layers=int(data["layers"]),
             slicer=str(data["slicer"]) if data["slicer"] is not None else None,
+            thumbnails=tuple(
+                Thumbnail(
+                    str(t["format"]), *(int(t[k]) for k in ("width", "height", "start", "end"))
+                )
+                for t in data["thumbnails"]
+            ),
         )
 
 
@@ -303,6 +323,8 @@ class _Pass:
         self.used_mm: list[float] = []
         self.used_cm3: list[float] = []
         self.diameters: list[float] = []
+        self.thumbnails: list[Thumbnail] = []
+        self.thumbnail_open: tuple[str, int, int, int] | None = None  # format, size, start
         # Moves.
         self.pos = [0.0, 0.0, 0.0]
         self.relative = False  # G91
@@ -555,6 +577,17 @@ class _Pass:
             self.diameters = _numbers(match["diameter"])
         elif kind == "slicer" and self.slicer is None:
             self.slicer = _slicer_name(match["slicer"].decode(errors="replace"))
+        elif kind == "thumb_begin":
+            # Its base64 lines start after this line (a line end the reader skips).
+            start = offset + _line_start(data, raw, 0) + len(raw)
+            found = (match["thumb_format"] or b"PNG").decode().upper()
+            width, height = int(match["thumb_width"]), int(match["thumb_height"])
+            self.thumbnail_open = (found, width, height, start)
+        elif kind == "thumb_end" and self.thumbnail_open is not None:
+            found, width, height, start = self.thumbnail_open
+            end = offset + _line_start(data, raw, max(start - offset, 0))
+            self.thumbnails.append(Thumbnail(found, width, height, start, end))
+            self.thumbnail_open = None
 
     def result(self) -> Analysis:
         marks = self.marks
@@ -573,6 +606,7 @@ class _Pass:
             travel_area=_box(self.travelled),
             layers=len(found),
             slicer=self.slicer,
+            thumbnails=tuple(self.thumbnails),
         )
         return Analysis(marks, [at for _, at in found], summary)
 

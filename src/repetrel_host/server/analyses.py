@@ -22,7 +22,7 @@ from repetrel_host.gcode.analysis import Analysis, Summary, analyse
 
 log = logging.getLogger("repetrel_host.server")
 
-FORMAT = 1  # of the files kept: another number (a changed analysis) makes them stale
+FORMAT = 2  # of the files kept: another number (a changed analysis) makes them stale
 Stamp = tuple[int, int]  # a file's size and modification time (ns)
 
 

@@ -15,6 +15,7 @@ from collections.abc import Awaitable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
+from urllib.parse import quote
 
 from fastapi import (
     HTTPException,
@@ -25,6 +26,8 @@ from fastapi import (
 import repetrel_host as rh
 from repetrel_host.config import UserConfig
 from repetrel_host.gcode.analysis import Summary, analyse
+from repetrel_host.gcode.thumbnails import ThumbnailError
+from repetrel_host.gcode.thumbnails import read as read_thumbnail
 from repetrel_host.server.access import Access
 from repetrel_host.server.analyses import Analyses, describe, stamp
 from repetrel_host.server.events import EventHub
@@ -371,16 +374,34 @@ def file_json(server: PrintServer, path: Path) -> dict[str, Any]:
     summary = None
     if path.name.lower().endswith(G_CODE_SUFFIXES) and not path.name.startswith("."):
         summary = server.analyses.summary(path)
+    where = path.relative_to(server.files).as_posix()
+    largest = summary.largest_thumbnail() if summary is not None else None
     return {
         "name": path.name,
         "display": path.name,
-        "path": path.relative_to(server.files).as_posix(),
+        "path": where,
         "origin": "local",
         "type": "machinecode",
         "size": path.stat().st_size,
         "date": int(path.stat().st_mtime),
         "analysis": describe(summary),
+        # The slicer's largest preview, as PNG or JPEG (a QOI one made PNG).
+        "thumbnail": f"/v1/files/{quote(where)}/thumbnail" if largest is not None else None,
     }
+
+
+def thumbnail(server: PrintServer, location: str) -> tuple[bytes, str]:
+    """The largest image the slicer embedded in an uploaded file, and its media type
+    (call in a thread: it may analyse the file); 404 when it has none."""
+    path = uploaded(server, location)
+    summary = server.analyses.cached(path) or server.analyses.analyse(path).summary
+    largest = summary.largest_thumbnail() if summary is not None else None
+    if largest is None:
+        raise HTTPException(404, f"'{location}' has no thumbnail (its slicer embedded none)")
+    try:
+        return read_thumbnail(path, largest)
+    except ThumbnailError as exc:
+        raise HTTPException(422, f"'{location}': {exc}") from None
 
 
 def uploads_json(server: PrintServer) -> list[dict[str, Any]]:

@@ -157,6 +157,13 @@ def router() -> APIRouter:
         server = server_of(request)
         return await asyncio.to_thread(core.uploads_json, server)
 
+    @router.get("/files/{location:path}/thumbnail")
+    async def file_thumbnail(request: Request, location: str) -> Response:
+        """The largest preview image the slicer embedded in the file (PrusaSlicer's,
+        OrcaSlicer's, Cura's): PNG or JPEG as it was, QOI made PNG. 404 when it has none."""
+        image, media_type = await asyncio.to_thread(core.thumbnail, server_of(request), location)
+        return Response(image, media_type=media_type, headers={"Cache-Control": "no-cache"})
+
     @router.delete("/files/{location:path}", status_code=204)
     async def delete_file(request: Request, location: str) -> Response:
         core.delete_upload(server_of(request), location)
