@@ -471,6 +471,7 @@ class Printer:
         self.link = link
         self.settings = settings
         self.state = State.CONNECTING
+        self.state_reason = ""  # why it came to its state, where the session said (a lost port)
         self.firmware: Firmware | None = None
         self.probe: ProbeKind | None = None
         self.temperatures: dict[str, tuple[float, float | None]] = {}
@@ -1277,6 +1278,7 @@ class Printer:
         if state is self.state:
             return
         previous, self.state = self.state, state
+        self.state_reason = reason
         self._hub.publish(StateChanged(state, previous, reason))
         self._changed()
         waiters, self._state_waiters = self._state_waiters, []

@@ -49,6 +49,8 @@ def _printer_json(service: PrinterService) -> dict[str, Any]:
         "name": service.name,
         "port": service.port,
         "state": service.state,
+        "since": service.state_since,  # in that state since (seconds since the epoch)
+        "reason": service.state_reason or service.last_error or None,  # why, if said
         "held": service.held,
         "error": service.last_error or None,
         "firmware": printer.firmware.name if printer and printer.firmware else None,

@@ -45,6 +45,7 @@ log = logging.getLogger("repetrel_host.server")
 RECONNECT_FIRST = 0.5
 RECONNECT_MAX = 10.0
 POLL_INTERVAL = 2.0  # temperatures, for the API and the page
+_OFFLINE = ("disconnected", "connecting")
 TEMPERATURE_SAMPLES = 1800  # reports kept: 30 min at a report a second
 SAFE_STOP_TIMEOUT = 30.0
 # A cancel is answered once the job ended, or after this long (or once its safe stop is
@@ -209,6 +210,11 @@ class PrinterService:
         )
         self.offsets: dict[str, float] = {}  # OctoPrint's temperature offsets (kept, told)
         self.last_error = ""
+        # Since when the printer is in its state, and why, as the session said (a lost
+        # port's sentence): what "offline since 10:42" shows.
+        self.state_since = time.time()
+        self.state_reason = ""
+        self._state_seen = "disconnected"
         # Told at once of every change of state or phase (the session's too): the push
         # socket's current state, which must not miss a short phase. Quick, never awaiting.
         self.watchers: list[Callable[[], None]] = []
@@ -663,6 +669,16 @@ class PrinterService:
 
     def changed(self) -> None:
         """The state or a phase may have changed: the watchers are told."""
+        state = self.state
+        if state != self._state_seen:
+            # Offline is one state to a person, however often the session tries the port
+            # again meanwhile (disconnected, connecting, disconnected...).
+            group = "offline" if state in _OFFLINE else state
+            if group != ("offline" if self._state_seen in _OFFLINE else self._state_seen):
+                self.state_since, self.state_reason = time.time(), ""
+            self._state_seen = state
+            reason = self.printer.state_reason if self.printer is not None else ""
+            self.state_reason = reason or self.state_reason
         for watcher in self.watchers:
             watcher()
 
