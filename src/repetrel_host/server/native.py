@@ -27,7 +27,7 @@ from fastapi.responses import (
 )
 from pydantic import BaseModel, Field
 
-from repetrel_host.server import core
+from repetrel_host.server import core, store
 from repetrel_host.server.access import OWNER
 from repetrel_host.server.auth import user_of
 from repetrel_host.server.core import answered, server_of
@@ -137,6 +137,15 @@ def router() -> APIRouter:
             if when > start
         ]
         return {"printer": service.name, "samples": samples}
+
+    @router.get("/printers/{name}/totals")
+    async def printer_totals(request: Request, name: str) -> dict[str, Any]:
+        """What the printer's ended jobs add up to: jobs by outcome, seconds printed, lines,
+        and filament by tool (``{"length": mm, "volume": cm3}``; a stopped job counts the
+        share of its file that ran)."""
+        server = server_of(request)
+        service = server.service(name)
+        return {"printer": service.name, **store.totals(server.store.jobs(service.name))}
 
     @router.get("/printers/{name}/jobs")
     async def printer_jobs(request: Request, name: str) -> list[dict[str, Any]]:

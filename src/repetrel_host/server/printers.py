@@ -171,6 +171,19 @@ def snapshot_name(tail: str) -> str:
     return f"{datetime.now():%Y%m%d-%H%M%S-%f}{tail}"
 
 
+def _filament_used(running: Running, completed: bool) -> dict[str, dict[str, float]] | None:
+    """The file's filament by tool, times the share of it the controller acknowledged (all
+    of it for a completed job); None when the file's analysis is not known."""
+    summary = running.summary
+    if summary is None:
+        return None
+    share = 1.0 if completed else running.fraction
+    return {
+        tool: {"length": used.length * share, "volume": used.volume * share}
+        for tool, used in summary.filament.items()
+    }
+
+
 class PrinterService:
     """A printer's session, and the loop that feeds it its queue."""
 
@@ -463,7 +476,8 @@ class PrinterService:
             self.changed()
             watching.cancel()
         report = job.report  # the controller's M773 report, kept with the job
-        self.store.set_state(record.id, state, error, report.text if report else None)
+        used = _filament_used(running, completed)
+        self.store.set_state(record.id, state, error, report.text if report else None, used)
         if printer.owed_safe_stop or isinstance(ending.exception(), rh.SafeStopError):
             # Owed to the printer's next contact, whatever the job is recorded as (and
             # after a restart too): the session sends it once the printer answers.

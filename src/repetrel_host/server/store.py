@@ -10,6 +10,7 @@ was acknowledged through at least its recorded line.
 
 from __future__ import annotations
 
+import json
 import sqlite3
 import time
 from collections.abc import Iterator
@@ -46,7 +47,7 @@ CREATE TABLE IF NOT EXISTS jobs (
 CREATE INDEX IF NOT EXISTS jobs_by_printer ON jobs (printer, state, position);
 """
 # Columns added since the first schema, added to an older data folder's table as it opens.
-_ADDED_COLUMNS = {"report": "TEXT", "safe_stop": "TEXT", "user": "TEXT"}
+_ADDED_COLUMNS = {"report": "TEXT", "safe_stop": "TEXT", "user": "TEXT", "filament": "TEXT"}
 OWED, SENT = "owed", "sent"
 
 
@@ -82,6 +83,9 @@ class JobRecord:
     report: str | None = None  # the M773 report's text
     safe_stop: str | None = None  # OWED: its safe stop was not confirmed; SENT: went later
     user: str | None = None  # who submitted it (the API key's user or app)
+    # The filament it used, by tool: JSON {"tool0": {"length": mm, "volume": cm3}}; the
+    # file's figures times the share of it acknowledged (an estimate for a stopped job).
+    filament: str | None = None
 
     def as_json(self) -> dict[str, object]:
         return {
@@ -99,6 +103,7 @@ class JobRecord:
             "report": _report_json(self.report),
             "safe_stop": self.safe_stop,
             "user": self.user,
+            "filament": json.loads(self.filament) if self.filament else None,
         }
 
 
@@ -252,9 +257,14 @@ class Store:
         return self.job(job_id)
 
     def set_state(
-        self, job_id: int, state: JobState, error: str | None = None, report: str | None = None
+        self,
+        job_id: int,
+        state: JobState,
+        error: str | None = None,
+        report: str | None = None,
+        filament: dict[str, dict[str, float]] | None = None,
     ) -> None:
-        """A job's new state; an ended one's error and M773 report with it."""
+        """A job's new state; an ended one's error, M773 report and filament with it."""
         now = time.time()
         with self._transaction() as db:
             if state in ACTIVE:
@@ -263,9 +273,11 @@ class Store:
                     (state.value, now, job_id),
                 )
             elif state in ENDED:
+                used = json.dumps(filament) if filament is not None else None
                 db.execute(
-                    "UPDATE jobs SET state = ?, ended = ?, error = ?, report = ? WHERE id = ?",
-                    (state.value, now, error, report, job_id),
+                    "UPDATE jobs SET state = ?, ended = ?, error = ?, report = ?, filament = ?"
+                    " WHERE id = ?",
+                    (state.value, now, error, report, used, job_id),
                 )
             else:
                 db.execute("UPDATE jobs SET state = ? WHERE id = ?", (state.value, job_id))
@@ -330,6 +342,24 @@ class Store:
                 (SENT, printer, OWED),
             )
         return owed
+
+
+def totals(records: list[JobRecord]) -> dict[str, Any]:
+    """What a printer's ended jobs add up to: how many ended each way, the hours they
+    streamed, and the filament each tool used (as each job's ``filament`` says)."""
+    ended = [r for r in records if r.state in ENDED]
+    filament: dict[str, dict[str, float]] = {}
+    for record in ended:
+        for tool, used in (json.loads(record.filament) if record.filament else {}).items():
+            kept = filament.setdefault(tool, {"length": 0.0, "volume": 0.0})
+            kept["length"] += used["length"]
+            kept["volume"] += used["volume"]
+    return {
+        "jobs": {state.value: sum(r.state is state for r in ended) for state in ENDED},
+        "print_seconds": sum(r.ended - r.started for r in ended if r.started and r.ended),
+        "lines": sum(r.lines for r in ended),
+        "filament": filament,
+    }
 
 
 def _record(row: sqlite3.Row) -> JobRecord:
