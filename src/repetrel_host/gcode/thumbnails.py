@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 MAX_BYTES = 16 << 20  # a block's base64 text read at most: a thumbnail, not a film
-MEDIA_TYPES = {"PNG": "image/png", "JPG": "image/jpeg", "QOI": "image/png"}
+MEDIA_TYPES = {"PNG": "image/png", "JPG": "image/jpeg"}  # served as they are
 
 
 @dataclass(frozen=True)

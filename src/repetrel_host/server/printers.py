@@ -227,7 +227,7 @@ class PrinterService:
         # port's sentence): what "offline since 10:42" shows.
         self.state_since = time.time()
         self.state_reason = ""
-        self._state_seen = "disconnected"
+        self._state_shown = "offline"
         # Told at once of every change of state or phase (the session's too): the push
         # socket's current state, which must not miss a short phase. Quick, never awaiting.
         self.watchers: list[Callable[[], None]] = []
@@ -683,16 +683,13 @@ class PrinterService:
 
     def changed(self) -> None:
         """The state or a phase may have changed: the watchers are told."""
-        state = self.state
-        if state != self._state_seen:
-            # Offline is one state to a person, however often the session tries the port
-            # again meanwhile (disconnected, connecting, disconnected...).
-            group = "offline" if state in _OFFLINE else state
-            if group != ("offline" if self._state_seen in _OFFLINE else self._state_seen):
-                self.state_since, self.state_reason = time.time(), ""
-            self._state_seen = state
-            reason = self.printer.state_reason if self.printer is not None else ""
-            self.state_reason = reason or self.state_reason
+        # Offline is one state to a person, however often the session tries the port again
+        # meanwhile (disconnected, connecting, disconnected...).
+        shown = "offline" if self.state in _OFFLINE else self.state
+        if shown != self._state_shown:
+            self._state_shown, self.state_since, self.state_reason = shown, time.time(), ""
+        reason = self.printer.state_reason if self.printer is not None else ""
+        self.state_reason = reason or self.state_reason
         for watcher in self.watchers:
             watcher()
 
