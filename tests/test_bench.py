@@ -69,3 +69,29 @@ def test_server_bench_streams_to_four_printers_and_reports_each() -> None:
     ]
     assert all(float(row[4].replace(",", "")) > 0 for row in table)
     assert float(table[0][6]) > 0 and float(table[0][7]) > 0  # the server's, a fake's CPU
+
+
+ANALYSIS = Path(__file__).parent.parent / "bench" / "analysis.py"
+
+
+@pytest.mark.timeout(90)
+def test_analysis_bench_memory_grows_with_the_layers_not_the_file() -> None:
+    """The whole pass over 2 and 40 MB files, each in its own process: the bigger file's peak
+    RSS grows by a few MB, as the smaller's does (a pass that read the file whole would grow
+    by 40 MB and more)."""
+    result = subprocess.run(
+        [sys.executable, str(ANALYSIS), "--memory", "--quick"],
+        capture_output=True,
+        text=True,
+        timeout=80,
+    )
+    assert result.returncode == 0, result.stderr
+    lines = [line for line in result.stdout.splitlines() if line.startswith("| ")]
+    header, *table = [[cell.strip() for cell in line.split("|")[1:-1]] for line in lines]
+    rows = [dict(zip(header, row, strict=True)) for row in table]
+    assert [round(float(row["size MB"].replace(",", ""))) for row in rows] == [2, 40]
+    small, big = rows
+    assert int(big["layers"].replace(",", "")) == 20 * int(small["layers"])
+    growth = [float(row["growth MB"]) for row in rows]
+    assert growth[1] <= 3 * max(growth[0], 1.0), growth
+    assert growth[1] < float(big["size MB"].replace(",", "")) / 4, growth
