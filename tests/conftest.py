@@ -4,7 +4,7 @@ import pytest
 
 from tests.helpers import CONE, job_commands
 
-pytest_plugins = ["pytester"]  # the pytest plugin's own tests run pytest inside
+pytest_plugins = ["pytester", "tests.page"]  # pytester: the plugin's own tests; the page's fixtures
 
 
 @pytest.fixture(scope="session")
@@ -20,3 +20,15 @@ def private_home(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "config-home"))
     monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "data-home"))
     return tmp_path
+
+
+@pytest.hookimpl(wrapper=True, tryfirst=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) -> object:
+    """Each phase's report on the test (``item.rep_call``): the page's tests keep a
+    screenshot when theirs failed."""
+    report = yield
+    setattr(item, f"rep_{report.when}", report)
+    browser = getattr(item, "funcargs", {}).get("browser")
+    if report.when == "call" and report.failed and browser is not None:
+        browser.keep_screenshot(item.name)  # now: the server is still up, as it failed
+    return report

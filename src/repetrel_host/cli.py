@@ -61,7 +61,7 @@ from repetrel_host.protocol.dialects.reprap import DEFAULT_REPLY_TIMEOUT
 from repetrel_host.protocol.events import ProbeKind
 from repetrel_host.protocol.flow import FlowMode
 from repetrel_host.pump import Outcome, Summary
-from repetrel_host.resume import RESUME_SOURCE, HomeAxes
+from repetrel_host.resume import RESUME_SOURCE, HomeAxes, resume_command
 from repetrel_host.session import RECONNECT_WAIT, Printer, PrintJob, connect
 from repetrel_host.terminal import CONSOLE_HELP, ConsoleOptions, run_console
 
@@ -897,21 +897,6 @@ def _announce_resume(out: Out, plan: JobPlan, layer: int | None) -> None:
         f"{len(resume.preamble)} commands first restore what the lines before it set up.",
         markup=False,
     )
-
-
-def resume_command(arguments: tuple[str, ...], line: int, option: str = "--from-line") -> str:
-    """hyrel-send's command line with ``--from-line line`` (or ``option``) in place of any
-    earlier resume."""
-    kept: list[str] = []
-    skip = False
-    for argument in arguments:
-        if skip:
-            skip = False
-        elif argument in ("--from-line", "--from-layer"):
-            skip = True  # and its value
-        elif not argument.startswith(("--from-line=", "--from-layer=")):
-            kept.append(argument)
-    return shlex.join(["hyrel-send", *kept, option, str(line)])
 
 
 def _print_resume_hint(console: Out, job: PrintJob, options: Options) -> None:

@@ -29,6 +29,7 @@ Pure: it reads the commands it is given and builds lines; nothing here touches a
 from __future__ import annotations
 
 import re
+import shlex
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from enum import StrEnum
@@ -314,3 +315,18 @@ def _n(value: float) -> str:
     """A number as G-code writes it: no exponent, no trailing zeros."""
     text = f"{value:.4f}".rstrip("0").rstrip(".")
     return "0" if text in ("", "-0") else text
+
+
+def resume_command(arguments: tuple[str, ...], line: int, option: str = "--from-line") -> str:
+    """hyrel-send's command line with ``--from-line line`` (or ``option``) in place of any
+    earlier resume."""
+    kept: list[str] = []
+    skip = False
+    for argument in arguments:
+        if skip:
+            skip = False
+        elif argument in ("--from-line", "--from-layer"):
+            skip = True  # and its value
+        elif not argument.startswith(("--from-line=", "--from-layer=")):
+            kept.append(argument)
+    return shlex.join(["hyrel-send", *kept, option, str(line)])

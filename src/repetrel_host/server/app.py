@@ -27,6 +27,7 @@ from fastapi.responses import (
     HTMLResponse,
     JSONResponse,
 )
+from fastapi.staticfiles import StaticFiles
 from starlette.exceptions import HTTPException
 
 import repetrel_host as rh
@@ -60,7 +61,9 @@ def create_app(server: PrintServer) -> FastAPI:
         # OctoPrint's clients read "error"; FastAPI's read "detail": both say it.
         detail = exc.detail
         error = detail.get("error", detail) if isinstance(detail, dict) else detail
-        body = {"error": error, "detail": detail}
+        # A refusal with more to say (a refused file's findings) says it at the top too.
+        more: dict[str, Any] = detail if isinstance(detail, dict) else {}
+        body = {**more, "error": error, "detail": detail}
         return JSONResponse(body, exc.status_code, headers=exc.headers)
 
     @app.exception_handler(RequestValidationError)
@@ -70,12 +73,22 @@ def create_app(server: PrintServer) -> FastAPI:
         )
         return JSONResponse(status_code=400, content={"detail": f"bad request: {problems}"})
 
-    page = resources.files("repetrel_host.server").joinpath("page.html").read_text()
+    static = resources.files("repetrel_host.server").joinpath("static")
+    page = static.joinpath("index.html").read_text()
 
     @app.get("/", include_in_schema=False)
-    async def status_page() -> HTMLResponse:
-        """The status page: printers, queues, progress, temperatures, live."""
-        return HTMLResponse(page)
+    async def farm_page() -> HTMLResponse:
+        """The page: every printer at a glance (the farm view)."""
+        return HTMLResponse(page, headers={"Cache-Control": "no-cache"})
+
+    @app.get("/printers/{name}", include_in_schema=False)
+    async def printer_page(request: Request, name: str) -> HTMLResponse:
+        """The page of one printer in full (its panels use only the public API)."""
+        server_of(request).service(name)
+        return HTMLResponse(page, headers={"Cache-Control": "no-cache"})
+
+    # The page's scripts, styles and libraries: plain files, no build step.
+    app.mount("/static", StaticFiles(directory=str(static)), name="static")
 
     app.include_router(native.router())
     # OctoPrint's face, for the first printer and for each under /printers/NAME.

@@ -19,11 +19,12 @@ from repetrel_host.server.core import PrintServer
 SESSION_COOKIE = "hyrel_session"
 CSRF_COOKIE = "hyrel_csrf"
 NO_KEY = "a valid API key is needed (the X-Api-Key header)"
-# Open to anyone: the page (it asks for the key), asking for an app key (OctoPrint's
+# Open to anyone: the page and its files (it asks for the key), asking for an app key (OctoPrint's
 # appkeys plugin: an app has no key yet), logging in, the push socket's SockJS requests
 # (the socket takes its own auth message, as OctoPrint's), and the API's own description.
 _OPEN = re.compile(
-    r"(/printers/[^/]+)?(/|/favicon\.ico|/api/login|/api/logout"
+    r"/printers/[^/]+|/static/.*"
+    r"|(/printers/[^/]+)?(/|/favicon\.ico|/api/login|/api/logout"
     r"|/plugin/appkeys/(probe|request|request/[^/]+)|/sockjs(/.*)?)"
     r"|/openapi\.json|/docs|/docs/oauth2-redirect|/redoc"
 )

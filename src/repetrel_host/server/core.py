@@ -26,8 +26,12 @@ from fastapi import (
 import repetrel_host as rh
 from repetrel_host.config import UserConfig
 from repetrel_host.gcode.analysis import Summary, analyse
+from repetrel_host.gcode.layer_moves import layer_moves
+from repetrel_host.gcode.marks import scan_marks
 from repetrel_host.gcode.thumbnails import ThumbnailError
 from repetrel_host.gcode.thumbnails import read as read_thumbnail
+from repetrel_host.planning import layer_line
+from repetrel_host.resume import resume_command
 from repetrel_host.server.access import Access
 from repetrel_host.server.analyses import Analyses, describe, stamp
 from repetrel_host.server.events import EventHub
@@ -59,12 +63,14 @@ class PrintServer:
         mqtt: MqttSettings | None = None,
         automatic_transition: bool = False,
         public_read: bool = False,
+        presets: dict[str, dict[str, float | None]] | None = None,
     ) -> None:
         self.data_dir = data_dir
         self.files = data_dir / "files"
         self.files.mkdir(parents=True, exist_ok=True)
         self.access = Access(data_dir, api_key, public_read)
         self.max_upload = max_upload
+        self.presets = presets or {}  # material: {"head", "bed", "chamber"} temperatures
         self.user = user or UserConfig()
         self.store = Store(data_dir / "jobs.sqlite")
         self.events = EventHub()
@@ -294,9 +300,16 @@ def _free_name(server: PrintServer, target: Path) -> tuple[Path, str]:
 
 
 def queue(
-    server: PrintServer, printer: str, path: Path, commands: int, user: str | None = None
+    server: PrintServer,
+    printer: str,
+    path: Path,
+    commands: int,
+    user: str | None = None,
+    from_line: int | None = None,
 ) -> JobRecord:
-    record = server.store.submit(printer, path.name, relative(server, path), commands, user)
+    record = server.store.submit(
+        printer, path.name, relative(server, path), commands, user, from_line
+    )
     log.info("job %d (%s) queued on printer %s", record.id, path.name, printer)
     service = server.services[printer]
     service.job_changed(record.id)
@@ -357,7 +370,7 @@ def check(server: PrintServer, printer: str, path: Path) -> tuple[list[str], int
     except rh.HostError as exc:  # named by the file's name, not its place on the server
         return [f"error: {str(exc).replace(str(path), path.name)}"], 0
     commands = sum(1 for _ in plan.job.lines())  # what goes on the wire: host codes do not
-    return [f"{f.severity}: {f.format(path.name)}" for f in findings], commands
+    return [f"{f.severity}: {path.name}:{f.line}: {f.message}" for f in findings], commands
 
 
 async def answered(call: Awaitable[T]) -> T:
@@ -407,3 +420,131 @@ def thumbnail(server: PrintServer, location: str) -> tuple[bytes, str]:
 def uploads_json(server: PrintServer) -> list[dict[str, Any]]:
     """The native listing (call in a thread: it reads the analyses kept on disk)."""
     return [file_json(server, p) for p in sorted(server.files.rglob("*")) if p.is_file()]
+
+
+def heaters(service: PrinterService) -> list[dict[str, Any]]:
+    """What the page charts and sets: each heater's sensor (as reports name it), a label
+    (a Hyrel head by its slot and type), its kind, and the command that sets its target
+    (``{target}`` in it). The loadout's heads first, then what the reports show."""
+    printer = service.printer
+    readings = dict(printer.temperatures) if printer is not None else {}
+    hyrel = printer is not None and printer.settings.protocol == "hyrel"
+    found: list[dict[str, Any]] = []
+    loadout = service.plan_loadout()
+    for head in loadout.heads if loadout is not None else ():
+        sensor = f"T{head.tool}"
+        if sensor not in readings and head.tool == 0 and "T" in readings:
+            sensor = "T"  # a single hotend reported as T
+        address = head.variable if hyrel else head.tool
+        found.append(
+            {
+                "sensor": sensor,
+                "label": f"T{head.tool} · slot {head.slot} · {head.name}",
+                "kind": "head",
+                "tool": head.tool,
+                "command": f"M104 T{address} S{{target}}",
+            }
+        )
+    known = {heater["sensor"] for heater in found}
+    several = any(re.fullmatch(r"T\d+", sensor) for sensor in readings)
+    # Heads by number, then the bed, then the chamber.
+    for sensor in sorted(readings, key=lambda s: (s[0] != "T", s != "T", len(s), s)):
+        if sensor in known or (sensor == "T" and several):
+            continue  # "T" beside T0, T1...: the active one, shown by its number
+        if sensor.startswith("T"):
+            tool = int(sensor[1:] or 0)
+            command = f"M104 T{tool} S{{target}}" if sensor != "T" else "M104 S{target}"
+            found.append(
+                {
+                    "sensor": sensor,
+                    "label": sensor,
+                    "kind": "head",
+                    "tool": tool,
+                    "command": command,
+                }
+            )
+        elif sensor in ("B", "C"):
+            kind, command = ("bed", "M140") if sensor == "B" else ("chamber", "M141")
+            found.append(
+                {"sensor": sensor, "label": kind, "kind": kind, "command": f"{command} S{{target}}"}
+            )
+    return found
+
+
+def resume_line(path: Path, from_layer: int | None, from_line: int | None) -> int | None:
+    """The source line a job resumed at ``from_layer`` (or ``from_line``) starts from
+    (in a thread: it reads the file); 400 when the file has no such layer."""
+    if from_layer is not None and from_line is not None:
+        raise HTTPException(400, "from_layer and from_line both say where to resume: give one")
+    if from_layer is None:
+        return from_line
+    try:
+        return layer_line(path, from_layer)
+    except rh.UsageError as exc:
+        raise HTTPException(400, str(exc)) from None
+
+
+def resume_json(server: PrintServer, record: JobRecord) -> dict[str, Any]:
+    """Where ``record``'s job would resume (in a thread): its first line not acknowledged,
+    the layer holding it, and the commands that resume it (409 when it completed, or when
+    none of it ran: print it again)."""
+    if record.state is JobState.COMPLETED or record.state in (JobState.QUEUED,):
+        raise HTTPException(409, f"job {record.id} is {record.state.value}: nothing to resume")
+    if record.last_line < 1:
+        raise HTTPException(409, f"job {record.id}: none of it ran, print it again")
+    path = server.data_dir / record.file
+    if not path.is_file():
+        raise HTTPException(409, f"job {record.id}'s file {record.name} is gone")
+    line = record.last_line + 1
+    layer = scan_marks(path, until_line=line).at(line).layer
+    file = path.relative_to(server.files).as_posix()
+    port = server.services[record.printer].port if record.printer in server.services else "PORT"
+    arguments = (file, "--port", port)
+    return {
+        "job": record.id,
+        "file": file,
+        "from_line": line,
+        "from_layer": layer.number if layer is not None else None,
+        "command": resume_command(arguments, line),
+        "layer_command": resume_command(arguments, layer.number, "--from-layer")
+        if layer is not None
+        else None,
+    }
+
+
+_LAYERS: dict[Path, tuple[object, Any]] = {}  # a file's layer offsets, while it is unchanged
+
+
+def layer_json(server: PrintServer, location: str, number: int) -> dict[str, Any]:
+    """Layer ``number`` of an uploaded file, for the layer view (in a thread)."""
+    path = uploaded(server, location)
+    now = stamp(path)
+    known = _LAYERS.get(path)
+    if known is None or known[0] != now:
+        if len(_LAYERS) > 64:
+            _LAYERS.clear()
+        known = _LAYERS[path] = (now, analyse(path, moves=False))
+    found = known[1]
+    layers, offsets = found.marks.layers, found.layer_offsets
+    if number > len(layers):
+        raise HTTPException(
+            404, f"'{location}' has {len(layers)} layers: there is no layer {number}"
+        )
+    layer = layers[number - 1]
+    end = offsets[number] if number < len(offsets) else None
+    moves = layer_moves(path, offsets[number - 1], end, layer.line)
+    summary = server.analyses.cached(path)
+    area = summary.as_json().get("printingArea") if summary is not None else None
+    return {
+        "file": location,
+        "layer": number,
+        "layers": len(layers),
+        "z": layer.z,
+        "first_line": layer.line,
+        "last_line": layers[number].line - 1 if number < len(layers) else None,
+        "area": area,
+        "moves": [
+            [line, round(x0, 3), round(y0, 3), round(x1, 3), round(y1, 3), int(extrudes)]
+            for line, x0, y0, x1, y1, extrudes in moves
+        ],
+    }

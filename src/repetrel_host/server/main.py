@@ -57,6 +57,24 @@ class PrinterSettings(BaseModel):
     snapshots_kept: int = Field(default=500, ge=1)
 
 
+class Preset(BaseModel):
+    """A material's temperatures (°C): ``[presets.PLA] head = 210, bed = 60``."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    head: float = Field(ge=0, le=500)
+    bed: float | None = Field(default=None, ge=0, le=200)
+    chamber: float | None = Field(default=None, ge=0, le=100)
+
+
+# The page's presets when the configuration names none (common PLA, PETG and ABS settings).
+DEFAULT_PRESETS = {
+    "PLA": Preset(head=210, bed=60),
+    "PETG": Preset(head=240, bed=80),
+    "ABS": Preset(head=250, bed=100),
+}
+
+
 class ServerSettings(BaseModel):
     """What the server runs with: the command line's options over the TOML file's."""
 
@@ -76,6 +94,7 @@ class ServerSettings(BaseModel):
     mqtt_password: str | None = None
     mqtt_discovery: bool = True  # Home Assistant's discovery configs, each printer a device
     mqtt_discovery_prefix: str = Field(default=DEFAULT_DISCOVERY_PREFIX, pattern=r"^[^#+]+$")
+    presets: dict[str, Preset] = DEFAULT_PRESETS  # the page's material presets
 
 
 def _fail(message: str) -> None:
@@ -300,6 +319,7 @@ def serve(
         mqtt=_mqtt(settings),
         automatic_transition=settings.automatic_transition,
         public_read=settings.public_read,
+        presets={name: p.model_dump() for name, p in settings.presets.items()},
     )
     # uvicorn shuts down gracefully on SIGTERM and SIGINT, then raises the signal again
     # with the handlers found before it started: these, so that a stop asked for exits

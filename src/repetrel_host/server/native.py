@@ -13,6 +13,7 @@ from typing import Annotated, Any
 from fastapi import (
     APIRouter,
     File,
+    Form,
     HTTPException,
     Query,
     Request,
@@ -27,11 +28,11 @@ from fastapi.responses import (
 )
 from pydantic import BaseModel, Field
 
-from repetrel_host.server import core, store
+from repetrel_host.server import core, store, timelapse
 from repetrel_host.server.access import OWNER
 from repetrel_host.server.auth import user_of
 from repetrel_host.server.core import answered, server_of
-from repetrel_host.server.octoprint import appkeys
+from repetrel_host.server.octoprint import appkeys, files
 from repetrel_host.server.printers import PrinterService
 from repetrel_host.server.store import ACTIVE
 
@@ -39,7 +40,7 @@ MAX_ID = 2**63 - 1  # SQLite's largest integer: a job id beyond it is no job
 JobId = Annotated[int, PathParameter(ge=1, le=MAX_ID)]
 HISTORY_SHOWN = 1800.0  # s: the temperature reports given without ``since``
 KEEPALIVE = 15.0  # seconds of quiet before the event stream says it is alive
-_SNAPSHOT = re.compile(r"[A-Za-z0-9_-]+\.(jpg|png|gif|webp)")
+_SNAPSHOT = re.compile(r"[A-Za-z0-9_-]+\.(jpg|png|gif|webp|mp4)")
 
 
 def _printer_json(service: PrinterService) -> dict[str, Any]:
@@ -56,6 +57,7 @@ def _printer_json(service: PrinterService) -> dict[str, Any]:
         "firmware": printer.firmware.name if printer and printer.firmware else None,
         "protocol": printer.settings.protocol if printer else None,  # the link's: reprap, hyrel
         "temperatures": _readings(printer.temperatures if printer else {}),
+        "heaters": core.heaters(service),
         "job": _running_json(service) if running is not None else None,
         "camera": service.camera is not None,
         "snapshot": _latest_snapshot(service),
@@ -80,6 +82,7 @@ def _running_json(service: PrinterService) -> dict[str, Any]:
     job = running.job
     record = running.record
     last = job.last
+    left, how = running.time_left(time.time() - (record.started or time.time()))
     return {
         **record.as_json(),
         "state": "paused" if service.state == "paused" else "printing",
@@ -89,6 +92,9 @@ def _running_json(service: PrinterService) -> dict[str, Any]:
         "size": job.size,
         "layer": running.layer,
         "layers": len(running.layers),
+        "completion": round(100.0 * running.fraction, 2),
+        "time_left": round(left) if left is not None else None,  # seconds
+        "time_left_from": how,  # "analysis": the slicer's estimate; "linear": the rate so far
     }
 
 
@@ -106,6 +112,22 @@ class Command(BaseModel):
 
 class Decision(BaseModel):
     allow: bool
+
+
+class Folder(BaseModel):
+    path: str  # below the uploads: "parts/brackets"
+
+
+class Queued(BaseModel):
+    """A stored file to print; resumed from a layer or line (hyrel-send's --from-layer)."""
+
+    file: str  # below the uploads, as /v1/files names it
+    from_layer: Annotated[int, Field(ge=1)] | None = None
+    from_line: Annotated[int, Field(ge=1)] | None = None
+
+
+class Timelapse(BaseModel):
+    job: Annotated[int, Field(ge=1, le=MAX_ID)]
 
 
 def router() -> APIRouter:
@@ -163,10 +185,94 @@ def router() -> APIRouter:
         record = core.queue(server, service.name, upload.path, upload.commands, user_of(request))
         return {**record.as_json(), "findings": upload.findings, "note": upload.note or None}
 
+    @router.post("/printers/{name}/queue", status_code=201)
+    async def queue_file(request: Request, name: str, queued: Queued) -> dict[str, Any]:
+        """Queue a stored file (print again), or resume it from a layer or a line: the
+        server's ``hyrel-send FILE --from-layer N``. Checked for this printer first."""
+        server = server_of(request)
+        service = server.service(name)
+        path = core.uploaded(server, queued.file)
+        from_line = await asyncio.to_thread(
+            core.resume_line, path, queued.from_layer, queued.from_line
+        )
+        findings, commands = await asyncio.to_thread(core.check, server, service.name, path)
+        errors = [f for f in findings if f.startswith("error")]
+        if errors:
+            refused = f"{path.name}: refused ({len(errors)} errors)"
+            raise HTTPException(400, {"error": refused, "findings": findings})
+        record = core.queue(server, service.name, path, commands, user_of(request), from_line)
+        return {**record.as_json(), "findings": findings}
+
+    @router.get("/presets")
+    async def presets(request: Request) -> dict[str, Any]:
+        """The material presets of the configuration (``[presets.PLA] head = 210, bed =
+        60``): temperatures in °C for a head, the bed, the chamber."""
+        return server_of(request).presets
+
     @router.get("/files")
-    async def files(request: Request) -> list[dict[str, Any]]:
+    async def files_listed(request: Request) -> list[dict[str, Any]]:
         server = server_of(request)
         return await asyncio.to_thread(core.uploads_json, server)
+
+    @router.post("/files", status_code=201)
+    async def upload(
+        request: Request,
+        file: Annotated[UploadFile, File()],
+        folder: Annotated[str, Form()] = "",
+        printer: str | None = None,
+    ) -> dict[str, Any]:
+        """Store a file without printing it (in ``folder``), checked by the lint for
+        ``printer`` (the first one by default): refused (400) with errors, else its entry
+        with the findings."""
+        server = server_of(request)
+        service = server.service(printer)
+        upload = await core.save_upload(server, service.name, file, folder)
+        entry = await asyncio.to_thread(core.file_json, server, upload.path)
+        return {**entry, "findings": upload.findings, "note": upload.note or None}
+
+    @router.get("/folders")
+    async def folders(request: Request) -> list[str]:
+        """Every folder below the uploads (empty ones too), by path."""
+        root = server_of(request).files
+        return sorted(p.relative_to(root).as_posix() for p in root.rglob("*") if p.is_dir())
+
+    @router.post("/folders", status_code=201)
+    async def make_folder(request: Request, folder: Folder) -> dict[str, str]:
+        server = server_of(request)
+        parent, _, name = folder.path.strip("/").rpartition("/")
+        made = files.make_folder(server, parent, name)
+        core.file_changed(server, made, "added", "add", folder=True)
+        return {"path": made.relative_to(server.files).as_posix()}
+
+    @router.delete("/folders/{location:path}", status_code=204)
+    async def delete_folder(request: Request, location: str) -> Response:
+        """Remove a folder and what is in it; 409 while a job uses a file in it."""
+        server = server_of(request)
+        path = server.files / core.safe_folder(location)
+        if not path.is_dir() or path == server.files:
+            raise HTTPException(404, f"no folder '{location}'")
+        files.delete_folder(server, location)
+        core.file_changed(server, path, "removed", "remove", folder=True)
+        return Response(status_code=204)
+
+    @router.get("/files/{location:path}/check")
+    async def check_file(request: Request, location: str, printer: str | None = None) -> Any:
+        """The lint's findings for the file on ``printer`` (the first by default), as a
+        print would meet them, and the lines it sends."""
+        server = server_of(request)
+        service = server.service(printer)
+        path = core.uploaded(server, location)
+        findings, lines = await asyncio.to_thread(core.check, server, service.name, path)
+        errors = sum(1 for f in findings if f.startswith("error"))
+        return {"printer": service.name, "findings": findings, "errors": errors, "lines": lines}
+
+    @router.get("/files/{location:path}/layers/{number}")
+    async def layer(
+        request: Request, location: str, number: Annotated[int, PathParameter(ge=1)]
+    ) -> dict[str, Any]:
+        """Layer ``number``'s moves, for a layer view: ``[line, x0, y0, x1, y1, extrudes]``
+        each (arcs as straight lines), its Z, and the file's layer count."""
+        return await asyncio.to_thread(core.layer_json, server_of(request), location, number)
 
     @router.get("/files/{location:path}/thumbnail")
     async def file_thumbnail(request: Request, location: str) -> Response:
@@ -256,6 +362,16 @@ def router() -> APIRouter:
             return JSONResponse({**ended.as_json(), "stopping": stopping}, status_code=202)
         return ended.as_json()
 
+    @router.get("/jobs/{job_id}/resume")
+    async def resume(request: Request, job_id: JobId) -> dict[str, Any]:
+        """Where a job that did not complete would resume: the first line not acknowledged,
+        the start of its layer, and the commands (``hyrel-send``'s, and this API's)."""
+        server = server_of(request)
+        record = server.store.job(job_id)
+        if record is None:
+            raise HTTPException(404, f"no job {job_id}")
+        return await asyncio.to_thread(core.resume_json, server, record)
+
     @router.post("/jobs/{job_id}/move")
     async def move(request: Request, job_id: JobId, move: Move) -> list[dict[str, Any]]:
         server = server_of(request)
@@ -291,6 +407,31 @@ def router() -> APIRouter:
         """A snapshot now (the camera's settings, tried out)."""
         service = server_of(request).service(name)
         path = await answered(service.snapshot())
+        return {"file": path.name, "url": service.url(path)}
+
+    @router.get("/printers/{name}/timelapses")
+    async def timelapses(request: Request, name: str) -> dict[str, Any]:
+        """The time-lapse videos made of the printer's layer snapshots, newest first, and
+        whether they can be made here (``ffmpeg``: its path, or None and why not)."""
+        service = server_of(request).service(name)
+        videos = timelapse.videos(service.camera.folder) if service.camera is not None else []
+        ffmpeg = timelapse.ffmpeg()
+        return {
+            "ffmpeg": ffmpeg,
+            "missing": None if ffmpeg else timelapse.NO_FFMPEG,
+            "videos": [{"file": p.name, "url": service.url(p)} for p in videos],
+        }
+
+    @router.post("/printers/{name}/timelapses", status_code=201)
+    async def make_timelapse(request: Request, name: str, wanted: Timelapse) -> dict[str, Any]:
+        """A video of a job's layer snapshots (ffmpeg, 10 images a second)."""
+        service = server_of(request).service(name)
+        if service.camera is None:
+            raise HTTPException(409, f"printer {service.name} has no camera")
+        try:
+            path = await timelapse.make(service.camera.folder, wanted.job)
+        except timelapse.CannotMake as exc:
+            raise HTTPException(exc.status, str(exc)) from None
         return {"file": path.name, "url": service.url(path)}
 
     @router.post("/printers/{name}/command")

@@ -35,6 +35,7 @@ from repetrel_host.planning import (
     explicit_machine,
     link_settings,
     plan_job,
+    resumed,
 )
 from repetrel_host.server.analyses import Analyses
 from repetrel_host.server.events import Event
@@ -409,11 +410,19 @@ class PrinterService:
         try:
             plan = self.plan(path)
             checked = self._checked.get(path) == _fingerprint(plan)
+            job_or_path: JobPlan | Path = path
+            if checked and record.from_line is not None:
+                # Where a resumed job starts is found by reading the file up to there:
+                # a thread's work, not the event loop's (every printer's stream).
+                job_or_path = await asyncio.to_thread(resumed, plan, record.from_line)
+            elif checked:
+                job_or_path = plan
             job = await printer.print(
-                plan if checked else path,
+                job_or_path,
                 history=history,
                 on_action=self._perform,
                 report=self.config.report,
+                from_line=record.from_line if job_or_path is path else None,
             )
         except rh.HostError as exc:  # refused (a check), or the printer went meanwhile
             if printer.state is not rh.State.READY and not isinstance(exc, rh.JobError):
@@ -519,12 +528,13 @@ class PrinterService:
         running = self.running
         completion: float | None = None
         left: float | None = None
+        how: str | None = None
         if completed:
             completion, left = 100.0, 0.0
         elif running is not None:
             completion = 100.0 * running.fraction
             if not job.done:
-                left = running.time_left(time.time() - (record.started or time.time()))[0]
+                left, how = running.time_left(time.time() - (record.started or time.time()))
         self.publish(
             {
                 "type": "progress",
@@ -538,6 +548,8 @@ class PrinterService:
                 "layers": len(running.layers) if running else 0,
                 "completion": round(completion, 2) if completion is not None else None,
                 "time_left": round(left) if left is not None else None,  # seconds
+                # "analysis": the slicer's estimate; "linear": the rate so far
+                "time_left_from": how,
             }
         )
         z = self.running.z if self.running is not None else None
@@ -665,9 +677,8 @@ class PrinterService:
                 # READY as a job ends is told once its end is recorded (its last progress
                 # and its job event first): no dashboard sees "ready" at 99 %.
                 if event.state is not rh.State.READY or self.running is None:
-                    self.publish(
-                        {"type": "printer", "printer": name, "state": state, "held": self.held}
-                    )
+                    self.changed()  # since and reason follow the state shown
+                    self.publish(self.state_event(state))
                 self.wake()  # READY again: the queue may go on
             elif isinstance(event, rh.Temperatures):
                 now = time.time()
@@ -695,9 +706,19 @@ class PrinterService:
 
     def _state_changed(self) -> None:
         self.changed()
-        self.publish(
-            {"type": "printer", "printer": self.name, "state": self.state, "held": self.held}
-        )
+        self.publish(self.state_event(self.state))
+
+    def state_event(self, state: str) -> Event:
+        """The event of a new state: with since when, why, and a phase asked for."""
+        return {
+            "type": "printer",
+            "printer": self.name,
+            "state": state,
+            "held": self.held,
+            "since": self.state_since,
+            "reason": self.state_reason or self.last_error or None,
+            "phase": self.phase or None,  # "pausing", "resuming": asked for, not reached
+        }
 
     def select(self, path: Path | None) -> None:
         """OctoPrint's selected file (None: unselect); the last job's is forgotten."""

@@ -47,7 +47,13 @@ CREATE TABLE IF NOT EXISTS jobs (
 CREATE INDEX IF NOT EXISTS jobs_by_printer ON jobs (printer, state, position);
 """
 # Columns added since the first schema, added to an older data folder's table as it opens.
-_ADDED_COLUMNS = {"report": "TEXT", "safe_stop": "TEXT", "user": "TEXT", "filament": "TEXT"}
+_ADDED_COLUMNS = {
+    "report": "TEXT",
+    "safe_stop": "TEXT",
+    "user": "TEXT",
+    "filament": "TEXT",
+    "from_line": "INTEGER",
+}
 OWED, SENT = "owed", "sent"
 
 
@@ -86,12 +92,14 @@ class JobRecord:
     # The filament it used, by tool: JSON {"tool0": {"length": mm, "volume": cm3}}; the
     # file's figures times the share of it acknowledged (an estimate for a stopped job).
     filament: str | None = None
+    from_line: int | None = None  # a resumed job: the file's line it starts from
 
     def as_json(self) -> dict[str, object]:
         return {
             "id": self.id,
             "printer": self.printer,
             "name": self.name,
+            "path": self.file.removeprefix("files/"),  # the file's, as /v1/files names it
             "state": self.state.value,
             "submitted": self.submitted,
             "started": self.started,
@@ -104,6 +112,7 @@ class JobRecord:
             "safe_stop": self.safe_stop,
             "user": self.user,
             "filament": json.loads(self.filament) if self.filament else None,
+            "from_line": self.from_line,
         }
 
 
@@ -201,17 +210,23 @@ class Store:
     # --- changing -----------------------------------------------------------------
 
     def submit(
-        self, printer: str, name: str, file: str, total_lines: int, user: str | None = None
+        self,
+        printer: str,
+        name: str,
+        file: str,
+        total_lines: int,
+        user: str | None = None,
+        from_line: int | None = None,
     ) -> JobRecord:
-        """Queue a job at the end of its printer's queue."""
+        """Queue a job at the end of its printer's queue (``from_line``: resumed there)."""
         with self._transaction() as db:
             (last,) = db.execute(
                 "SELECT COALESCE(MAX(position), 0) FROM jobs WHERE printer = ?", (printer,)
             ).fetchone()
             cursor = db.execute(
                 "INSERT INTO jobs (printer, name, file, state, position, submitted, total_lines,"
-                " user) VALUES (?, ?, ?, 'queued', ?, ?, ?, ?)",
-                (printer, name, file, last + 1, time.time(), total_lines, user),
+                " user, from_line) VALUES (?, ?, ?, 'queued', ?, ?, ?, ?, ?)",
+                (printer, name, file, last + 1, time.time(), total_lines, user, from_line),
             )
             job_id = cursor.lastrowid
         assert job_id is not None
