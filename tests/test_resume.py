@@ -15,7 +15,7 @@ from repetrel_host.gcode.marks import scan_marks
 from repetrel_host.job import Job, JobLine
 from repetrel_host.planning import JobRequest, plan_job, resumed
 from repetrel_host.protocol.dialects.hyrel import SYNC_EVERY
-from repetrel_host.resume import HomeAxes, MachineState, preamble, track
+from repetrel_host.resume import HomeAxes, MachineState, back_to_job, preamble, track
 from repetrel_host.testing.fake_controller import BuiltInFake
 from repetrel_host.testing.hyrel_simulator import RX_BUFFER
 from tests.helpers import CONE, executed, hyrel_send, job_commands, start_streaming
@@ -415,3 +415,27 @@ def test_the_hint_also_offers_the_start_of_the_layer(tmp_path: Path) -> None:
     layer = layers[int(command[-1]) - 1]
     following = layers[layer.number].line if layer.number < len(layers) else 1 << 30
     assert layer.line <= line < following
+
+
+def test_back_to_a_paused_job_homes_x_and_y_first_when_its_motors_were_off() -> None:
+    state = track(
+        [(1, "G90"), (2, "M83"), (3, "G1 Z0.4 F600"), (4, "G1 X10 Y20 E1 F1500"), (5, "T1")]
+    )
+    assert [line.command for line in back_to_job(state, True, True)] == [
+        "G90",
+        "G0 Z10.4 F600",
+        "G28 X0 Y0",
+        "T1",
+        "G0 X10 Y20 F3000",
+        "G0 Z0.4 F600",
+        "M83",
+        "G1 F1500",
+    ]
+    # Only a jog: back, in the file's modes, its tool left as it is (no T was sent).
+    assert [line.command for line in back_to_job(state, False)] == [
+        "G90",
+        "G0 X10 Y20 F3000",
+        "G0 Z0.4 F600",
+        "M83",
+        "G1 F1500",
+    ]

@@ -267,6 +267,48 @@ def test_commands_wait_while_printing_and_work_while_paused(rig: Rig, tmp_path: 
     run(scenario)
 
 
+def test_a_jog_and_an_extrusion_while_paused_are_undone_before_the_job_goes_on(
+    rig: Rig, tmp_path: Path
+) -> None:
+    """A person jogs, extrudes with M83 and changes the feed during a pause: before the
+    job's next line, the head is back where the job stood, its E position, absolute
+    extrusion and its feed rate are the file's again (else its next G1 E would be taken as
+    relative, and its next move would go at the jog's speed)."""
+    if rig.hyrel:
+        pytest.skip("the controller holds a paused job on Hyrel's link: no command then")
+    rig.move_time = 0.003
+    commands = ["G90", "M82", "G92 E0", "G1 Z0.3 F600", "G1 F1800"]
+    commands += [f"G1 X{10 + i % 80} Y{20 + i % 40} E{i * 0.05:.2f}" for i in range(1, 400)]
+
+    async def scenario() -> None:
+        async with rig.connect() as printer:
+            job = await printer.print(job_file(tmp_path, commands), history=False)
+            await asyncio.sleep(0.3)
+            await printer.pause()
+            stood = job.last
+            assert stood is not None
+            for command in ("G91", "G1 Z10 F600", "G90", "M83", "G1 E5 F100", "M105"):
+                await printer.command(command)
+            await printer.resume()
+            await job.wait()
+        ran = rig.executed(printer)
+        at = ran.index("G1 E5 F100") + 2  # after the person's M105
+        line = commands[stood.source_line - 1]
+        x, y, e = (float(w[1:]) for w in line.split()[1:])
+        assert ran[at : at + 7] == [
+            "G90",
+            f"G0 X{x:g} Y{y:g} F3000",
+            "G0 Z0.3 F600",
+            f"G92 E{e:g}",
+            "M82",
+            "G1 F1800",
+            commands[stood.source_line],  # the job's next line
+        ]
+        assert ran[at + 6 :] == commands[stood.source_line :]
+
+    run(scenario)
+
+
 @pytest.mark.parametrize("at_layer_end", [False, True])
 def test_a_pause_holds_the_job_in_the_controller_until_resume(
     rig: Rig, tmp_path: Path, at_layer_end: bool

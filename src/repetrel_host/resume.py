@@ -264,9 +264,18 @@ def preamble(state: MachineState, home: HomeAxes = HomeAxes.XY) -> list[Preamble
         add(PreambleLine(state.fan_range[0], f"the fans' range (line {state.fan_range[1]})"))
     for command, number in sorted(state.fans.values(), key=lambda f: f[1]):
         add(PreambleLine(command, f"a fan the job had on (line {number})"))
+    return lines + _where_it_stood(state)
+
+
+def _where_it_stood(state: MachineState) -> list[PreambleLine]:
+    """Back over the job's point and down to its Z, then its extruder position, its modes
+    and its feed rate (absolute positioning first sent)."""
+    scale = MM_PER_INCH if state.inches else 1.0
+    lines: list[PreambleLine] = []
+    add = lines.append
     if state.x is not None or state.y is not None:
         xy = " ".join(f"{a}{_n(v)}" for a, v in (("X", state.x), ("Y", state.y)) if v is not None)
-        add(PreambleLine(f"G0 {xy} F{_n(XY_FEED / scale)}", "back over the resume point"))
+        add(PreambleLine(f"G0 {xy} F{_n(XY_FEED / scale)}", "back over where the job stood"))
     if state.z is not None:
         add(PreambleLine(f"G0 Z{_n(state.z)} F{_n(Z_FEED / scale)}", "down to its Z"))
     if state.absolute_e and state.e is not None:
@@ -281,6 +290,35 @@ def preamble(state: MachineState, home: HomeAxes = HomeAxes.XY) -> list[Preamble
     if state.feed is not None:
         add(PreambleLine(f"G1 F{_n(state.feed)}", "the feed rate the job was moving at"))
     return lines
+
+
+# What a person may send during a pause without moving the machine or changing a mode the
+# job's next lines rely on: reports, temperatures, fans, factors, messages.
+KEEPS_THE_JOB_STATE = frozenset(
+    "M105 M114 M115 M119 M503 M104 M109 M140 M190 M141 M191 M106 M107 M220 M221 M117 M118".split()
+)
+
+
+def back_to_job(
+    state: MachineState, tool_changed: bool, motors_off: bool = False
+) -> list[PreambleLine]:
+    """After commands moved the machine (or changed its modes) during a pause: back over
+    where the job stood and down to its Z, its tool (``tool_changed``: a T was sent), its
+    extruder position, its positioning and extrusion modes and its feed rate, so that its
+    next line means what the file meant (as Marlin comes back from M125's park). With
+    ``motors_off`` (M84 or M18 was sent: X and Y may have been pushed by hand), Z is raised
+    clear of the part and X and Y homed first, as a resumed job's preamble does."""
+    scale = MM_PER_INCH if state.inches else 1.0
+    lines = [PreambleLine("G90", "absolute positioning for the moves back")]
+    add = lines.append
+    if motors_off:
+        if state.highest_z is not None:
+            safe = state.highest_z + LIFT / scale
+            add(PreambleLine(f"G0 Z{_n(safe)} F{_n(Z_FEED / scale)}", "raise Z clear of the part"))
+        add(PreambleLine("G28 X0 Y0", "home X and Y: their motors were off (never Z)"))
+    if tool_changed and state.tool is not None:
+        add(PreambleLine(f"T{state.tool}", "the tool the job was using"))
+    return lines + _where_it_stood(state)
 
 
 def _heat(word: str, heater: Heater) -> str:

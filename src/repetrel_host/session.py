@@ -96,7 +96,7 @@ from repetrel_host.pump import (
     Summary,
     failure_error,
 )
-from repetrel_host.resume import HomeAxes
+from repetrel_host.resume import KEEPS_THE_JOB_STATE, HomeAxes, MachineState, back_to_job
 
 if TYPE_CHECKING:
     from repetrel_host.testing.simulator import ControllerSettings
@@ -137,6 +137,19 @@ _FRAMED = re.compile(r"^\s*N-?\d|\*", re.IGNORECASE)
 
 E = TypeVar("E")
 _END = object()
+
+
+BACK_TO_JOB_TIMEOUT = 60.0  # s: each command that brings a paused job's machine back
+
+
+def _state_at(plan: JobPlan, line: int) -> MachineState:
+    """The state the file's lines up to source ``line`` leave the machine in."""
+    state = MachineState()
+    for number, command, _, _ in plan.job.commands():
+        if number > line:
+            break
+        state.apply(number, command)
+    return state
 
 
 @dataclass(frozen=True, slots=True)
@@ -485,6 +498,9 @@ class Printer:
         self._lock = asyncio.Lock()
         self._job: PrintJob | None = None
         self._last_job: PrintJob | None = None
+        # The words of the commands sent during the job's pause that may have moved the
+        # machine or changed a mode (jog, home, extrude, T...): resume() comes back first.
+        self._paused_words: set[str] = set()
         self._wire_log: BinaryIO | None = None
         self._hub: _Hub[PrinterEvent] = _Hub()
         self._state_waiters: list[tuple[Callable[[], bool], asyncio.Future[None]]] = []
@@ -621,6 +637,8 @@ class Printer:
         self._check_can_command()
         async with self._lock:
             self._check_can_command()
+            if self.state is State.PAUSED and word not in KEEPS_THE_JOB_STATE:
+                self._paused_words.add(word)
             return await self._command(command, timeout)
 
     async def _command(self, command: str, timeout: float | None) -> Reply:
@@ -834,6 +852,7 @@ class Printer:
                 )
                 print_job._keep_progress()
             self._job = self._last_job = print_job
+            self._paused_words.clear()  # an earlier job's pause is not this one's
             pump.begin(run)
             self._set_state(State.PRINTING, plan.job.name)
             self._poke()
@@ -895,6 +914,10 @@ class Printer:
         job = self._job
         if job is None or self.state is not State.PAUSED:
             raise UsageError("no job is paused")
+        if self._paused_words:
+            await self._back_to_job(job)
+            if self._job is not job or self.state is not State.PAUSED:
+                raise UsageError(f"{job.name} ended before it could resume")
         self._set_state(State.PRINTING, "resumed")
         job._publish(Resumed())
         if job._m0 is not None:
@@ -903,6 +926,20 @@ class Printer:
         elif self._pump is not None:
             self._pump.resume()
             self._poke()
+
+    async def _back_to_job(self, job: PrintJob) -> None:
+        """Commands moved the machine during the pause (or changed its modes): back to where
+        the job stood, in its modes, before its next line (:func:`resume.back_to_job`). The
+        state is read from the file's lines up to the last one sent, in a thread."""
+        last = job.last
+        line = last.source_line if last is not None else 0
+        words = self._paused_words
+        tool_changed = any(word.startswith("T") for word in words)
+        motors_off = bool(words & {"M84", "M18"})
+        state = await asyncio.to_thread(_state_at, job.plan, line)
+        for entry in back_to_job(state, tool_changed, motors_off):
+            await self.command(entry.command, timeout=BACK_TO_JOB_TIMEOUT)
+        self._paused_words.clear()
 
     async def cancel(self) -> None:
         """Stop the job with the safe-stop sequence; returns once it went."""

@@ -203,7 +203,10 @@ export async function mount(body, ctx) {
     const { job, running } = shownJob();
     if (!job) return;
     if (!job.layers && !layerCounts.has(job.path)) {
-      fetchLayer(job.path, 1).then(sync, (error) => noLayers(error.status === 404 ? "" : error.message));
+      fetchLayer(job.path, 1).then(sync, (error) => {
+        if (error.status === 404) layerCounts.set(job.path, 0); // no layers: asked once
+        noLayers(error.status === 404 ? "" : error.message);
+      });
       return;
     }
     const total = layersOf(job);
