@@ -49,6 +49,13 @@ def executed_after(farm: Farm, command: str, count: int = 1) -> bool:
     return farm.executed("left").count(command) >= count
 
 
+def around(farm: Farm, command: str) -> list[str]:
+    """The commands the fake executed before, at and after ``command`` ([] until all ran)."""
+    log = farm.executed("left")
+    at = log.index(command) if command in log else -1
+    return log[at - 1 : at + 2] if at > 0 and at + 1 < len(log) else []
+
+
 def test_a_target_set_on_the_page_heats_and_is_charted(browser, farm: Farm) -> None:
     ready(browser, farm)
     row = "#panel-temperatures tr[data-sensor=T0]"
@@ -105,10 +112,8 @@ def test_c_jog_and_home_z_with_a_confirmation(browser, farm: Farm) -> None:
     browser.css(f"{panel} .segmented input[value='1'] + span").click()
     browser.css(f"{panel} .segmented input[value='10'] + span").click()
     browser.css(f"{panel} .jog-xplus").click()
-    browser.wait(lambda: executed_after(farm, "G90"), "the jog did not end with G90")
-    log = farm.executed("left")
-    at = log.index("G1 X10 F3000")
-    assert log[at - 1 : at + 2] == ["G91", "G1 X10 F3000", "G90"]
+    browser.wait(lambda: around(farm, "G1 X10 F3000"), "the jog did not end with G90")
+    assert around(farm, "G1 X10 F3000") == ["G91", "G1 X10 F3000", "G90"]
     browser.wait(lambda: "G90" in browser.text(f"{panel} .control-status"), "no reply shown")
     assert "ok" in browser.text(f"{panel} .control-status")
 
@@ -162,10 +167,8 @@ def test_d_the_controls_wait_while_a_job_streams(browser, farm: Farm) -> None:
             assert not browser.css(jog).get_attribute("title")
             browser.css("#panel-control .segmented input[value='100'] + span").click()
             browser.css(jog).click()
-            browser.wait(lambda: executed_after(farm, "G1 Y100 F3000"), "a paused jog did not run")
-            log = farm.executed("left")
-            at = log.index("G1 Y100 F3000")
-            assert log[at - 1 : at + 2] == ["G91", "G1 Y100 F3000", "G90"]
+            browser.wait(lambda: around(farm, "G1 Y100 F3000"), "a paused jog did not run")
+            assert around(farm, "G1 Y100 F3000") == ["G91", "G1 Y100 F3000", "G90"]
             assert client.get(f"/v1/jobs/{job}").json()["state"] == "paused"
             # The terminal shows the jog on the wire, among the job's lines.
             terminal = "#panel-terminal .terminal-output"

@@ -25,7 +25,7 @@ from fastapi import (
 
 import repetrel_host as rh
 from repetrel_host.config import UserConfig
-from repetrel_host.gcode.analysis import Summary, analyse
+from repetrel_host.gcode.analysis import Analysis, Summary, analyse
 from repetrel_host.gcode.layer_moves import layer_moves
 from repetrel_host.gcode.marks import scan_marks
 from repetrel_host.gcode.thumbnails import ThumbnailError
@@ -33,7 +33,7 @@ from repetrel_host.gcode.thumbnails import read as read_thumbnail
 from repetrel_host.planning import layer_line
 from repetrel_host.resume import resume_command
 from repetrel_host.server.access import Access
-from repetrel_host.server.analyses import Analyses, describe, stamp
+from repetrel_host.server.analyses import Analyses, Stamp, describe, stamp
 from repetrel_host.server.events import EventHub
 from repetrel_host.server.mqtt import MqttSettings
 from repetrel_host.server.printers import PrinterConfig, PrinterService, Refused
@@ -488,7 +488,7 @@ def resume_json(server: PrintServer, record: JobRecord) -> dict[str, Any]:
     """Where ``record``'s job would resume (in a thread): its first line not acknowledged,
     the layer holding it, and the commands that resume it (409 when it completed, or when
     none of it ran: print it again)."""
-    if record.state is JobState.COMPLETED or record.state in (JobState.QUEUED,):
+    if record.state not in (JobState.FAILED, JobState.CANCELLED, JobState.INTERRUPTED):
         raise HTTPException(409, f"job {record.id} is {record.state.value}: nothing to resume")
     if record.last_line < 1:
         raise HTTPException(409, f"job {record.id}: none of it ran, print it again")
@@ -512,7 +512,7 @@ def resume_json(server: PrintServer, record: JobRecord) -> dict[str, Any]:
     }
 
 
-_LAYERS: dict[Path, tuple[object, Any]] = {}  # a file's layer offsets, while it is unchanged
+_LAYERS: dict[Path, tuple[Stamp, Analysis]] = {}  # a file's layers, while it is unchanged
 
 
 def layer_json(server: PrintServer, location: str, number: int) -> dict[str, Any]:

@@ -51,6 +51,10 @@ export function whyNot(printer, action) {
       if (offline) return offlineWhy;
       if (printer.phase) return `wait: the printer is ${printer.phase}`;
       if (printer.state === "printing") return "a job is streaming: pause it first";
+      if (printer.state === "paused" && printer.protocol === "hyrel") {
+        // Hyrel's controller holds the paused job's lines: a command would wait behind them.
+        return "the controller holds the paused job (Hyrel's link): commands go after resume or cancel";
+      }
       return "";
     case "pause":
       if (printer.state === "paused") return "the job is paused already";
