@@ -22,7 +22,17 @@ import pytest
 from repetrel_host.testing.fake_controller import BuiltInFake
 from tests.test_server import CAMERA, KEY, Server, bench, servers
 
-__all__ = ["CAMERA", "KEY", "Farm", "bench", "browser", "farm", "needs_browser", "servers"]
+__all__ = [
+    "CAMERA",
+    "KEY",
+    "Farm",
+    "bench",
+    "browser",
+    "chromium",
+    "farm",
+    "needs_browser",
+    "servers",
+]
 
 CHROMIUM, CHROMEDRIVER = shutil.which("chromium"), shutil.which("chromedriver")
 SCREENSHOTS = Path(__file__).resolve().parent.parent / "test-screenshots"
@@ -156,6 +166,15 @@ class Browser:
 @pytest.fixture
 def browser() -> Iterator[Browser]:
     """Headless Chromium (1400 x 1000); its screenshot is kept when the test fails."""
+    driver = chromium()
+    try:
+        yield Browser(driver)  # a failed test's screenshot is taken as it fails (conftest.py)
+    finally:
+        driver.quit()
+
+
+def chromium() -> Any:
+    """A headless Chromium driven by Selenium (1400 x 1000, its console kept): quit it."""
     from selenium import webdriver
     from selenium.webdriver.chrome.service import Service
 
@@ -171,12 +190,7 @@ def browser() -> Iterator[Browser]:
     ):
         options.add_argument(argument)
     options.set_capability("goog:loggingPrefs", {"browser": "ALL"})
-    driver = webdriver.Chrome(service=Service(str(CHROMEDRIVER)), options=options)
-    page = Browser(driver)
-    try:
-        yield page  # a failed test's screenshot is taken as it fails (conftest.py)
-    finally:
-        driver.quit()
+    return webdriver.Chrome(service=Service(str(CHROMEDRIVER)), options=options)
 
 
 def preview_png(size: int = 96) -> bytes:

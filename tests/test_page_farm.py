@@ -12,7 +12,7 @@ import httpx
 import pytest
 from selenium.webdriver.common.keys import Keys
 
-from tests.page import KEY, Browser, Farm, needs_browser, part_gcode
+from tests.page import KEY, Browser, Farm, chromium, needs_browser, part_gcode
 from tests.test_server import gcode
 
 pytestmark = [needs_browser, pytest.mark.timeout(120)]
@@ -146,19 +146,11 @@ def test_the_terminal_sends_recalls_shows_the_wire_and_says_why_not(
 def test_access_is_asked_for_allowed_and_revoked_on_the_page(
     browser: Browser, farm: Farm, tmp_path: Path
 ) -> None:
-    from selenium import webdriver
-    from selenium.webdriver.chrome.service import Service
     from selenium.webdriver.support.ui import WebDriverWait
-
-    from tests.page import CHROMEDRIVER, CHROMIUM
 
     browser.open(f"{farm.url}/")
     browser.wait(lambda: browser.text("#link") == "live", "live")
-    options = webdriver.ChromeOptions()
-    options.binary_location = str(CHROMIUM)
-    for argument in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage"):
-        options.add_argument(argument)
-    second = webdriver.Chrome(service=Service(str(CHROMEDRIVER)), options=options)
+    second = chromium()
     try:
         other = Browser(second)
         other.open(f"{farm.url}/", key=None)
