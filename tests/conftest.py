@@ -4,7 +4,8 @@ import pytest
 
 from tests.helpers import CONE, job_commands
 
-pytest_plugins = ["pytester", "tests.page"]  # pytester: the plugin's own tests; the page's fixtures
+# pytester: the plugin's own tests; the page's fixtures; the farm's PostgreSQL.
+pytest_plugins = ["pytester", "tests.page", "tests.pg"]
 
 
 @pytest.fixture(scope="session")

@@ -123,6 +123,9 @@ class LoadedHead(_Model):
     prime: dict[str, Any] | None = None
     flow: dict[str, Any] | None = None
     current_boost: Number | None = None
+    # What a farm matches jobs against (hyrel-server --farm): the loaded material and nozzle.
+    material: str | None = None
+    nozzle: Number | None = Field(default=None, gt=0)  # mm
 
 
 class LoadoutFile(_Model):
@@ -166,6 +169,8 @@ class ResolvedHead:
     name: str
     head: Head
     offset: Offset
+    material: str | None = None  # loaded filament, as the loadout says (farm matching)
+    nozzle: float | None = None  # mm
 
 
 @dataclass(frozen=True, slots=True)
@@ -294,7 +299,16 @@ def load_loadout(path: Path, library: Library) -> Loadout:
         register = entry.offset_register if entry.offset_register is not None else tool + 1
         resolved.append(
             ResolvedHead(
-                entry.yoke, entry.slot, tool, variable, register, entry.head, head, entry.offset
+                entry.yoke,
+                entry.slot,
+                tool,
+                variable,
+                register,
+                entry.head,
+                head,
+                entry.offset,
+                entry.material,
+                entry.nozzle,
             )
         )
     resolved.sort(key=lambda h: h.tool)  # slot order, left to right

@@ -91,6 +91,10 @@ def create_app(server: PrintServer) -> FastAPI:
     app.mount("/static", StaticFiles(directory=str(static)), name="static")
 
     app.include_router(native.router())
+    if server.farm is not None:
+        from repetrel_host.server.farm import api as farm_api
+
+        app.include_router(farm_api.router())
     # OctoPrint's face, for the first printer and for each under /printers/NAME.
     for router in (appkeys.router(), rest.router(), rest.downloads()):
         app.include_router(router)

@@ -14,7 +14,7 @@ import uuid
 from collections.abc import Awaitable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 from urllib.parse import quote
 
 from fastapi import (
@@ -38,6 +38,9 @@ from repetrel_host.server.events import EventHub
 from repetrel_host.server.mqtt import MqttSettings
 from repetrel_host.server.printers import PrinterConfig, PrinterService, Refused
 from repetrel_host.server.store import JobRecord, JobState, Store
+
+if TYPE_CHECKING:
+    from repetrel_host.server.farm.node import FarmNode, FarmSettings
 
 log = logging.getLogger("repetrel_host.server")
 
@@ -64,6 +67,7 @@ class PrintServer:
         automatic_transition: bool = False,
         public_read: bool = False,
         presets: dict[str, dict[str, float | None]] | None = None,
+        farm: FarmSettings | None = None,
     ) -> None:
         self.data_dir = data_dir
         self.files = data_dir / "files"
@@ -88,6 +92,12 @@ class PrintServer:
         for service in self.services.values():
             service.automatic_transition = automatic_transition
         self.default = next(iter(self.services))
+        # In a farm, the printers' jobs come from its shared queue too (farm/node.py).
+        self.farm: FarmNode | None = None
+        if farm is not None:
+            from repetrel_host.server.farm.node import FarmNode
+
+            self.farm = FarmNode(farm, data_dir, self.store, self.services)
         for record in self.store.interrupt_active():
             log.warning(
                 "job %d (%s) on printer %s was interrupted: acknowledged through at least "
@@ -123,6 +133,8 @@ class PrintServer:
     async def start(self) -> None:
         for service in self.services.values():
             service.start()
+        if self.farm is not None:
+            await self.farm.start()
         if self.mqtt is not None:
             from repetrel_host.server.mqtt import MqttBridge
 
@@ -131,6 +143,8 @@ class PrintServer:
 
     async def stop(self) -> None:
         await asyncio.gather(*(service.stop() for service in self.services.values()))
+        if self.farm is not None:  # after the printers: their jobs' ends are reported
+            await self.farm.stop()
         if self._bridge is not None:  # after the printers: their last events go out
             await asyncio.sleep(0.2)
             self._bridge.cancel()

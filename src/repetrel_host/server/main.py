@@ -18,7 +18,7 @@ import secrets
 import signal
 import sys
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import TYPE_CHECKING, Annotated, Literal
 
 import typer
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
@@ -29,6 +29,9 @@ from repetrel_host.errors import ConfigError
 from repetrel_host.server.homeassistant import DEFAULT_PREFIX as DEFAULT_DISCOVERY_PREFIX
 from repetrel_host.server.mqtt import MqttSettings
 from repetrel_host.server.printers import PrinterConfig
+
+if TYPE_CHECKING:
+    from repetrel_host.server.farm.node import FarmSettings
 
 DEFAULT_BIND = "127.0.0.1:8765"
 API_KEY_FILE = "api-key"
@@ -55,6 +58,7 @@ class PrinterSettings(BaseModel):
     camera: CameraCommand | None = None  # M791/M790 snapshots ({path}: the image to write)
     layer_snapshots: bool = True  # with a camera, a snapshot at every M790 (new layer)
     snapshots_kept: int = Field(default=500, ge=1)
+    tags: list[str] = []  # in a farm: what jobs may ask of it (tag=abs)
 
 
 class Preset(BaseModel):
@@ -95,6 +99,10 @@ class ServerSettings(BaseModel):
     mqtt_discovery: bool = True  # Home Assistant's discovery configs, each printer a device
     mqtt_discovery_prefix: str = Field(default=DEFAULT_DISCOVERY_PREFIX, pattern=r"^[^#+]+$")
     presets: dict[str, Preset] = DEFAULT_PRESETS  # the page's material presets
+    farm: str | None = None  # postgresql://USER@HOST/DB: a farm's shared queue
+    node_name: str | None = None  # this server in the farm (default: the host's name)
+    node_url: str | None = None  # where the farm's page links to this server
+    farm_lease: float = Field(default=15.0, ge=1, le=600)  # seconds without a heartbeat
 
 
 def _fail(message: str) -> None:
@@ -112,6 +120,7 @@ def _settings(
     mqtt: tuple[str | None, str | None, bool, str | None, bool],
     automatic_transition: bool,
     public_read: bool = False,
+    farm: tuple[str | None, str | None, str | None] = (None, None, None),
 ) -> ServerSettings:
     values: dict[str, object] = {}
     if config is not None:
@@ -142,6 +151,9 @@ def _settings(
         "mqtt_discovery": False if mqtt[4] else None,
         "automatic_transition": automatic_transition or None,
         "public_read": public_read or None,
+        "farm": farm[0],
+        "node_name": farm[1],
+        "node_url": farm[2],
     }
     values.update({key: value for key, value in given.items() if value is not None})
     if not printers:
@@ -164,7 +176,67 @@ def _settings(
     for name in settings.printers:
         if not _NAME.match(name):
             _fail(f"printer name '{name}': use letters, digits, '-' and '_'")
+    if settings.farm is not None:
+        _check_farm_url(settings.farm)
     return settings
+
+
+def _check_farm_url(url: str) -> None:
+    """A PostgreSQL URL without a password (it would show in ``ps`` and in logs)."""
+    try:
+        from psycopg.conninfo import conninfo_to_dict
+    except ImportError:
+        _fail("--farm needs PostgreSQL's client: pip install 'repetrel-host[farm]'")
+        raise  # not reached
+    try:
+        info = conninfo_to_dict(url)
+    except Exception as exc:  # psycopg's ProgrammingError: the URL's own words
+        _fail(f"--farm {url}: not a PostgreSQL URL ({str(exc).strip()})")
+        raise  # not reached
+    if "password" in info:
+        _fail(
+            "--farm: give the database's password in PGPASSWORD or ~/.pgpass, not in the URL "
+            "(a URL shows in ps and in logs)"
+        )
+
+
+def _farm(settings: ServerSettings, host: str, port: int) -> FarmSettings | None:
+    """The farm this server joins; the database's schema checked first (a newer one than
+    this version knows is refused in one sentence; an unreachable database is not: the
+    node keeps trying, and its printers print their own queues meanwhile)."""
+    if settings.farm is None:
+        return None
+    import asyncio
+
+    from repetrel_host.server.farm.db import FarmDB
+    from repetrel_host.server.farm.node import FarmSettings, default_node_name, shown_url
+
+    shown_host = host if host not in ("0.0.0.0", "::", "") else default_node_name()
+    farm = FarmSettings(
+        settings.farm,
+        settings.node_name or default_node_name(),
+        (settings.node_url or f"http://{shown_host}:{port}").rstrip("/"),
+        settings.farm_lease,
+    )
+
+    async def migrate() -> None:
+        db = FarmDB(farm.url)
+        await asyncio.wait_for(db.open(), 15)
+        await db.close()
+
+    try:
+        asyncio.run(migrate())
+    except ConfigError as exc:
+        _fail(str(exc))
+    except Exception as exc:
+        why = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        print(
+            f"hyrel-server: the farm's database at {shown_url(farm.url)} does not answer "
+            f"({why}): starting anyway, joining when it does",
+            file=sys.stderr,
+            flush=True,
+        )
+    return farm
 
 
 def _api_key(settings: ServerSettings) -> str:
@@ -267,6 +339,21 @@ def serve(
             "request needs the key or an app key, as on OctoPrint.",
         ),
     ] = False,
+    farm: Annotated[
+        str | None,
+        typer.Option(
+            metavar="postgresql://USER@HOST/DB",
+            help="Join a farm: one job queue in PostgreSQL shared by many servers (the "
+            "password from PGPASSWORD or ~/.pgpass).",
+        ),
+    ] = None,
+    node_name: Annotated[
+        str | None, typer.Option(help="This server's name in the farm (default: the host's).")
+    ] = None,
+    node_url: Annotated[
+        str | None,
+        typer.Option(help="Where the farm reaches this server (default: http://BIND)."),
+    ] = None,
     config: Annotated[Path | None, typer.Option(help="A TOML file with these settings.")] = None,
     version: Annotated[bool, typer.Option("--version", help="Print the version.")] = False,
 ) -> None:
@@ -284,6 +371,7 @@ def serve(
         (mqtt, mqtt_prefix, mqtt_commands, mqtt_discovery_prefix, no_mqtt_discovery),
         automatic_transition,
         public_read,
+        (farm, node_name, node_url),
     )
     host, port = _address(settings.bind, "--bind", example=DEFAULT_BIND)
     logging.basicConfig(
@@ -300,6 +388,7 @@ def serve(
     except OSError as exc:
         _fail(f"cannot use the data folder {settings.data_dir}: {exc.strerror}")
         raise  # not reached
+    farm_settings = _farm(settings, host, port)
 
     import uvicorn
 
@@ -308,7 +397,7 @@ def serve(
     printers = {
         name: PrinterConfig(entry)
         if isinstance(entry, str)
-        else PrinterConfig(**entry.model_dump())
+        else PrinterConfig(**{**entry.model_dump(), "tags": tuple(entry.tags)})
         for name, entry in settings.printers.items()
     }
     server = PrintServer(
@@ -320,6 +409,7 @@ def serve(
         automatic_transition=settings.automatic_transition,
         public_read=settings.public_read,
         presets={name: p.model_dump() for name, p in settings.presets.items()},
+        farm=farm_settings,
     )
     # uvicorn shuts down gracefully on SIGTERM and SIGINT, then raises the signal again
     # with the handlers found before it started: these, so that a stop asked for exits

@@ -39,7 +39,7 @@ from repetrel_host.planning import (
 )
 from repetrel_host.server.analyses import Analyses
 from repetrel_host.server.events import Event
-from repetrel_host.server.store import PROGRESS_INTERVAL, JobRecord, JobState, Store
+from repetrel_host.server.store import PROGRESS_INTERVAL, JobQueue, JobRecord, JobState, Store
 
 log = logging.getLogger("repetrel_host.server")
 
@@ -82,6 +82,7 @@ class PrinterConfig:
     camera: str | None = None  # a command line for M791/M790 snapshots ({path}: the image)
     layer_snapshots: bool = True  # with a camera: a snapshot at every M790
     snapshots_kept: int = 500
+    tags: tuple[str, ...] = ()  # in a farm: what jobs may ask of it (tag=abs)
 
     def connect(self, user: UserConfig) -> Any:
         """``rh.connect(...)`` for this printer."""
@@ -202,6 +203,8 @@ class PrinterService:
         self.config = config
         self.port = config.port
         self.store = store
+        # Where its jobs come from: this server's queue, or a farm's (set by the server).
+        self.queue: JobQueue = store
         self.data_dir = data_dir
         self.user = user
         self.publish = publish  # the server's events
@@ -332,7 +335,7 @@ class PrinterService:
             self._sent()  # the session sent it, once the printer answered
         record = None
         if printer.state is rh.State.READY and not self.held:
-            record = self.store.next_queued(self.name)
+            record = await self.queue.take(self.name)
         if record is None:
             self._wake.clear()
             with contextlib.suppress(TimeoutError):
@@ -400,10 +403,6 @@ class PrinterService:
     async def _print(self, record: JobRecord) -> None:
         printer = self.printer
         assert printer is not None
-        claimed = self.store.claim(record.id)  # a cancel that came first wins
-        if claimed is None:
-            return
-        record = claimed
         path = self.data_dir / record.file
         history = self.data_dir / "history" / f"{record.id}-{Path(record.name).stem}.gcode"
         self._starting, self._cancel_starting = record.id, False

@@ -18,7 +18,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from enum import StrEnum
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 from repetrel_host.protocol.reports import JobReport
 
@@ -53,6 +53,14 @@ _ADDED_COLUMNS = {
     "user": "TEXT",
     "filament": "TEXT",
     "from_line": "INTEGER",
+    # A farm's job (hyrel-server --farm), claimed for one of this server's printers: its
+    # number in the farm and the claim's fencing token. ``version`` counts the record's
+    # changes; the farm has been told them up to ``synced_version`` (the outbox: a node
+    # cut from the farm's database reports what its printers did once it is back).
+    "farm_id": "INTEGER",
+    "fence": "INTEGER",
+    "version": "INTEGER NOT NULL DEFAULT 0",
+    "synced_version": "INTEGER NOT NULL DEFAULT 0",
 }
 OWED, SENT = "owed", "sent"
 
@@ -93,6 +101,10 @@ class JobRecord:
     # file's figures times the share of it acknowledged (an estimate for a stopped job).
     filament: str | None = None
     from_line: int | None = None  # a resumed job: the file's line it starts from
+    farm_id: int | None = None  # the farm's job this is (hyrel-server --farm)
+    fence: int | None = None  # the farm claim's fencing token
+    version: int = 0  # changes made to the record
+    synced_version: int = 0  # changes the farm was told
 
     def as_json(self) -> dict[str, object]:
         return {
@@ -113,6 +125,7 @@ class JobRecord:
             "user": self.user,
             "filament": json.loads(self.filament) if self.filament else None,
             "from_line": self.from_line,
+            "farm_job": self.farm_id,
         }
 
 
@@ -122,6 +135,14 @@ def _report_json(text: str | None) -> dict[str, object] | None:
         return None
     report = JobReport(tuple(text.split("\n")), complete=REPORT_END in text)
     return {"text": report.text, "fields": report.fields, "complete": report.complete}
+
+
+class JobQueue(Protocol):
+    """Where a printer's next job comes from: this server's queue (:class:`Store`), or a
+    farm's shared one (``server.farm.FarmNode``). The printer services do not know which."""
+
+    async def take(self, printer: str) -> JobRecord | None:
+        """The printer's next job, claimed (printing from now on); None when there is none."""
 
 
 class Store:
@@ -207,7 +228,26 @@ class Store:
         ).fetchone()
         return _record(row) if row is not None else None
 
+    def unsynced(self) -> list[JobRecord]:
+        """Farm jobs with changes the farm was not told (a queued one has nothing to tell)."""
+        rows = self._db.execute(
+            "SELECT * FROM jobs WHERE farm_id IS NOT NULL AND version > synced_version"
+            " AND state != 'queued' ORDER BY id"
+        ).fetchall()
+        return [_record(row) for row in rows]
+
+    def farm_job(self, farm_id: int) -> JobRecord | None:
+        """The record of the farm's job ``farm_id`` here (its latest claim)."""
+        row = self._db.execute(
+            "SELECT * FROM jobs WHERE farm_id = ? ORDER BY id DESC LIMIT 1", (farm_id,)
+        ).fetchone()
+        return _record(row) if row is not None else None
+
     # --- changing -----------------------------------------------------------------
+
+    async def take(self, printer: str) -> JobRecord | None:
+        record = self.next_queued(printer)
+        return self.claim(record.id) if record is not None else None
 
     def submit(
         self,
@@ -217,16 +257,30 @@ class Store:
         total_lines: int,
         user: str | None = None,
         from_line: int | None = None,
+        farm: tuple[int, int] | None = None,
     ) -> JobRecord:
-        """Queue a job at the end of its printer's queue (``from_line``: resumed there)."""
+        """Queue a job at the end of its printer's queue (``from_line``: resumed there;
+        ``farm``: the farm's job and the claim's fencing token, claimed for this printer)."""
+        farm_id, fence = farm if farm is not None else (None, None)
         with self._transaction() as db:
             (last,) = db.execute(
                 "SELECT COALESCE(MAX(position), 0) FROM jobs WHERE printer = ?", (printer,)
             ).fetchone()
             cursor = db.execute(
                 "INSERT INTO jobs (printer, name, file, state, position, submitted, total_lines,"
-                " user, from_line) VALUES (?, ?, ?, 'queued', ?, ?, ?, ?, ?)",
-                (printer, name, file, last + 1, time.time(), total_lines, user, from_line),
+                " user, from_line, farm_id, fence) VALUES (?, ?, ?, 'queued', ?, ?, ?, ?, ?, ?, ?)",
+                (
+                    printer,
+                    name,
+                    file,
+                    last + 1,
+                    time.time(),
+                    total_lines,
+                    user,
+                    from_line,
+                    farm_id,
+                    fence,
+                ),
             )
             job_id = cursor.lastrowid
         assert job_id is not None
@@ -264,7 +318,8 @@ class Store:
         """A queued job starts printing; None if it is no longer queued (cancelled)."""
         with self._transaction() as db:
             cursor = db.execute(
-                "UPDATE jobs SET state = 'printing', started = ? WHERE id = ? AND state = 'queued'",
+                "UPDATE jobs SET state = 'printing', started = ?, version = version + 1"
+                " WHERE id = ? AND state = 'queued'",
                 (time.time(), job_id),
             )
             if cursor.rowcount != 1:
@@ -284,32 +339,52 @@ class Store:
         with self._transaction() as db:
             if state in ACTIVE:
                 db.execute(
-                    "UPDATE jobs SET state = ?, started = COALESCE(started, ?) WHERE id = ?",
+                    "UPDATE jobs SET state = ?, started = COALESCE(started, ?),"
+                    " version = version + 1 WHERE id = ?",
                     (state.value, now, job_id),
                 )
             elif state in ENDED:
                 used = json.dumps(filament) if filament is not None else None
                 db.execute(
-                    "UPDATE jobs SET state = ?, ended = ?, error = ?, report = ?, filament = ?"
-                    " WHERE id = ?",
+                    "UPDATE jobs SET state = ?, ended = ?, error = ?, report = ?, filament = ?,"
+                    " version = version + 1 WHERE id = ?",
                     (state.value, now, error, report, used, job_id),
                 )
             else:
-                db.execute("UPDATE jobs SET state = ? WHERE id = ?", (state.value, job_id))
+                db.execute(
+                    "UPDATE jobs SET state = ?, version = version + 1 WHERE id = ?",
+                    (state.value, job_id),
+                )
 
     def cancel_queued(self, job_id: int) -> bool:
         """Cancel a job that has not started; False if it is not queued."""
         with self._transaction() as db:
             cursor = db.execute(
-                "UPDATE jobs SET state = 'cancelled', ended = ? WHERE id = ? AND state = 'queued'",
+                "UPDATE jobs SET state = 'cancelled', ended = ?, version = version + 1"
+                " WHERE id = ? AND state = 'queued'",
                 (time.time(), job_id),
             )
             return cursor.rowcount == 1
 
+    def mark_synced(self, job_id: int, version: int) -> None:
+        """The farm was told the record's changes up to ``version``."""
+        with self._transaction() as db:
+            db.execute(
+                "UPDATE jobs SET synced_version = MAX(synced_version, ?) WHERE id = ?",
+                (version, job_id),
+            )
+
+    def drop(self, job_id: int) -> None:
+        """Forget a farm job that never started here (given back, or claimed elsewhere)."""
+        with self._transaction() as db:
+            db.execute("DELETE FROM jobs WHERE id = ? AND state = 'queued'", (job_id,))
+
     def progress(self, job_id: int, lines: int, last_line: int) -> None:
         with self._transaction() as db:
             db.execute(
-                "UPDATE jobs SET lines = ?, last_line = ? WHERE id = ?", (lines, last_line, job_id)
+                "UPDATE jobs SET lines = ?, last_line = ?, version = version + 1"
+                " WHERE id = ? AND (lines != ? OR last_line != ?)",
+                (lines, last_line, job_id, lines, last_line),
             )
 
     def last_started(self, printer: str) -> JobRecord | None:
@@ -329,8 +404,8 @@ class Store:
                 "SELECT id FROM jobs WHERE state IN ('printing', 'paused')"
             ).fetchall()
             db.execute(
-                "UPDATE jobs SET state = 'interrupted', ended = ?, error = ?, safe_stop = ? "
-                "WHERE state IN ('printing', 'paused')",
+                "UPDATE jobs SET state = 'interrupted', ended = ?, error = ?, safe_stop = ?,"
+                " version = version + 1 WHERE state IN ('printing', 'paused')",
                 (time.time(), CRASHED, OWED),
             )
         return [record for row in rows if (record := self.job(row[0])) is not None]
@@ -339,7 +414,9 @@ class Store:
         """The job ended without its safe stop confirmed: owed to the printer's next contact,
         whatever state the job is recorded in (kept across restarts)."""
         with self._transaction() as db:
-            db.execute("UPDATE jobs SET safe_stop = ? WHERE id = ?", (OWED, job_id))
+            db.execute(
+                "UPDATE jobs SET safe_stop = ?, version = version + 1 WHERE id = ?", (OWED, job_id)
+            )
 
     def owing(self, printer: str) -> list[int]:
         """The printer's jobs whose safe stop is owed."""
@@ -353,7 +430,8 @@ class Store:
         owed = self.owing(printer)
         with self._transaction() as db:
             db.execute(
-                "UPDATE jobs SET safe_stop = ? WHERE printer = ? AND safe_stop = ?",
+                "UPDATE jobs SET safe_stop = ?, version = version + 1 WHERE printer = ?"
+                " AND safe_stop = ?",
                 (SENT, printer, OWED),
             )
         return owed

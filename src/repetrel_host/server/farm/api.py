@@ -1,0 +1,318 @@
+"""The farm's API on every node: ``/v1/farm`` (nodes, printers, jobs), ``/v1/farm/jobs``
+(submit with requirements, list, cancel), ``/v1/farm/events``, and OctoPrint's upload at
+``/farm/api/files/local`` so that a slicer's "Upload and Print" feeds the farm."""
+
+from __future__ import annotations
+
+import asyncio
+import hashlib
+import json
+import logging
+import os
+import secrets
+import tempfile
+import time
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Annotated, Any
+
+from fastapi import APIRouter, File, Form, HTTPException, Request, UploadFile
+from fastapi.responses import StreamingResponse
+
+import repetrel_host as rh
+from repetrel_host.config import UserConfig
+from repetrel_host.gcode.lint import Severity
+from repetrel_host.planning import JobRequest, plan_job
+from repetrel_host.server.auth import user_of
+from repetrel_host.server.core import PrintServer, safe_file_name, server_of
+from repetrel_host.server.farm import needs
+from repetrel_host.server.farm.db import CHUNK
+from repetrel_host.server.farm.node import TIMEOUT, FarmNode
+
+log = logging.getLogger("repetrel_host.server.farm")
+
+KEEPALIVE = 15.0
+MAX_COPIES = 100
+
+
+def farm_of(request: Request) -> FarmNode:
+    farm = server_of(request).farm
+    if farm is None:
+        raise HTTPException(
+            404, "this server is not in a farm (start it with --farm postgresql://USER@HOST/DB)"
+        )
+    return farm
+
+
+async def _asked(call: Any, timeout: float = TIMEOUT) -> Any:
+    """A database call for a request: 503 with a sentence while the database is away."""
+    try:
+        return await asyncio.wait_for(call, timeout + 1)
+    except Exception as exc:  # psycopg's, the pool's, a timeout: one sentence each
+        if isinstance(exc, HTTPException):
+            raise
+        raise HTTPException(
+            503, f"the farm's database does not answer ({type(exc).__name__}): try again"
+        ) from None
+
+
+def job_json(job: dict[str, Any], nodes: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    node = nodes.get(job["node"] or "")
+    shown = {key: value for key, value in job.items() if key not in ("fence", "refused")}
+    return {
+        **shown,
+        "requires": needs.describe(job["needs"]),
+        "node_name": node["name"] if node else None,
+        "node_url": node["url"] if node else None,
+        "given_back": job["refused"],
+        "fence": job["fence"],
+    }
+
+
+async def farm_json(farm: FarmNode) -> dict[str, Any]:
+    nodes = await _asked(farm.db.nodes(TIMEOUT))
+    printers = await _asked(farm.db.printers(TIMEOUT))
+    jobs = await _asked(farm.db.jobs(TIMEOUT))
+    by_id = {node["id"]: node for node in nodes}
+    return {
+        "node": {"id": farm.id, "name": farm.settings.name, "ready": farm.ready},
+        "nodes": nodes,
+        "printers": [
+            {
+                "node": printer["node"],
+                "node_name": printer["node_name"],
+                "url": f"{printer['url']}/printers/{printer['name']}",
+                "name": printer["name"],
+                # A lost node's printers are offline to the farm, whatever they last said.
+                "state": "offline" if printer["lost"] else printer["state"],
+                "held": printer["held"],
+                "job": printer["job"],
+                "capabilities": printer["caps"],
+            }
+            for printer in printers
+        ],
+        "jobs": [job_json(job, by_id) for job in jobs],
+    }
+
+
+def _plan_elsewhere(path: Path, printer: dict[str, Any], user: UserConfig) -> Any:
+    """The plan another node's printer would make of ``path`` (its machine and loadout as
+    registered); None when this node cannot rebuild it (a head type it does not know)."""
+    loadout_text = printer["loadout"]
+    with tempfile.TemporaryDirectory() as folder:
+        loadout = None
+        if loadout_text:
+            loadout = Path(folder) / "loadout.toml"
+            loadout.write_text(loadout_text)
+        try:
+            plan = plan_job(path, JobRequest(loadout, printer["caps"].get("machine")), user)
+            return plan, plan.check()
+        except rh.HostError:
+            return None
+
+
+def eligibility(
+    server: PrintServer, farm: FarmNode, path: Path, name: str, wanted: dict[str, Any],
+    printers: list[dict[str, Any]],
+) -> tuple[list[str], dict[str, str], list[str], int]:  # fmt: skip
+    """Which registered printers can print ``path`` (their needs met and the lint without
+    errors), why each other cannot, the warnings, and the lines to send (in a thread)."""
+    eligible: list[str] = []
+    why_not: dict[str, str] = {}
+    warnings: list[str] = []
+    commands = 0
+    for printer in printers:
+        key = f"{printer['name']} on {printer['node_name']}"
+        lacks = needs.missing(printer["caps"], wanted)
+        if lacks:
+            why_not[key] = ", ".join(lacks)
+            continue
+        try:
+            if printer["node"] == farm.id and printer["name"] in server.services:
+                checked = server.services[printer["name"]].check(path)
+            else:
+                checked = _plan_elsewhere(path, printer, server.user)
+        except rh.HostError as exc:
+            why_not[key] = str(exc).replace(str(path), name)
+            continue
+        if checked is None:
+            eligible.append(key)  # checked again by the node that claims it
+            continue
+        plan, findings = checked
+        errors = [f.format(name) for f in findings if f.severity is Severity.ERROR]
+        if errors:
+            why_not[key] = "; ".join(errors[:2])
+            continue
+        eligible.append(key)
+        warnings += [f.format(name) for f in findings if f.severity is not Severity.ERROR]
+        if not commands:
+            commands = sum(1 for _ in plan.job.lines())
+    return eligible, why_not, sorted(set(warnings)), commands
+
+
+async def submit(
+    request: Request,
+    upload: UploadFile,
+    requirements: list[str],
+    priority: int,
+    copies: int,
+) -> dict[str, Any]:
+    """Check an upload against the farm's printers, store it in the database, queue it."""
+    server = server_of(request)
+    farm = farm_of(request)
+    name, _ = safe_file_name(upload.filename or "")
+    if not 1 <= copies <= MAX_COPIES:
+        raise HTTPException(400, f"copies: from 1 to {MAX_COPIES}")
+    try:
+        wanted = needs.parse(requirements)
+    except needs.BadRequirement as exc:
+        raise HTTPException(400, str(exc)) from None
+    farm.cache.mkdir(parents=True, exist_ok=True)
+    partial = farm.cache / f".upload-{secrets.token_hex(8)}.part"
+    digest = hashlib.sha256()
+    size = 0
+    try:
+        with partial.open("xb") as out:
+            while chunk := await upload.read(CHUNK):
+                size += len(chunk)
+                if size > server.max_upload:
+                    raise HTTPException(413, f"the upload is over {server.max_upload} bytes")
+                out.write(chunk)
+                digest.update(chunk)
+            out.flush()
+            await asyncio.to_thread(os.fsync, out.fileno())
+        printers = await _asked(farm.db.printers(TIMEOUT))
+        if not printers:
+            raise HTTPException(409, "the farm has no printer registered yet")
+        eligible, why_not, warnings, commands = await asyncio.to_thread(
+            eligibility, server, farm, partial, name, wanted, printers
+        )
+        if not eligible:
+            reasons = "; ".join(f"{key}: {why}" for key, why in why_not.items())
+            raise HTTPException(
+                400,
+                {
+                    "error": f"no printer of the farm can print {name} "
+                    f"({needs.describe(wanted)}): {reasons}",
+                    "printers": why_not,
+                },
+            )
+        file_hash = digest.hexdigest()
+        # Stored in the database a chunk at a time (a gigabyte is never held in memory).
+        await _asked(farm.db.store_file(partial, file_hash, TIMEOUT), max(TIMEOUT, size / 2e6))
+        cached = farm.cache / f"{file_hash[:12]}-{name}"
+        partial.replace(cached)  # this node prints it without fetching it back
+    finally:
+        partial.unlink(missing_ok=True)
+    user = user_of(request)
+    ids = await _asked(
+        farm.db.submit(name, file_hash, wanted, priority, copies, commands, user, TIMEOUT)
+    )
+    shown = ", ".join(map(str, ids))
+    log.info("farm: %s queued as job %s (%s)", name, shown, needs.describe(wanted))
+    return {
+        "jobs": ids,
+        "name": name,
+        "hash": file_hash,
+        "requires": needs.describe(wanted),
+        "eligible": eligible,
+        "not_eligible": why_not,
+        "findings": warnings,
+    }
+
+
+def router() -> APIRouter:
+    router = APIRouter()
+
+    @router.get("/v1/farm")
+    async def farm_view(request: Request) -> dict[str, Any]:
+        """The farm: its nodes, every printer with its state and capabilities, its jobs."""
+        return await farm_json(farm_of(request))
+
+    @router.get("/v1/farm/jobs")
+    async def jobs(request: Request) -> list[dict[str, Any]]:
+        farm = farm_of(request)
+        nodes = {node["id"]: node for node in await _asked(farm.db.nodes(TIMEOUT))}
+        return [job_json(job, nodes) for job in await _asked(farm.db.jobs(TIMEOUT))]
+
+    @router.post("/v1/farm/jobs", status_code=201)
+    async def submit_job(
+        request: Request,
+        file: Annotated[UploadFile, File()],
+        require: Annotated[list[str] | None, Form()] = None,
+        priority: Annotated[int, Form()] = 0,
+        copies: Annotated[int, Form()] = 1,
+    ) -> dict[str, Any]:
+        """A G-code file for the farm, with requirements (``require``: material=PLA,
+        T1.head=MK1-250, tag=abs, machine=..., printer=...), a priority and copies."""
+        return await submit(request, file, require or [], priority, copies)
+
+    @router.get("/v1/farm/jobs/{job_id}")
+    async def job(request: Request, job_id: int) -> dict[str, Any]:
+        farm = farm_of(request)
+        found = await _asked(farm.db.job(job_id, TIMEOUT))
+        if found is None:
+            raise HTTPException(404, f"the farm has no job {job_id}")
+        nodes = {node["id"]: node for node in await _asked(farm.db.nodes(TIMEOUT))}
+        return job_json(found, nodes)
+
+    @router.delete("/v1/farm/jobs/{job_id}")
+    async def cancel(request: Request, job_id: int) -> dict[str, Any]:
+        """Cancel a queued job; one that streams is cancelled by its node (its safe stop
+        first), told at once."""
+        farm = farm_of(request)
+        was = await _asked(farm.db.cancel(job_id, TIMEOUT))
+        if was is None:
+            raise HTTPException(404, f"the farm has no job {job_id}")
+        if was["state"] == "queued":
+            return {"job": job_id, "state": "cancelled"}
+        if was["state"] in ("claimed", "printing", "paused"):
+            return {"job": job_id, "state": was["state"], "cancelling": True}
+        raise HTTPException(409, f"farm job {job_id} is {was['state']}: nothing to cancel")
+
+    @router.get("/v1/farm/events")
+    async def events(request: Request) -> StreamingResponse:
+        """The farm's changes as they happen (jobs queued, claimed, reported; nodes and
+        printers), from PostgreSQL's notifications."""
+        farm = farm_of(request)
+
+        async def stream() -> AsyncIterator[str]:
+            async with farm.events.subscribe() as queue:
+                hello = {"type": "hello", "node": farm.id, "time": time.time()}
+                yield f"data: {json.dumps(hello)}\n\n"
+                while True:
+                    try:
+                        event = await asyncio.wait_for(queue.get(), KEEPALIVE)
+                    except TimeoutError:
+                        yield ": keepalive\n\n"
+                        continue
+                    yield f"data: {json.dumps(event)}\n\n"
+
+        return StreamingResponse(stream(), media_type="text/event-stream")
+
+    # OctoPrint's face of the farm: a slicer set up with http://NODE/farm as its
+    # OctoPrint sends "Upload and Print" into the farm's queue.
+    @router.get("/farm/api/version")
+    async def version(request: Request) -> dict[str, Any]:
+        farm_of(request)
+        return {"api": "0.1", "server": "1.11.8", "text": "OctoPrint 1.11.8 (repetrel-host farm)"}
+
+    @router.post("/farm/api/files/local", status_code=201)
+    async def octoprint_upload(
+        request: Request,
+        file: Annotated[UploadFile, File()],
+        print_: Annotated[str, Form(alias="print")] = "false",
+        path: Annotated[str, Form()] = "",
+    ) -> dict[str, Any]:
+        if print_.lower() not in ("true", "1", "yes"):
+            raise HTTPException(
+                409, "the farm prints what it is sent: use Upload and Print (print=true)"
+            )
+        queued = await submit(request, file, [], 0, 1)
+        return {
+            "done": True,
+            "files": {"local": {"name": queued["name"], "origin": "local", "path": queued["name"]}},
+            "farm": queued,
+        }
+
+    return router

@@ -1,0 +1,420 @@
+"""The farm's queue in PostgreSQL: nodes and their leases, printers and what they have,
+files by content in chunks, and jobs claimed with a fencing token.
+
+psycopg 3: one library for the async server and for the synchronous tests and bench,
+``LISTEN/NOTIFY`` on an async connection, a maintained pool, and libpq's own handling of
+``PGPASSWORD``, ``.pgpass`` and the service file (the password never passes through us).
+
+Every method is one transaction. A change that others should see sends a notification on
+the channel ``farm`` in the same transaction (delivered when it commits): ``{"kind":
+"job"|"node"|"printer"|"cancel", ...}``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from pathlib import Path
+from typing import Any
+
+from psycopg import AsyncConnection
+from psycopg.rows import dict_row
+from psycopg.types.json import Jsonb
+from psycopg_pool import AsyncConnectionPool
+
+from repetrel_host.server.farm.schema import migrate
+
+CHANNEL = "farm"
+CHUNK = 1 << 20  # a file goes in and out a megabyte at a time: never whole in memory
+# The connection's own watch on a dead network (a pulled cable gives no reset): libpq
+# gives up on a write unacknowledged this long, and on a silent peer after the probes.
+CONNECTION: dict[str, Any] = {
+    "connect_timeout": 5,
+    "keepalives": 1,
+    "keepalives_idle": 5,
+    "keepalives_interval": 2,
+    "keepalives_count": 2,
+    "tcp_user_timeout": 8000,  # ms
+    "application_name": "hyrel-server",
+}
+ACTIVE = ("claimed", "printing", "paused")
+
+_JOB = """
+    id, name, file, needs, priority, state, submitted_by, total_lines, node::text AS node,
+    printer, fence, refused, lines, last_line, error, report, filament, safe_stop, local_id,
+    extract(epoch FROM submitted)::float8 AS submitted,
+    extract(epoch FROM claimed)::float8 AS claimed,
+    extract(epoch FROM started)::float8 AS started,
+    extract(epoch FROM ended)::float8 AS ended
+"""
+
+
+def sha256_of(path: Path) -> str:
+    digest = hashlib.sha256()
+    with path.open("rb") as handle:
+        while chunk := handle.read(CHUNK):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+class FarmDB:
+    """A pool of connections to the farm's database."""
+
+    def __init__(self, url: str, size: int = 4) -> None:
+        self.url = url
+        self.pool = AsyncConnectionPool(
+            url,
+            min_size=1,
+            max_size=size,
+            open=False,
+            kwargs={**CONNECTION, "autocommit": True, "row_factory": dict_row},
+            check=AsyncConnectionPool.check_connection,  # a connection the outage killed
+            reconnect_timeout=0,  # never give up: the database comes back
+        )
+
+    async def open(self) -> int:
+        """Connect and migrate; the schema's version."""
+        async with await AsyncConnection.connect(self.url, **CONNECTION) as connection:
+            version = await migrate(connection)
+        await self.pool.open(wait=False)
+        return version
+
+    async def close(self) -> None:
+        await self.pool.close(timeout=1.0)
+
+    async def listen(self) -> AsyncConnection[Any]:
+        """A connection of its own that listens on the farm's channel."""
+        connection = await AsyncConnection.connect(self.url, **CONNECTION, autocommit=True)
+        await connection.execute(f"LISTEN {CHANNEL}")
+        return connection
+
+    @asynccontextmanager
+    async def _transaction(self, timeout: float) -> AsyncIterator[Any]:
+        async with self.pool.connection(timeout) as connection, connection.transaction():
+            yield connection
+
+    async def _notify(self, db: Any, message: dict[str, Any]) -> None:
+        await db.execute("SELECT pg_notify(%s, %s)", (CHANNEL, json.dumps(message)))
+
+    # --- nodes and printers ----------------------------------------------------------
+
+    async def register(
+        self,
+        node: str,
+        name: str,
+        url: str,
+        version: str,
+        lease: float,
+        printers: list[tuple[str, dict[str, Any], str | None]],
+        timeout: float,
+    ) -> None:
+        """The node and its printers (name, capabilities, loadout text), as they are now;
+        its lease starts. Printers it no longer has are forgotten."""
+        async with self._transaction(timeout) as db:
+            await db.execute(
+                "INSERT INTO nodes (id, name, url, version, lease_until) VALUES "
+                "(%s, %s, %s, %s, now() + make_interval(secs => %s)) ON CONFLICT (id) DO UPDATE"
+                " SET name = EXCLUDED.name, url = EXCLUDED.url, version = EXCLUDED.version,"
+                " lease_until = EXCLUDED.lease_until, lost_at = NULL",
+                (node, name, url, version, lease),
+            )
+            await db.execute(
+                "DELETE FROM printers WHERE node = %s AND NOT name = ANY(%s)",
+                (node, [printer[0] for printer in printers]),
+            )
+            for printer, caps, loadout in printers:
+                await db.execute(
+                    "INSERT INTO printers (node, name, caps, loadout) VALUES (%s, %s, %s, %s)"
+                    " ON CONFLICT (node, name) DO UPDATE SET caps = EXCLUDED.caps,"
+                    " loadout = EXCLUDED.loadout, updated = now()",
+                    (node, printer, Jsonb(caps), loadout),
+                )
+            await self._notify(db, {"kind": "node", "node": node, "name": name})
+
+    async def heartbeat(self, node: str, lease: float, timeout: float) -> list[dict[str, Any]]:
+        """Renew the node's lease, and end the leases that ran out: a lost node's printing
+        jobs become interrupted (never handed on: the part may be on its bed), its claimed
+        ones that never started go back to the queue. Returns the jobs it interrupted."""
+        async with self._transaction(timeout) as db:
+            cursor = await db.execute(
+                "UPDATE nodes SET lease_until = now() + make_interval(secs => %s)"
+                " WHERE id = %s AND lost_at IS NULL RETURNING id",
+                (lease, node),
+            )
+            if await cursor.fetchone() is None:
+                raise LeaseLost(node)
+            lost = await (
+                await db.execute(
+                    "UPDATE nodes SET lost_at = now() WHERE lease_until < now() AND lost_at IS NULL"
+                    " RETURNING id::text AS id, name"
+                )
+            ).fetchall()
+            interrupted: list[dict[str, Any]] = []
+            for gone in lost:
+                why = (
+                    f"node {gone['name']} stopped answering (its lease ran out): the job was "
+                    "streaming there; the part may be on its bed"
+                )
+                rows = await (
+                    await db.execute(
+                        "UPDATE jobs SET state = 'interrupted', ended = now(), updated = now(),"
+                        " error = %s WHERE node = %s AND state IN ('printing', 'paused')"
+                        " RETURNING id, printer, last_line",
+                        (why, gone["id"]),
+                    )
+                ).fetchall()
+                await db.execute(
+                    "UPDATE jobs SET state = 'queued', node = NULL, printer = NULL,"
+                    " claimed = NULL, updated = now() WHERE node = %s AND state = 'claimed'",
+                    (gone["id"],),
+                )
+                interrupted += rows
+                await self._notify(db, {"kind": "node", "node": gone["id"], "lost": True})
+                for row in rows:
+                    await self._notify(db, {"kind": "job", "job": row["id"]})
+            return interrupted
+
+    async def printer_state(
+        self, node: str, name: str, state: str, held: bool, job: int | None, timeout: float
+    ) -> None:
+        async with self._transaction(timeout) as db:
+            await db.execute(
+                "UPDATE printers SET state = %s, held = %s, job = %s, updated = now()"
+                " WHERE node = %s AND name = %s",
+                (state, held, job, node, name),
+            )
+            await self._notify(
+                db, {"kind": "printer", "node": node, "printer": name, "state": state}
+            )
+
+    async def printers(self, timeout: float) -> list[dict[str, Any]]:
+        """Every registered printer, with its node and whether that node is alive."""
+        async with self._transaction(timeout) as db:
+            cursor = await db.execute(
+                "SELECT p.node::text AS node, n.name AS node_name, n.url, p.name, p.caps,"
+                " p.loadout, p.state, p.held, p.job, n.lost_at IS NOT NULL AS lost,"
+                " extract(epoch FROM n.lease_until)::float8 AS lease_until"
+                " FROM printers p JOIN nodes n ON n.id = p.node ORDER BY n.name, p.name"
+            )
+            return list(await cursor.fetchall())
+
+    async def nodes(self, timeout: float) -> list[dict[str, Any]]:
+        async with self._transaction(timeout) as db:
+            cursor = await db.execute(
+                "SELECT id::text AS id, name, url, version, lost_at IS NOT NULL AS lost,"
+                " extract(epoch FROM joined)::float8 AS joined,"
+                " extract(epoch FROM lease_until)::float8 AS lease_until,"
+                " extract(epoch FROM lost_at)::float8 AS lost_at FROM nodes ORDER BY name"
+            )
+            return list(await cursor.fetchall())
+
+    # --- files ------------------------------------------------------------------------
+
+    async def store_file(self, path: Path, digest: str, timeout: float) -> None:
+        """The file's content under its hash, a chunk at a time (kept once however often
+        it is submitted)."""
+        async with self._transaction(timeout) as db:
+            cursor = await db.execute("SELECT 1 FROM files WHERE hash = %s", (digest,))
+            if await cursor.fetchone() is not None:
+                return
+            size = path.stat().st_size
+            count = 0
+            with path.open("rb") as handle:
+                while chunk := handle.read(CHUNK):
+                    await db.execute(
+                        "INSERT INTO file_chunks (hash, n, data) VALUES (%s, %s, %s)"
+                        " ON CONFLICT DO NOTHING",
+                        (digest, count, chunk),
+                    )
+                    count += 1
+            await db.execute(
+                "INSERT INTO files (hash, size, chunks) VALUES (%s, %s, %s) ON CONFLICT DO NOTHING",
+                (digest, size, count),
+            )
+
+    async def fetch_file(self, digest: str, target: Path, timeout: float) -> None:
+        """The file's content into ``target`` (written beside it, checked, then moved)."""
+        partial = target.with_name(f".{target.name}.{os.getpid()}.part")
+        check = hashlib.sha256()
+        try:
+            async with self._transaction(timeout) as db:
+                row = await (
+                    await db.execute("SELECT chunks FROM files WHERE hash = %s", (digest,))
+                ).fetchone()
+                if row is None:
+                    raise FileNotFoundError(f"the farm has no file {digest[:12]}")
+                with partial.open("wb") as out:
+                    for number in range(row["chunks"]):
+                        chunk = await (
+                            await db.execute(
+                                "SELECT data FROM file_chunks WHERE hash = %s AND n = %s",
+                                (digest, number),
+                            )
+                        ).fetchone()
+                        out.write(chunk["data"])
+                        check.update(chunk["data"])
+            if check.hexdigest() != digest:
+                raise OSError(f"the farm's file {digest[:12]} came back changed")
+            partial.replace(target)
+        finally:
+            partial.unlink(missing_ok=True)
+
+    # --- jobs ---------------------------------------------------------------------------
+
+    async def submit(
+        self,
+        name: str,
+        digest: str,
+        needs: dict[str, Any],
+        priority: int,
+        copies: int,
+        total_lines: int,
+        user: str | None,
+        timeout: float,
+    ) -> list[int]:
+        async with self._transaction(timeout) as db:
+            ids = []
+            for _ in range(copies):
+                cursor = await db.execute(
+                    "INSERT INTO jobs (name, file, needs, priority, total_lines, submitted_by)"
+                    " VALUES (%s, %s, %s, %s, %s, %s) RETURNING id",
+                    (name, digest, Jsonb(needs), priority, total_lines, user),
+                )
+                row = await cursor.fetchone()
+                ids.append(row["id"])
+            await self._notify(db, {"kind": "job", "jobs": ids, "queued": True})
+            return ids
+
+    async def claim(
+        self, node: str, printer: str, caps: dict[str, Any], timeout: float
+    ) -> dict[str, Any] | None:
+        """The best queued job this printer can take (priority, then age), claimed for it
+        with a new fencing token; None when there is none (or this node lost its lease)."""
+        key = f"{node}/{printer}"
+        async with self._transaction(timeout) as db:
+            cursor = await db.execute(
+                "WITH chosen AS (SELECT id AS chosen FROM jobs WHERE state = 'queued'"
+                " AND %(caps)s @> needs"
+                " AND NOT refused ? %(key)s"
+                " AND EXISTS (SELECT 1 FROM nodes WHERE id = %(node)s AND lost_at IS NULL"
+                "   AND lease_until > now())"
+                " ORDER BY priority DESC, id LIMIT 1 FOR UPDATE SKIP LOCKED)"
+                " UPDATE jobs SET state = 'claimed', node = %(node)s, printer = %(printer)s,"
+                " fence = nextval('fence'), claimed = now(), updated = now()"
+                f" FROM chosen WHERE jobs.id = chosen.chosen RETURNING {_JOB}",
+                {"caps": Jsonb(caps), "key": key, "node": node, "printer": printer},
+            )
+            row = await cursor.fetchone()
+            if row is not None:
+                await self._notify(db, {"kind": "job", "job": row["id"], "state": "claimed"})
+            return dict(row) if row is not None else None
+
+    async def give_back(self, job: int, fence: int, key: str, why: str, timeout: float) -> None:
+        """A claimed job this printer cannot print (its lint says why): queued again, and
+        never offered to this printer again."""
+        async with self._transaction(timeout) as db:
+            await db.execute(
+                "UPDATE jobs SET state = 'queued', node = NULL, printer = NULL, claimed = NULL,"
+                " refused = refused || jsonb_build_object(%s::text, %s::text), updated = now()"
+                " WHERE id = %s AND fence = %s AND state = 'claimed'",
+                (key, why, job, fence),
+            )
+            await self._notify(db, {"kind": "job", "job": job, "queued": True})
+
+    async def start(self, job: int, fence: int, timeout: float) -> bool:
+        """The claim still holds (its token is the job's): the job may stream."""
+        async with self._transaction(timeout) as db:
+            cursor = await db.execute(
+                "UPDATE jobs SET state = 'printing', started = COALESCE(started, now()),"
+                " updated = now() WHERE id = %s AND fence = %s AND state IN ('claimed', 'printing')"
+                " RETURNING id",
+                (job, fence),
+            )
+            started = await cursor.fetchone() is not None
+            if started:
+                await self._notify(db, {"kind": "job", "job": job, "state": "printing"})
+            return started
+
+    async def report(self, job: int, fence: int, fields: dict[str, Any], timeout: float) -> bool:
+        """What the node streaming the job knows of it (its state, lines acknowledged, its
+        end), written only with the claim's token: False when it no longer holds."""
+        values = {
+            **fields,
+            "filament": Jsonb(fields["filament"]) if fields.get("filament") else None,
+            "job": job,
+            "fence": fence,
+        }
+        async with self._transaction(timeout) as db:
+            cursor = await db.execute(
+                "UPDATE jobs SET state = %(state)s, lines = %(lines)s, last_line = %(last_line)s,"
+                " started = to_timestamp(%(started)s), ended = to_timestamp(%(ended)s),"
+                " error = %(error)s, report = %(report)s, filament = %(filament)s,"
+                " safe_stop = %(safe_stop)s, local_id = %(local_id)s, updated = now()"
+                " WHERE id = %(job)s AND fence = %(fence)s"
+                " RETURNING (SELECT state FROM jobs WHERE id = %(job)s) AS was",
+                values,
+            )
+            row = await cursor.fetchone()
+            if row is not None:
+                message = {"kind": "job", "job": job, "state": fields["state"]}
+                if row["was"] == fields["state"]:
+                    message["progress"] = True
+                await self._notify(db, message)
+            return row is not None
+
+    async def cancel(self, job: int, timeout: float) -> dict[str, Any] | None:
+        """Cancel a queued job at once; a claimed or streaming one is asked of its node
+        (told by notification). The job as it was; None if there is no such job."""
+        async with self._transaction(timeout) as db:
+            row = await (
+                await db.execute(f"SELECT {_JOB} FROM jobs WHERE id = %s FOR UPDATE", (job,))
+            ).fetchone()
+            if row is None:
+                return None
+            if row["state"] == "queued":
+                await db.execute(
+                    "UPDATE jobs SET state = 'cancelled', ended = now(), updated = now()"
+                    " WHERE id = %s",
+                    (job,),
+                )
+                await self._notify(db, {"kind": "job", "job": job, "state": "cancelled"})
+            elif row["state"] in ACTIVE:
+                await self._notify(db, {"kind": "cancel", "job": job, "node": row["node"]})
+            return dict(row)
+
+    async def job(self, job: int, timeout: float) -> dict[str, Any] | None:
+        async with self._transaction(timeout) as db:
+            cursor = await db.execute(f"SELECT {_JOB} FROM jobs WHERE id = %s", (job,))
+            row = await cursor.fetchone()
+            return dict(row) if row is not None else None
+
+    async def jobs(self, timeout: float, ended: int = 200) -> list[dict[str, Any]]:
+        """Queued jobs in the order they will be claimed, those claimed or streaming, and
+        the last ``ended`` that ended, newest first."""
+        async with self._transaction(timeout) as db:
+            cursor = await db.execute(
+                f"(SELECT {_JOB} FROM jobs WHERE state = 'queued' ORDER BY priority DESC, id)"
+                f" UNION ALL (SELECT {_JOB} FROM jobs WHERE state IN ('claimed', 'printing',"
+                " 'paused') ORDER BY id)"
+                f" UNION ALL (SELECT {_JOB} FROM jobs WHERE state NOT IN ('queued', 'claimed',"
+                " 'printing', 'paused') ORDER BY ended DESC NULLS LAST, id DESC LIMIT %s)",
+                (ended,),
+            )
+            return [dict(row) for row in await cursor.fetchall()]
+
+    async def held_by(self, node: str, timeout: float) -> list[dict[str, Any]]:
+        """The jobs the farm thinks this node holds (claimed, printing, paused)."""
+        async with self._transaction(timeout) as db:
+            cursor = await db.execute(
+                f"SELECT {_JOB} FROM jobs WHERE node = %s AND state IN ('claimed', 'printing',"
+                " 'paused')",
+                (node,),
+            )
+            return [dict(row) for row in await cursor.fetchall()]
+
+
+class LeaseLost(Exception):
+    """The node's lease ran out (others marked it lost): it registers again."""
