@@ -15,7 +15,7 @@ import httpx
 import pytest
 
 from repetrel_host.testing.fake_controller import BuiltInFake
-from tests.helpers import executed
+from tests.helpers import executed, hyrel_send
 from tests.pg import needs_postgres
 from tests.test_server import KEY, Server
 
@@ -74,12 +74,14 @@ class Farm:
         return answer
 
     def view(self, node: str | None = None) -> dict[str, Any]:
-        with self.nodes[node or next(iter(self.nodes))].client() as client:
+        """The farm as ``node`` (else the first node running) shows it."""
+        alive = [n for n, v in self.nodes.items() if v.server.process.poll() is None]  # type: ignore[union-attr]
+        with self.nodes[node or alive[0]].client() as client:
             answer: dict[str, Any] = client.get("/v1/farm").json()
         return answer
 
-    def jobs(self) -> dict[int, dict[str, Any]]:
-        return {job["id"]: job for job in self.view()["jobs"]}
+    def jobs(self, node: str | None = None) -> dict[int, dict[str, Any]]:
+        return {job["id"]: job for job in self.view(node)["jobs"]}
 
     def wait(self, condition: Callable[[], Any], timeout: float = 60, what: str = "") -> Any:
         deadline = time.monotonic() + timeout
@@ -113,6 +115,7 @@ def start_node(
     printers: dict[str, dict[str, Any]],
     fake_args: tuple[str, ...] = ("--move-time", "0.002"),
     farm_url: str | None = None,
+    automatic: bool = True,
 ) -> Node:
     """A node of the farm: its printers on fake controllers (``printers``: name: settings
     such as loadout and tags), its own data folder, a short lease."""
@@ -123,7 +126,7 @@ def start_node(
         f'farm = "{farm_url or farm.url}"',
         f'node_name = "{name}"',
         f"farm_lease = {LEASE}",
-        "automatic_transition = true",
+        f"automatic_transition = {str(automatic).lower()}",
     ]
     for printer, settings in printers.items():
         if printer not in fakes:
@@ -225,3 +228,243 @@ def test_a_job_no_printer_can_print_is_refused_saying_what_is_missing(
     assert answer.status_code == 400
     assert "'colour' is not something a printer has" in answer.json()["error"]
     assert farm.jobs() == {}
+
+
+def test_forty_jobs_through_three_nodes_each_once_on_a_printer_that_matches(
+    farm: Farm, tmp_path: Path
+) -> None:
+    pla = loadout(tmp_path, "pla", (1, "MK1-250", "PLA"))
+    abs_ = loadout(tmp_path, "abs", (1, "MK1-250", "ABS"))
+    two = loadout(tmp_path, "two", (1, "MK1-250", "PLA"), (2, "SDS-05", "PETG"))
+    start_node(farm, "a", {"a1": {"loadout": pla}, "a2": {"loadout": abs_, "tags": ["enclosed"]}})
+    start_node(farm, "b", {"b1": {"loadout": pla, "tags": ["big"]}, "b2": {"loadout": two}})
+    start_node(farm, "c", {"c1": {"loadout": abs_}, "c2": {"loadout": pla}})
+    everyone = {"a1", "a2", "b1", "b2", "c1", "c2"}
+    kinds: list[tuple[tuple[str, ...], set[str], int]] = [
+        (("material=PLA",), {"a1", "b1", "b2", "c2"}, 0),
+        (("material=ABS",), {"a2", "c1"}, 0),
+        (("tag=big",), {"b1"}, 0),
+        (("T1.material=PETG",), {"b2"}, 1),
+        (("printer=c2",), {"c2"}, 0),
+        (("material=abs", "tag=enclosed"), {"a2"}, 0),
+        ((), everyone, 0),
+    ]
+    submitted: dict[int, tuple[str, set[str]]] = {}
+    for number in range(40):
+        requires, allowed, tool = kinds[number % len(kinds)]
+        mark = str(1000 + number)
+        answer = farm.submit("abc"[number % 3], part(mark, tool=tool), f"p{mark}.gcode", *requires)
+        assert answer.status_code == 201, answer.text
+        submitted[answer.json()["jobs"][0]] = (mark, allowed)
+    farm.wait(
+        lambda: (
+            all(job["state"] == "completed" for job in farm.jobs().values())
+            and len(farm.jobs()) == 40
+        ),
+        timeout=150,
+        what="forty jobs to complete",
+    )
+    jobs = farm.jobs()
+    for job_id, (mark, allowed) in submitted.items():
+        job = jobs[job_id]
+        ran = where_ran(farm, mark)
+        assert ran == [(job["node_name"], job["printer"])], (job_id, ran)
+        assert job["printer"] in allowed, (job_id, job["requires"], job["printer"])
+        node, printer = ran[0]
+        moves = [line for line in farm.nodes[node].ran(printer) if f" Y{mark} " in line]
+        assert len(moves) == 30
+    # Six printers shared the work.
+    assert len({job["printer"] for job in jobs.values()}) == 6
+
+
+def _printing(farm: Farm, job_id: int, lines: int = 50) -> bool:
+    job = farm.jobs()[job_id]
+    return bool(job["state"] == "printing" and job["lines"] > lines)
+
+
+def test_a_node_killed_mid_job_leaves_it_interrupted_and_rejoins(
+    farm: Farm, tmp_path: Path
+) -> None:
+    pla = loadout(tmp_path, "pla", (1, "MK1-250", "PLA"))
+    start_node(farm, "a", {"a1": {"loadout": pla}}, fake_args=("--move-time", "0.004"))
+    start_node(farm, "b", {"b1": {"loadout": pla}})
+    answer = farm.submit("b", part("500", moves=3000), "long.gcode", "printer=a1")
+    (long_job,) = answer.json()["jobs"]
+    farm.wait(lambda: _printing(farm, long_job), what="the long job to stream on a1")
+    farm.nodes["a"].server.stop(signal.SIGKILL)
+    others = [
+        farm.submit("b", part(str(600 + n)), f"o{n}.gcode").json()["jobs"][0] for n in range(3)
+    ]
+    # After a's lease, b ends it: the job is interrupted, never handed to b1.
+    interrupted = farm.wait(
+        lambda: (job := farm.jobs()[long_job])["state"] == "interrupted" and job,
+        what="the long job to be interrupted",
+    )
+    assert "node a stopped answering" in interrupted["error"]
+    assert interrupted["last_line"] > 50
+    farm.wait(lambda: all(farm.jobs()[j]["state"] == "completed" for j in others))
+    assert where_ran(farm, "500") == [("a", "a1")]
+    for n in range(3):
+        assert where_ran(farm, str(600 + n)) == [("b", "b1")]
+    # Restarted, a rejoins: its own record (interrupted as the server died, through at
+    # least the line it had recorded) is the farm's now; a1 holds its queue.
+    node = start_node(farm, "a", {"a1": {"loadout": pla}})
+    job = farm.wait(
+        lambda: (j := farm.jobs()[long_job])["error"] != interrupted["error"] and j,
+        what="a's own report of the job",
+    )
+    assert job["state"] == "interrupted" and "server ended" in job["error"]
+    assert job["last_line"] >= interrupted["last_line"]
+    assert job["resume_from_line"] == job["last_line"] + 1
+    with node.client() as client:
+        assert client.get("/v1/printers/a1").json()["held"] is True
+        local = client.get(f"/v1/jobs/{job['local_id']}").json()
+        assert local["farm_job"] == long_job and local["state"] == "interrupted"
+    assert {p["name"]: p["state"] for p in farm.view()["printers"]}["a1"] != "offline"
+
+
+def test_postgresql_restarting_mid_run_stops_no_stream_and_claims_resume(
+    farm: Farm, tmp_path: Path, postgres: Any
+) -> None:
+    pla = loadout(tmp_path, "pla", (1, "MK1-250", "PLA"))
+    slow = ("--move-time", "0.008")  # a job of 600 moves streams for about 5 s
+    start_node(farm, "a", {"a1": {"loadout": pla}}, slow)
+    start_node(farm, "b", {"b1": {"loadout": pla}}, slow)
+    first = [
+        farm.submit("a", part(str(700 + n), moves=600), f"f{n}.gcode").json()["jobs"][0]
+        for n in range(4)
+    ]
+    farm.wait(lambda: sum(_printing(farm, j, 20) for j in first) == 2, what="two streams")
+    postgres.restart()
+    second: list[int] = []
+    for n in range(4):  # the nodes' connections come back by themselves
+        answer = farm.wait(
+            lambda n=n: (
+                (a := farm.submit("b", part(str(710 + n)), f"s{n}.gcode")).status_code == 201 and a
+            ),
+            what="the database to take jobs again",
+        )
+        second.append(answer.json()["jobs"][0])
+    farm.wait(
+        lambda: all(farm.jobs()[j]["state"] == "completed" for j in first + second),
+        timeout=120,
+        what="every job to complete",
+    )
+    for mark in [*range(700, 704), *range(710, 714)]:
+        ran = where_ran(farm, str(mark))
+        assert len(ran) == 1, (mark, ran)
+        node, printer = ran[0]
+        moves = [line for line in farm.nodes[node].ran(printer) if f" Y{mark} " in line]
+        assert len(moves) == (600 if mark < 710 else 30)
+
+
+def test_a_node_cut_from_the_database_past_its_lease_finishes_and_reports_after(
+    farm: Farm, tmp_path: Path, postgres: Any
+) -> None:
+    from tests.pg import Cut
+
+    cut = Cut(postgres.port)
+    try:
+        pla = loadout(tmp_path, "pla", (1, "MK1-250", "PLA"))
+        start_node(farm, "a", {"a1": {"loadout": pla}}, ("--move-time", "0.004"), cut.url(farm.url))
+        start_node(farm, "b", {"b1": {"loadout": pla}})
+        (long_job,) = farm.submit("b", part("800", moves=2500), "l.gcode", "printer=a1").json()[
+            "jobs"
+        ]
+        farm.wait(lambda: _printing(farm, long_job), what="the long job to stream on a1")
+        cut.cut()
+        # b ends a's lease: the farm shows the job interrupted, a1 offline.
+        farm.wait(
+            lambda: farm.view("b")["jobs"][0]["state"] == "interrupted",
+            what="the farm to mark the job interrupted",
+        )
+        assert {p["name"]: p["state"] for p in farm.view("b")["printers"]}["a1"] == "offline"
+        # A job for a1 waits: a claims nothing while it cannot reach the database.
+        (waiting,) = farm.submit("b", part("801"), "w.gcode", "printer=a1").json()["jobs"]
+        # The stream goes on to its end all the same.
+        farm.wait(
+            lambda: sum(" Y800 " in line for line in farm.nodes["a"].ran("a1")) == 2500,
+            timeout=60,
+            what="the cut node's stream to complete",
+        )
+        assert farm.jobs("b")[waiting]["state"] == "queued"
+        cut.mend()
+        # Back, a reports with its token: the farm takes its word; then it claims again.
+        farm.wait(
+            lambda: farm.jobs("b")[long_job]["state"] == "completed", what="a's report of the job"
+        )
+        done = farm.jobs("b")[long_job]
+        assert done["error"] is None and done["lines"] == 2502
+        farm.wait(lambda: farm.jobs("b")[waiting]["state"] == "completed", what="the waiting job")
+        assert where_ran(farm, "800") == [("a", "a1")]
+        assert where_ran(farm, "801") == [("a", "a1")]
+    finally:
+        cut.close()
+
+
+def test_hyrel_send_and_a_slicers_upload_feed_the_farm_and_a_held_printer_waits(
+    farm: Farm, tmp_path: Path
+) -> None:
+    pla = loadout(tmp_path, "pla", (1, "MK1-250", "PLA"))
+    node = start_node(farm, "a", {"a1": {"loadout": pla}}, automatic=False)
+    url = node.server.url
+    job = tmp_path / "cube.gcode"
+    job.write_bytes(part("900"))
+    with node.client() as client, client.stream("GET", "/v1/farm/events") as events:
+        lines = events.iter_lines()
+        hello = next(lines)
+        assert hello.startswith("data: ") and '"hello"' in hello
+        sent = hyrel_send(str(job), "--server", url, "--api-key", KEY, "--farm",
+                          "--require", "material=pla")  # fmt: skip
+        assert sent.returncode == 0, sent.stdout + sent.stderr
+        told = [json.loads(line[6:]) for line in _lines_until(lines, '"completed"')]
+    assert "cube.gcode: queued in the farm as job 1 (material=PLA)" in sent.stdout
+    assert "farm job 1 (cube.gcode): printing on a1 at node a" in sent.stdout
+    assert "farm job 1: 32 lines (to line 32)" in sent.stdout
+    assert {"kind": "job", "jobs": [1], "queued": True, "type": "farm"} in told
+    # The part is on a1's bed: a slicer's "Upload and Print" waits in the farm's queue.
+    octoprint = httpx.Client(base_url=f"{url}/farm", headers={"X-Api-Key": KEY}, timeout=30)
+    with octoprint:
+        version = octoprint.get("/api/version").json()
+        assert version["text"].startswith("OctoPrint")
+        answer = octoprint.post(
+            "/api/files/local",
+            data={"print": "true", "path": ""},
+            files={"file": ("sliced.gcode", part("901"), "application/octet-stream")},
+        )
+        assert answer.status_code == 201, answer.text
+        assert answer.json()["farm"]["jobs"] == [2]
+        upload_only = octoprint.post(
+            "/api/files/local", files={"file": ("x.gcode", part("902"), "text/plain")}
+        )
+        assert upload_only.status_code == 409
+    time.sleep(2)
+    assert farm.jobs()[2]["state"] == "queued"
+    listed = hyrel_send("--server", url, "--api-key", KEY, "--farm", "--list")
+    assert listed.returncode == 0
+    rows = listed.stdout.splitlines()
+    assert rows[0].split()[:2] == ["2", "queued"] and "sliced.gcode" in rows[0]
+    assert rows[1].split()[:3] == ["1", "completed", "a1@a"]
+    with node.client() as client:
+        assert client.post("/v1/printers/a1/release").status_code == 204
+    farm.wait(lambda: farm.jobs()[2]["state"] == "completed", what="the slicer's job")
+    assert where_ran(farm, "900") == [("a", "a1")] and where_ran(farm, "901") == [("a", "a1")]
+    # Held again; a queued job cancelled from the command line never runs.
+    (third,) = farm.submit("a", part("903"), "third.gcode").json()["jobs"]
+    cancelled = hyrel_send("--server", url, "--api-key", KEY, "--farm", "--cancel", str(third))
+    assert cancelled.returncode == 0 and f"farm job {third}: cancelled" in cancelled.stdout
+    assert farm.jobs()[third]["state"] == "cancelled"
+    refused = hyrel_send(str(job), "--server", url, "--api-key", KEY, "--farm",
+                         "--require", "material=ABS")  # fmt: skip
+    assert refused.returncode == 2
+    assert "no printer of the farm can print cube.gcode" in refused.stderr
+
+
+def _lines_until(lines: Iterator[str], text: str) -> list[str]:
+    found = []
+    for line in lines:
+        if line.startswith("data: "):
+            found.append(line)
+            if text in line:
+                return found
+    raise AssertionError(f"the stream ended before {text}")

@@ -335,6 +335,26 @@ def send(
             help="With --server: the bed is clear, let the printer's held queue go on.",
         ),
     ] = False,
+    farm: Annotated[
+        bool,
+        typer.Option(
+            "--farm",
+            help="With --server: the farm's queue (hyrel-server --farm), not one printer's: "
+            "JOB goes to whichever printer can print it; --list and --cancel act on it.",
+        ),
+    ] = False,
+    require: Annotated[
+        list[str] | None,
+        typer.Option(
+            metavar="KEY=VALUE",
+            help="With --farm: what the printer must have (material=PLA, T1.head=MK1-250, "
+            "tag=abs, machine=..., printer=...); repeat.",
+        ),
+    ] = None,
+    priority: Annotated[int, typer.Option(help="With --farm: higher goes first (default 0).")] = 0,
+    copies: Annotated[
+        int, typer.Option(help="With --farm: print this many (default 1).", min=1)
+    ] = 1,
     console_mode: Annotated[bool, typer.Option("--console", help=CONSOLE_HELP)] = False,
     version: Annotated[
         bool,
@@ -385,6 +405,14 @@ def send(
             raise UsageError("--from-line and --from-layer both say where to resume: give one")
         if server is not None and (from_line is not None or from_layer is not None):
             raise UsageError("--from-line and --from-layer resume on a port, not with --server")
+        if server is not None and farm:
+            if printer or release:
+                raise UsageError("--printer and --release name one printer: not with --farm")
+            request = ServerRequest(printer, api_key, job, list_jobs, cancel, release)
+            farm_request = FarmRequest(require or [], priority, copies)
+            raise typer.Exit(_with_farm(console, server, request, farm_request))
+        if require or farm or priority or copies != 1:
+            raise UsageError("--farm, --require, --priority and --copies go with --server URL")
         if server is not None:
             request = ServerRequest(printer, api_key, job, list_jobs, cancel, release)
             code = _with_server(console, server, request)
@@ -458,6 +486,49 @@ class ServerRequest:
     list_jobs: bool
     cancel: int | None
     release: bool
+
+
+@dataclass(frozen=True)
+class FarmRequest:
+    """What hyrel-send --server URL --farm asks of the farm's job."""
+
+    requires: list[str]
+    priority: int
+    copies: int
+
+
+def _with_farm(console: Out, url: str, request: ServerRequest, farm: FarmRequest) -> int:
+    """hyrel-send --server URL --farm: submit to the farm and follow, list, cancel."""
+    from repetrel_host.server import client
+
+    server = client.ServerClient(url, request.api_key)
+
+    def show(text: str) -> None:
+        console.print(text, markup=False)
+
+    if request.cancel is not None:
+        answer = client.farm_cancel(server, request.cancel)
+        how = "cancelling (its node stops it, the safe stop first)" * bool(answer.get("cancelling"))
+        show(f"farm job {request.cancel}: {how or answer['state']}")
+        return EXIT_OK
+    if request.list_jobs:
+        for line in client.farm_jobs(server):
+            show(line)
+        if request.job is None:
+            return EXIT_OK
+    if request.job is None:
+        raise UsageError("give the JOB to send to the farm (or --list, --cancel ID)")
+    events = server.events(None, "/v1/farm/events")
+    next(events)  # subscribed before the job exists: nothing is missed
+    queued = client.farm_submit(server, request.job, farm.requires, farm.priority, farm.copies)
+    for finding in queued["findings"]:
+        show(finding)
+    ids = ", ".join(map(str, queued["jobs"]))
+    show(
+        f"{queued['name']}: queued in the farm as job {ids} ({queued['requires']}); "
+        f"printers that can take it: {', '.join(queued['eligible'])}"
+    )
+    return client.farm_follow(server, queued["jobs"], events, show)
 
 
 def _with_server(console: Out, url: str, request: ServerRequest) -> int:

@@ -67,34 +67,53 @@ class ServerClient:
         return name
 
     def submit(self, printer: str, path: Path) -> dict[str, Any]:
-        boundary = uuid.uuid4().hex
-        try:
-            content = path.read_bytes()
-        except OSError as exc:
-            raise JobError(f"{path}: cannot be read ({exc.strerror})") from None
-        body = (
-            (
-                f'--{boundary}\r\nContent-Disposition: form-data; name="file"; '
-                f'filename="{path.name}"\r\nContent-Type: application/octet-stream\r\n\r\n'
-            ).encode()
-            + content
-            + f"\r\n--{boundary}--\r\n".encode()
-        )
-        job: dict[str, Any] = self.request(
-            "POST",
-            f"/v1/printers/{quote(printer)}/jobs",
-            body,
-            f"multipart/form-data; boundary={boundary}",
-        )
+        job: dict[str, Any] = self.upload(f"/v1/printers/{quote(printer)}/jobs", path, [])
         return job
 
-    def events(self, printer: str) -> Iterator[dict[str, Any]]:
-        """The server's events for ``printer``, as they come."""
-        query = urlencode({"printer": printer})
+    def upload(self, where: str, path: Path, fields: list[tuple[str, str]]) -> Any:
+        """POST ``path`` as the multipart field ``file`` with ``fields``, read from disk as
+        it goes (a gigabyte's file is never held in memory)."""
+        boundary = uuid.uuid4().hex
+        head = "".join(
+            f'--{boundary}\r\nContent-Disposition: form-data; name="{name}"\r\n\r\n{value}\r\n'
+            for name, value in fields
+        )
+        head += (
+            f'--{boundary}\r\nContent-Disposition: form-data; name="file"; '
+            f'filename="{path.name}"\r\nContent-Type: application/octet-stream\r\n\r\n'
+        )
+        tail = f"\r\n--{boundary}--\r\n".encode()
+        try:
+            size = path.stat().st_size
+            handle = path.open("rb")
+        except OSError as exc:
+            raise JobError(f"{path}: cannot be read ({exc.strerror})") from None
+
+        def body() -> Iterator[bytes]:
+            yield head.encode()
+            while chunk := handle.read(1 << 20):
+                yield chunk
+            yield tail
+
+        headers = {
+            "Accept": "application/json",
+            "Content-Type": f"multipart/form-data; boundary={boundary}",
+            "Content-Length": str(len(head.encode()) + size + len(tail)),
+        }
+        if self.api_key:
+            headers["X-Api-Key"] = self.api_key
+        request = Request(f"{self.url}{where}", data=body(), headers=headers, method="POST")
+        with handle, self._reaching(), urlopen(request, timeout=TIMEOUT) as response:
+            data = response.read()
+        return json.loads(data) if data else None
+
+    def events(self, printer: str | None, where: str = "/v1/events") -> Iterator[dict[str, Any]]:
+        """The server's events for ``printer`` (or at ``where``: the farm's), as they come."""
+        query = f"?{urlencode({'printer': printer})}" if printer is not None else ""
         headers = {"Accept": "text/event-stream"}
         if self.api_key:
             headers["X-Api-Key"] = self.api_key
-        request = Request(f"{self.url}/v1/events?{query}", headers=headers)
+        request = Request(f"{self.url}{where}{query}", headers=headers)
         with self._reaching():
             response = urlopen(request, timeout=None)
         with response:
@@ -198,3 +217,84 @@ def list_jobs(client: ServerClient, printer: str) -> list[str]:
 def cancel(client: ServerClient, job_id: int) -> dict[str, Any]:
     job: dict[str, Any] = client.request("DELETE", f"/v1/jobs/{job_id}")
     return job
+
+
+# --- a farm (hyrel-server --farm) ----------------------------------------------------------
+
+
+def farm_submit(
+    client: ServerClient, path: Path, requires: list[str], priority: int, copies: int
+) -> dict[str, Any]:
+    fields = [("require", r) for r in requires]
+    fields += [("priority", str(priority)), ("copies", str(copies))]
+    answer: dict[str, Any] = client.upload("/v1/farm/jobs", path, fields)
+    return answer
+
+
+def farm_jobs(client: ServerClient) -> list[str]:
+    """The farm's queue, then its jobs claimed or printing, then the last that ended."""
+    lines = []
+    for job in client.request("GET", "/v1/farm/jobs"):
+        where = f"{job['printer']}@{job['node_name']}" if job["printer"] else "-"
+        done = f"{job['lines']}/{job['total_lines']} lines"
+        error = f"  {job['error']}" if job["error"] else ""
+        lines.append(
+            f"{job['id']:>5}  {job['state']:<11}  {where:<16}  {done:<18}  {job['name']}"
+            f"  [{job['requires']}]{error}"
+        )
+    return lines
+
+
+def farm_cancel(client: ServerClient, job_id: int) -> dict[str, Any]:
+    answer: dict[str, Any] = client.request("DELETE", f"/v1/farm/jobs/{job_id}")
+    return answer
+
+
+def farm_follow(
+    client: ServerClient,
+    ids: list[int],
+    events: Iterator[dict[str, Any]],
+    show: Callable[[str], None],
+) -> int:
+    """Follow farm jobs to their ends through the farm's events (subscribed to before
+    they were submitted: nothing is missed), telling each change of state; hyrel-send's
+    exit code (the worst of theirs)."""
+    shown: dict[int, str] = {}
+    codes: dict[int, int] = {}
+
+    def look(job_id: int, state: str | None = None) -> None:
+        job = client.request("GET", f"/v1/farm/jobs/{job_id}")
+        state = state or job["state"]
+        if shown.get(job_id) != state and job_id not in codes:
+            shown[job_id] = state
+            where = f" on {job['printer']} at node {job['node_name']}" * bool(job["printer"])
+            show(f"farm job {job_id} ({job['name']}): {state}{where}")
+        if job["state"] in ENDED and job_id not in codes:
+            line = f"farm job {job_id}: {job['lines']} lines (to line {job['last_line']})"
+            show(f"{line}: {job['error']}" if job["error"] else line)
+            if job["resume_url"]:
+                show(f"farm job {job_id}: where it would resume: {job['resume_url']}")
+            codes[job_id] = ENDED[job["state"]]
+
+    try:
+        for job_id in ids:
+            look(job_id)
+        for event in events:
+            if len(codes) == len(ids):
+                break
+            if event.get("kind") != "job" or event.get("progress"):
+                continue
+            for job_id in event.get("jobs", [event.get("job")]):
+                if job_id in ids:
+                    look(job_id, event.get("state"))
+            if len(codes) == len(ids):
+                break
+        else:
+            raise LinkError(f"the print server at {client.url} closed the farm's event stream")
+    except KeyboardInterrupt:
+        show(
+            "no longer following: the jobs go on in the farm "
+            f"(hyrel-send --server {client.url} --farm --cancel ID stops one)"
+        )
+        return 130
+    return max(codes.values(), default=0)

@@ -443,7 +443,8 @@ class PrinterService:
             self._cancelling = record.id
             job.stop()
         self._paused = False
-        log.info("printer %s: printing job %d (%s)", self.name, record.id, record.name)
+        farm = f", farm job {record.farm_id}" if record.farm_id is not None else ""
+        log.info("printer %s: printing job %d (%s%s)", self.name, record.id, record.name, farm)
         self.job_changed(record.id)
         try:  # read while the job streams: a big file
             await asyncio.to_thread(self._read_job, running, path)

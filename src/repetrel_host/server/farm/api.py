@@ -66,6 +66,13 @@ def job_json(job: dict[str, Any], nodes: dict[str, dict[str, Any]]) -> dict[str,
         "node_url": node["url"] if node else None,
         "given_back": job["refused"],
         "fence": job["fence"],
+        # Where it would go on from (the node's /v1/jobs/LOCAL/resume has the command).
+        "resume_from_line": job["last_line"] + 1
+        if job["state"] in ("interrupted", "failed", "cancelled") and job["last_line"] > 0
+        else None,
+        "resume_url": f"{node['url']}/v1/jobs/{job['local_id']}/resume"
+        if node and job["local_id"] and job["state"] in ("interrupted", "failed", "cancelled")
+        else None,
     }
 
 

@@ -38,6 +38,8 @@ if TYPE_CHECKING:
     from repetrel_host.server.printers import PrinterService
 
 log = logging.getLogger("repetrel_host.server.farm")
+# The pool's own retries are told in our one sentence (the database does not answer).
+logging.getLogger("psycopg.pool").setLevel(logging.ERROR)
 
 NODE_ID_FILE = "farm-node-id"
 CACHE = "farm"  # the farm's files as this node fetched them, below the uploads folder
@@ -194,7 +196,15 @@ class FarmNode:
                     await self._call(self.db.open(), TIMEOUT * 2)  # migrated, pool open
                     await self._register()
                     registered = True
-                await self._call(self.db.heartbeat(self.id, self.settings.lease, TIMEOUT))
+                ended = await self._call(self.db.heartbeat(self.id, self.settings.lease, TIMEOUT))
+                for job in ended:
+                    log.warning(
+                        "farm: job %d on printer %s interrupted at line %d: its node stopped "
+                        "answering (its lease ran out)",
+                        job["id"],
+                        job["printer"],
+                        job["last_line"],
+                    )
                 if not self.ready:
                     back = self.away_since is not None
                     self.ready, self.away_since, delay = True, None, 1.0
@@ -204,7 +214,7 @@ class FarmNode:
                     for service in self.services.values():
                         service.wake()
                     if back:
-                        log.warning("farm: the database is back; claiming again")
+                        log.info("farm: the database is back; claiming again")
             except LeaseLost:
                 log.warning("farm: this node's lease had run out: joining again")
                 registered = False
@@ -341,7 +351,7 @@ class FarmNode:
         self.cache.mkdir(parents=True, exist_ok=True)
         name = row["name"]
         path = self.cache / f"{row['file'][:12]}-{name}"
-        log.info("farm: printer %s claimed job %d (%s)", printer, row["id"], name)
+        log.info("farm: printer %s claimed farm job %d (%s)", printer, row["id"], name)
         return self.store.submit(
             printer,
             name,
