@@ -72,3 +72,14 @@ def start_streaming(job: Path, port: str, log: Path, *args: str) -> subprocess.P
     while time.monotonic() < deadline and (not log.exists() or log.stat().st_size < 2000):
         time.sleep(0.05)
     return process
+
+
+def run_server_cli(*args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
+    """hyrel-server as a real process that is expected to stop by itself (a refusal)."""
+    return subprocess.run(
+        [sys.executable, "-m", "repetrel_host.server.main", *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        stdin=subprocess.DEVNULL,
+    )

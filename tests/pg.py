@@ -52,8 +52,10 @@ def _free_port() -> int:
 class Postgres:
     """A cluster in a temporary folder, on a free port of 127.0.0.1."""
 
-    def __init__(self) -> None:
+    def __init__(self, fsync: bool = False) -> None:
+        """``fsync``: durable commits, as a production database (the tests go without)."""
         assert BIN is not None
+        self.fsync = fsync
         self.root = Path(tempfile.mkdtemp(prefix="farm-pg-"))
         self.data = self.root / "data"
         self.port = _free_port()
@@ -78,7 +80,8 @@ class Postgres:
 
     def start(self) -> None:
         options = (
-            f"-p {self.port} -k {self.root} -c listen_addresses=127.0.0.1 -c fsync=off "
+            f"-p {self.port} -k {self.root} -c listen_addresses=127.0.0.1 "
+            f"-c fsync={'on' if self.fsync else 'off'} "
             "-c max_connections=400 -c shared_buffers=64MB"
         )
         log = self.root / "server.log"

@@ -1,10 +1,13 @@
 """The benchmarks run (on small inputs; their figures live in bench/README.md)."""
 
+import json
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+
+from tests.pg import needs_postgres
 
 SOAK = Path(__file__).parent.parent / "bench" / "soak.py"
 
@@ -95,3 +98,20 @@ def test_analysis_bench_memory_grows_with_the_layers_not_the_file() -> None:
     growth = [float(row["growth MB"]) for row in rows]
     assert growth[1] <= 3 * max(growth[0], 1.0), growth
     assert growth[1] < float(big["size MB"].replace(",", "")) / 4, growth
+
+
+FARM = Path(__file__).parent.parent / "bench" / "farm.py"
+
+
+@pytest.mark.timeout(300)
+@needs_postgres
+def test_farm_bench_reports_latency_throughput_and_claims() -> None:
+    done = subprocess.run(
+        [sys.executable, str(FARM), "--quick"], capture_output=True, text=True, timeout=280
+    )
+    assert done.returncode == 0, done.stdout + done.stderr
+    figures = json.loads(done.stdout.strip().splitlines()[-1])
+    assert figures["submit_to_first_line_median_ms"] > 0
+    assert figures["jobs_per_second_six_printers"] > 0
+    assert figures["simulated_printers"] == 40 and figures["claims_per_second"] > 0
+    assert "99th percentile" in done.stdout

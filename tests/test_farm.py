@@ -15,7 +15,7 @@ import httpx
 import pytest
 
 from repetrel_host.testing.fake_controller import BuiltInFake
-from tests.helpers import executed, hyrel_send
+from tests.helpers import executed, hyrel_send, run_server_cli
 from tests.pg import needs_postgres
 from tests.test_server import KEY, Server
 
@@ -273,8 +273,6 @@ def test_forty_jobs_through_three_nodes_each_once_on_a_printer_that_matches(
         node, printer = ran[0]
         moves = [line for line in farm.nodes[node].ran(printer) if f" Y{mark} " in line]
         assert len(moves) == 30
-    # Six printers shared the work.
-    assert len({job["printer"] for job in jobs.values()}) == 6
 
 
 def _printing(farm: Farm, job_id: int, lines: int = 50) -> bool:
@@ -458,6 +456,10 @@ def test_hyrel_send_and_a_slicers_upload_feed_the_farm_and_a_held_printer_waits(
                          "--require", "material=ABS")  # fmt: skip
     assert refused.returncode == 2
     assert "no printer of the farm can print cube.gcode" in refused.stderr
+    # SIGTERM stops a node at once (its loops never take the stop for an outage).
+    began = time.monotonic()
+    assert node.server.stop() == 0
+    assert time.monotonic() - began < 10
 
 
 def _lines_until(lines: Iterator[str], text: str) -> list[str]:
@@ -468,3 +470,96 @@ def _lines_until(lines: Iterator[str], text: str) -> list[str]:
             if text in line:
                 return found
     raise AssertionError(f"the stream ended before {text}")
+
+
+def test_a_printer_whose_lint_refuses_a_claimed_job_gives_it_back(
+    farm: Farm, tmp_path: Path
+) -> None:
+    one = loadout(tmp_path, "one", (1, "MK1-250", "PLA"))
+    two = loadout(tmp_path, "two", (1, "MK1-250", "PLA"), (2, "SDS-05", "PLA"))
+    start_node(farm, "a", {"a1": {"loadout": one}})
+    b = start_node(farm, "b", {"b1": {"loadout": two}})
+    b.server.stop()  # b1 stays registered: the farm knows a printer with T1
+    answer = farm.submit("a", part("400", tool=1), "t1.gcode")
+    assert answer.status_code == 201, answer.text
+    assert answer.json()["eligible"] == ["b1 on b"]
+    assert "T1 selects yoke 1, slot 2" in answer.json()["not_eligible"]["a1 on a"]
+    (job_id,) = answer.json()["jobs"]
+    # a1 matches the needs (none) and claims it; its lint refuses; the job goes back.
+    given = farm.wait(lambda: (job := farm.jobs()[job_id])["given_back"] and job)
+    assert given["state"] == "queued"
+    assert "has no head loaded" in next(iter(given["given_back"].values()))
+    start_node(farm, "b", {"b1": {"loadout": two}})
+    farm.wait(lambda: farm.jobs()[job_id]["state"] == "completed", what="b1 to print it")
+    assert where_ran(farm, "400") == [("b", "b1")]
+
+
+def test_a_printing_farm_job_cancelled_from_another_node_stops_with_its_safe_stop(
+    farm: Farm, tmp_path: Path
+) -> None:
+    pla = loadout(tmp_path, "pla", (1, "MK1-250", "PLA"))
+    a = start_node(farm, "a", {"a1": {"loadout": pla}}, ("--move-time", "0.005"))
+    start_node(farm, "b", {"b1": {"loadout": pla}})
+    (job_id,) = farm.submit("b", part("450", moves=3000), "l.gcode", "printer=a1").json()["jobs"]
+    farm.wait(lambda: _printing(farm, job_id), what="the job to stream")
+    with farm.nodes["b"].client() as client:
+        answer = client.delete(f"/v1/farm/jobs/{job_id}")
+    assert answer.status_code == 200 and answer.json()["cancelling"] is True
+    job = farm.wait(lambda: (j := farm.jobs()[job_id])["state"] == "cancelled" and j)
+    assert 0 < job["lines"] < 3002
+    ran = a.ran("a1")
+    assert sum(" Y450 " in line for line in ran) < 3000
+    # The safe stop ran after the job's last move: the head's heater off (by its address).
+    assert "M104 T47 S0" in ran[-8:] and "G0 Z10" in ran[-8:]
+    assert where_ran(farm, "450") == [("a", "a1")]
+
+
+def test_farm_settings_are_checked_in_one_sentence(farm_db: str, tmp_path: Path) -> None:
+    with_password = farm_db.replace("farm@", "farm:secret@")
+    refused = run_server_cli("--data-dir", str(tmp_path / "d"), "--printer", "x=fake",
+                             "--farm", with_password)  # fmt: skip
+    assert refused.returncode == 2
+    assert refused.stderr.strip() == (
+        "hyrel-server: --farm: give the database's password in PGPASSWORD or ~/.pgpass, not "
+        "in the URL (a URL shows in ps and in logs)"
+    )
+    garbled = run_server_cli("--data-dir", str(tmp_path / "d"), "--printer", "x=fake",
+                             "--farm", "postgresql://farm@host:notaport/db")  # fmt: skip
+    assert garbled.returncode == 2 and "not a PostgreSQL URL" in garbled.stderr
+    assert "Traceback" not in garbled.stderr
+
+
+def test_a_node_refuses_a_newer_schema_and_starts_without_its_database(
+    farm_db: str, tmp_path: Path, postgres: Any
+) -> None:
+    import psycopg
+
+    from repetrel_host.server.farm.schema import MIGRATIONS
+
+    with psycopg.connect(farm_db) as connection:
+        connection.execute("CREATE TABLE farm_schema (version integer)")
+        connection.execute("INSERT INTO farm_schema VALUES (%s)", (len(MIGRATIONS) + 1,))
+    newer = run_server_cli("--data-dir", str(tmp_path / "d"), "--printer", "x=fake",
+                           "--farm", farm_db)  # fmt: skip
+    assert newer.returncode == 2
+    assert "newer than this repetrel-host knows" in newer.stderr
+    assert "upgrade repetrel-host on this node" in newer.stderr
+    # A database that does not answer: the server starts, says so, prints its own queue.
+    nowhere = f"postgresql://farm@127.0.0.1:{postgres.port + 1}/x"
+    server = Server(tmp_path / "d2", {"x": "fake"}, "--api-key", KEY, "--farm", nowhere)
+    server.start()
+    try:
+        with server.client() as client:
+            assert client.get("/v1/farm").status_code == 503
+            answer = client.post(
+                "/v1/printers/x/jobs", files={"file": ("a.gcode", b"G28\nG1 X1\n", "text/plain")}
+            )
+            job_id = answer.json()["id"]
+            farm_wait = Farm(nowhere, tmp_path)
+            farm_wait.wait(
+                lambda: client.get(f"/v1/jobs/{job_id}").json()["state"] == "completed",
+                what="the local job",
+            )
+    finally:
+        server.stop()
+    assert "does not answer" in server.stderr.read_text()

@@ -282,7 +282,7 @@ def farm_follow(
         for event in events:
             if len(codes) == len(ids):
                 break
-            if event.get("kind") != "job" or event.get("progress"):
+            if event.get("kind") != "job":
                 continue
             for job_id in event.get("jobs", [event.get("job")]):
                 if job_id in ids:

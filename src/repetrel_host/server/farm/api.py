@@ -80,6 +80,7 @@ async def farm_json(farm: FarmNode) -> dict[str, Any]:
     nodes = await _asked(farm.db.nodes(TIMEOUT))
     printers = await _asked(farm.db.printers(TIMEOUT))
     jobs = await _asked(farm.db.jobs(TIMEOUT))
+    counts = await _asked(farm.db.counts(TIMEOUT))
     by_id = {node["id"]: node for node in nodes}
     return {
         "node": {"id": farm.id, "name": farm.settings.name, "ready": farm.ready},
@@ -98,7 +99,9 @@ async def farm_json(farm: FarmNode) -> dict[str, Any]:
             }
             for printer in printers
         ],
+        # Queued and streaming jobs, then the last 200 that ended; the counts are of all.
         "jobs": [job_json(job, by_id) for job in jobs],
+        "counts": counts,
     }
 
 

@@ -102,11 +102,17 @@ class FarmNode:
         self.loadouts: dict[str, str | None] = {}
         self.ready = False  # registered, lease held: may claim
         self.away_since: float | None = None
-        self.wanted: set[str] = set()  # printers that may find a job (a notification came)
+        # Counts the farm's news (a job queued, a reconnection): a printer whose last claim
+        # found nothing looks again once there is news since (``_looked``: at which count).
+        self.news = 0
+        self._looked: dict[str, int] = {}
         self._last_check: dict[str, float] = {}
         self._dirty: set[str] = set(services)  # printers whose state the farm has not seen
         self._shown: dict[str, tuple[str, bool, int | None]] = {}
         self._tasks: list[asyncio.Task[None]] = []
+        # Set as the server stops: psycopg may answer a cancelled wait with its own error,
+        # which the loops would otherwise take for an outage and retry.
+        self._stopping = False
         self._wake_sync = asyncio.Event()
         for name, service in services.items():
             service.queue = self
@@ -115,13 +121,11 @@ class FarmNode:
     # --- lifecycle ---------------------------------------------------------------------
 
     async def start(self) -> None:
-        """Migrate (a newer schema: ConfigError), then run the node's loops."""
+        """Run the node's loops (``hyrel-server`` checked the schema before it started)."""
         for name, service in self.services.items():
             self.caps[name], self.loadouts[name] = self._capabilities(name, service)
         try:
             await asyncio.wait_for(self.db.open(), TIMEOUT * 2)
-        except ConfigError:
-            raise
         except (psycopg.Error, OSError, TimeoutError) as exc:
             self._away(exc)  # the loops keep trying: the printers print their own queues
         loop = asyncio.get_running_loop()
@@ -129,6 +133,7 @@ class FarmNode:
             self._tasks.append(loop.create_task(run(), name=f"farm {run.__name__}"))
 
     async def stop(self) -> None:
+        self._stopping = True
         for task in self._tasks:
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
@@ -190,7 +195,7 @@ class FarmNode:
         """Register, then renew the lease (and end others' leases that ran out)."""
         delay = 1.0
         registered = False
-        while True:
+        while not self._stopping:
             try:
                 if not registered:
                     await self._call(self.db.open(), TIMEOUT * 2)  # migrated, pool open
@@ -208,7 +213,7 @@ class FarmNode:
                 if not self.ready:
                     back = self.away_since is not None
                     self.ready, self.away_since, delay = True, None, 1.0
-                    self.wanted = set(self.services)  # notifications may have been missed
+                    self.news += 1  # notifications may have been missed
                     self._dirty = set(self.services)
                     self._wake_sync.set()
                     for service in self.services.values():
@@ -282,7 +287,7 @@ class FarmNode:
         """The farm's notifications: new jobs wake the printers, a cancel for a job here
         cancels it, and all of them go to the farm's event stream."""
         delay = 1.0
-        while True:
+        while not self._stopping:
             try:
                 connection = await self._call(self.db.listen(), TIMEOUT * 2)
             except FarmAway:
@@ -290,16 +295,18 @@ class FarmNode:
                 delay = min(delay * 2, RETRY_MAX)
                 continue
             delay = 1.0
-            self.wanted = set(self.services)  # what came while it was not listening
+            self.news += 1  # what came while it was not listening
             self._wake_printers()
             try:
                 async with connection:
-                    while True:
+                    while not self._stopping:
                         async for notice in connection.notifies(timeout=RECHECK):
                             await self._notified(json.loads(notice.payload))
-                        self.wanted = set(self.services)  # quiet for a while: look anyway
+                        self.news += 1  # quiet for a while: look anyway
                         self._wake_printers()
             except (psycopg.Error, OSError) as exc:
+                if self._stopping:
+                    return
                 self._away(exc)
                 await asyncio.sleep(delay)
 
@@ -307,7 +314,7 @@ class FarmNode:
         self.events.publish({"type": "farm", **message})
         kind = message.get("kind")
         if kind == "job" and message.get("queued"):
-            self.wanted = set(self.services)
+            self.news += 1
             self._wake_printers()
         elif kind == "cancel" and message.get("node") == self.id:
             record = self.store.farm_job(int(message["job"]))
@@ -336,8 +343,9 @@ class FarmNode:
 
     async def _claim(self, printer: str) -> JobRecord | None:
         now = time.monotonic()
-        if printer not in self.wanted and now - self._last_check.get(printer, 0) < RECHECK:
-            return None
+        news = self.news
+        if self._looked.get(printer) == news and now - self._last_check.get(printer, 0) < RECHECK:
+            return None  # nothing new since it last found nothing
         if not self.ready:
             return None
         self._last_check[printer] = now
@@ -346,7 +354,7 @@ class FarmNode:
         except FarmAway:
             return None
         if row is None:
-            self.wanted.discard(printer)
+            self._looked[printer] = news  # news that came meanwhile makes it look again
             return None
         self.cache.mkdir(parents=True, exist_ok=True)
         name = row["name"]
@@ -409,7 +417,7 @@ class FarmNode:
 
     async def _sync(self) -> None:
         """Tell the farm what the printers did (their jobs' records) and how they stand."""
-        while True:
+        while not self._stopping:
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(self._wake_sync.wait(), SYNC_INTERVAL)
             self._wake_sync.clear()

@@ -22,7 +22,8 @@ export async function mount(main, { stream, say }) {
   );
   const grid = h("div", { id: "farm", class: "tiles" });
   const empty = h("p", { class: "empty", hidden: true }, "No printer in this group.");
-  main.append(h("div", { class: "toolbar" }, chips, sortSelect), grid, empty);
+  const farmWide = h("section", { id: "farm-wide", hidden: true });
+  main.append(h("div", { class: "toolbar" }, chips, sortSelect), grid, empty, farmWide);
   document.getElementById("crumbs").textContent = "all printers";
 
   async function loadFiles() {
@@ -195,6 +196,10 @@ export async function mount(main, { stream, say }) {
   stream.on("file", () => loadFiles().then(draw));
   stream.onReconnect(load);
   await load();
+  // A server in a farm shows the whole farm under its own printers.
+  import("./panels/farmwide.js")
+    .then((farmwide) => farmwide.mount(farmWide, { say }))
+    .catch((error) => console.error("the farm's panel did not load", error));
 }
 
 function shortLabel(sensor) {
