@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 import signal
+import subprocess
+import sys
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -456,6 +458,24 @@ def test_hyrel_send_and_a_slicers_upload_feed_the_farm_and_a_held_printer_waits(
                          "--require", "material=ABS")  # fmt: skip
     assert refused.returncode == 2
     assert "no printer of the farm can print cube.gcode" in refused.stderr
+    # A job that only held printers could take: hyrel-send says what it waits for.
+    waiting = subprocess.Popen(
+        [sys.executable, "-m", "repetrel_host.cli", str(job), "--server", url,
+         "--api-key", KEY, "--farm"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+    try:
+        assert waiting.stdout is not None
+        said = [waiting.stdout.readline() for _ in range(3)]
+    finally:
+        waiting.kill()
+        waiting.wait(10)
+    assert said[1].strip().endswith(": queued")
+    assert said[2].strip() == (
+        f"farm job {third + 1} waits: the printers that can print it are held, a part on the "
+        f"bed (a1 at a); once a bed is clear, release it (hyrel-send --server {url} "
+        "--printer a1 --release, or its page)"
+    )
     # SIGTERM stops a node at once (its loops never take the stop for an outage).
     began = time.monotonic()
     assert node.server.stop() == 0

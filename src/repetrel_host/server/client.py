@@ -250,6 +250,9 @@ def farm_cancel(client: ServerClient, job_id: int) -> dict[str, Any]:
     return answer
 
 
+_STAGE = {"queued": 0, "claimed": 1, "printing": 2, "paused": 2}  # the rest: ended (3)
+
+
 def farm_follow(
     client: ServerClient,
     ids: list[int],
@@ -265,7 +268,9 @@ def farm_follow(
     def look(job_id: int, state: str | None = None) -> None:
         job = client.request("GET", f"/v1/farm/jobs/{job_id}")
         state = state or job["state"]
-        if shown.get(job_id) != state and job_id not in codes:
+        # An event may come after the job was seen further on: never told backwards.
+        behind = _STAGE.get(state, 3) < _STAGE.get(shown.get(job_id, "queued"), 3)
+        if shown.get(job_id) != state and job_id not in codes and not behind:
             shown[job_id] = state
             where = f" on {job['printer']} at node {job['node_name']}" * bool(job["printer"])
             show(f"farm job {job_id} ({job['name']}): {state}{where}")
@@ -276,9 +281,20 @@ def farm_follow(
                 show(f"farm job {job_id}: where it would resume: {job['resume_url']}")
             codes[job_id] = ENDED[job["state"]]
 
+    def waiting() -> None:
+        """Jobs still queued whose printers are all held or offline: say so (once each)."""
+        for job_id in ids:
+            if shown.get(job_id) == "queued" and job_id not in hinted:
+                hint = _waiting_hint(client, job_id)
+                if hint:
+                    hinted.add(job_id)
+                    show(hint)
+
+    hinted: set[int] = set()
     try:
         for job_id in ids:
             look(job_id)
+        waiting()
         for event in events:
             if len(codes) == len(ids):
                 break
@@ -287,6 +303,8 @@ def farm_follow(
             for job_id in event.get("jobs", [event.get("job")]):
                 if job_id in ids:
                     look(job_id, event.get("state"))
+                    if job_id in codes:
+                        waiting()
             if len(codes) == len(ids):
                 break
         else:
@@ -298,3 +316,33 @@ def farm_follow(
         )
         return 130
     return max(codes.values(), default=0)
+
+
+def _waiting_hint(client: ServerClient, job_id: int) -> str:
+    """Why a queued farm job cannot start now, when no printer that can take it is free:
+    the ones that can are held (a part on the bed) or offline; "" when one is free or busy."""
+    from repetrel_host.server.farm.needs import missing
+
+    farm = client.request("GET", "/v1/farm")
+    job = next((j for j in farm["jobs"] if j["id"] == job_id), None)
+    if job is None or job["state"] != "queued":
+        return ""
+    able = [
+        p
+        for p in farm["printers"]
+        if not missing(p["capabilities"], job["needs"])
+        and f"{p['node']}/{p['name']}" not in job["given_back"]
+    ]
+    if any(p["state"] != "offline" and not (p["held"] and p["state"] == "ready") for p in able):
+        return ""  # one is free, or busy printing: the job waits its turn
+    held = [p for p in able if p["held"] and p["state"] == "ready"]
+    if held:
+        first = held[0]
+        node_url = first["url"].rsplit("/printers/", 1)[0]
+        names = ", ".join(f"{p['name']} at {p['node_name']}" for p in held)
+        return (
+            f"farm job {job_id} waits: the printers that can print it are held, a part on the "
+            f"bed ({names}); once a bed is clear, release it (hyrel-send --server {node_url} "
+            f"--printer {first['name']} --release, or its page)"
+        )
+    return f"farm job {job_id} waits: no printer that can print it is online"

@@ -214,6 +214,8 @@ async def submit(
         partial.replace(cached)  # this node prints it without fetching it back
     finally:
         partial.unlink(missing_ok=True)
+        for service in server.services.values():
+            service.forget(partial)  # its check was of the upload, not of a job here
     user = user_of(request)
     ids = await _asked(
         farm.db.submit(name, file_hash, wanted, priority, copies, commands, user, TIMEOUT)
