@@ -583,3 +583,47 @@ def test_a_node_refuses_a_newer_schema_and_starts_without_its_database(
     finally:
         server.stop()
     assert "does not answer" in server.stderr.read_text()
+
+
+def test_a_node_that_stopped_between_a_claim_and_its_record_reconciles(
+    farm: Farm, tmp_path: Path
+) -> None:
+    """The farm says this node holds two jobs it has no record of: one claimed (it stopped
+    before writing it down: nothing ran, the job goes back to the queue and is printed),
+    one started (its data folder was replaced: interrupted, never printed again by itself)."""
+    import asyncio
+
+    from repetrel_host.server.farm.db import FarmDB
+    from repetrel_host.server.farm.needs import capabilities
+
+    node_id = "00000000-0000-4000-8000-000000000001"
+    data = tmp_path / "data-a"
+    data.mkdir()
+    (data / "farm-node-id").write_text(node_id + "\n")
+    source = tmp_path / "r.gcode"
+    source.write_bytes(part("460"))
+
+    async def before() -> tuple[int, int]:
+        import hashlib
+
+        db = FarmDB(farm.url)
+        await db.open()
+        has = capabilities("a1", "a", None, "reprap", [])
+        await db.register(node_id, "a", "http://a", "test", LEASE * 10, [("a1", has, None)], 5)
+        digest = hashlib.sha256(source.read_bytes()).hexdigest()
+        await db.store_file(source, digest, 5)
+        first, second = await db.submit("r.gcode", digest, {}, 0, 2, 32, None, 5)
+        claimed = await db.claim(node_id, "a1", has, 5)
+        started = await db.claim(node_id, "a1", has, 5)
+        assert claimed and started and (claimed["id"], started["id"]) == (first, second)
+        assert await db.start(second, started["fence"], 5)
+        await db.close()
+        return first, second
+
+    claimed_id, started_id = asyncio.run(before())
+    start_node(farm, "a", {"a1": {}})
+    farm.wait(lambda: farm.jobs()[claimed_id]["state"] == "completed", what="the claimed job")
+    started = farm.wait(lambda: (job := farm.jobs()[started_id])["state"] == "interrupted" and job)
+    assert started["error"] == "node a has no record of the job"
+    assert where_ran(farm, "460") == [("a", "a1")]
+    assert sum(" Y460 " in line for line in farm.nodes["a"].ran("a1")) == 30  # once
