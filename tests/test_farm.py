@@ -627,3 +627,17 @@ def test_a_node_that_stopped_between_a_claim_and_its_record_reconciles(
     assert started["error"] == "node a has no record of the job"
     assert where_ran(farm, "460") == [("a", "a1")]
     assert sum(" Y460 " in line for line in farm.nodes["a"].ran("a1")) == 30  # once
+
+
+def test_farm_options_without_a_server_get_one_sentence(tmp_path: Path) -> None:
+    job = tmp_path / "j.gcode"
+    job.write_bytes(part("1"))
+    for args in (("--require", "material=PLA"), ("--farm",), ("--copies", "2")):
+        done = hyrel_send(str(job), *args)
+        assert done.returncode == 2, args
+        assert done.stderr.strip() == (
+            "error: --farm, --require, --priority and --copies go with --server URL"
+        )
+    done = hyrel_send(str(job), "--server", "http://127.0.0.1:9", "--farm", "--printer", "x")
+    assert done.returncode == 2
+    assert "--printer and --release name one printer: not with --farm" in done.stderr
