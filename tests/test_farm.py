@@ -37,10 +37,12 @@ def loadout(tmp: Path, name: str, *heads: tuple[int, str, str]) -> Path:
     return path
 
 
-def part(job: str, moves: int = 30, tool: int = 0) -> bytes:
-    """A job whose moves name it (Y is its number): the executed logs tell where it ran."""
+def part(job: str, moves: int = 30, tool: int = 0, unique: bool = False) -> bytes:
+    """A job whose moves name it (Y is its number): the executed logs tell where it ran
+    (``unique``: each move's X its own, so the logs tell which lines ran)."""
     number = int(job)
-    lines = [f"T{tool}", "G28"] + [f"G1 X{i % 100} Y{number} F6000" for i in range(moves)]
+    xs = [f"{i * 0.1:.1f}" if unique else str(i % 100) for i in range(moves)]
+    lines = [f"T{tool}", "G28"] + [f"G1 X{x} Y{number} F6000" for x in xs]
     return ("\n".join(lines) + "\n").encode()
 
 
@@ -288,7 +290,7 @@ def test_a_node_killed_mid_job_leaves_it_interrupted_and_rejoins(
     pla = loadout(tmp_path, "pla", (1, "MK1-250", "PLA"))
     start_node(farm, "a", {"a1": {"loadout": pla}}, fake_args=("--move-time", "0.004"))
     start_node(farm, "b", {"b1": {"loadout": pla}})
-    answer = farm.submit("b", part("500", moves=3000), "long.gcode", "printer=a1")
+    answer = farm.submit("b", part("500", moves=3000, unique=True), "long.gcode", "printer=a1")
     (long_job,) = answer.json()["jobs"]
     farm.wait(lambda: _printing(farm, long_job), what="the long job to stream on a1")
     farm.nodes["a"].server.stop(signal.SIGKILL)
@@ -321,6 +323,25 @@ def test_a_node_killed_mid_job_leaves_it_interrupted_and_rejoins(
         local = client.get(f"/v1/jobs/{job['local_id']}").json()
         assert local["farm_job"] == long_job and local["state"] == "interrupted"
     assert {p["name"]: p["state"] for p in farm.view()["printers"]}["a1"] != "offline"
+    # Its resume command: the rest of the file, on a1 (its part is on that bed), once the
+    # person who looked at it releases a1.
+    line = job["last_line"] + 1
+    # (farm.jobs() asks node a, the first running: its own URL is in the command)
+    assert job["resume_command"] == (
+        f"hyrel-send --server {node.server.url} --farm --resume {long_job}"
+    )
+    with node.client() as client:
+        assert client.post("/v1/printers/a1/release").status_code == 204
+    went_on = hyrel_send("--server", node.server.url, "--api-key", KEY, "--farm",
+                         "--resume", str(long_job))  # fmt: skip
+    assert went_on.returncode == 0, went_on.stdout + went_on.stderr
+    assert f"farm job {long_job}: the rest, from line {line}, queued as farm job" in went_on.stdout
+    assert "completed on a1 at node a" in went_on.stdout
+    rest = max(farm.jobs())
+    assert farm.jobs()[rest]["resumes"] == long_job and farm.jobs()[rest]["from_line"] == line
+    moves = [entry for entry in node.ran("a1") if " Y500 " in entry]
+    expected = [f"G1 X{i * 0.1:.1f} Y500 F6000" for i in range(line - 3, 3000)]
+    assert moves[-len(expected) :] == expected
 
 
 def test_postgresql_restarting_mid_run_stops_no_stream_and_claims_resume(
@@ -545,7 +566,11 @@ def test_farm_settings_are_checked_in_one_sentence(farm_db: str, tmp_path: Path)
     )
     garbled = run_server_cli("--data-dir", str(tmp_path / "d"), "--printer", "x=fake",
                              "--farm", "postgresql://farm@host:notaport/db")  # fmt: skip
-    assert garbled.returncode == 2 and "not a PostgreSQL URL" in garbled.stderr
+    assert garbled.returncode == 2
+    assert garbled.stderr.strip() == (
+        "hyrel-server: --farm postgresql://farm@host:notaport/db: the port 'notaport' is not "
+        "a number"
+    )
     assert "Traceback" not in garbled.stderr
 
 
@@ -636,7 +661,7 @@ def test_farm_options_without_a_server_get_one_sentence(tmp_path: Path) -> None:
         done = hyrel_send(str(job), *args)
         assert done.returncode == 2, args
         assert done.stderr.strip() == (
-            "error: --farm, --require, --priority and --copies go with --server URL"
+            "error: --farm, --require, --priority, --copies and --resume go with --server URL"
         )
     done = hyrel_send(str(job), "--server", "http://127.0.0.1:9", "--farm", "--printer", "x")
     assert done.returncode == 2

@@ -147,8 +147,9 @@ async def test_a_newer_schema_is_refused_in_one_sentence(farm_db: str) -> None:
     await db.close()
     with psycopg.connect(farm_db) as connection:
         connection.execute("INSERT INTO farm_schema VALUES (%s)", (len(MIGRATIONS) + 1,))
+    newer = FarmDB(farm_db)
     with pytest.raises(ConfigError, match="newer than this repetrel-host knows"):
-        await FarmDB(farm_db).open()
+        await newer.open()  # refused before its pool opens
 
 
 async def test_a_file_goes_in_and_out_in_chunks(db: FarmDB, tmp_path: Path) -> None:
@@ -163,3 +164,24 @@ async def test_a_file_goes_in_and_out_in_chunks(db: FarmDB, tmp_path: Path) -> N
     async with db.pool.connection() as connection:
         cursor = await connection.execute("SELECT count(*) AS n FROM file_chunks")
         assert (await cursor.fetchone())["n"] == 3
+
+
+async def test_an_older_schema_is_migrated_once_in_order(farm_db: str) -> None:
+    with psycopg.connect(farm_db) as connection:  # a farm made by the first version
+        connection.execute("CREATE TABLE farm_schema (version integer)")
+        connection.execute(MIGRATIONS[0])
+        connection.execute("INSERT INTO farm_schema VALUES (1)")
+    for _ in range(2):  # the second time, nothing is left to do
+        db = FarmDB(farm_db)
+        assert await db.open() == len(MIGRATIONS)
+        await db.close()
+    with psycopg.connect(farm_db) as connection:
+        versions = [row[0] for row in connection.execute("SELECT version FROM farm_schema")]
+        columns = {
+            row[0]
+            for row in connection.execute(
+                "SELECT column_name FROM information_schema.columns WHERE table_name = 'jobs'"
+            )
+        }
+    assert versions == list(range(1, len(MIGRATIONS) + 1))
+    assert {"from_line", "resumes"} <= columns

@@ -355,6 +355,14 @@ def send(
     copies: Annotated[
         int, typer.Option(help="With --farm: print this many (default 1).", min=1)
     ] = 1,
+    resume: Annotated[
+        int | None,
+        typer.Option(
+            metavar="ID",
+            help="With --farm: go on with farm job ID on the printer that printed it, from "
+            "its first line not acknowledged (or --from-line, --from-layer).",
+        ),
+    ] = None,
     console_mode: Annotated[bool, typer.Option("--console", help=CONSOLE_HELP)] = False,
     version: Annotated[
         bool,
@@ -403,16 +411,22 @@ def send(
             raise typer.Exit(run_console(terminal, load_user_config(config), given))
         if from_line is not None and from_layer is not None:
             raise UsageError("--from-line and --from-layer both say where to resume: give one")
-        if server is not None and (from_line is not None or from_layer is not None):
-            raise UsageError("--from-line and --from-layer resume on a port, not with --server")
         if server is not None and farm:
             if printer or release:
                 raise UsageError("--printer and --release name one printer: not with --farm")
+            if resume is None and (from_line is not None or from_layer is not None):
+                raise UsageError("with --farm, --from-line and --from-layer go with --resume ID")
             request = ServerRequest(printer, api_key, job, list_jobs, cancel, release)
-            farm_request = FarmRequest(require or [], priority, copies)
+            farm_request = FarmRequest(
+                require or [], priority, copies, resume, from_line, from_layer
+            )
             raise typer.Exit(_with_farm(console, server, request, farm_request))
-        if require or farm or priority or copies != 1:
-            raise UsageError("--farm, --require, --priority and --copies go with --server URL")
+        if server is not None and (from_line is not None or from_layer is not None):
+            raise UsageError("--from-line and --from-layer resume on a port, not with --server")
+        if require or farm or priority or copies != 1 or resume is not None:
+            raise UsageError(
+                "--farm, --require, --priority, --copies and --resume go with --server URL"
+            )
         if server is not None:
             request = ServerRequest(printer, api_key, job, list_jobs, cancel, release)
             code = _with_server(console, server, request)
@@ -495,6 +509,9 @@ class FarmRequest:
     requires: list[str]
     priority: int
     copies: int
+    resume: int | None = None  # a farm job to go on with, on the printer that printed it
+    from_line: int | None = None
+    from_layer: int | None = None
 
 
 def _with_farm(console: Out, url: str, request: ServerRequest, farm: FarmRequest) -> int:
@@ -516,9 +533,20 @@ def _with_farm(console: Out, url: str, request: ServerRequest, farm: FarmRequest
             show(line)
         if request.job is None:
             return EXIT_OK
-    if request.job is None:
-        raise UsageError("give the JOB to send to the farm (or --list, --cancel ID)")
     events = server.events(None, "/v1/farm/events")
+    if farm.resume is not None:
+        if request.job is not None:
+            raise UsageError("--resume ID goes on with the farm's own file: give no JOB")
+        next(events)  # subscribed before the job exists: nothing is missed
+        answer = client.farm_resume(server, farm.resume, farm.from_line, farm.from_layer)
+        (made,) = answer["jobs"]
+        show(
+            f"farm job {farm.resume}: the rest, from line {answer['from_line']}, queued as "
+            f"farm job {made} for the printer that printed it"
+        )
+        return client.farm_follow(server, [made], events, show)
+    if request.job is None:
+        raise UsageError("give the JOB to send to the farm (or --list, --cancel ID, --resume ID)")
     next(events)  # subscribed before the job exists: nothing is missed
     queued = client.farm_submit(server, request.job, farm.requires, farm.priority, farm.copies)
     for finding in queued["findings"]:

@@ -245,6 +245,18 @@ def farm_jobs(client: ServerClient) -> list[str]:
     return lines
 
 
+def farm_resume(
+    client: ServerClient, job_id: int, from_line: int | None, from_layer: int | None
+) -> dict[str, Any]:
+    """Queue the rest of farm job ``job_id`` for the printer that printed it."""
+    where = {"from_line": from_line, "from_layer": from_layer}
+    body = json.dumps({k: v for k, v in where.items() if v is not None}).encode()
+    answer: dict[str, Any] = client.request(
+        "POST", f"/v1/farm/jobs/{job_id}/resume", body, "application/json"
+    )
+    return answer
+
+
 def farm_cancel(client: ServerClient, job_id: int) -> dict[str, Any]:
     answer: dict[str, Any] = client.request("DELETE", f"/v1/farm/jobs/{job_id}")
     return answer
@@ -277,8 +289,8 @@ def farm_follow(
         if job["state"] in ENDED and job_id not in codes:
             line = f"farm job {job_id}: {job['lines']} lines (to line {job['last_line']})"
             show(f"{line}: {job['error']}" if job["error"] else line)
-            if job["resume_url"]:
-                show(f"farm job {job_id}: where it would resume: {job['resume_url']}")
+            if job["resume_command"]:
+                show(f"farm job {job_id}: to go on with it: {job['resume_command']}")
             codes[job_id] = ENDED[job["state"]]
 
     def waiting() -> None:

@@ -193,6 +193,9 @@ def _check_farm_url(url: str) -> None:
     except Exception as exc:  # psycopg's ProgrammingError: the URL's own words
         _fail(f"--farm {url}: not a PostgreSQL URL ({str(exc).strip()})")
         raise  # not reached
+    port = str(info.get("port", ""))
+    if port and not all(part.isdigit() for part in port.split(",")):
+        _fail(f"--farm {url}: the port '{port}' is not a number")
     if "password" in info:
         _fail(
             "--farm: give the database's password in PGPASSWORD or ~/.pgpass, not in the URL "

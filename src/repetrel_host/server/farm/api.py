@@ -18,21 +18,29 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, File, Form, HTTPException, Request, UploadFile
 from fastapi.responses import StreamingResponse
+from pydantic import BaseModel, Field
 
 import repetrel_host as rh
 from repetrel_host.config import UserConfig
 from repetrel_host.gcode.lint import Severity
-from repetrel_host.planning import JobRequest, plan_job
+from repetrel_host.planning import JobRequest, layer_line, plan_job
 from repetrel_host.server.auth import user_of
 from repetrel_host.server.core import PrintServer, safe_file_name, server_of
 from repetrel_host.server.farm import needs
 from repetrel_host.server.farm.db import CHUNK
-from repetrel_host.server.farm.node import TIMEOUT, FarmNode
+from repetrel_host.server.farm.node import FILE_TIMEOUT, TIMEOUT, FarmNode
 
 log = logging.getLogger("repetrel_host.server.farm")
 
 KEEPALIVE = 15.0
 MAX_COPIES = 100
+
+
+class Resume(BaseModel):
+    """Where a resumed farm job starts (neither: its first line not acknowledged)."""
+
+    from_line: int | None = Field(default=None, ge=1)
+    from_layer: int | None = Field(default=None, ge=1)
 
 
 def farm_of(request: Request) -> FarmNode:
@@ -56,8 +64,10 @@ async def _asked(call: Any, timeout: float = TIMEOUT) -> Any:
         ) from None
 
 
-def job_json(job: dict[str, Any], nodes: dict[str, dict[str, Any]]) -> dict[str, Any]:
+def job_json(job: dict[str, Any], nodes: dict[str, dict[str, Any]], here: str) -> dict[str, Any]:
+    """A farm job as the API shows it (``here``: this node's URL, for its resume command)."""
     node = nodes.get(job["node"] or "")
+    resumable = job["state"] in ("interrupted", "failed", "cancelled") and job["last_line"] > 0
     shown = {key: value for key, value in job.items() if key not in ("fence", "refused")}
     return {
         **shown,
@@ -66,12 +76,14 @@ def job_json(job: dict[str, Any], nodes: dict[str, dict[str, Any]]) -> dict[str,
         "node_url": node["url"] if node else None,
         "given_back": job["refused"],
         "fence": job["fence"],
-        # Where it would go on from (the node's /v1/jobs/LOCAL/resume has the command).
-        "resume_from_line": job["last_line"] + 1
-        if job["state"] in ("interrupted", "failed", "cancelled") and job["last_line"] > 0
+        # Where it would go on from, on the printer that printed it (the part is on its
+        # bed): the farm's command, and the node's own account (/v1/jobs/LOCAL/resume).
+        "resume_from_line": job["last_line"] + 1 if resumable else None,
+        "resume_command": f"hyrel-send --server {here} --farm --resume {job['id']}"
+        if resumable
         else None,
         "resume_url": f"{node['url']}/v1/jobs/{job['local_id']}/resume"
-        if node and job["local_id"] and job["state"] in ("interrupted", "failed", "cancelled")
+        if node and job["local_id"] and resumable
         else None,
     }
 
@@ -100,7 +112,7 @@ async def farm_json(farm: FarmNode) -> dict[str, Any]:
             for printer in printers
         ],
         # Queued and streaming jobs, then the last 200 that ended; the counts are of all.
-        "jobs": [job_json(job, by_id) for job in jobs],
+        "jobs": [job_json(job, by_id, farm.settings.node_url) for job in jobs],
         "counts": counts,
     }
 
@@ -210,7 +222,7 @@ async def submit(
         file_hash = digest.hexdigest()
         # Stored in the database a chunk at a time (a gigabyte is never held in memory).
         await _asked(farm.db.store_file(partial, file_hash, TIMEOUT), max(TIMEOUT, size / 2e6))
-        cached = farm.cache / f"{file_hash[:12]}-{name}"
+        cached = farm.cache_path(file_hash, name)
         partial.replace(cached)  # this node prints it without fetching it back
     finally:
         partial.unlink(missing_ok=True)
@@ -245,7 +257,8 @@ def router() -> APIRouter:
     async def jobs(request: Request) -> list[dict[str, Any]]:
         farm = farm_of(request)
         nodes = {node["id"]: node for node in await _asked(farm.db.nodes(TIMEOUT))}
-        return [job_json(job, nodes) for job in await _asked(farm.db.jobs(TIMEOUT))]
+        here = farm.settings.node_url
+        return [job_json(job, nodes, here) for job in await _asked(farm.db.jobs(TIMEOUT))]
 
     @router.post("/v1/farm/jobs", status_code=201)
     async def submit_job(
@@ -266,7 +279,36 @@ def router() -> APIRouter:
         if found is None:
             raise HTTPException(404, f"the farm has no job {job_id}")
         nodes = {node["id"]: node for node in await _asked(farm.db.nodes(TIMEOUT))}
-        return job_json(found, nodes)
+        return job_json(found, nodes, farm.settings.node_url)
+
+    @router.post("/v1/farm/jobs/{job_id}/resume", status_code=201)
+    async def resume(request: Request, job_id: int, wanted: Resume | None = None) -> dict[str, Any]:
+        """Queue the rest of a job that did not complete, for the printer that printed it:
+        from its first line not acknowledged, or ``from_line``, or ``from_layer``."""
+        farm = farm_of(request)
+        wanted = wanted or Resume()
+        found = await _asked(farm.db.job(job_id, TIMEOUT))
+        if found is None:
+            raise HTTPException(404, f"the farm has no job {job_id}")
+        line = wanted.from_line or found["last_line"] + 1
+        if wanted.from_layer is not None:
+            if wanted.from_line is not None:
+                raise HTTPException(400, "from_layer and from_line both say where: give one")
+            path = farm.cache_path(found["file"], found["name"])
+            if not path.exists():
+                await _asked(farm.db.fetch_file(found["file"], path, TIMEOUT), FILE_TIMEOUT)
+            try:
+                line = await asyncio.to_thread(layer_line, path, wanted.from_layer)
+            except rh.UsageError as exc:
+                raise HTTPException(400, str(exc)) from None
+        try:
+            made = await _asked(farm.db.resume(job_id, line, TIMEOUT))
+        except LookupError as exc:
+            raise HTTPException(404, str(exc)) from None
+        except ValueError as exc:
+            raise HTTPException(409, str(exc)) from None
+        log.info("farm: job %d resumed from line %d as job %d", job_id, line, made)
+        return {"jobs": [made], "resumes": job_id, "from_line": line}
 
     @router.delete("/v1/farm/jobs/{job_id}")
     async def cancel(request: Request, job_id: int) -> dict[str, Any]:

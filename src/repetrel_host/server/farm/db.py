@@ -45,6 +45,7 @@ ACTIVE = ("claimed", "printing", "paused")
 _JOB = """
     id, name, file, needs, priority, state, submitted_by, total_lines, node::text AS node,
     printer, fence, refused, lines, last_line, error, report, filament, safe_stop, local_id,
+    from_line, resumes,
     extract(epoch FROM submitted)::float8 AS submitted,
     extract(epoch FROM claimed)::float8 AS claimed,
     extract(epoch FROM started)::float8 AS started,
@@ -368,6 +369,43 @@ class FarmDB:
             if row is not None and row["was"] != fields["state"]:
                 await self._notify(db, {"kind": "job", "job": job, "state": fields["state"]})
             return row is not None
+
+    async def resume(self, job: int, from_line: int, timeout: float) -> int:
+        """Queue the rest of an ended job from ``from_line``, for the printer that printed
+        it (its part is on that bed); the new job's number. ValueError (a sentence) when
+        the job cannot be resumed."""
+        async with self._transaction(timeout) as db:
+            row = await (
+                await db.execute(
+                    "SELECT j.*, n.name AS node_name FROM jobs j LEFT JOIN nodes n"
+                    " ON n.id = j.node WHERE j.id = %s",
+                    (job,),
+                )
+            ).fetchone()
+            if row is None:
+                raise LookupError(f"the farm has no job {job}")
+            if row["state"] not in ("interrupted", "failed", "cancelled"):
+                raise ValueError(f"farm job {job} is {row['state']}: nothing to resume")
+            if row["printer"] is None or row["node_name"] is None:
+                raise ValueError(f"farm job {job} never ran on a printer: queue it again")
+            pinned = {"names": [f"{row['node_name']}/{row['printer']}"]}
+            cursor = await db.execute(
+                "INSERT INTO jobs (name, file, needs, priority, total_lines, submitted_by,"
+                " from_line, resumes) VALUES (%s, %s, %s, %s, %s, %s, %s, %s) RETURNING id",
+                (
+                    row["name"],
+                    row["file"],
+                    Jsonb(pinned),
+                    row["priority"],
+                    row["total_lines"],
+                    row["submitted_by"],
+                    from_line,
+                    job,
+                ),
+            )
+            made = (await cursor.fetchone())["id"]
+            await self._notify(db, {"kind": "job", "jobs": [made], "queued": True})
+            return int(made)
 
     async def cancel(self, job: int, timeout: float) -> dict[str, Any] | None:
         """Cancel a queued job at once; a claimed or streaming one is asked of its node

@@ -358,7 +358,7 @@ class FarmNode:
             return None
         self.cache.mkdir(parents=True, exist_ok=True)
         name = row["name"]
-        path = self.cache / f"{row['file'][:12]}-{name}"
+        path = self.cache_path(row["file"], name)
         log.info("farm: printer %s claimed farm job %d (%s)", printer, row["id"], name)
         return self.store.submit(
             printer,
@@ -366,8 +366,13 @@ class FarmNode:
             path.relative_to(self.data_dir).as_posix(),
             row["total_lines"],
             row["submitted_by"],
+            from_line=row["from_line"],
             farm=(row["id"], row["fence"]),
         )
+
+    def cache_path(self, digest: str, name: str) -> Path:
+        """Where this node keeps a farm file (fetched, or uploaded here)."""
+        return self.cache / f"{digest[:12]}-{name}"
 
     async def _prepare(self, record: JobRecord) -> bool:
         """A farm job about to stream here: its file fetched, checked for this printer (a
