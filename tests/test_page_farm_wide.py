@@ -71,6 +71,24 @@ def test_the_page_shows_every_node_and_sends_a_file_to_the_farm(
         "the page to show the job completed (from the farm's events)",
     )
     assert where_ran(farm, "302") in ([("bench-a", "a1")], [("bench-a", "a2")])
+
+    # A job cancelled as it streamed: the page offers its rest, on the printer it was on.
+    long = farm.submit("bench-a", part("303", moves=2000), "long.gcode", "printer=a2")
+    (cut,) = long.json()["jobs"]
+    farm.wait(lambda: farm.jobs()[cut]["lines"] > 50, what="the long job to stream")
+    with a.client() as client:
+        assert client.delete(f"/v1/farm/jobs/{cut}").status_code == 200
+    farm.wait(lambda: farm.jobs()[cut]["state"] == "cancelled", what="the cancel")
+    button = f'.farm-jobs tr[data-job="{cut}"] button.resume'
+    browser.wait(lambda: browser.text(button) == "Resume on a2", "the Resume button")
+    browser.click(button)
+    rest = browser.wait(
+        lambda: next((j for j in farm.jobs().values() if j["resumes"] == cut), None),
+        "the rest of the job queued",
+    )
+    assert rest["from_line"] == farm.jobs()[cut]["last_line"] + 1
+    farm.wait(lambda: farm.jobs()[rest["id"]]["state"] == "completed", what="the rest")
+    assert farm.jobs()[rest["id"]]["printer"] == "a2"
     SCREENSHOTS.mkdir(exist_ok=True)
     browser.screenshot(SCREENSHOTS / "farm-nodes-desktop.png", 1400, 900)
     browser.screenshot(SCREENSHOTS / "farm-nodes-phone.png", 400, 900)

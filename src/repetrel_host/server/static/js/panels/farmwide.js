@@ -3,7 +3,7 @@
 // form that submits a file with its requirements. Kept fresh by the farm's event stream
 // (PostgreSQL's notifications). On a server that is not in a farm, nothing is shown.
 
-import { get, del, upload, keyed, h, clock } from "../api.js";
+import { call, get, del, upload, keyed, h, clock } from "../api.js";
 
 const STATE_CLASS = { ready: "ok", printing: "busy", paused: "paused", offline: "offline", error: "error" };
 const ENDED_SHOWN = 10; // the last jobs that ended, under the queue
@@ -80,20 +80,27 @@ export async function mount(section, { say }) {
     const ended = farm.jobs.filter((job) => !active.includes(job)).slice(0, ENDED_SHOWN);
     const rows = [...active, ...ended].map((job) => {
       const where = job.printer ? `${job.printer} at ${job.node_name}` : "";
-      const cancel = ["queued", "claimed", "printing", "paused"].includes(job.state)
-        ? h("button", { type: "button", class: "danger", onclick: () => cancelJob(job) }, "Cancel")
-        : null;
+      let action = null;
+      if (["queued", "claimed", "printing", "paused"].includes(job.state)) {
+        action = h("button", { type: "button", class: "danger", onclick: () => cancelJob(job) }, "Cancel");
+      } else if (job.resume_from_line) {
+        action = h(
+          "button",
+          { type: "button", class: "resume", title: `queue the rest, from line ${job.resume_from_line}, for ${job.printer} at ${job.node_name} (its part is on that bed)`, onclick: () => resumeJob(job) },
+          `Resume on ${job.printer}`,
+        );
+      }
       return h(
         "tr",
         { dataset: { job: job.id, state: job.state } },
         h("td", {}, job.id),
-        h("td", { class: "file" }, job.name),
+        h("td", { class: "file", title: job.name }, job.name, job.from_line ? h("span", { class: "muted" }, ` from line ${job.from_line}`) : null),
         h("td", {}, h("span", { class: `badge ${badge(job.state)}` }, job.state)),
         h("td", {}, job.requires, job.priority ? ` · priority ${job.priority}` : ""),
         h("td", {}, where),
         h("td", { class: "numbers" }, job.total_lines ? `${job.lines}/${job.total_lines}` : ""),
         h("td", { class: "error" }, job.error || ""),
-        h("td", {}, cancel),
+        h("td", {}, action),
       );
     });
     if (!rows.length) return h("p", { class: "empty" }, "No farm jobs yet: submit a file above, or use hyrel-send --server URL --farm.");
@@ -113,6 +120,15 @@ export async function mount(section, { say }) {
     if (job.state !== "queued" && !confirm(`Cancel farm job ${job.id} (${job.name})? Its printer stops it with the safe stop.`)) return;
     try {
       await del(`/v1/farm/jobs/${job.id}`);
+      await refresh();
+    } catch (error) {
+      say(error.message);
+    }
+  }
+
+  async function resumeJob(job) {
+    try {
+      await call("POST", `/v1/farm/jobs/${job.id}/resume`, {});
       await refresh();
     } catch (error) {
       say(error.message);
