@@ -459,6 +459,12 @@ def send(
                 raise typer.Exit(EXIT_BAD_INPUT if refused else EXIT_OK)
             if dry_run:  # a preview: shown even when the findings would refuse the job
                 link = link_settings(LinkRequest(protocol=_value(protocol)), plan.machine)
+                # On stderr: stdout holds the commands alone, for a script to read.
+                errors.print(
+                    f"{plan.job.name}: a dry run, nothing sent; machine profile "
+                    f"{plan.profile.describe()}, {link.protocol} protocol",
+                    markup=False,
+                )
                 _dry_run(plan, framed, link.protocol)
                 raise typer.Exit(EXIT_OK)
             plan.refuse(findings, force, "--force")
