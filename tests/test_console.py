@@ -23,9 +23,7 @@ from tests.helpers import EXAMPLE, executed
 
 CURSOR_QUERY = re.compile(rb"\x1b\[6n")
 M110_REFUSED = "error: M110 sets line numbers, which the host owns; it cannot be sent"
-PRINTING_REFUSED = (
-    "error: a job is printing: commands wait until it ends or is paused (pause() first)"
-)
+PRINTING_REFUSED = "error: a job is printing: type !pause first (a command waits)"
 MOVES = "".join(f"G1 X{i % 50} Y{i % 7} F3000\n" for i in range(120))
 
 
@@ -231,6 +229,11 @@ def test_cancel_and_quit_stop_the_job_with_the_safe_stop(
         term.type("!cancel")
         term.expect("cancelling moves.gcode: sending the safe-stop sequence")
         term.expect("moves.gcode: stopped (the last line the controller acknowledged is")
+        # As hyrel-send does: the command that goes on from where it stopped.
+        term.expect(
+            f"to resume from the first line not acknowledged: hyrel-send {job} --port "
+            f"{slow_fake.port} --from-line ",
+        )
         term.type(f"!print {job}")
         term.expect("printing moves.gcode")
         term.type("!quit")
@@ -304,3 +307,21 @@ def test_a_line_longer_than_controllers_take_is_refused_and_the_session_goes_on(
     assert "error: the command is 204 characters long; controllers take at most 96" in out
     assert "greeting the controller again" not in out
     assert re.search(r"^ok T:\d+\.\d", out, re.MULTILINE), out
+
+
+@pytest.mark.timeout(60)
+def test_m112_goes_at_once_even_while_a_job_prints(tmp_path: Path, slow_fake: BuiltInFake) -> None:
+    job = tmp_path / "moves.gcode"
+    job.write_text(MOVES)
+    term = Term(tmp_path, "--port", slow_fake.port)
+    try:
+        term.type(f"!print {job}")
+        term.expect("printing moves.gcode")
+        term.type("G28")
+        term.expect(PRINTING_REFUSED)  # an ordinary command: the console's words
+        term.type("M112")
+        term.expect("M112 sent at once: emergency stop")
+        term.expect("moves.gcode: failed: stopped by an emergency stop (M112)")
+    finally:
+        term.close()
+    assert "M112" in executed(slow_fake.log_path)

@@ -52,6 +52,8 @@ from repetrel_host.planning import (
     link_settings,
 )
 from repetrel_host.protocol.reports import format_temperatures
+from repetrel_host.pump import Outcome
+from repetrel_host.resume import resume_command
 from repetrel_host.session import Printer, PrintJob, connect
 
 if TYPE_CHECKING:
@@ -319,7 +321,13 @@ class PrinterConsole:
 
     async def _command(self, line: str) -> None:
         try:
-            reply = await self.printer.command(line)
+            reply = await self.printer.command(line)  # M112 and M108 go even mid-job
+        except UsageError as exc:
+            why = str(exc)
+            if self.printer.state is State.PRINTING:  # the session's words are the API's
+                why = "a job is printing: type !pause first (a command waits)"
+            self.say(f"error: {why}")
+            return
         except HostError as exc:
             self.say(f"error: {exc}")
             return
@@ -513,12 +521,30 @@ class PrinterConsole:
                 summary = await job.wait()
             except SafeStopError as exc:
                 self.say(f"{job.name}: not safe: {exc}")
+                self._resume_hint(job)
             except HostError as exc:
                 self.say(f"{job.name}: failed: {exc}")
+                self._resume_hint(job)
             else:
                 self.say(summary_text(job.name, summary, job.where()))
+                if summary.outcome is not Outcome.COMPLETED:
+                    self._resume_hint(job)
         finally:
             await actions.close()
+
+    def _resume_hint(self, job: PrintJob) -> None:
+        """The command that goes on with a job that did not complete, as hyrel-send says."""
+        line = job.resume_line
+        if line is None:
+            return
+        arguments = [str(job.plan.job.path.resolve()), "--port", self.printer.port]
+        if self.options.machine:
+            arguments += ["--machine", self.options.machine]
+        if self.options.loadout:
+            arguments += ["--loadout", str(self.options.loadout)]
+        after = "not known to have run" if job.resume_known_to_run else "not acknowledged"
+        command = resume_command(tuple(arguments), line)
+        self.say(f"to resume from the first line {after}: {command}")
 
     def _paused(self, job: PrintJob, event: Paused) -> None:
         message = f": {event.message}" if event.message else ""
