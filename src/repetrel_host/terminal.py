@@ -83,6 +83,9 @@ CONSOLE_HELP = (
 )
 
 
+LABEL = 32  # characters of a command that label its reply lines from a pipe
+
+
 @dataclass(frozen=True)
 class ConsoleOptions:
     """What the command line says about the console's session and its jobs."""
@@ -314,31 +317,35 @@ class PrinterConsole:
             word, _, rest = text[1:].partition(" ")
             return await self._console_command(word.lower(), rest.strip())
         if wait:
-            await self._command(text)
+            await self._command(text, label=True)
         else:
             self._spawn(self._command(text))
         return True
 
-    async def _command(self, line: str) -> None:
+    async def _command(self, line: str, label: bool = False) -> None:
+        """Send a typed line and show its reply; ``label``: each reply line after the
+        command it answers (from a pipe, where no prompt shows what was typed)."""
+        shown = line if len(line) <= LABEL else f"{line[: LABEL - 3]}..."
+        say = (lambda text: self.say(f"{shown}: {text}")) if label else self.say
         try:
             reply = await self.printer.command(line)  # M112 and M108 go even mid-job
         except UsageError as exc:
             why = str(exc)
             if self.printer.state is State.PRINTING:  # the session's words are the API's
                 why = "a job is printing: type !pause first (a command waits)"
-            self.say(f"error: {why}")
+            say(f"error: {why}")
             return
         except HostError as exc:
-            self.say(f"error: {exc}")
+            say(f"error: {exc}")
             return
         for text in reply.lines:
-            self.say(text)
+            say(text)
         if reply.ok:
-            self.say(reply.ok)
+            say(reply.ok)
         elif command_word(reply.command) == "M112":
-            self.say("M112 sent at once: emergency stop (the controller halts until reset)")
+            say("M112 sent at once: emergency stop (the controller halts until reset)")
         else:
-            self.say(f"{reply.command} sent at once")
+            say(f"{reply.command} sent at once")
 
     async def _quietly(self, command: str) -> None:
         with contextlib.suppress(HostError):
