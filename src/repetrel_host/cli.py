@@ -733,7 +733,7 @@ async def _send(
     )
     try:
         plan = _plan_for(printer, plan, user, errors, options.force)
-        job = await _stream(console, errors, printer, plan, user, options)
+        job, estimate = await _stream(console, errors, printer, plan, user, options)
     except (LinkError, ControllerError, ProtocolError, SafeStopError):
         if printer.last_job is not None:  # the job failed: then the failure's sentence
             _print_resume_hint(console, printer.last_job, options)
@@ -741,7 +741,7 @@ async def _send(
     finally:
         await printer.close()
     summary = await job.wait()
-    _print_summary(console, summary, plan, job.where())
+    _print_summary(console, summary, plan, job.where(), estimate)
     if summary.outcome is not Outcome.COMPLETED:
         _print_resume_hint(console, job, options)
     _print_report(console, job, options.report)
@@ -801,8 +801,9 @@ async def _stream(
     plan: JobPlan,
     user: UserConfig,
     options: Options,
-) -> PrintJob:
-    """Stream the job with a progress bar; returns it once it ended (however it did)."""
+) -> tuple[PrintJob, float | None]:
+    """Stream the job with a progress bar; returns it once it ended (however it did), and
+    the slicer's estimate of the whole print in seconds (None: the file gives none)."""
     loop = asyncio.get_running_loop()
     stream_file = history_file(options.history, user, plan.job)
     history = None if options.no_history else stream_file
@@ -905,23 +906,26 @@ async def _stream(
     if keyboard:
         console.print("Keys: p pauses and resumes; Ctrl-C stops the job safely.")
     progress.start()
-    if console.console.is_terminal:  # where the status line shows (the scan costs ~1 µs a line)
-        tasks.add(loop.create_task(status.read_marks()))
+    # The slicer's marks: the status line's layer and Z, and its estimate beside the real
+    # duration at the end (the scan costs ~1 µs a line, in a thread beside the stream).
+    tasks.add(loop.create_task(status.read_marks()))
     refresher = asyncio.create_task(refresh())
     watcher = asyncio.create_task(_watch(console, printer, job, actions, wait_for_enter, keyboard))
+    completed = False
     try:
-        summary = await job.wait()
+        completed = (await job.wait()).outcome is Outcome.COMPLETED
     finally:
         keys.stop()
         for running in (refresher, watcher, *tasks):
             running.cancel()
         loop.remove_signal_handler(signal.SIGINT)
         _update(progress, task, job, started, status)
+        if completed:  # its last state, as output that is not a terminal keeps it
+            progress.update(task, completed=job.size, left="")  # trailing comments too
+            progress.status = progress.status.split(" · *")[0]  # no time left to explain
         progress.stop()
         await actions.close()
-    if summary.outcome is Outcome.COMPLETED:
-        progress.update(task, completed=job.size)  # trailing comments count as sent
-    return job
+    return job, status.estimate()
 
 
 async def _watch(
@@ -988,8 +992,14 @@ def _update(
     )
 
 
-def _print_summary(console: Out, summary: Summary, plan: JobPlan, last: str) -> None:
+def _print_summary(
+    console: Out, summary: Summary, plan: JobPlan, last: str, estimate: float | None = None
+) -> None:
     text = summary_text(plan.job.name, summary, f"interrupted; {last}")
+    if estimate is not None and summary.outcome is Outcome.COMPLETED:
+        from repetrel_host.display import clock  # loaded with the bar already
+
+        text += f" (the slicer estimated {clock(estimate)})"
     console.print(f"{text}; machine profile {plan.profile.name}.", markup=False)
 
 

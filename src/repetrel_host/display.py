@@ -58,6 +58,16 @@ class JobStatus:
     async def read_marks(self) -> None:
         self.marks = await asyncio.to_thread(scan_marks, self.path)
 
+    def estimate(self) -> float | None:
+        """The slicer's estimate of the whole print, in seconds (None: none, or not read)."""
+        marks = self.marks
+        if marks is None:
+            return None
+        if marks.total_seconds is not None:
+            return marks.total_seconds
+        first = next((left for _, _, left in marks.progress if left is not None), None)
+        return first * 60 if first is not None else None  # M73 R: minutes left at the start
+
     def show(self, job: PrintJob, elapsed: float) -> tuple[str, str]:
         """The status line (``layer 12/82 · Z 3.65 · 42 % (M73) · T 200.1/200 · B 60.0/60``)
         and the time left: the slicer's estimate where it gave one (starred), else the
@@ -75,9 +85,9 @@ class JobStatus:
         done = job.offset
         if where is not None and where.seconds_left is not None:
             parts.append("*time left: the slicer's estimate")
-            left = f"{_clock(where.seconds_left)} left*"
+            left = f"{clock(where.seconds_left)} left*"
         elif done > 0 and elapsed > 0:
-            left = f"{_clock(elapsed / done * max(job.size - done, 0))} left"
+            left = f"{clock(elapsed / done * max(job.size - done, 0))} left"
         else:
             left = ""
         return " · ".join(parts), left
@@ -89,7 +99,7 @@ class JobStatus:
         return self.marks.at(last.source_line, job.offset / max(job.size, 1))
 
 
-def _clock(seconds: float) -> str:
+def clock(seconds: float) -> str:
     minutes, second = divmod(int(seconds + 0.5), 60)
     hours, minute = divmod(minutes, 60)
     return f"{hours}:{minute:02d}:{second:02d}" if hours else f"{minute}:{second:02d}"
