@@ -79,3 +79,25 @@ def test_until_line_reads_no_further_than_needed(tmp_path: Path, monkeypatch) ->
     assert 4 <= len(found.layers) < 99  # the piece holding line 10, not the whole file
     assert found.at(10).layer == Layer(4, 10, 4)
     assert found.z_changes == [(2 + 3 * n, n + 1) for n in range(len(found.layers))]
+
+
+def test_the_slicers_estimate_is_read_from_the_files_ends(tmp_path: Path) -> None:
+    from repetrel_host.gcode.marks import slicer_estimate
+
+    body = "".join(f"G1 X{i % 100} Y1 F3000\n" for i in range(20000))  # 400 KB between
+    prusa = tmp_path / "prusa.gcode"
+    prusa.write_text("M73 P0 R12\n" + body + "; estimated printing time (normal mode) = 12m 33s\n")
+    assert slicer_estimate(prusa) == 753.0  # the footer's, to the second
+    cura = tmp_path / "cura.gcode"
+    cura.write_text(";TIME:4567\n" + body)
+    assert slicer_estimate(cura) == 4567.0
+    m73 = tmp_path / "m73.gcode"
+    m73.write_text("M73 P0 R30\n" + body)
+    assert slicer_estimate(m73) == 1800.0
+    small = tmp_path / "small.gcode"
+    small.write_text(";TIME:60\nG28\n")
+    assert slicer_estimate(small) == 60.0
+    none = tmp_path / "none.gcode"
+    none.write_text(body)
+    assert slicer_estimate(none) is None
+    assert slicer_estimate(tmp_path / "missing.gcode") is None

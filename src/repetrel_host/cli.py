@@ -39,7 +39,7 @@ from repetrel_host.errors import (
 )
 from repetrel_host.events import Message, Notice, Paused, PauseReason, Resend, State, StopDelayed
 from repetrel_host.gcode.lint import Finding, Severity
-from repetrel_host.gcode.marks import scan_marks
+from repetrel_host.gcode.marks import scan_marks, slicer_estimate
 from repetrel_host.job import HostAction
 from repetrel_host.links import FAKE_PORT, FakeLink
 from repetrel_host.planning import (
@@ -906,9 +906,8 @@ async def _stream(
     if keyboard:
         console.print("Keys: p pauses and resumes; Ctrl-C stops the job safely.")
     progress.start()
-    # The slicer's marks: the status line's layer and Z, and its estimate beside the real
-    # duration at the end (the scan costs ~1 µs a line, in a thread beside the stream).
-    tasks.add(loop.create_task(status.read_marks()))
+    if console.console.is_terminal:  # where the status line shows (the scan costs CPU a line)
+        tasks.add(loop.create_task(status.read_marks()))
     refresher = asyncio.create_task(refresh())
     watcher = asyncio.create_task(_watch(console, printer, job, actions, wait_for_enter, keyboard))
     completed = False
@@ -925,7 +924,8 @@ async def _stream(
             progress.status = progress.status.split(" · *")[0]  # no time left to explain
         progress.stop()
         await actions.close()
-    return job, status.estimate()
+    # The slicer's estimate, beside the real duration in the summary (the file's ends only).
+    return job, await asyncio.to_thread(slicer_estimate, plan.job.path)
 
 
 async def _watch(

@@ -58,16 +58,6 @@ class JobStatus:
     async def read_marks(self) -> None:
         self.marks = await asyncio.to_thread(scan_marks, self.path)
 
-    def estimate(self) -> float | None:
-        """The slicer's estimate of the whole print, in seconds (None: none, or not read)."""
-        marks = self.marks
-        if marks is None:
-            return None
-        if marks.total_seconds is not None:
-            return marks.total_seconds
-        first = next((left for _, _, left in marks.progress if left is not None), None)
-        return first * 60 if first is not None else None  # M73 R: minutes left at the start
-
     def show(self, job: PrintJob, elapsed: float) -> tuple[str, str]:
         """The status line (``layer 12/82 · Z 3.65 · 42 % (M73) · T 200.1/200 · B 60.0/60``)
         and the time left: the slicer's estimate where it gave one (starred), else the
