@@ -470,6 +470,11 @@ def test_hyrel_send_and_a_slicers_upload_feed_the_farm_and_a_held_printer_waits(
         assert client.post("/v1/printers/a1/release").status_code == 204
     farm.wait(lambda: farm.jobs()[2]["state"] == "completed", what="the slicer's job")
     assert where_ran(farm, "900") == [("a", "a1")] and where_ran(farm, "901") == [("a", "a1")]
+    with node.client() as client:  # what cannot be resumed is refused in a sentence
+        done = client.post("/v1/farm/jobs/1/resume")
+        assert done.status_code == 409
+        assert done.json()["error"] == "farm job 1 is completed: nothing to resume"
+        assert client.post("/v1/farm/jobs/99/resume").json()["error"] == "the farm has no job 99"
     # Held again; a queued job cancelled from the command line never runs.
     (third,) = farm.submit("a", part("903"), "third.gcode").json()["jobs"]
     cancelled = hyrel_send("--server", url, "--api-key", KEY, "--farm", "--cancel", str(third))

@@ -262,9 +262,6 @@ def farm_cancel(client: ServerClient, job_id: int) -> dict[str, Any]:
     return answer
 
 
-_STAGE = {"queued": 0, "claimed": 1, "printing": 2, "paused": 2}  # the rest: ended (3)
-
-
 def farm_follow(
     client: ServerClient,
     ids: list[int],
@@ -272,53 +269,46 @@ def farm_follow(
     show: Callable[[str], None],
 ) -> int:
     """Follow farm jobs to their ends through the farm's events (subscribed to before
-    they were submitted: nothing is missed), telling each change of state; hyrel-send's
-    exit code (the worst of theirs)."""
+    they were submitted: nothing is missed, and each change comes in the order it was
+    made), telling each change of state; hyrel-send's exit code (the worst of theirs)."""
     shown: dict[int, str] = {}
     codes: dict[int, int] = {}
+    hinted: set[int] = set()
 
-    def look(job_id: int, state: str | None = None) -> None:
-        job = client.request("GET", f"/v1/farm/jobs/{job_id}")
-        state = state or job["state"]
-        # An event may come after the job was seen further on: never told backwards.
-        behind = _STAGE.get(state, 3) < _STAGE.get(shown.get(job_id, "queued"), 3)
-        if shown.get(job_id) != state and job_id not in codes and not behind:
+    def told(job_id: int, state: str) -> None:
+        job = client.request("GET", f"/v1/farm/jobs/{job_id}")  # who prints it, how far
+        if shown.get(job_id) != state:
             shown[job_id] = state
-            where = f" on {job['printer']} at node {job['node_name']}" * bool(job["printer"])
+            where = f" on {job['printer']} at node {job['node_name']}" * bool(
+                job["printer"] and state != "queued"
+            )
             show(f"farm job {job_id} ({job['name']}): {state}{where}")
-        if job["state"] in ENDED and job_id not in codes:
+        if state in ENDED:
             line = f"farm job {job_id}: {job['lines']} lines (to line {job['last_line']})"
             show(f"{line}: {job['error']}" if job["error"] else line)
             if job["resume_command"]:
                 show(f"farm job {job_id}: to go on with it: {job['resume_command']}")
-            codes[job_id] = ENDED[job["state"]]
+            codes[job_id] = ENDED[state]
+        elif state == "queued" and job_id not in hinted:
+            hint = _waiting_hint(client, job_id)  # its printers all held or offline
+            if hint:
+                hinted.add(job_id)
+                show(hint)
 
-    def waiting() -> None:
-        """Jobs still queued whose printers are all held or offline: say so (once each)."""
-        for job_id in ids:
-            if shown.get(job_id) == "queued" and job_id not in hinted:
-                hint = _waiting_hint(client, job_id)
-                if hint:
-                    hinted.add(job_id)
-                    show(hint)
-
-    hinted: set[int] = set()
     try:
-        for job_id in ids:
-            look(job_id)
-        waiting()
         for event in events:
-            if len(codes) == len(ids):
-                break
             if event.get("kind") != "job":
                 continue
+            state = event.get("state") or ("queued" if event.get("queued") else None)
             for job_id in event.get("jobs", [event.get("job")]):
-                if job_id in ids:
-                    look(job_id, event.get("state"))
-                    if job_id in codes:
-                        waiting()
+                if job_id in ids and job_id not in codes and state is not None:
+                    told(job_id, state)
             if len(codes) == len(ids):
                 break
+            if codes:  # one ended: a copy still queued may now wait for a held printer
+                for job_id in ids:
+                    if shown.get(job_id) == "queued" and job_id not in hinted:
+                        told(job_id, "queued")
         else:
             raise LinkError(f"the print server at {client.url} closed the farm's event stream")
     except KeyboardInterrupt:

@@ -16,8 +16,10 @@ from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Annotated, Any
 
+import psycopg
 from fastapi import APIRouter, File, Form, HTTPException, Request, UploadFile
 from fastapi.responses import StreamingResponse
+from psycopg_pool import PoolTimeout
 from pydantic import BaseModel, Field
 
 import repetrel_host as rh
@@ -53,12 +55,11 @@ def farm_of(request: Request) -> FarmNode:
 
 
 async def _asked(call: Any, timeout: float = TIMEOUT) -> Any:
-    """A database call for a request: 503 with a sentence while the database is away."""
+    """A database call for a request: 503 with a sentence while the database is away
+    (the call's own refusals, a LookupError or a ValueError, pass)."""
     try:
         return await asyncio.wait_for(call, timeout + 1)
-    except Exception as exc:  # psycopg's, the pool's, a timeout: one sentence each
-        if isinstance(exc, HTTPException):
-            raise
+    except (psycopg.Error, PoolTimeout, ConnectionError, TimeoutError) as exc:
         raise HTTPException(
             503, f"the farm's database does not answer ({type(exc).__name__}): try again"
         ) from None
