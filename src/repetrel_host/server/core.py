@@ -232,20 +232,11 @@ async def save_upload(
     target_dir.mkdir(parents=True, exist_ok=True)
     # Written beside it under a hidden name first: a failed upload replaces nothing.
     partial = target_dir / f".upload-{secrets.token_hex(8)}.part"
-    size = 0
     digest = hashlib.sha1(usedforsecurity=False)
     try:
-        with partial.open("xb") as out:
-            while chunk := await upload.read(1 << 20):
-                size += len(chunk)
-                if size > server.max_upload:
-                    raise HTTPException(413, f"the upload is over {server.max_upload} bytes")
-                out.write(chunk)
-                digest.update(chunk)
-            out.flush()
-            # On disk before the client hears it is there; checked in a thread: a big file
-            # must not hold the event loop (and every printer's stream) up.
-            await asyncio.to_thread(os.fsync, out.fileno())
+        await receive(server, upload, partial, digest)
+        # Checked in a thread: a big file must not hold the event loop (and every
+        # printer's stream) up.
         findings, commands = await asyncio.to_thread(check, server, printer, partial)
         findings = [f.replace(partial.name, name) for f in findings]
         errors = [f for f in findings if f.startswith("error")]
@@ -268,6 +259,23 @@ async def save_upload(
         server.analyses.keep(target, summary, made_from)  # a rename keeps size and time
     file_changed(server, target, "added", "add")
     return Upload(target, findings, commands, "; ".join(filter(None, (shortened, note))))
+
+
+async def receive(server: PrintServer, upload: UploadFile, partial: Path, digest: Any) -> int:
+    """Write ``upload`` to the new file ``partial`` a megabyte at a time, feeding
+    ``digest``; on disk (fsync) before the client hears it is there. Its size; 413 past
+    the server's largest upload (the caller removes ``partial``)."""
+    size = 0
+    with partial.open("xb") as out:
+        while chunk := await upload.read(1 << 20):
+            size += len(chunk)
+            if size > server.max_upload:
+                raise HTTPException(413, f"the upload is over {server.max_upload} bytes")
+            out.write(chunk)
+            digest.update(chunk)
+        out.flush()
+        await asyncio.to_thread(os.fsync, out.fileno())
+    return size
 
 
 def _analysed(path: Path) -> Summary | None:

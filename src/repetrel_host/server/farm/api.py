@@ -8,7 +8,6 @@ import asyncio
 import hashlib
 import json
 import logging
-import os
 import secrets
 import tempfile
 import time
@@ -27,9 +26,8 @@ from repetrel_host.config import UserConfig
 from repetrel_host.gcode.lint import Severity
 from repetrel_host.planning import JobRequest, layer_line, plan_job
 from repetrel_host.server.auth import user_of
-from repetrel_host.server.core import PrintServer, safe_file_name, server_of
+from repetrel_host.server.core import PrintServer, receive, safe_file_name, server_of
 from repetrel_host.server.farm import needs
-from repetrel_host.server.farm.db import CHUNK
 from repetrel_host.server.farm.node import FILE_TIMEOUT, TIMEOUT, FarmNode
 
 log = logging.getLogger("repetrel_host.server.farm")
@@ -193,17 +191,8 @@ async def submit(
     farm.cache.mkdir(parents=True, exist_ok=True)
     partial = farm.cache / f".upload-{secrets.token_hex(8)}.part"
     digest = hashlib.sha256()
-    size = 0
     try:
-        with partial.open("xb") as out:
-            while chunk := await upload.read(CHUNK):
-                size += len(chunk)
-                if size > server.max_upload:
-                    raise HTTPException(413, f"the upload is over {server.max_upload} bytes")
-                out.write(chunk)
-                digest.update(chunk)
-            out.flush()
-            await asyncio.to_thread(os.fsync, out.fileno())
+        size = await receive(server, upload, partial, digest)
         printers = await _asked(farm.db.printers(TIMEOUT))
         if not printers:
             raise HTTPException(409, "the farm has no printer registered yet")
