@@ -97,6 +97,12 @@ class FarmDB:
         async with self.pool.connection(timeout) as connection, connection.transaction():
             yield connection
 
+    async def _rows(self, timeout: float, query: str, params: Any = ()) -> list[dict[str, Any]]:
+        """The rows of one read, as dicts (the pool's row factory)."""
+        async with self.pool.connection(timeout) as db:
+            cursor: Any = await db.execute(query, params)
+            return list(await cursor.fetchall())
+
     async def _notify(self, db: Any, message: dict[str, Any]) -> None:
         await db.execute("SELECT pg_notify(%s, %s)", (CHANNEL, json.dumps(message)))
 
@@ -193,24 +199,22 @@ class FarmDB:
 
     async def printers(self, timeout: float) -> list[dict[str, Any]]:
         """Every registered printer, with its node and whether that node is alive."""
-        async with self._transaction(timeout) as db:
-            cursor = await db.execute(
-                "SELECT p.node::text AS node, n.name AS node_name, n.url, p.name, p.caps,"
-                " p.loadout, p.state, p.held, p.job, n.lost_at IS NOT NULL AS lost,"
-                " extract(epoch FROM n.lease_until)::float8 AS lease_until"
-                " FROM printers p JOIN nodes n ON n.id = p.node ORDER BY n.name, p.name"
-            )
-            return list(await cursor.fetchall())
+        return await self._rows(
+            timeout,
+            "SELECT p.node::text AS node, n.name AS node_name, n.url, p.name, p.caps,"
+            " p.loadout, p.state, p.held, p.job, n.lost_at IS NOT NULL AS lost,"
+            " extract(epoch FROM n.lease_until)::float8 AS lease_until"
+            " FROM printers p JOIN nodes n ON n.id = p.node ORDER BY n.name, p.name",
+        )
 
     async def nodes(self, timeout: float) -> list[dict[str, Any]]:
-        async with self._transaction(timeout) as db:
-            cursor = await db.execute(
-                "SELECT id::text AS id, name, url, version, lost_at IS NOT NULL AS lost,"
-                " extract(epoch FROM joined)::float8 AS joined,"
-                " extract(epoch FROM lease_until)::float8 AS lease_until,"
-                " extract(epoch FROM lost_at)::float8 AS lost_at FROM nodes ORDER BY name"
-            )
-            return list(await cursor.fetchall())
+        return await self._rows(
+            timeout,
+            "SELECT id::text AS id, name, url, version, lost_at IS NOT NULL AS lost,"
+            " extract(epoch FROM joined)::float8 AS joined,"
+            " extract(epoch FROM lease_until)::float8 AS lease_until,"
+            " extract(epoch FROM lost_at)::float8 AS lost_at FROM nodes ORDER BY name",
+        )
 
     # --- files ------------------------------------------------------------------------
 
@@ -428,40 +432,35 @@ class FarmDB:
             return dict(row)
 
     async def job(self, job: int, timeout: float) -> dict[str, Any] | None:
-        async with self._transaction(timeout) as db:
-            cursor = await db.execute(f"SELECT {_JOB} FROM jobs WHERE id = %s", (job,))
-            row = await cursor.fetchone()
-            return dict(row) if row is not None else None
+        rows = await self._rows(timeout, f"SELECT {_JOB} FROM jobs WHERE id = %s", (job,))
+        return rows[0] if rows else None
 
     async def jobs(self, timeout: float, ended: int = 200) -> list[dict[str, Any]]:
         """Queued jobs in the order they will be claimed, those claimed or streaming, and
         the last ``ended`` that ended, newest first."""
-        async with self._transaction(timeout) as db:
-            cursor = await db.execute(
-                f"(SELECT {_JOB} FROM jobs WHERE state = 'queued' ORDER BY priority DESC, id)"
-                f" UNION ALL (SELECT {_JOB} FROM jobs WHERE state IN ('claimed', 'printing',"
-                " 'paused') ORDER BY id)"
-                f" UNION ALL (SELECT {_JOB} FROM jobs WHERE state NOT IN ('queued', 'claimed',"
-                " 'printing', 'paused') ORDER BY ended DESC NULLS LAST, id DESC LIMIT %s)",
-                (ended,),
-            )
-            return [dict(row) for row in await cursor.fetchall()]
+        return await self._rows(
+            timeout,
+            f"(SELECT {_JOB} FROM jobs WHERE state = 'queued' ORDER BY priority DESC, id)"
+            f" UNION ALL (SELECT {_JOB} FROM jobs WHERE state IN ('claimed', 'printing',"
+            " 'paused') ORDER BY id)"
+            f" UNION ALL (SELECT {_JOB} FROM jobs WHERE state NOT IN ('queued', 'claimed',"
+            " 'printing', 'paused') ORDER BY ended DESC NULLS LAST, id DESC LIMIT %s)",
+            (ended,),
+        )
 
     async def counts(self, timeout: float) -> dict[str, int]:
         """How many jobs are in each state."""
-        async with self._transaction(timeout) as db:
-            cursor = await db.execute("SELECT state, count(*) AS n FROM jobs GROUP BY state")
-            return {row["state"]: row["n"] for row in await cursor.fetchall()}
+        rows = await self._rows(timeout, "SELECT state, count(*) AS n FROM jobs GROUP BY state")
+        return {row["state"]: row["n"] for row in rows}
 
     async def held_by(self, node: str, timeout: float) -> list[dict[str, Any]]:
         """The jobs the farm thinks this node holds (claimed, printing, paused)."""
-        async with self._transaction(timeout) as db:
-            cursor = await db.execute(
-                f"SELECT {_JOB} FROM jobs WHERE node = %s AND state IN ('claimed', 'printing',"
-                " 'paused')",
-                (node,),
-            )
-            return [dict(row) for row in await cursor.fetchall()]
+        return await self._rows(
+            timeout,
+            f"SELECT {_JOB} FROM jobs WHERE node = %s AND state IN ('claimed', 'printing',"
+            " 'paused')",
+            (node,),
+        )
 
 
 class LeaseLost(Exception):
