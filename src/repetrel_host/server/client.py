@@ -7,7 +7,7 @@ from __future__ import annotations
 import json
 import os
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -34,11 +34,20 @@ class ServerClient:
         self.api_key = api_key or os.environ.get(API_KEY_ENV)
 
     def request(
-        self, method: str, path: str, body: bytes | None = None, content_type: str = ""
+        self,
+        method: str,
+        path: str,
+        body: bytes | Iterable[bytes] | None = None,
+        content_type: str = "",
+        length: int | None = None,
     ) -> Any:
+        """One call and its JSON answer; ``body`` may come in pieces (``length``: their
+        size in all, which a body in pieces must state)."""
         headers = {"Accept": "application/json"}
         if content_type:
             headers["Content-Type"] = content_type
+        if length is not None:
+            headers["Content-Length"] = str(length)
         if self.api_key:
             headers["X-Api-Key"] = self.api_key
         request = Request(f"{self.url}{path}", data=body, headers=headers, method=method)
@@ -95,17 +104,14 @@ class ServerClient:
                 yield chunk
             yield tail
 
-        headers = {
-            "Accept": "application/json",
-            "Content-Type": f"multipart/form-data; boundary={boundary}",
-            "Content-Length": str(len(head.encode()) + size + len(tail)),
-        }
-        if self.api_key:
-            headers["X-Api-Key"] = self.api_key
-        request = Request(f"{self.url}{where}", data=body(), headers=headers, method="POST")
-        with handle, self._reaching(), urlopen(request, timeout=TIMEOUT) as response:
-            data = response.read()
-        return json.loads(data) if data else None
+        with handle:
+            return self.request(
+                "POST",
+                where,
+                body(),
+                f"multipart/form-data; boundary={boundary}",
+                len(head.encode()) + size + len(tail),
+            )
 
     def events(self, printer: str | None, where: str = "/v1/events") -> Iterator[dict[str, Any]]:
         """The server's events for ``printer`` (or at ``where``: the farm's), as they come."""
