@@ -66,6 +66,7 @@ class FarmDB:
 
     def __init__(self, url: str, size: int = 4) -> None:
         self.url = url
+        self.version: int | None = None  # the schema's, once migrated
         self.pool = AsyncConnectionPool(
             url,
             min_size=1,
@@ -77,11 +78,13 @@ class FarmDB:
         )
 
     async def open(self) -> int:
-        """Connect and migrate; the schema's version."""
-        async with await AsyncConnection.connect(self.url, **CONNECTION) as connection:
-            version = await migrate(connection)
+        """Migrate (once: a node that joins again after an outage does not), then open the
+        pool; the schema's version."""
+        if self.version is None:
+            async with await AsyncConnection.connect(self.url, **CONNECTION) as connection:
+                self.version = await migrate(connection)
         await self.pool.open(wait=False)
-        return version
+        return self.version
 
     async def close(self) -> None:
         await self.pool.close(timeout=1.0)

@@ -121,13 +121,11 @@ class FarmNode:
     # --- lifecycle ---------------------------------------------------------------------
 
     async def start(self) -> None:
-        """Run the node's loops (``hyrel-server`` checked the schema before it started)."""
+        """Run the node's loops: the heartbeats' first opens the database and joins
+        (``hyrel-server`` checked the schema before it started; while the database is
+        away the printers print their own queues)."""
         for name, service in self.services.items():
             self.caps[name], self.loadouts[name] = self._capabilities(name, service)
-        try:
-            await asyncio.wait_for(self.db.open(), TIMEOUT * 2)
-        except (psycopg.Error, OSError, TimeoutError) as exc:
-            self._away(exc)  # the loops keep trying: the printers print their own queues
         loop = asyncio.get_running_loop()
         for run in (self._heartbeats, self._listen, self._sync):
             self._tasks.append(loop.create_task(run(), name=f"farm {run.__name__}"))
@@ -198,7 +196,7 @@ class FarmNode:
         while not self._stopping:
             try:
                 if not registered:
-                    await self._call(self.db.open(), TIMEOUT * 2)  # migrated, pool open
+                    await self._call(self.db.open(), TIMEOUT * 2)  # migrated once, pool open
                     await self._register()
                     registered = True
                 ended = await self._call(self.db.heartbeat(self.id, self.settings.lease, TIMEOUT))
