@@ -61,7 +61,7 @@ from repetrel_host.protocol.dialects.reprap import DEFAULT_REPLY_TIMEOUT
 from repetrel_host.protocol.events import ProbeKind
 from repetrel_host.protocol.flow import FlowMode
 from repetrel_host.pump import Outcome, Summary
-from repetrel_host.resume import RESUME_SOURCE, HomeAxes, resume_command
+from repetrel_host.resume import RESUME_SOURCE, HomeAxes, resume_command, resume_from
 from repetrel_host.session import RECONNECT_WAIT, Printer, PrintJob, connect
 from repetrel_host.terminal import CONSOLE_HELP, ConsoleOptions, run_console
 
@@ -1016,14 +1016,11 @@ def _announce_resume(out: Out, plan: JobPlan, layer: int | None) -> None:
 
 def _print_resume_hint(console: Out, job: PrintJob, options: Options) -> None:
     """The command that resumes a job that did not complete, where any of it ran."""
+    found = resume_from(job, options.command_line) if options.command_line else None
     line = job.resume_line
-    if line is None or not options.command_line:
+    if found is None or line is None:
         return
-    after = "not known to have run" if job.resume_known_to_run else "not acknowledged"
-    console.print(
-        f"To resume from the first line {after}: {resume_command(options.command_line, line)}",
-        markup=False,
-    )
+    console.print(f"To resume from the first line {found[0]}: {found[1]}", markup=False)
     layer = scan_marks(job.plan.job.path, until_line=line).at(line).layer
     if layer is not None:
         # A reset or a lost link also loses what the controller had taken but not yet run

@@ -33,8 +33,12 @@ import shlex
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from enum import StrEnum
+from typing import TYPE_CHECKING
 
 from repetrel_host.gcode.commands import command_word
+
+if TYPE_CHECKING:
+    from repetrel_host.session import PrintJob
 
 RESUME_SOURCE = "resume"  # JobLine.source of the preamble's lines
 LIFT = 10.0  # mm above the highest Z of the skipped part (the safe stop lifts 10 mm too)
@@ -353,6 +357,17 @@ def _n(value: float) -> str:
     """A number as G-code writes it: no exponent, no trailing zeros."""
     text = f"{value:.4f}".rstrip("0").rstrip(".")
     return "0" if text in ("", "-0") else text
+
+
+def resume_from(job: PrintJob, arguments: tuple[str, ...]) -> tuple[str, str] | None:
+    """Where a job that did not complete goes on, as hyrel-send and the console say it:
+    which first line (``not acknowledged``, or ``not known to have run``) and the command
+    from it; None where none of it ran."""
+    line = job.resume_line
+    if line is None:
+        return None
+    after = "not known to have run" if job.resume_known_to_run else "not acknowledged"
+    return after, resume_command(arguments, line)
 
 
 def resume_command(arguments: tuple[str, ...], line: int, option: str = "--from-line") -> str:

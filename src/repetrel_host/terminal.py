@@ -53,7 +53,7 @@ from repetrel_host.planning import (
 )
 from repetrel_host.protocol.reports import format_temperatures
 from repetrel_host.pump import Outcome
-from repetrel_host.resume import resume_command
+from repetrel_host.resume import resume_from
 from repetrel_host.session import Printer, PrintJob, connect
 
 if TYPE_CHECKING:
@@ -541,17 +541,14 @@ class PrinterConsole:
 
     def _resume_hint(self, job: PrintJob) -> None:
         """The command that goes on with a job that did not complete, as hyrel-send says."""
-        line = job.resume_line
-        if line is None:
-            return
         arguments = [str(job.plan.job.path.resolve()), "--port", self.printer.port]
         if self.options.machine:
             arguments += ["--machine", self.options.machine]
         if self.options.loadout:
             arguments += ["--loadout", str(self.options.loadout)]
-        after = "not known to have run" if job.resume_known_to_run else "not acknowledged"
-        command = resume_command(tuple(arguments), line)
-        self.say(f"to resume from the first line {after}: {command}")
+        found = resume_from(job, tuple(arguments))
+        if found is not None:
+            self.say(f"to resume from the first line {found[0]}: {found[1]}")
 
     def _paused(self, job: PrintJob, event: Paused) -> None:
         message = f": {event.message}" if event.message else ""
