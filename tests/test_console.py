@@ -13,6 +13,7 @@ import re
 import subprocess
 import sys
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import pexpect
@@ -189,14 +190,23 @@ def test_an_m0_pauses_the_job_until_resume(term: Term, tmp_path: Path) -> None:
     assert term.exit_code() == 0
 
 
-@pytest.mark.timeout(60)
-def test_pause_resume_and_commands_while_printing(tmp_path: Path, slow_fake: BuiltInFake) -> None:
+@contextmanager
+def printing(tmp_path: Path, fake: BuiltInFake) -> Iterator[Term]:
+    """The console on ``fake`` (a slow one) printing MOVES from tmp_path/moves.gcode."""
     job = tmp_path / "moves.gcode"
     job.write_text(MOVES)
-    term = Term(tmp_path, "--port", slow_fake.port)
+    term = Term(tmp_path, "--port", fake.port)
     try:
         term.type(f"!print {job}")
         term.expect("printing moves.gcode")
+        yield term
+    finally:
+        term.close()
+
+
+@pytest.mark.timeout(60)
+def test_pause_resume_and_commands_while_printing(tmp_path: Path, slow_fake: BuiltInFake) -> None:
+    with printing(tmp_path, slow_fake) as term:
         term.type("M105")
         term.expect(PRINTING_REFUSED)
         term.child.sendcontrol("c")
@@ -210,8 +220,6 @@ def test_pause_resume_and_commands_while_printing(tmp_path: Path, slow_fake: Bui
         term.expect(r"moves.gcode: done: 120 lines", regex=True)
         term.type("!quit")
         assert term.exit_code() == 0
-    finally:
-        term.close()
     commands = [c for c in executed(slow_fake.log_path) if c.startswith("G1")]
     assert commands == MOVES.splitlines()  # paused and resumed: every move once, in order
 
@@ -221,11 +229,7 @@ def test_cancel_and_quit_stop_the_job_with_the_safe_stop(
     tmp_path: Path, slow_fake: BuiltInFake
 ) -> None:
     job = tmp_path / "moves.gcode"
-    job.write_text(MOVES)
-    term = Term(tmp_path, "--port", slow_fake.port)
-    try:
-        term.type(f"!print {job}")
-        term.expect("printing moves.gcode")
+    with printing(tmp_path, slow_fake) as term:
         term.type("!cancel")
         term.expect("cancelling moves.gcode: sending the safe-stop sequence")
         term.expect("moves.gcode: stopped (the last line the controller acknowledged is")
@@ -240,8 +244,6 @@ def test_cancel_and_quit_stop_the_job_with_the_safe_stop(
         term.expect("quitting: stopping moves.gcode with the safe-stop sequence first")
         term.expect("moves.gcode: stopped")
         assert term.exit_code() == 0
-    finally:
-        term.close()
     done = [c for c in executed(slow_fake.log_path) if c != "M105"]  # less the polls
     assert done[-1] == "M84"  # the safe stop's last: motors off
 
@@ -315,17 +317,10 @@ def test_a_line_longer_than_controllers_take_is_refused_and_the_session_goes_on(
 
 @pytest.mark.timeout(60)
 def test_m112_goes_at_once_even_while_a_job_prints(tmp_path: Path, slow_fake: BuiltInFake) -> None:
-    job = tmp_path / "moves.gcode"
-    job.write_text(MOVES)
-    term = Term(tmp_path, "--port", slow_fake.port)
-    try:
-        term.type(f"!print {job}")
-        term.expect("printing moves.gcode")
+    with printing(tmp_path, slow_fake) as term:
         term.type("G28")
         term.expect(PRINTING_REFUSED)  # an ordinary command: the console's words
         term.type("M112")
         term.expect("M112 sent at once: emergency stop")
         term.expect("moves.gcode: failed: stopped by an emergency stop (M112)")
-    finally:
-        term.close()
     assert "M112" in executed(slow_fake.log_path)
