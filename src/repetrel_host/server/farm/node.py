@@ -110,6 +110,7 @@ class FarmNode:
         self._dirty: set[str] = set(services)  # printers whose state the farm has not seen
         self._shown: dict[str, tuple[str, bool, int | None]] = {}
         self._tasks: list[asyncio.Task[None]] = []
+        self._cancels: set[asyncio.Task[bool]] = set()  # cancels asked by the farm, running
         # Set as the server stops: psycopg may answer a cancelled wait with its own error,
         # which the loops would otherwise take for an outage and retry.
         self._stopping = False
@@ -211,11 +212,9 @@ class FarmNode:
                 if not self.ready:
                     back = self.away_since is not None
                     self.ready, self.away_since, delay = True, None, 1.0
-                    self.news += 1  # notifications may have been missed
                     self._dirty = set(self.services)
                     self._wake_sync.set()
-                    for service in self.services.values():
-                        service.wake()
+                    self._look_again()  # notifications may have been missed
                     if back:
                         log.info("farm: the database is back; claiming again")
             except LeaseLost:
@@ -293,15 +292,13 @@ class FarmNode:
                 delay = min(delay * 2, RETRY_MAX)
                 continue
             delay = 1.0
-            self.news += 1  # what came while it was not listening
-            self._wake_printers()
+            self._look_again()  # what came while it was not listening
             try:
                 async with connection:
                     while not self._stopping:
                         async for notice in connection.notifies(timeout=RECHECK):
                             await self._notified(json.loads(notice.payload))
-                        self.news += 1  # quiet for a while: look anyway
-                        self._wake_printers()
+                        self._look_again()  # quiet for a while: look anyway
             except (psycopg.Error, OSError) as exc:
                 if self._stopping:
                     return
@@ -312,16 +309,21 @@ class FarmNode:
         self.events.publish({"type": "farm", **message})
         kind = message.get("kind")
         if kind == "job" and message.get("queued"):
-            self.news += 1
-            self._wake_printers()
+            self._look_again()
         elif kind == "cancel" and message.get("node") == self.id:
             record = self.store.farm_job(int(message["job"]))
             if record is not None and record.printer in self.services:
                 service = self.services[record.printer]
                 log.info("farm: job %d cancelled from the farm", message["job"])
-                asyncio.get_running_loop().create_task(service.cancel(record.id))
+                # Kept while it runs (the loop holds only a weak reference to a task).
+                cancelling = asyncio.get_running_loop().create_task(service.cancel(record.id))
+                self._cancels.add(cancelling)
+                cancelling.add_done_callback(self._cancels.discard)
 
-    def _wake_printers(self) -> None:
+    def _look_again(self) -> None:
+        """News (a job queued, a reconnection, a quiet while): every printer whose last
+        claim found nothing looks again."""
+        self.news += 1
         for service in self.services.values():
             service.wake()
 
