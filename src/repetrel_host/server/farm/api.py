@@ -142,19 +142,30 @@ def eligibility(
     why_not: dict[str, str] = {}
     warnings: list[str] = []
     commands = 0
+    # One pass of the lint for each machine and loadout: a farm of alike printers reads a
+    # big file once, not once a printer.
+    linted: dict[tuple[str | None, str | None], Any] = {}
+
+    def lint(printer: dict[str, Any]) -> Any:
+        try:
+            if printer["node"] == farm.id and printer["name"] in server.services:
+                return server.services[printer["name"]].check(path)
+            return _plan_elsewhere(path, printer, server.user)
+        except rh.HostError as exc:
+            return str(exc).replace(str(path), name)
+
     for printer in printers:
         key = f"{printer['name']} on {printer['node_name']}"
         lacks = needs.missing(printer["caps"], wanted)
         if lacks:
             why_not[key] = ", ".join(lacks)
             continue
-        try:
-            if printer["node"] == farm.id and printer["name"] in server.services:
-                checked = server.services[printer["name"]].check(path)
-            else:
-                checked = _plan_elsewhere(path, printer, server.user)
-        except rh.HostError as exc:
-            why_not[key] = str(exc).replace(str(path), name)
+        alike = (printer["caps"].get("machine"), printer["loadout"])
+        if alike not in linted:
+            linted[alike] = lint(printer)
+        checked = linted[alike]
+        if isinstance(checked, str):  # the plan itself failed: its sentence
+            why_not[key] = checked
             continue
         if checked is None:
             eligible.append(key)  # checked again by the node that claims it
