@@ -582,6 +582,10 @@ class PrinterService:
             self._checked[path] = before
         return plan, findings
 
+    def was_checked(self, path: Path) -> bool:
+        """``path``, as it is now, passed this printer's check already (any thread)."""
+        return self._checked.get(path) == _fingerprint(self.plan(path))
+
     def plan_loadout(self) -> Loadout | None:
         """The printer's loadout (its heads), as a job's plan reads it; None without one or
         when it cannot be read (a job then says why)."""

@@ -389,9 +389,13 @@ class FarmNode:
                     return False
                 await self._call(self.db.fetch_file(job["file"], path, FILE_TIMEOUT), FILE_TIMEOUT)
             service = self.services[record.printer]
-            try:
-                _, findings = await asyncio.to_thread(service.check, path)
-                errors = [f.format(record.name) for f in findings if f.severity is Severity.ERROR]
+            errors: list[str] = []
+            try:  # a file this printer passed before (another copy) is not read again
+                if not await asyncio.to_thread(service.was_checked, path):
+                    _, findings = await asyncio.to_thread(service.check, path)
+                    errors = [
+                        f.format(record.name) for f in findings if f.severity is Severity.ERROR
+                    ]
             except HostError as exc:
                 errors = [str(exc)]
             if errors:
