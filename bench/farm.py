@@ -41,9 +41,9 @@ sys.path.insert(0, str(ROOT))
 import httpx  # noqa: E402
 from tests.pg import PASSWORD, Postgres  # noqa: E402
 
+from repetrel_host.fakes.fake_controller import BuiltInFake  # noqa: E402
 from repetrel_host.server.farm import needs  # noqa: E402
 from repetrel_host.server.farm.db import FarmDB  # noqa: E402
-from repetrel_host.testing.fake_controller import BuiltInFake  # noqa: E402
 
 KEY = "bench"
 

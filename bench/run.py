@@ -115,7 +115,7 @@ def start_fake(
     command = [
         sys.executable,
         "-m",
-        "repetrel_host.testing.fake_controller",
+        "repetrel_host.fakes.fake_controller",
         "--bandwidth",
         str(profile.bandwidth),
         "--latency",

@@ -19,7 +19,7 @@ from typing import Any
 
 import pytest
 
-from repetrel_host.testing.fake_controller import BuiltInFake
+from repetrel_host.fakes.fake_controller import BuiltInFake
 from tests.test_server import CAMERA, KEY, Server, bench, servers
 
 __all__ = [

@@ -19,10 +19,10 @@ from typing import Any
 import pytest
 from octorest import OctoRest
 
+from repetrel_host.fakes.fake_controller import BuiltInFake
 from repetrel_host.gcode import analysis
 from repetrel_host.gcode.analysis import Box, Filament, Summary, analyse
 from repetrel_host.gcode.marks import Layer
-from repetrel_host.testing.fake_controller import BuiltInFake
 from tests.test_server import KEY, Server, bench, servers, wait_for
 
 __all__ = ["bench", "servers"]  # the fixtures, from the server's tests

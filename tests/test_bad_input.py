@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from repetrel_host.testing.fake_controller import BuiltInFake
+from repetrel_host.fakes.fake_controller import BuiltInFake
 from tests.helpers import executed, hyrel_send
 
 pytestmark = pytest.mark.timeout(60)

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from repetrel_host import __version__
-from repetrel_host.testing.fake_controller import BuiltInFake
+from repetrel_host.fakes.fake_controller import BuiltInFake
 from tests.helpers import CONE, EXAMPLE, executed, hyrel_send, job_commands, start_streaming
 
 pytestmark = pytest.mark.timeout(60)

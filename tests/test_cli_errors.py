@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 import serial
 
-from repetrel_host.testing.fake_controller import BuiltInFake
+from repetrel_host.fakes.fake_controller import BuiltInFake
 from tests.helpers import CONE, executed, hyrel_send, job_commands, start_streaming
 
 pytestmark = pytest.mark.timeout(60)

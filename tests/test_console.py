@@ -19,7 +19,7 @@ from pathlib import Path
 import pexpect
 import pytest
 
-from repetrel_host.testing.fake_controller import BuiltInFake
+from repetrel_host.fakes.fake_controller import BuiltInFake
 from tests.helpers import EXAMPLE, executed
 
 CURSOR_QUERY = re.compile(rb"\x1b\[6n")

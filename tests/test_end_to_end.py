@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from repetrel_host.testing.fake_controller import BuiltInFake
+from repetrel_host.fakes.fake_controller import BuiltInFake
 from tests.helpers import CONE, EXAMPLE, executed, hyrel_send, job_commands, start_streaming
 
 pytestmark = pytest.mark.timeout(120)
@@ -121,7 +121,7 @@ def test_fake_controller_refuses_to_replace_a_file(tmp_path: Path) -> None:
     precious = tmp_path / "notes.txt"
     precious.write_text("keep me")
     result = subprocess.run(
-        [sys.executable, "-m", "repetrel_host.testing.fake_controller", "--link", str(precious)],
+        [sys.executable, "-m", "repetrel_host.fakes.fake_controller", "--link", str(precious)],
         capture_output=True,
         text=True,
         timeout=30,

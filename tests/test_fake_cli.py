@@ -34,7 +34,7 @@ def test_hyrel_send_help_says_how_fast_the_fake_is_and_how_to_slow_it() -> None:
 
 def test_fake_controller_help_shows_every_default() -> None:
     result = subprocess.run(
-        [sys.executable, "-m", "repetrel_host.testing.fake_controller", "--help"],
+        [sys.executable, "-m", "repetrel_host.fakes.fake_controller", "--help"],
         capture_output=True,
         text=True,
         timeout=30,

@@ -16,7 +16,7 @@ from typing import Any
 import httpx
 import pytest
 
-from repetrel_host.testing.fake_controller import BuiltInFake
+from repetrel_host.fakes.fake_controller import BuiltInFake
 from tests.helpers import executed, hyrel_send, run_server_cli
 from tests.pg import needs_postgres
 from tests.test_server import KEY, Server

@@ -19,7 +19,7 @@ import jinja2
 import pytest
 
 from repetrel_host.events import State
-from repetrel_host.testing.fake_controller import BuiltInFake
+from repetrel_host.fakes.fake_controller import BuiltInFake
 from tests.helpers import CONE, executed, job_commands
 from tests.test_server import (
     KEY,

@@ -8,9 +8,9 @@ from pathlib import Path
 
 import pytest
 
+from repetrel_host.fakes.fake_controller import BuiltInFake
 from repetrel_host.job import Job
 from repetrel_host.protocol.dialects.hyrel import SYNC_EVERY_MIN, SYNC_INTERVAL
-from repetrel_host.testing.fake_controller import BuiltInFake
 from tests.helpers import CONE, EXAMPLE, hyrel_send, job_commands, start_streaming
 
 pytestmark = pytest.mark.timeout(60)

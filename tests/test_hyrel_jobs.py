@@ -11,9 +11,9 @@ from pathlib import Path
 import pytest
 
 from repetrel_host.config import shipped_config_dir
+from repetrel_host.fakes.fake_controller import BuiltInFake
 from repetrel_host.gcode.header import safe_stop_commands
 from repetrel_host.planning import PRECHECK_LIMIT
-from repetrel_host.testing.fake_controller import BuiltInFake
 from tests.helpers import EXAMPLE, executed, hyrel_send, job_commands, start_streaming
 
 pytestmark = pytest.mark.timeout(60)

@@ -15,8 +15,8 @@ from typing import Any
 import pytest
 
 import repetrel_host as rh
-from repetrel_host.testing.hyrel_simulator import HyrelControllerSimulator, Metrics
-from repetrel_host.testing.simulator import ControllerSettings
+from repetrel_host.fakes.hyrel_simulator import HyrelControllerSimulator, Metrics
+from repetrel_host.fakes.simulator import ControllerSettings
 from tests.test_session import HYREL_SAFE_STOP
 
 pytestmark = pytest.mark.timeout(60)

@@ -10,15 +10,15 @@ from pathlib import Path
 
 import pytest
 
-from repetrel_host.protocol.hyrel import NOTICED, Control, HostReceiver, frame, mark_urgent
-from repetrel_host.protocol.reports import ReportReader
-from repetrel_host.testing.fake_controller import BuiltInFake
-from repetrel_host.testing.hyrel_simulator import (
+from repetrel_host.fakes.fake_controller import BuiltInFake
+from repetrel_host.fakes.hyrel_simulator import (
     PING_REPLY,
     RESTART_REPLY,
     HyrelControllerSimulator,
 )
-from repetrel_host.testing.simulator import ControllerSettings, Faults
+from repetrel_host.fakes.simulator import ControllerSettings, Faults
+from repetrel_host.protocol.hyrel import NOTICED, Control, HostReceiver, frame, mark_urgent
+from repetrel_host.protocol.reports import ReportReader
 
 
 class Wire:

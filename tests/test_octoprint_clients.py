@@ -14,7 +14,7 @@ import httpx
 import pytest
 from octorest import OctoRest
 
-from repetrel_host.testing.fake_controller import BuiltInFake
+from repetrel_host.fakes.fake_controller import BuiltInFake
 from tests.helpers import executed
 from tests.test_server import KEY, Server, bench, gcode, servers, wait_for
 

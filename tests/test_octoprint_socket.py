@@ -26,8 +26,8 @@ import pytest
 import websocket
 from octorest import WebSocketEventHandler
 
+from repetrel_host.fakes.fake_controller import BuiltInFake
 from repetrel_host.server.octoprint.socket import LOG_LINES, terminal_lines
-from repetrel_host.testing.fake_controller import BuiltInFake
 from tests.helpers import DATA, executed
 from tests.test_server import Server, bench, gcode, servers, wait_for
 

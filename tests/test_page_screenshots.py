@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from repetrel_host.testing.fake_controller import BuiltInFake
+from repetrel_host.fakes.fake_controller import BuiltInFake
 from tests.page import Browser, needs_browser, part_gcode
 from tests.test_server import CAMERA, Server, wait_for
 

@@ -15,7 +15,7 @@ from typer.testing import CliRunner
 import repetrel_host as rh
 from repetrel_host import cli, ports
 from repetrel_host.errors import LinkError
-from repetrel_host.testing.fake_controller import BuiltInFake
+from repetrel_host.fakes.fake_controller import BuiltInFake
 from tests.helpers import EXAMPLE, hyrel_send
 
 pytestmark = pytest.mark.timeout(60)

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from repetrel_host.testing.fake_controller import BuiltInFake
+from repetrel_host.fakes.fake_controller import BuiltInFake
 
 ROOT = Path(__file__).parent.parent
 MARLIN_SAFE_STOP = ["M107", "M104 S0", "M140 S0", "G91", "G0 Z10", "G90", "M84"]
@@ -448,7 +448,7 @@ def test_each_test_gets_a_fresh_fake(pytester: pytest.Pytester) -> None:
 
 
 def test_the_wire_recorder_joins_lines_split_across_reads_and_caps_noise() -> None:
-    from repetrel_host.testing.pytest_plugin import WIRE_LINE_MAX, WireRecorder
+    from repetrel_host.pytest_plugin.report import WIRE_LINE_MAX, WireRecorder
 
     recorder = WireRecorder()
     recorder.tap(True, b"N1 G28*18\nN2 G1")

@@ -11,13 +11,13 @@ import pytest
 
 from repetrel_host.config import load_user_config
 from repetrel_host.errors import UsageError
+from repetrel_host.fakes.fake_controller import BuiltInFake
+from repetrel_host.fakes.hyrel_simulator import RX_BUFFER
 from repetrel_host.gcode.marks import scan_marks
 from repetrel_host.job import Job, JobLine
 from repetrel_host.planning import JobRequest, plan_job, resumed
 from repetrel_host.protocol.dialects.hyrel import SYNC_EVERY
 from repetrel_host.resume import HomeAxes, MachineState, back_to_job, preamble, track
-from repetrel_host.testing.fake_controller import BuiltInFake
-from repetrel_host.testing.hyrel_simulator import RX_BUFFER
 from tests.helpers import CONE, executed, hyrel_send, job_commands, start_streaming
 
 MARLIN_SAFE_STOP = ["M107", "M104 S0", "M140 S0", "G91", "G0 Z10", "G90", "M84"]

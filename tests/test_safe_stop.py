@@ -15,8 +15,8 @@ from pathlib import Path
 
 import pytest
 
+from repetrel_host.fakes.fake_controller import BuiltInFake
 from repetrel_host.job import Job
-from repetrel_host.testing.fake_controller import BuiltInFake
 from tests.helpers import DATA, executed
 
 pytestmark = pytest.mark.timeout(90)
@@ -221,7 +221,7 @@ def test_a_controller_that_never_says_who_it_is_gets_a_safe_stop_for_either_firm
     import asyncio
 
     import repetrel_host as rh
-    from repetrel_host.testing.simulator import ControllerSettings
+    from repetrel_host.fakes.simulator import ControllerSettings
 
     monkeypatch.setattr(rh.session, "FIRMWARE_PATIENCE", 0.2)
     settings = ControllerSettings(latency=0.25)  # M115's answer comes after 0.5 s
@@ -245,7 +245,7 @@ def test_a_pause_that_comes_as_the_job_ends_says_so(tmp_path: Path) -> None:
     import asyncio
 
     import repetrel_host as rh
-    from repetrel_host.testing.simulator import ControllerSettings
+    from repetrel_host.fakes.simulator import ControllerSettings
 
     async def scenario(path: Path) -> None:
         settings = ControllerSettings(latency=0.01)

@@ -22,7 +22,7 @@ import aiomqtt
 import httpx
 import pytest
 
-from repetrel_host.testing.fake_controller import BuiltInFake
+from repetrel_host.fakes.fake_controller import BuiltInFake
 from tests.fake_camera import png
 from tests.helpers import executed, hyrel_send
 

@@ -20,7 +20,7 @@ import pytest
 from pyoctoprintapi import OctoprintClient
 from pyoctoprintapi.api import ApiError, UnauthorizedException
 
-from repetrel_host.testing.fake_controller import BuiltInFake
+from repetrel_host.fakes.fake_controller import BuiltInFake
 from tests.helpers import executed
 from tests.test_server import KEY, Server, bench, gcode, servers, wait_for
 

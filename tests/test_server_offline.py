@@ -10,7 +10,7 @@ from collections.abc import Callable
 
 import pytest
 
-from repetrel_host.testing.fake_controller import BuiltInFake
+from repetrel_host.fakes.fake_controller import BuiltInFake
 from tests.test_server import Server, bench, servers, wait_for
 
 __all__ = ["bench", "servers"]  # the fixtures, from the server's tests

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from repetrel_host.testing.fake_controller import BuiltInFake
+from repetrel_host.fakes.fake_controller import BuiltInFake
 from tests.page import part_gcode
 from tests.test_server import CAMERA, Server, camera_config, server_config, wait_for
 from tests.test_thumbnails import CONE

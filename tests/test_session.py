@@ -13,8 +13,8 @@ from typing import Any
 import pytest
 
 import repetrel_host as rh
+from repetrel_host.fakes.simulator import ControllerSettings, ControllerSimulator, Faults
 from repetrel_host.links import SimLink
-from repetrel_host.testing.simulator import ControllerSettings, ControllerSimulator, Faults
 from tests.helpers import EXAMPLE, job_commands, without_greetings
 
 pytestmark = pytest.mark.timeout(60)

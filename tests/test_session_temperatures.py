@@ -12,8 +12,8 @@ import pytest
 
 import repetrel_host as rh
 from repetrel_host import session
+from repetrel_host.fakes.simulator import ControllerSettings, Faults
 from repetrel_host.links import SimLink
-from repetrel_host.testing.simulator import ControllerSettings, Faults
 from tests.test_session import MARLIN_SAFE_STOP, job_file, run
 
 pytestmark = pytest.mark.timeout(60)

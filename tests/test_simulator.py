@@ -2,8 +2,8 @@
 
 import pytest
 
+from repetrel_host.fakes.simulator import ControllerSettings, ControllerSimulator, Overflow
 from repetrel_host.protocol.framing import frame
-from repetrel_host.testing.simulator import ControllerSettings, ControllerSimulator, Overflow
 
 
 def wire(*commands: str, first: int = 1) -> bytes:

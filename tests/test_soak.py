@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from repetrel_host.testing.fake_controller import BuiltInFake
+from repetrel_host.fakes.fake_controller import BuiltInFake
 from tests.helpers import CONE, executed, hyrel_send, job_commands
 
 NOISE = "corrupt=0.02 garble=0.01 drop_ok=0.01 duplicate_ok=0.01 spurious_resend=0.005"

@@ -638,7 +638,7 @@ def _dry_run(plan: JobPlan, framed: bool, protocol: str) -> None:
                 yield item.command
 
     if framed:
-        from repetrel_host.testing.loopback import wire_preview  # only a preview needs it
+        from repetrel_host.fakes.loopback import wire_preview  # only a preview needs it
 
         for data in wire_preview(commands(), protocol=protocol):
             # Hyrel's control bytes (the ping, 0x07, would ring the terminal's bell) shown.

@@ -1,6 +1,6 @@
 """Configuration: machine profiles, the head library, loadouts and user settings (TOML).
 
-Shipped files live in ``config/`` (``machines.toml``, ``heads.toml``, ``loadouts/``).
+Shipped files live in ``shipped_config/`` (``machines.toml``, ``heads.toml``, ``loadouts/``).
 A user's ``config.toml`` (``--config FILE``, else ``$XDG_CONFIG_HOME/repetrel-host/``)
 may add or replace machines and heads under ``[machines.NAME]`` and ``[heads.NAME]``,
 and holds ``[printer]`` and ``[host]`` settings. Every error names the file, the
@@ -192,11 +192,8 @@ class Library:
 
 
 def shipped_config_dir() -> Path:
-    """The shipped ``config/`` folder: inside an installed wheel, or in the source tree."""
-    installed = Path(__file__).parent / "shipped_config"
-    if installed.is_dir():
-        return installed
-    return Path(__file__).resolve().parents[2] / "config"
+    """The shipped configuration: ``repetrel_host/shipped_config/``."""
+    return Path(__file__).parent / "shipped_config"
 
 
 def user_config_path() -> Path:

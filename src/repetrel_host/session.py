@@ -99,7 +99,7 @@ from repetrel_host.pump import (
 from repetrel_host.resume import KEEPS_THE_JOB_STATE, HomeAxes, MachineState, back_to_job
 
 if TYPE_CHECKING:
-    from repetrel_host.testing.simulator import ControllerSettings
+    from repetrel_host.fakes.simulator import ControllerSettings
 
 log = logging.getLogger(__name__)
 

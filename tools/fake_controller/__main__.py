@@ -1,3 +1,3 @@
-from repetrel_host.testing.fake_controller import main
+from repetrel_host.fakes.fake_controller import main
 
 raise SystemExit(main())

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
 
 if TYPE_CHECKING:
-    from repetrel_host.testing.simulator import ControllerSettings
+    from repetrel_host.fakes.simulator import ControllerSettings
 
 FAKE_PORT = "fake"
 SIM_PORT = "sim"
@@ -66,7 +66,7 @@ class FakeLink:
         extra_args: Sequence[str] = (),
         protocol: str = "reprap",
     ) -> None:
-        from repetrel_host.testing.fake_controller import BuiltInFake
+        from repetrel_host.fakes.fake_controller import BuiltInFake
 
         self.port = FAKE_PORT
         self.baudrate = baudrate

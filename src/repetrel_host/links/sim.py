@@ -12,9 +12,9 @@ import asyncio
 from collections.abc import Callable
 
 from repetrel_host.errors import LinkError
-from repetrel_host.testing.hyrel_simulator import RX_BUFFER as HYREL_RX_BUFFER
-from repetrel_host.testing.hyrel_simulator import HyrelControllerSimulator
-from repetrel_host.testing.simulator import ControllerSettings, ControllerSimulator
+from repetrel_host.fakes.hyrel_simulator import RX_BUFFER as HYREL_RX_BUFFER
+from repetrel_host.fakes.hyrel_simulator import HyrelControllerSimulator
+from repetrel_host.fakes.simulator import ControllerSettings, ControllerSimulator
 
 
 class SimController:

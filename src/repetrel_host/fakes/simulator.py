@@ -1,0 +1,738 @@
+"""A Marlin-style controller as a pure simulation with explicit time.
+
+The same engine runs behind the pty fake controller (real time) and in
+in-memory tests (simulated time). It models the link (bandwidth and latency
+each way), the receive buffer in bytes (dropping bytes on overflow like a UART,
+or pushing back like USB), the command slots, the planner, and how long each
+command takes. It acknowledges a buffered command once it is planned, an
+unbuffered one once the planner drained and the command finished.
+
+Faults (:class:`Faults`) are seeded and reproducible. They can also be switched
+while running by a line of the job: ``!!DEBUG:set corrupt=0.02 drop_ok=0.01``,
+``!!DEBUG:reset`` (reboot: says ``start``), ``!!DEBUG:hang`` (never answer
+again), ``!!DEBUG:link_drop 2`` (the pty disappears for 2 s), as OctoPrint's
+virtual printer does. Such lines are not logged as executed.
+"""
+
+from __future__ import annotations
+
+import random
+import re
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field, fields, replace
+from enum import Enum
+
+from repetrel_host.gcode.commands import command_word, is_unbuffered
+from repetrel_host.protocol.controller import Accepted, ControllerProtocol, Rejected
+
+_MOVES = frozenset({"G0", "G1", "G2", "G3", "G5"})
+_DWELL = re.compile(r"\b([PS])\s*(\d+(?:\.\d*)?)", re.IGNORECASE)
+_S_VALUE = re.compile(r"\bS\s*(-?\d+(?:\.\d*)?)", re.IGNORECASE)
+# What each temperature command sets: a hotend (T), the bed (B) or the chamber (C), and
+# whether it waits for it.
+_HEATERS = {
+    "M104": ("T", False), "M109": ("T", True),
+    "M140": ("B", False), "M190": ("B", True),
+    "M141": ("C", False), "M191": ("C", True),
+}  # fmt: skip
+_T_WORD = re.compile(r"\bT\s*(\d+)", re.IGNORECASE)
+AMBIENT = 21.0
+# Marlin's M115: the identity line (its EXTRUDER_COUNT filled in), then its capabilities.
+M115_REPLY = (
+    "FIRMWARE_NAME:repetrel-host fake controller (Marlin replies) "
+    "PROTOCOL_VERSION:1.0 MACHINE_TYPE:Fake EXTRUDER_COUNT:{extruders}\n"
+    "Cap:AUTOREPORT_TEMP:{autoreport}\n"
+    "Cap:EMERGENCY_PARSER:{parser}\n"
+)
+KILLED = b"Error:Printer halted. kill() called!\n"
+DEBUG_PREFIX = "!!DEBUG:"
+# What a host's session sends before a job: the greeting and its question "who are you?".
+_SESSION_WORDS = frozenset({"M110", "M115"})
+MAX_CMD_SIZE = 96  # Marlin's line buffer
+
+
+class Overflow(Enum):
+    """What the receive buffer does with bytes that do not fit."""
+
+    DROP = "drop"  # a UART: the bytes are lost
+    BLOCK = "block"  # USB: the sender is held back
+
+
+@dataclass(frozen=True, slots=True)
+class Faults:
+    """What goes wrong, and how often (shares between 0 and 1)."""
+
+    corrupt: float = 0.0  # received lines with one byte changed (the newline too)
+    garble: float = 0.0  # reply lines with one byte changed
+    drop_ok: float = 0.0  # oks never sent
+    duplicate_ok: float = 0.0  # oks sent twice
+    spurious_resend: float = 0.0  # accepted lines answered "Resend: <that line>" and ok
+    resend_without_ok: bool = False  # line errors end without their ok (some Marlin 2.0.x)
+    flush_on_error: bool = False  # a line error empties the receive buffer (Marlin)
+    drop_duplicates: bool = False  # a resent line already accepted gets no reply (newer Marlin)
+    # OctoPrint's virtual printer: a bad checksum draws "Resend:" for a count of every
+    # valid line received (resent ones included), and no error states "Last Line".
+    counted_resend: bool = False
+    # Lines dropped with only "Error: No Line Number with checksum, Last Line: <n>":
+    # no resend request, no ok.
+    drop_with_error: float = 0.0
+    busy_interval: float | None = None  # "echo:busy: processing" while a command blocks
+    seed: int = 0
+
+    @classmethod
+    def parse(cls, text: str, base: Faults | None = None) -> Faults:
+        """``corrupt=0.02 flush_on_error=1 ...`` over ``base``; ValueError on a bad name."""
+        values: dict[str, object] = {}
+        kinds = {f.name: f.type for f in fields(cls)}
+        for item in text.split():
+            name, _, raw = item.partition("=")
+            if name not in kinds:
+                raise ValueError(f"unknown fault '{name}' (known: {', '.join(kinds)})")
+            kind = str(kinds[name])
+            try:
+                if "bool" in kind:
+                    values[name] = raw.lower() in ("1", "true", "yes", "on", "")
+                elif name == "seed":
+                    values[name] = int(raw)
+                elif name == "busy_interval":
+                    values[name] = float(raw) if raw else None
+                else:
+                    values[name] = float(raw)
+            except ValueError:
+                raise ValueError(f"{name}: '{raw}' is not a number") from None
+        return replace(base or cls(), **values)  # type: ignore[arg-type]
+
+
+@dataclass(frozen=True, slots=True)
+class ControllerSettings:
+    """The simulated controller and link. Times in seconds, sizes in bytes."""
+
+    bandwidth: float | None = None  # bytes per second each way; None: unlimited
+    latency: float = 0.0  # one-way delay of the link
+    rx_buffer: int = 128  # receive buffer; a ring buffer of N bytes holds N - 1
+    overflow: Overflow = Overflow.DROP
+    slots: int = 4  # command slots (Marlin's BUFSIZE)
+    planner: int = 16  # planner blocks
+    move_time: float = 0.0  # how long one move takes to execute
+    command_time: float = 0.0  # how long any other command takes
+    banner: bool = True  # say "start" at boot
+    advanced_ok: bool = False  # ADVANCED_OK: "ok N<last line> P<planner free> B<slots free>"
+    # Degrees per second a heater moves toward its target (M109/M190 wait that long);
+    # None: temperatures reach their targets at once.
+    heat_rate: float | None = None
+    faults: Faults = field(default_factory=Faults)
+    extruders: int = 1  # hotends T0..T<n-1> (Marlin's EXTRUDER_COUNT)
+    chamber: bool = False  # a heated chamber (M141, M191; C: in reports)
+    # Marlin's EMERGENCY_PARSER: M108, M112 and M410 act as they arrive, ahead of the
+    # queue (M108's line still runs in its turn, and draws its ok). Without it they run
+    # in their turn, like any line: M108 cannot end the heat wait it queues behind.
+    emergency_parser: bool = True
+    # Marlin's AUTOREPORT_TEMP: M155 S<n> reports temperatures every n seconds. Without it
+    # M115 says Cap:AUTOREPORT_TEMP:0 and M155 is an unknown command: a host must poll.
+    autoreport: bool = True
+    # The first M115 after a start (or a reset) takes this long to run, holding the queue
+    # behind it: a controller slow to say who it is (busy at boot, a loaded host's fake).
+    identify_time: float = 0.0
+
+
+@dataclass(slots=True)
+class FaultCounts:
+    corrupted_lines: int = 0
+    garbled_replies: int = 0
+    dropped_oks: int = 0
+    duplicated_oks: int = 0
+    spurious_resends: int = 0
+    flushed_bytes: int = 0
+    dropped_with_error: int = 0
+
+
+@dataclass(slots=True)
+class LinkCounters:
+    """What the link and the firmware saw, for benchmarks (times in the simulator's clock)."""
+
+    bytes_received: int = 0  # bytes that reached the receive buffer (or were dropped there)
+    bytes_dropped: int = 0  # lost to a full receive buffer
+    peak_rx_buffer: int = 0  # most bytes waiting in the receive buffer at once
+    peak_slots: int = 0  # most command slots in use at once
+    commands: int = 0  # commands accepted into the command slots
+    first_command_at: float | None = None  # the host's greeting, M110
+    first_job_command_at: float | None = None  # the first command that is not M110 or M115
+    last_command_at: float | None = None
+    # bytes_received when those two commands were accepted: the job's own bytes between.
+    bytes_at_first_job_command: int = 0
+    bytes_at_last_command: int = 0
+    # Time with nothing to execute (slots, planner and the command in hand all done)
+    # that ended because a new command arrived: the controller waited for the host.
+    starved: float = 0.0
+
+
+@dataclass(slots=True)
+class _Command:
+    text: str
+    word: str
+    number: int | None
+    started: bool = False
+    urgent: bool = False  # Hyrel's link: ahead of the queue
+
+
+class ControllerSimulator:
+    """Feed bytes with :meth:`receive`, run with :meth:`advance`, read :meth:`take_output`."""
+
+    def __init__(
+        self,
+        settings: ControllerSettings | None = None,
+        *,
+        now: float = 0.0,
+        on_execute: Callable[[str], None] | None = None,
+    ) -> None:
+        self.settings = settings or ControllerSettings()
+        self.faults = self.settings.faults
+        self._rng = random.Random(self.faults.seed)
+        self.protocol = self._new_protocol()
+        self.executed: list[str] = []
+        self._on_execute = on_execute or self.executed.append
+        self.counts = FaultCounts()
+        self.hung = False
+        self.link_drop_requested: float | None = None  # seconds, for the pty pump
+        self._inbound: deque[tuple[float, bytes]] = deque()
+        self._inbound_bytes = 0
+        self._in_wire_free = now
+        self._rx = bytearray()
+        self._line = bytearray()  # the line being read out of the receive buffer
+        self._queue: deque[_Command] = deque()
+        self._planner: deque[float] = deque()  # finish time of each planned move
+        self._planner_end = now
+        self._busy_until = now
+        self._last_step = now
+        self._next_busy = now
+        self._outbound: deque[tuple[float, bytes]] = deque()
+        self._out_wire_free = now
+        bandwidth = self.settings.bandwidth
+        blocking = self.settings.overflow is Overflow.BLOCK
+        self._wire_capacity = (
+            int(bandwidth * self.settings.latency) if blocking and bandwidth else 0
+        )
+        self._idle_from = now  # when the last piece of work finished
+        self.link = LinkCounters()
+        # Heater: [current, target, when current was last moved toward target]. The first
+        # hotend is T (as a one-hotend Marlin reports it), the others T1, T2...
+        names = ["T", *(f"T{i}" for i in range(1, self.settings.extruders)), "B"]
+        self.heaters = {name: [AMBIENT, 0.0, now] for name in names}
+        if self.settings.chamber:
+            self.heaters["C"] = [AMBIENT, 0.0, now]
+        self.tool = 0  # the active hotend (T0, T1...)
+        self._report_every: float | None = None  # M155 S<n>
+        self._next_report = now
+        self._identify_slowly = self.settings.identify_time > 0  # the next M115
+        if self.settings.banner:
+            self._reply(b"start\n", now)
+
+    # --- link ---------------------------------------------------------------
+
+    def room(self) -> int:
+        """Bytes the link can take now without dropping any: the receive buffer's free
+        space plus, with back-pressure, what the wire itself holds (bandwidth x latency),
+        as a USB link keeps packets in flight and holds the rest at the sender."""
+        free = self.settings.rx_buffer - 1 - len(self._rx)
+        return max(0, free + self._wire_capacity - self._inbound_bytes)
+
+    def receive_from(self, wire: bytearray, now: float) -> None:
+        """Take from ``wire`` (written, not yet taken) what the link lets through at ``now``:
+        all of it, or with back-pressure what there is :meth:`room` for; the rest stays."""
+        if not wire:
+            return
+        blocked = self.settings.overflow is Overflow.BLOCK
+        taken = min(len(wire), self.room()) if blocked else len(wire)
+        self.receive(bytes(wire[:taken]), now)
+        del wire[:taken]
+
+    def receive(self, data: bytes, now: float) -> None:
+        """Bytes the host wrote at ``now``; they reach the receive buffer after the wire's delay.
+
+        Each line arrives on its own, so the firmware can take a line out of the
+        buffer before the next one lands, as it does on a real wire.
+        """
+        if self.hung:
+            return
+        start = max(now, self._in_wire_free)
+        begin = 0
+        while begin < len(data):
+            end = data.find(b"\n", begin) + 1 or len(data)
+            piece = self._maybe_corrupt(data[begin:end])
+            start += self._wire_time(len(piece))
+            self._inbound.append((start + self.settings.latency, piece))
+            self._inbound_bytes += len(piece)
+            begin = end
+        self._in_wire_free = start
+
+    def take_output(self, now: float) -> bytes:
+        """Replies that have reached the host by ``now``."""
+        out = bytearray()
+        while self._outbound and self._outbound[0][0] <= now:
+            out += self._outbound.popleft()[1]
+        return bytes(out)
+
+    def next_wakeup(self) -> float | None:
+        """The next time something happens without new input, or None."""
+        times = [self._next_internal_time()]
+        if self._outbound:
+            times.append(self._outbound[0][0])
+        pending = [t for t in times if t is not None]
+        return min(pending) if pending else None
+
+    def unplug(self) -> None:
+        """The cable is pulled: whatever was on the wire either way is lost."""
+        self._inbound.clear()
+        self._inbound_bytes = 0
+        self._outbound.clear()
+
+    # --- firmware -----------------------------------------------------------
+
+    def advance(self, now: float) -> None:
+        """Run the firmware up to ``now``."""
+        if self.hung:
+            return
+        while True:
+            next_time = self._next_internal_time()
+            if next_time is None or next_time > now:
+                break
+            self._step(max(next_time, self._last_step))
+        self._step(max(now, self._last_step))
+
+    def _next_internal_time(self) -> float | None:
+        if self.hung:
+            return None
+        times: list[float] = []
+        if self._report_every is not None:
+            times.append(self._next_report)
+        if self._inbound and self._rx_free() > 0:
+            times.append(self._inbound[0][0])
+        if self._queue and not self._holding():
+            head = self._queue[0]
+            if self._busy_until > self._last_step:
+                times.append(self._busy_until)
+            elif head.word in _MOVES and len(self._planner) >= self.settings.planner:
+                times.append(self._planner[0])
+            elif is_unbuffered(head.text) and not head.started and self._planner:
+                times.append(self._planner_end)
+            if self.faults.busy_interval and self._blocked():
+                times.append(self._next_busy)
+        return min(times) if times else None
+
+    def _holding(self) -> bool:
+        """The queue waits whatever it holds (a Hyrel pause byte); never on Marlin."""
+        return False
+
+    def _blocked(self) -> bool:
+        """The oldest command is waiting (for the planner or for itself to finish)."""
+        if not self._queue:
+            return False
+        head = self._queue[0]
+        return self._busy_until > self._last_step or (
+            head.word in _MOVES and len(self._planner) >= self.settings.planner
+        )
+
+    def _step(self, now: float) -> None:
+        self._last_step = now
+        while not self.hung:
+            self._fill_slots(now)
+            if self._process_head(now):
+                continue
+            if self._inbound and self._inbound[0][0] <= now and self._rx_free() > 0:
+                self._deliver(now)
+                continue
+            break
+        if self._report_every is not None and now >= self._next_report:
+            self._reply(b" " + self._temperatures(now).encode() + b"\n", now)
+            self._next_report = now + self._report_every
+        interval = self.faults.busy_interval
+        if interval and self._blocked() and now >= self._next_busy:
+            self._reply(b"echo:busy: processing\n", now)
+            self._next_busy = now + interval
+
+    def _rx_free(self) -> int:
+        """Free receive buffer; a UART delivers into a full one too (and loses bytes)."""
+        if self.settings.overflow is Overflow.DROP:
+            return 1
+        return self.settings.rx_buffer - 1 - len(self._rx)
+
+    def _deliver(self, now: float) -> None:
+        arrival, data = self._inbound.popleft()
+        free = self.settings.rx_buffer - 1 - len(self._rx)
+        link = self.link
+        if len(data) > free and self.settings.overflow is Overflow.BLOCK:
+            # Held at the door until the firmware reads the buffer out.
+            self._inbound.appendleft((arrival, data[free:]))
+            data = data[:free]
+        self._inbound_bytes -= len(data)
+        link.bytes_received += len(data)
+        if len(data) > free:
+            link.bytes_dropped += len(data) - free
+            data = data[:free]
+        self._arrived(data, now)
+
+    def _arrived(self, data: bytes, now: float) -> None:
+        """Bytes that reached the receive buffer."""
+        # Marlin's emergency parser acts on these as the bytes arrive; M108's line then
+        # goes on into the buffer, to run in its turn (as a no-op) and draw its ok.
+        if self.settings.emergency_parser:
+            if data.lstrip().startswith(b"M112"):
+                self._kill(now)
+                return
+            if data.lstrip().startswith(b"M108"):
+                self._break_heat_wait(now)
+        self._buffer(data)
+
+    def _buffer(self, data: bytes) -> None:
+        """Into the receive buffer, its peak counted."""
+        self._rx += data
+        if len(self._rx) > self.link.peak_rx_buffer:
+            self.link.peak_rx_buffer = len(self._rx)
+
+    def _fill_slots(self, now: float) -> None:
+        # While a command slot is free the firmware reads the receive buffer into
+        # its line buffer, keeping at most MAX_CMD_SIZE bytes of a line (Marlin):
+        # a line that lost its newline cannot wedge the buffer.
+        while len(self._queue) < self.settings.slots:
+            end = self._rx.find(b"\n")
+            if end < 0:
+                self._line += self._rx[: max(0, MAX_CMD_SIZE - len(self._line))]
+                self._rx.clear()
+                return
+            self._line += self._rx[: max(0, min(end, MAX_CMD_SIZE - len(self._line)))]
+            del self._rx[: end + 1]
+            raw = bytes(self._line).rstrip(b"\r")
+            self._line.clear()
+            self._take_line(raw, now)
+
+    def _take_line(self, raw: bytes, now: float) -> None:
+        """One line read out of the receive buffer (without its newline)."""
+        drop = self._chance(self.faults.drop_with_error)
+        outcome = self.protocol.handle_line(raw, drop)
+        if isinstance(outcome, Accepted):
+            command = outcome.command
+            word = command_word(command)
+            self._count_command(word, now)
+            self._queue.append(_Command(command, word, outcome.number))
+        elif isinstance(outcome, Rejected):
+            self._reply(outcome.reply.removesuffix(b"ok\n"), now)
+            if outcome.reply.endswith(b"ok\n") and not self.faults.resend_without_ok:
+                self._ok(b"ok\n", now)
+            if outcome.reason == "dropped":
+                self.counts.dropped_with_error += 1
+            if self.faults.flush_on_error:
+                self.counts.flushed_bytes += len(self._rx)
+                self._rx.clear()
+
+    def _count_command(self, word: str, now: float) -> None:
+        link = self.link
+        if not self._queue and link.commands:
+            idle_from = max(self._idle_from, self._planner_end, self._busy_until)
+            if now > idle_from:
+                link.starved += now - idle_from
+        if link.first_command_at is None:
+            link.first_command_at = now
+        if link.first_job_command_at is None and word not in _SESSION_WORDS:
+            link.first_job_command_at = now
+            link.bytes_at_first_job_command = link.bytes_received
+        link.last_command_at = now
+        link.bytes_at_last_command = link.bytes_received
+        link.commands += 1
+        link.peak_slots = max(link.peak_slots, len(self._queue) + 1)
+
+    def _process_head(self, now: float) -> bool:
+        """Work on the oldest command; True when it finished and the next may start."""
+        if not self._queue or self._busy_until > now:
+            return False
+        while self._planner and self._planner[0] <= now:
+            self._planner.popleft()
+        command = self._queue[0]
+        if command.text.startswith(DEBUG_PREFIX):
+            self._queue.popleft()
+            self._debug(command.text[len(DEBUG_PREFIX) :], now)
+            return True
+        if not command.text[:1].isalpha():
+            # What is left of a line whose '*' became a newline: its checksum digits.
+            # Marlin runs nothing and says so.
+            self._queue.popleft()
+            self._reply(f'echo:Unknown command: "{command.text}"\n'.encode(), now)
+            self._ok(b"ok\n", now)
+            return True
+        if command.word in _MOVES:
+            if len(self._planner) >= self.settings.planner:
+                return False
+            start = max(now, self._planner_end)
+            self._planner_end = start + self.settings.move_time
+            self._planner.append(self._planner_end)
+        elif is_unbuffered(command.text) and not command.started:
+            if self._planner:
+                return False  # wait until every planned move is done
+            command.started = True
+            self._busy_until = now + self._duration(command)
+            if self._busy_until > now:
+                self._next_busy = now + (self.faults.busy_interval or 0)
+                return False
+        elif command.word == "M115" and not command.started and self._identify_slowly:
+            command.started = True
+            self._identify_slowly = False
+            self._busy_until = now + self.settings.identify_time
+            return False
+        elif not command.started and self.settings.command_time > 0:
+            command.started = True
+            self._busy_until = now + self.settings.command_time
+            return False
+        self._queue.popleft()
+        self._idle_from = now
+        self._on_execute(command.text)
+        self._answer(command, now)
+        return True
+
+    def _duration(self, command: _Command) -> float:
+        heater = _HEATERS.get(command.word)
+        if heater is not None and heater[1]:
+            name = self._heater_for(heater[0], command, self._last_step)
+            return 0.0 if name is None else self._set_target(name, command.text, self._last_step)
+        if command.word == "G4":
+            match = _DWELL.search(command.text[2:])
+            if match is not None:
+                value = float(match.group(2))
+                return value / 1000.0 if match.group(1).upper() == "P" else value
+            return 0.0
+        return self.settings.command_time
+
+    def _set_heater(self, command: _Command, now: float) -> None:
+        """M104, M140 and M141 set their heater's target as they run (M109, M190 and M191
+        did as they began to wait)."""
+        heater = _HEATERS.get(command.word)
+        if heater is not None and not heater[1]:
+            name = self._heater_for(heater[0], command, now)
+            if name is not None:
+                self._set_target(name, command.text, now)
+
+    def _heater_for(self, kind: str, command: _Command, now: float) -> str | None:
+        """The heater a temperature command sets, as Marlin reads it: a hotend by its T word
+        (else the active tool's; one it does not have is refused), the bed whatever T says,
+        the chamber if there is one."""
+        if kind == "C":
+            return "C" if "C" in self.heaters else None
+        if kind == "B":
+            return "B"
+        match = _T_WORD.search(command.text[len(command.word) :])
+        index = int(match.group(1)) if match else self.tool
+        if index >= self.settings.extruders:
+            self._reply(f"echo:{command.word} Invalid extruder {index}\n".encode(), now)
+            return None
+        return "T" if index == 0 else f"T{index}"
+
+    def _answer(self, command: _Command, now: float) -> None:
+        word = command.word
+        self._set_heater(command, now)
+        if word == "M105":
+            self._ok(f"ok {self._temperatures(now)}\n".encode(), now)
+            return
+        if word == "M112":  # in its turn: without the emergency parser
+            self._kill(now)
+            return
+        if word[:1] == "T" and word[1:].isdigit():
+            if int(word[1:]) < self.settings.extruders:
+                self.tool = int(word[1:])
+            else:
+                self._reply(f"echo:{word} Invalid extruder {word[1:]}\n".encode(), now)
+        if word == "M115":
+            settings = self.settings
+            parser = int(settings.emergency_parser)
+            reply = M115_REPLY.format(
+                extruders=settings.extruders, parser=parser, autoreport=int(settings.autoreport)
+            )
+            self._reply(reply.encode(), now)
+        elif word == "M155" and not self.settings.autoreport:
+            self._reply(f'echo:Unknown command: "{command.text}"\n'.encode(), now)
+        elif word == "M155":
+            match = _S_VALUE.search(command.text)
+            seconds = float(match.group(1)) if match else 0.0
+            self._report_every = seconds if seconds > 0 else None
+            self._next_report = now + seconds
+        if command.number is not None and self._chance(self.faults.spurious_resend):
+            self.counts.spurious_resends += 1
+            self._reply(f"Resend: {command.number}\n".encode(), now)
+        self._ok(b"ok\n", now)
+
+    def _debug(self, text: str, now: float) -> None:
+        """A ``!!DEBUG:`` line of the job: acts as :meth:`control`, answered with an ok."""
+        try:
+            self.control(text, now)
+        except ValueError as exc:
+            self._reply(f"echo:{DEBUG_PREFIX} {exc}\n".encode(), now)
+        if not self.hung and not text.strip().startswith("reset"):
+            self._ok(b"ok\n", now)
+
+    def control(self, text: str, now: float) -> None:
+        """Switch something from outside the wire (the fake's ``--control`` channel, and
+        ``!!DEBUG:`` lines): ``set corrupt=0.02 ...``, ``reset``, ``hang``, ``link_drop S``,
+        ``heat_rate R`` (degrees a second; ``none``: at once). ValueError on bad input."""
+        verb, _, argument = text.strip().partition(" ")
+        if verb == "set":
+            self.faults = Faults.parse(argument, self.faults)
+            self.protocol.drop_duplicates = self.faults.drop_duplicates
+            self.protocol.counted_resend = self.faults.counted_resend
+        elif verb == "reset":
+            self._reboot(now)
+        elif verb == "hang":
+            self.hung = True
+        elif verb == "link_drop":
+            self.link_drop_requested = _number(argument or "1", "link_drop")
+        elif verb == "heat_rate":
+            for name in self.heaters:
+                self._heat(name, now)  # up to now at the old rate
+            rate = None if argument.strip() in ("", "none") else _number(argument, "heat_rate")
+            self.settings = replace(self.settings, heat_rate=rate)
+            head = self._queue[0] if self._queue else None
+            heater = _HEATERS.get(head.word) if head is not None else None
+            if head is not None and head.started and heater is not None and heater[1]:
+                # The wait under way lasts as long as the new rate takes to its target.
+                waited = self._heater_for(heater[0], head, now)
+                left = self._set_target(waited, head.text, now) if waited else 0.0
+                self._busy_until = now + left
+        else:
+            raise ValueError(
+                f"unknown control '{verb}' (known: set, reset, hang, link_drop, heat_rate)"
+            )
+
+    def temperatures(self, now: float) -> dict[str, tuple[float, float]]:
+        """Each heater's (current, target) at ``now``."""
+        return {name: (self._heat(name, now)[0], self.heaters[name][1]) for name in self.heaters}
+
+    def _new_protocol(self) -> ControllerProtocol:
+        faults = self.faults
+        return ControllerProtocol(faults.drop_duplicates, faults.counted_resend)
+
+    # --- heaters -------------------------------------------------------------
+
+    def _heat(self, name: str, now: float) -> list[float]:
+        """The heater's state at ``now``, moved toward its target since last asked."""
+        heater = self.heaters[name]
+        current, target, since = heater
+        rate = self.settings.heat_rate
+        goal = max(target, AMBIENT)
+        if rate is None:
+            current = goal
+        else:
+            step = rate * max(0.0, now - since)
+            current = min(goal, current + step) if current < goal else max(goal, current - step)
+        heater[0], heater[2] = current, now
+        return heater
+
+    def _set_target(self, name: str, command: str, now: float) -> float:
+        """Set a heater's target; return how long until it is reached (for M109/M190)."""
+        match = _S_VALUE.search(command)
+        heater = self._heat(name, now)
+        if match is not None:
+            heater[1] = float(match.group(1))
+        rate = self.settings.heat_rate
+        if rate is None or heater[1] <= heater[0]:
+            self._heat(name, now)
+            return 0.0
+        return (heater[1] - heater[0]) / rate
+
+    def _temperatures(self, now: float) -> str:
+        """As Marlin reports them: the active hotend as T, the bed, the chamber, then each
+        hotend by its index where there are several."""
+        active = "T" if self.tool == 0 else f"T{self.tool}"
+        hotend, bed = self._heat(active, now), self._heat("B", now)
+        text = f"T:{hotend[0]:.1f} /{hotend[1]:.1f} B:{bed[0]:.1f} /{bed[1]:.1f}"
+        if "C" in self.heaters:
+            chamber = self._heat("C", now)
+            text += f" C:{chamber[0]:.1f} /{chamber[1]:.1f}"
+        if self.settings.extruders > 1:
+            for index in range(self.settings.extruders):
+                current, target, _ = self._heat("T" if index == 0 else f"T{index}", now)
+                text += f" T{index}:{current:.1f} /{target:.1f}"
+        return text + " @:0 B@:0"
+
+    def _break_heat_wait(self, now: float) -> None:
+        """M108: an M109, M190 or M191 waiting for its heater stops waiting (its ok goes now)."""
+        head = self._queue[0] if self._queue else None
+        if head is not None and head.started and _HEATERS.get(head.word, ("", False))[1]:
+            self._busy_until = min(self._busy_until, now)
+
+    def _kill(self, now: float) -> None:
+        """M112: Marlin's kill(): heaters off, nothing more until a reset."""
+        self._on_execute("M112")
+        for heater in self.heaters.values():
+            heater[1] = 0.0
+        self._queue.clear()
+        self._planner.clear()
+        self._rx.clear()
+        self._reply(KILLED, now)
+        self.hung = True
+
+    def _reboot(self, now: float) -> None:
+        self.protocol = self._new_protocol()
+        for heater in self.heaters.values():  # a reset turns every heater off
+            heater[1] = 0.0
+        self.tool = 0
+        self._queue.clear()
+        self._planner.clear()
+        self._rx.clear()
+        self._line.clear()
+        self._planner_end = self._busy_until = now
+        self._identify_slowly = self.settings.identify_time > 0
+        self._reply(self._boot_banner(), now)
+
+    def _boot_banner(self) -> bytes:
+        return b"start\n"
+
+    # --- replies ------------------------------------------------------------
+
+    def _ok(self, line: bytes, now: float) -> None:
+        if self._chance(self.faults.drop_ok):
+            self.counts.dropped_oks += 1
+            return
+        if self.settings.advanced_ok and line == b"ok\n":
+            planner_free = self.settings.planner - len(self._planner)
+            slots_free = self.settings.slots - len(self._queue)
+            last = self.protocol.last_line
+            line = f"ok N{last} P{planner_free} B{slots_free}\n".encode()
+        self._reply(line, now)
+        if self._chance(self.faults.duplicate_ok):
+            self.counts.duplicated_oks += 1
+            self._reply(line, now)
+
+    def _reply(self, data: bytes, now: float) -> None:
+        if self.faults.garble > 0:
+            data = b"".join(self._maybe_garble(line) for line in data.splitlines(keepends=True))
+        start = max(now, self._out_wire_free)
+        self._out_wire_free = start + self._wire_time(len(data))
+        self._outbound.append((self._out_wire_free + self.settings.latency, data))
+
+    def _maybe_corrupt(self, piece: bytes) -> bytes:
+        if not self._chance(self.faults.corrupt):
+            return piece
+        self.counts.corrupted_lines += 1
+        return self._change_one_byte(piece)
+
+    def _maybe_garble(self, line: bytes) -> bytes:
+        if not self._chance(self.faults.garble):
+            return line
+        self.counts.garbled_replies += 1
+        return self._change_one_byte(line)
+
+    def _change_one_byte(self, data: bytes) -> bytes:
+        position = self._rng.randrange(len(data))
+        value = (data[position] + self._rng.randrange(1, 256)) % 256
+        return data[:position] + bytes([value]) + data[position + 1 :]
+
+    def _chance(self, share: float) -> bool:
+        return share > 0 and self._rng.random() < share
+
+    def _wire_time(self, size: int) -> float:
+        bandwidth = self.settings.bandwidth
+        return 0.0 if bandwidth is None else size / bandwidth
+
+
+def _number(text: str, name: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        raise ValueError(f"{name}: '{text}' is not a number") from None

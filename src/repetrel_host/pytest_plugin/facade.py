@@ -1,0 +1,429 @@
+"""What tests hold: the printer (synchronous or awaitable), its jobs, the controller."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import threading
+import time
+from collections.abc import AsyncIterator, Awaitable, Callable, Coroutine, Iterator
+from dataclasses import dataclass
+from functools import cached_property
+from itertools import islice
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, TypeVar
+
+import pytest
+
+if TYPE_CHECKING:
+    import repetrel_host as rh
+    from repetrel_host.events import PrinterEvent
+    from repetrel_host.fakes.fake_controller import BuiltInFake
+    from repetrel_host.pytest_plugin.teardown import PluginSession
+
+T = TypeVar("T")
+
+
+class Portal:
+    """An event loop in its own thread, which the session lives on, so that plain
+    synchronous tests can use it and async tests on any loop can await it."""
+
+    def __init__(self) -> None:
+        self.loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(
+            target=self.loop.run_forever, name="hyrel-session", daemon=True
+        )
+        self._thread.start()
+
+    def call(self, coroutine: Coroutine[Any, Any, T], timeout: float | None = None) -> T:
+        """Run ``coroutine`` on the portal's loop and wait for its result."""
+        future = asyncio.run_coroutine_threadsafe(coroutine, self.loop)
+        try:
+            return future.result(timeout)
+        except BaseException:  # a timeout, Ctrl-C: it stops there too
+            future.cancel()
+            raise
+
+    async def acall(self, coroutine: Coroutine[Any, Any, T]) -> T:
+        """The same, awaited from another event loop."""
+        return await asyncio.wrap_future(asyncio.run_coroutine_threadsafe(coroutine, self.loop))
+
+    def close(self) -> None:
+        async def cancel_the_rest() -> None:
+            tasks = [t for t in asyncio.all_tasks() if t is not asyncio.current_task()]
+            for task in tasks:
+                task.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+
+        with contextlib.suppress(Exception):
+            self.call(cancel_the_rest(), 10)
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self._thread.join(10)
+        if not self._thread.is_alive():
+            self.loop.close()
+
+
+# --- jobs -------------------------------------------------------------------------
+
+
+FILE_SUFFIXES = (".gcode", ".gco", ".g", ".nc")
+
+
+@dataclass(frozen=True)
+class HyrelJob:
+    """A job for :meth:`HyrelPrinter.print`: a G-code file, with the loadout's header or not."""
+
+    path: Path
+    header: bool = True
+    history: Path | None = None  # where the stream as transmitted is kept
+
+
+def as_job(job: HyrelJob | Path | str) -> HyrelJob:
+    if isinstance(job, HyrelJob):
+        return job
+    if isinstance(job, str) and "\n" in job:
+        raise ValueError(
+            "print() takes hyrel_job(...) or a file's path; for G-code text, use hyrel_job(text)"
+        )
+    return HyrelJob(Path(job))
+
+
+class PrintResult:
+    """How a job went: which of its lines the controller acknowledged, and how it ended."""
+
+    def __init__(
+        self,
+        job: HyrelJob,
+        running: rh.PrintJob,
+        summary: rh.Summary | None,
+        error: rh.HostError | None,
+    ) -> None:
+        self.job = job
+        self.summary = summary  # None when it failed
+        self.error = error
+        plan = running.plan
+        self.header = [line.command for line in plan.header]  # the header it was sent with
+        self.header_acknowledged = self.header[: running.header_lines]
+        last = running.last
+        self.last_line = last.source_line if last is not None else 0  # file line; 0: none
+        # Safe-stop commands not confirmed, when the job was stopped.
+        self.safe_stop_missing = running.safe_stop_missing if running.stopping else []
+        self._file = plan.job  # read with the machine's own pause command for M0
+        self._count = running.lines
+
+    @property
+    def completed(self) -> bool:
+        """Every line was acknowledged and the job was not cancelled."""
+        from repetrel_host.pump import Outcome
+
+        return self.summary is not None and self.summary.outcome is Outcome.COMPLETED
+
+    @cached_property
+    def commands(self) -> list[str]:
+        """The job's lines as sent (an M0 becomes the machine's pause command)."""
+        return [line.command for line in self._file.lines()]
+
+    @cached_property
+    def acknowledged(self) -> list[str]:
+        """Those the controller acknowledged, in order (they go and are confirmed in order)."""
+        return [line.command for line in islice(self._file.lines(), self._count)]
+
+    def __repr__(self) -> str:
+        how = "completed" if self.completed else f"ended ({self.error or 'cancelled'})"
+        return f"<PrintResult {self.job.path.name}: {how}; {self._count} lines acknowledged>"
+
+
+class HyrelPrinter:
+    """A READY printer session for synchronous tests: each call returns when done.
+
+    ``session`` is the :class:`repetrel_host.Printer` itself. It lives on the plugin's
+    own event loop, in another thread: run its coroutines with :meth:`run`."""
+
+    def __init__(self, session: PluginSession) -> None:
+        self._session = session
+        self._portal = session.portal
+        self.session = session.printer
+
+    @property
+    def state(self) -> rh.State:
+        return self.session.state
+
+    @property
+    def firmware(self) -> rh.Firmware | None:
+        """What the controller said to M115, if it answered."""
+        return self.session.firmware
+
+    @property
+    def temperatures(self) -> dict[str, tuple[float, float | None]]:
+        """The last reading of each sensor: (current, target)."""
+        return dict(self.session.temperatures)
+
+    @property
+    def port(self) -> str:
+        return self.session.port
+
+    def run(self, work: Callable[[rh.Printer], Awaitable[T]], timeout: float | None = None) -> T:
+        """``await work(session)`` on the session's event loop, and return its result."""
+
+        async def call() -> T:
+            return await work(self.session)
+
+        return self._portal.call(call(), timeout)
+
+    def command(self, line: str, *, timeout: float | None = None) -> rh.Reply:
+        """Send one command and return the controller's reply (``reply.lines``, ``reply.ok``)."""
+        return self._portal.call(self._session.command(line, timeout))
+
+    def print(
+        self,
+        job: HyrelJob | Path | str,
+        *,
+        force: bool = False,
+        check: bool = True,
+        timeout: float | None = None,
+    ) -> PrintResult:
+        """Stream ``job`` and return once the controller acknowledged all of it; raises
+        what ended it if it failed (``check=False``: the result tells, in ``error``)."""
+        return self.start(job, force=force).wait(check=check, timeout=timeout)
+
+    def start(self, job: HyrelJob | Path | str, *, force: bool = False) -> RunningJob:
+        """Start streaming ``job`` and return at once (to pause, cancel, watch it)."""
+        job = as_job(job)
+        running = self._portal.call(self._session.start(job, force))
+        return RunningJob(self._session, job, running)
+
+    def pause(self) -> None:
+        """Pause the running job; returns once every line sent is confirmed."""
+        self._portal.call(self.session.pause())
+
+    def resume(self) -> None:
+        self._portal.call(self.session.resume())
+
+    def cancel(self) -> None:
+        """Stop the running job with the safe-stop sequence; returns once it went."""
+        self._portal.call(self.session.cancel())
+
+    def wait_for(self, *states: rh.State, timeout: float | None = None) -> None:
+        """Wait until the session is in one of ``states`` (READY after a reset, an unplug)."""
+        self._portal.call(self.session.wait_for(*states, timeout=timeout))
+
+    def wait_for_temperature(
+        self, sensor: str, target: float, *, tolerance: float = 2.0, timeout: float = 60.0
+    ) -> float:
+        """Wait until ``sensor`` (``T``, ``B``...) reads within ``tolerance`` of ``target``;
+        returns the reading, or fails the test after ``timeout`` seconds."""
+        work = self._session.wait_for_temperature(sensor, target, tolerance, timeout)
+        return self._portal.call(work)
+
+    def events(self, timeout: float) -> Iterator[PrinterEvent]:
+        """State changes (the current one first), temperatures and controller messages,
+        for ``timeout`` seconds (or until the session closes)."""
+        portal = self._portal
+        stream = portal.call(self._session.subscribe())
+        deadline = time.monotonic() + timeout
+        try:
+            while (left := deadline - time.monotonic()) > 0:
+                try:
+                    yield portal.call(anext(stream), left)  # type: ignore[arg-type]
+                except (StopAsyncIteration, TimeoutError):
+                    return
+        finally:
+            with contextlib.suppress(Exception):
+                portal.call(stream.aclose(), 5)  # type: ignore[attr-defined]
+
+
+class RunningJob:
+    """A job streaming from :meth:`HyrelPrinter.start`."""
+
+    def __init__(self, session: PluginSession, job: HyrelJob, running: rh.PrintJob) -> None:
+        self._session = session
+        self.job = job
+        self.print_job = running  # the session's rh.PrintJob
+
+    @property
+    def lines(self) -> int:
+        """Job lines the controller acknowledged so far."""
+        return self.print_job.lines
+
+    @property
+    def done(self) -> bool:
+        return self.print_job.done
+
+    def wait(self, *, check: bool = True, timeout: float | None = None) -> PrintResult:
+        """Wait for the end (see :meth:`HyrelPrinter.print`)."""
+        work = self._session.finish(self.job, self.print_job, check)
+        return self._session.portal.call(work, timeout)
+
+    def pause(self) -> None:
+        self._session.portal.call(self.print_job.pause())
+
+    def resume(self) -> None:
+        self._session.portal.call(self.print_job.resume())
+
+    def cancel(self) -> PrintResult:
+        """Stop this job with the safe-stop sequence first; returns how far it got."""
+        return self._session.portal.call(self._session.cancel(self.job, self.print_job))
+
+
+class AsyncHyrelPrinter:
+    """:class:`HyrelPrinter` for async tests: the same calls, awaited, from any asyncio loop."""
+
+    def __init__(self, session: PluginSession) -> None:
+        self._session = session
+        self._portal = session.portal
+        self.session = session.printer
+
+    state = HyrelPrinter.state
+    firmware = HyrelPrinter.firmware
+    temperatures = HyrelPrinter.temperatures
+    port = HyrelPrinter.port
+
+    async def run(self, work: Callable[[rh.Printer], Awaitable[T]]) -> T:
+        async def call() -> T:
+            return await work(self.session)
+
+        return await self._portal.acall(call())
+
+    async def command(self, line: str, *, timeout: float | None = None) -> rh.Reply:
+        return await self._portal.acall(self._session.command(line, timeout))
+
+    async def print(
+        self, job: HyrelJob | Path | str, *, force: bool = False, check: bool = True
+    ) -> PrintResult:
+        return await (await self.start(job, force=force)).wait(check=check)
+
+    async def start(self, job: HyrelJob | Path | str, *, force: bool = False) -> AsyncRunningJob:
+        job = as_job(job)
+        running = await self._portal.acall(self._session.start(job, force))
+        return AsyncRunningJob(self._session, job, running)
+
+    async def pause(self) -> None:
+        await self._portal.acall(self.session.pause())
+
+    async def resume(self) -> None:
+        await self._portal.acall(self.session.resume())
+
+    async def cancel(self) -> None:
+        await self._portal.acall(self.session.cancel())
+
+    async def wait_for(self, *states: rh.State, timeout: float | None = None) -> None:
+        await self._portal.acall(self.session.wait_for(*states, timeout=timeout))
+
+    async def wait_for_temperature(
+        self, sensor: str, target: float, *, tolerance: float = 2.0, timeout: float = 60.0
+    ) -> float:
+        work = self._session.wait_for_temperature(sensor, target, tolerance, timeout)
+        return await self._portal.acall(work)
+
+    async def events(self) -> AsyncIterator[PrinterEvent]:
+        """State changes (the current one first), temperatures and controller messages."""
+        portal = self._portal
+        stream = await portal.acall(self._session.subscribe())
+        try:
+            while True:
+                try:
+                    yield await portal.acall(anext(stream))  # type: ignore[arg-type]
+                except StopAsyncIteration:
+                    return
+        finally:
+            with contextlib.suppress(Exception):
+                await portal.acall(stream.aclose())  # type: ignore[attr-defined]
+
+
+class AsyncRunningJob(RunningJob):
+    """A job streaming from :meth:`AsyncHyrelPrinter.start`: the same calls, awaited."""
+
+    async def wait(  # type: ignore[override]
+        self, *, check: bool = True
+    ) -> PrintResult:
+        return await self._session.portal.acall(
+            self._session.finish(self.job, self.print_job, check)
+        )
+
+    async def pause(self) -> None:  # type: ignore[override]
+        await self._session.portal.acall(self.print_job.pause())
+
+    async def resume(self) -> None:  # type: ignore[override]
+        await self._session.portal.acall(self.print_job.resume())
+
+    async def cancel(self) -> PrintResult:  # type: ignore[override]
+        return await self._session.portal.acall(self._session.cancel(self.job, self.print_job))
+
+
+# --- the controller -----------------------------------------------------------------
+
+
+class HyrelController:
+    """What the tests talk to: a real printer's port, or the fake controller.
+
+    The fake-only parts (executed commands, faults, heaters) skip the test on real
+    hardware. After :meth:`reset` or :meth:`unplug` the session greets the controller
+    again: ``hyrel_printer.wait_for(rh.State.READY)`` before the next command."""
+
+    def __init__(self, port: str, fake: BuiltInFake | None = None) -> None:
+        self.port = port
+        self.fake = fake
+
+    @property
+    def is_fake(self) -> bool:
+        return self.fake is not None
+
+    def _fake(self, what: str) -> BuiltInFake:
+        if self.fake is None:
+            pytest.skip(f"{what} needs the fake controller; this run drives {self.port}")
+        return self.fake
+
+    def _request(self, what: str, text: str) -> dict[str, Any]:
+        answer = self._fake(what).request(text)
+        if not answer.get("ok"):
+            raise ValueError(f"the fake controller refused '{text}': {answer.get('error')}")
+        return answer
+
+    @property
+    def log_path(self) -> Path:
+        """The fake's log of executed commands (kept after the test)."""
+        log = self._fake("the executed-command log").log_path
+        assert log is not None  # the plugin gives its fakes a log
+        return log
+
+    @property
+    def executed(self) -> list[str]:
+        """Every command the fake executed, in order (the session's greeting included)."""
+        self._request("the executed-command log", "status")  # flushes the log first
+        return self.log_path.read_text(encoding="ascii", errors="replace").splitlines()
+
+    @property
+    def temperatures(self) -> dict[str, tuple[float, float]]:
+        """The fake's heaters: (current, target) of ``T`` and ``B``."""
+        readings = self._request("simulated temperatures", "status")["temperatures"]
+        return {name: (float(now), float(target)) for name, (now, target) in readings.items()}
+
+    @property
+    def fault_counts(self) -> dict[str, int]:
+        """How many of each fault the fake injected (corrupted_lines, dropped_oks...)."""
+        counts: dict[str, int] = self._request("fault counts", "status")["counts"]
+        return counts
+
+    def set_faults(self, faults: str) -> None:
+        """Switch faults from now on: ``"corrupt=0.02 drop_ok=0.05 seed=3"`` (the fake's
+        ``--faults``: corrupt, garble, drop_ok, duplicate_ok, spurious_resend,
+        resend_without_ok, flush_on_error, drop_duplicates, counted_resend,
+        drop_with_error, busy_interval, seed)."""
+        self._request("fault injection", f"set {faults}")
+
+    def set_heat_rate(self, degrees_per_second: float | None) -> None:
+        """How fast the fake's heaters move (None: at once, the default)."""
+        rate = "none" if degrees_per_second is None else str(degrees_per_second)
+        self._request("simulated heaters", f"heat_rate {rate}")
+
+    def reset(self) -> None:
+        """Reboot the fake: it says ``start``, as a controller does after a reset."""
+        self._request("a controller reset", "reset")
+
+    def hang(self) -> None:
+        """The fake stops answering for good."""
+        self._request("a hung controller", "hang")
+
+    def unplug(self, seconds: float = 1.0) -> None:
+        """Pull the cable: the pty vanishes, and comes back at the same path after ``seconds``."""
+        self._request("an unplug", f"link_drop {seconds}")
