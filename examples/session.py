@@ -44,7 +44,7 @@ async def main(port: str, job_path: Path) -> int:
         print(
             f"{job.name}: {summary.outcome.value}, {summary.lines} lines in {summary.seconds:.1f} s"
         )
-        print(f"temperatures now: {(await printer.command('M105')).ok}")
+        print(f"temperatures now: {(await printer.command('M105')).ok_line}")
     return 0
 
 

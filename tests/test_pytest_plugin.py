@@ -122,7 +122,7 @@ def test_markers_are_registered_and_skip_with_their_reasons(pytester: pytest.Pyt
 
         @pytest.mark.hyrel_fake(heat_rate=5, faults="drop_ok=0.01")
         def test_with_fake_settings(hyrel_printer):
-            assert hyrel_printer.command("M105").ok.startswith("ok")
+            assert hyrel_printer.command("M105").ok_line.startswith("ok")
         """
     )
     result = run(pytester, "--strict-markers", "-rs")
@@ -236,7 +236,7 @@ def test_sync_fixtures_command_print_and_drive_the_fake(pytester: pytest.Pyteste
                         break
             assert states[:2] == [rh.State.READY, rh.State.DISCONNECTED]
             assert states[-1] is rh.State.READY
-            assert hyrel_printer.command("M105").ok.startswith("ok T:")
+            assert hyrel_printer.command("M105").ok_line.startswith("ok T:")
 
         @pytest.mark.hyrel_fake(move_time=0.005)
         def test_a_failing_job_says_where_it_stopped(hyrel_printer, hyrel_job, hyrel_controller):
@@ -263,7 +263,7 @@ def test_async_fixture_from_pytest_asyncio_and_from_asyncio_run(pytester: pytest
         @pytest.mark.asyncio
         async def test_with_pytest_asyncio(hyrel_aprinter, hyrel_job):
             reply = await hyrel_aprinter.command("M105")
-            assert reply.ok.startswith("ok T:")
+            assert reply.ok_line.startswith("ok T:")
             result = await hyrel_aprinter.print(hyrel_job("G28\\nG1 X5\\n"))
             assert result.acknowledged == ["G28", "G1 X5"]
             running = await hyrel_aprinter.start(hyrel_job("G1 X1\\n" * 5000))
@@ -392,7 +392,7 @@ def test_a_pty_given_as_the_port_stands_for_the_bench(
             hyrel_controller.set_faults("drop_ok=0.5")
 
         def test_same_session(hyrel_printer):
-            assert hyrel_printer.command("M105").ok.startswith("ok T:")
+            assert hyrel_printer.command("M105").ok_line.startswith("ok T:")
         """
     )
     log = tmp_path / "bench.log"
@@ -441,7 +441,7 @@ def test_each_test_gets_a_fresh_fake(pytester: pytest.Pytester) -> None:
 
         def test_two(hyrel_controller, hyrel_printer):
             assert hyrel_controller.port not in ports  # a new fake: no faults carried over
-            assert hyrel_printer.command("M105").ok.startswith("ok")
+            assert hyrel_printer.command("M105").ok_line.startswith("ok")
         """
     )
     run(pytester).assert_outcomes(passed=2)

@@ -35,6 +35,7 @@ def test_the_history_holds_the_reports_oldest_first_and_since_a_time(
         asked_at = time.time()
         sent = client.post("/v1/printers/demo/command", json={"command": "M104 S150"})
         assert sent.status_code == 200, sent.text
+        assert sent.json()["ok"] is True and sent.json()["ok_line"].startswith("ok"), sent.json()
         answered_at = time.time()
 
         def heated_reports() -> list[dict]:

@@ -98,7 +98,7 @@ def rig(request: pytest.FixtureRequest, tmp_path: Path) -> Rig:
 
 def temperatures(reply: rh.Reply) -> str:
     """The reply's temperature report: in its ok (Marlin), or its line (Hyrel's >ST:)."""
-    return reply.lines[0] if reply.lines else reply.ok
+    return reply.lines[0] if reply.lines else reply.ok_line
 
 
 def run(scenario: Callable[[], Coroutine[Any, Any, None]]) -> None:
@@ -129,7 +129,7 @@ def test_connect_greets_and_asks_who_the_controller_is(rig: Rig) -> None:
             assert printer.state is rh.State.READY
             assert printer.firmware is not None
             reply = await printer.command("M115")
-            assert reply.ok == "ok"
+            assert reply.ok is True and reply.ok_line == "ok"
             if rig.hyrel:  # greeted with a ping, who said it is a Hyrel controller
                 assert printer.probe is rh.ProbeKind.ANSWER
                 assert printer.firmware.name == ">Hy: repetrel-host-fake_1.0"
@@ -252,7 +252,7 @@ def test_commands_wait_while_printing_and_work_while_paused(rig: Rig, tmp_path: 
             await asyncio.sleep(0.3)
             assert len(rig.executed(printer)) == len(executed)
             reply = await printer.command("M105")  # e.g. to move a head during a pause
-            assert reply.ok.startswith("ok T:")
+            assert reply.ok_line.startswith("ok T:")
             await printer.resume()
             assert printer.state is rh.State.PRINTING
             await job.wait()
@@ -415,7 +415,7 @@ def test_m112_goes_out_at_once_and_ends_the_job(rig: Rig, tmp_path: Path) -> Non
             job = await printer.print(job_file(tmp_path, commands), history=False)
             await settle(rig, printer, 20)
             reply = await printer.command("M112")  # allowed while printing
-            assert reply == rh.Reply("M112", [], "")
+            assert reply == rh.Reply("M112", [], "") and reply.ok is False
             with pytest.raises(rh.ControllerError, match="emergency stop"):
                 await job.wait()
             executed = await settle(rig, printer, 21)
@@ -444,11 +444,11 @@ def test_m108_goes_out_at_once_and_ends_a_heat_wait(protocol: str) -> None:
             # Marlin's emergency parser reads M108; on Hyrel's link it is end-wait (0x01).
             assert await printer.command("M108") == rh.Reply("M108", [], "")
             reply = await asyncio.wait_for(heating, 2)
-            assert reply.ok == "ok" and printer.pending == []
+            assert reply.ok_line == "ok" and printer.pending == []
             # Marlin's M108 line then runs in its turn (a no-op) and draws an ok, which
             # the link counts as the M108's: the next command gets its own reply.
             assert rig.executed(printer) == ["M109 S250", *(["M108"] if not rig.hyrel else [])]
-            assert (await printer.command("M114")).ok == "ok"
+            assert (await printer.command("M114")).ok_line == "ok"
             assert rig.executed(printer)[-1] == "M114"
 
     run(scenario)
@@ -691,7 +691,7 @@ def test_a_controller_slow_to_say_who_it_is_is_used_without_its_name(
             assert printer.state is rh.State.READY and printer.firmware is None
             # M115's late answer stays its own: M105 gets only its temperatures.
             reply = await printer.command("M105")
-            assert reply.lines == [] and reply.ok.startswith("ok T:21.0")
+            assert reply.lines == [] and reply.ok_line.startswith("ok T:21.0")
             reply = await printer.command("M115")
             assert reply.lines[0].startswith("FIRMWARE_NAME:")
 

@@ -12,7 +12,7 @@ FAKE_NAMES = {
 
 def test_the_controller_answers_m115_with_its_name(hyrel_printer, hyrel_controller):
     reply = hyrel_printer.command("M115")
-    firmware = rh.Firmware.parse([*reply.lines, reply.ok])
+    firmware = rh.Firmware.parse([*reply.lines, reply.ok_line])
     assert firmware is not None, f"M115 named no firmware: {reply.lines}"
     if hyrel_controller.is_fake:
         assert firmware.name == FAKE_NAMES[hyrel_printer.session.settings.protocol]

@@ -154,11 +154,17 @@ def _state_at(plan: JobPlan, line: int) -> MachineState:
 
 @dataclass(frozen=True, slots=True)
 class Reply:
-    """The controller's answer to one command."""
+    """The controller's answer to one command: its lines, then its ok."""
 
     command: str
     lines: list[str]  # the controller's lines for it, before its ok
-    ok: str  # the ok line itself ("ok T:200.0 /200.0 B:60.0 /60.0"); "" for M112
+    ok_line: str  # the ok line itself ("ok T:200.0 /200.0 B:60.0 /60.0"); "" when none came
+
+    @property
+    def ok(self) -> bool:
+        """The controller acknowledged the command. False for M112 and M108, which go out
+        at once (the firmware's emergency parser reads them) and get no ok."""
+        return bool(self.ok_line)
 
 
 @dataclass(frozen=True, slots=True)
@@ -1096,7 +1102,7 @@ class Printer:
                 reply = await asyncio.wait_for(
                     asyncio.shield(pending.future), max(0.0, deadline - self._loop.time())
                 )
-                self.firmware = Firmware.parse([*reply.lines, reply.ok]) or self.firmware
+                self.firmware = Firmware.parse([*reply.lines, reply.ok_line]) or self.firmware
                 if self.firmware is not None:
                     break
                 # Confirmed, its answer perhaps still to come (a probe found the line taken

@@ -341,7 +341,7 @@ class PrinterConsole:
         for text in reply.lines:
             say(text)
         if reply.ok:
-            say(reply.ok)
+            say(reply.ok_line)
         elif command_word(reply.command) == "M112":
             say("M112 sent at once: emergency stop (the controller halts until reset)")
         else:

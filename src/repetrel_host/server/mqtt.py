@@ -189,4 +189,4 @@ class MqttBridge:
             reply = await service.command(text)
         except Refused as exc:
             return {"command": text, "ok": False, "error": str(exc)}
-        return {"command": text, "ok": True, "lines": reply.lines, "reply": reply.ok}
+        return {"command": text, "ok": True, "lines": reply.lines, "reply": reply.ok_line}

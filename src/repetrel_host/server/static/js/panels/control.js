@@ -32,7 +32,7 @@ export function mount(body, ctx) {
           return;
         }
       }
-      const said = [...(reply.lines || []), reply.ok].filter(Boolean).join(" · ");
+      const said = [...(reply.lines || []), reply.ok_line].filter(Boolean).join(" · ");
       status.className = "control-status";
       status.textContent = `${commands.join(" · ")} → ${said || "sent"}`;
     });
