@@ -121,7 +121,7 @@ def test_m792_shell_is_refused_unless_allowed(tmp_path: Path) -> None:
     with BuiltInFake(log) as fake:
         refused = hyrel_send(str(job), "--port", fake.port)
         assert refused.returncode == 0, refused.stderr
-        assert "refused" in refused.stdout and "allow_shell" in refused.stdout
+        assert "refused" in refused.stdout and "allow_shell = true under [host]" in refused.stdout
         assert "say (act.gcode:2): done" in refused.stdout
         assert not marker.exists()
         config = tmp_path / "config.toml"

@@ -462,6 +462,30 @@ def test_the_wire_recorder_joins_lines_split_across_reads_and_caps_noise() -> No
     assert len(recorder.since(recorder.wire, mark)) == 3  # what came after the mark
 
 
+@pytest.mark.parametrize("protocol", ["reprap", "hyrel"])
+def test_executed_holds_what_the_test_sent_on_either_link(
+    pytester: pytest.Pytester, protocol: str
+) -> None:
+    # Written the obvious way: the host's own lines (the greeting's M110 and M115, polls,
+    # the syncs of Hyrel's link) are not in executed; the test's own M115 and M105 are.
+    pytester.makepyfile(
+        f"""
+        def test_what_ran_is_what_the_test_sent(hyrel_printer, hyrel_controller, hyrel_job):
+            assert hyrel_printer.command("M115").ok
+            lines = "".join(f"G1 X{{i}} F3000\\nM115\\n" for i in range(150))
+            job = hyrel_job("M105\\n" + lines)
+            result = hyrel_printer.print(job)
+            hyrel_printer.command("M105")
+            assert result.completed and len(result.commands) == 301
+            assert hyrel_controller.executed == ["M115", *result.commands, "M105"]
+            everything = hyrel_controller.all_executed
+            assert everything.count("M115") > 151  # the greeting's M115 too
+            assert everything[0].startswith("M110" if {protocol!r} == "reprap" else "M115")
+        """
+    )
+    run(pytester, f"--hyrel-protocol={protocol}").assert_outcomes(passed=1)
+
+
 def test_hyrel_protocol_runs_the_same_tests_over_hyrels_link(pytester: pytest.Pytester) -> None:
     pytester.makepyfile(
         """
@@ -479,7 +503,7 @@ def test_hyrel_protocol_runs_the_same_tests_over_hyrels_link(pytester: pytest.Py
             hyrel_controller.set_faults("drop_ok=0.1 garble=0.02 seed=3")
             result = hyrel_printer.print(job)
             assert result.completed and result.acknowledged == result.commands
-            ran = [c for c in hyrel_controller.executed[before:] if c != "M115"]
+            ran = hyrel_controller.executed[before:]  # without the host's syncs
             assert ran == result.commands and hyrel_controller.fault_counts["dropped_oks"] > 10
 
         @pytest.mark.hyrel_fake(protocol="reprap")

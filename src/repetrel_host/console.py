@@ -93,7 +93,7 @@ class ConsoleActions:
             if not self.host.allow_shell:
                 self.console.print(
                     f"[yellow]refused[/] ({where}): M792 SHELL {escape(argument)} - "
-                    "set allow_shell = true under [host] in your configuration to allow it"
+                    "set allow_shell = true under \\[host] in your configuration to allow it"
                 )
                 return
             self.console.print(f"shell ({where}): {escape(argument)}")

@@ -225,12 +225,13 @@ class _Hub(Generic[E]):
 class _Command:
     """A command on its way: the lines that come for it, and the reply it awaits."""
 
-    __slots__ = ("command", "future", "lines")
+    __slots__ = ("command", "future", "lines", "own")
 
-    def __init__(self, command: str, future: asyncio.Future[Reply]) -> None:
+    def __init__(self, command: str, future: asyncio.Future[Reply], own: bool = False) -> None:
         self.command = command
         self.lines: list[str] = []
         self.future = future
+        self.own = own  # the session's own (the greeting's M115, a poll), not the caller's
 
 
 class _Connection(asyncio.Protocol):
@@ -528,6 +529,7 @@ class Printer:
         self._owing_timer: asyncio.TimerHandle | None = None
         self._heaters = HeaterLog()  # every heater the session's commands set
         self._wire_taps: list[Callable[[bool, bytes], None]] = []
+        self._line_taps: list[Callable[[str, bool], None]] = []
         # The wire's latest pieces, (sent, data), while a log reads them now and then (the
         # push socket's terminal): one append a write or read, nothing more, and nothing at
         # all while it is None. Bounded: a reader that falls behind loses the oldest.
@@ -598,6 +600,21 @@ class Printer:
         """Wait until the session is in one of ``states``."""
         await asyncio.wait_for(self._until(lambda: self.state in states), timeout)
 
+    def tap_lines(self, callback: Callable[[str, bool], None]) -> Callable[[], None]:
+        """Call ``callback(command, own)`` for each line as it first goes on the wire, in
+        order; ``own``: the host's own line (the greeting, a temperature poll, a sync on
+        Hyrel's link), not the caller's nor a job's. Returns what removes the tap. For
+        tests that read what the controller ran (a fake's log) without the host's lines."""
+        self._line_taps.append(callback)
+        if self._pump is not None:
+            self._pump.dialect.on_first_send = self._first_send
+        return lambda: self._line_taps.remove(callback)
+
+    def _first_send(self, command: str, tag: object, own: bool) -> None:
+        own = own or (isinstance(tag, _Command) and tag.own)
+        for tap in self._line_taps:
+            tap(command, own)
+
     def tap_wire(self, callback: Callable[[bool, bytes], None]) -> Callable[[], None]:
         """Call ``callback(sent, data)`` with every piece of data written (``sent``) or
         received, as it goes; returns what removes the tap. For logs and test reports."""
@@ -647,16 +664,16 @@ class Printer:
                 self._paused_words.add(word)
             return await self._command(command, timeout)
 
-    async def _command(self, command: str, timeout: float | None) -> Reply:
-        pending = self._send_command(command)
+    async def _command(self, command: str, timeout: float | None, own: bool = False) -> Reply:
+        pending = self._send_command(command, own)
         # Shielded: a timeout leaves it pending, so that its late lines are still its own.
         return await asyncio.wait_for(asyncio.shield(pending.future), timeout)
 
-    def _send_command(self, command: str) -> _Command:
+    def _send_command(self, command: str, own: bool = False) -> _Command:
         pump = self._pump
         if pump is None:
             raise LinkError(f"{self.port} is not connected")
-        pending = _Command(command, self._loop.create_future())
+        pending = _Command(command, self._loop.create_future(), own)
         self._commands.append(pending)
         pump.command(command, pending)
         self._poke()
@@ -711,7 +728,7 @@ class Printer:
             or self._pump is None
         ):
             return self._autoreport_asked
-        pending = self._send_command(f"M155 S{max(1, math.ceil(interval))}")
+        pending = self._send_command(f"M155 S{max(1, math.ceil(interval))}", own=True)
         pending.future.add_done_callback(self._autoreporting)
         self._autoreport_asked = pending.future
         return pending.future
@@ -1097,7 +1114,7 @@ class Printer:
         greeting = Firmware.parse([f"FIRMWARE_NAME:{self._greeting}"] if self._greeting else [])
         deadline = self._loop.time() + FIRMWARE_PATIENCE
         for _ in range(FIRMWARE_ATTEMPTS):
-            pending = self._send_command("M115")
+            pending = self._send_command("M115", own=True)
             with contextlib.suppress(TimeoutError):
                 reply = await asyncio.wait_for(
                     asyncio.shield(pending.future), max(0.0, deadline - self._loop.time())
@@ -1136,6 +1153,8 @@ class Printer:
             reply_timeout=settings.reply_timeout,
             checksum=settings.checksum,
         )
+        if self._line_taps:
+            dialect.on_first_send = self._first_send
         self._pump = Pump(dialect, self._listener, self._heaters)
         self._write(self._pump.start(self._loop.time()))
         self._arm_timer(self._pump.deadline)
@@ -1197,7 +1216,7 @@ class Printer:
                 continue
             with contextlib.suppress(HostError, TimeoutError):
                 async with self._lock:
-                    reply = await self._command("M105", interval * 2)
+                    reply = await self._command("M105", interval * 2, own=True)
                 # What came while it waited is the job's (messages), not the poll's.
                 for line in reply.lines:
                     if not parse_temperatures(line):
@@ -1624,6 +1643,7 @@ def connect(
     fake_log: Path | None = None,
     fake_args: Iterable[str] = (),
     sim: ControllerSettings | None = None,
+    line_tap: Callable[[str, bool], None] | None = None,
 ) -> _Connect:
     """Open a printer session on ``port`` and greet the controller.
 
@@ -1641,6 +1661,7 @@ def connect(
     for silence. ``reconnect=False``: a lost port stays
     lost. ``reconnect_wait``: a job whose link failed before its safe stop was confirmed
     ends once the safe stop went after a reconnect, or after this many seconds.
+    ``line_tap``: :meth:`Printer.tap_lines` from the greeting's first line on.
     """
 
     async def opening() -> Printer:
@@ -1676,6 +1697,8 @@ def connect(
             reconnect_wait,
         )
         printer = Printer(opened, settings)
+        if line_tap is not None:
+            printer.tap_lines(line_tap)
         try:
             await printer._open()
         except BaseException:

@@ -12,6 +12,7 @@ all the same, and the answer says whether it was done.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -45,6 +46,10 @@ class Dialect(Protocol):
     # The tag of the last line (not the host's own) transmitted for the first time: what
     # reached the wire, for a killed host's progress record.
     last_sent: object | None
+    # Called once for each line as it first goes on the wire, in wire order: its command,
+    # its tag, and whether it is the dialect's own (a greeting, a probe, a sync); None: not
+    # called. For tests that tell the host's own lines from the caller's in what ran.
+    on_first_send: Callable[[str, object, bool], None] | None
 
     def start(self, now: float) -> None:
         """Greet the controller: the first bytes to send set up the numbering."""

@@ -6,6 +6,7 @@ import asyncio
 import contextlib
 import threading
 import time
+from collections import deque
 from collections.abc import AsyncIterator, Awaitable, Callable, Coroutine, Iterator
 from dataclasses import dataclass
 from functools import cached_property
@@ -363,6 +364,13 @@ class HyrelController:
     def __init__(self, port: str, fake: BuiltInFake | None = None) -> None:
         self.port = port
         self.fake = fake
+        # Each line the session sent, as it first went on the wire: (command, the host's own)
+        self._sent: deque[tuple[str, bool]] = deque()
+
+    def note_sent(self, command: str, own: bool) -> None:
+        """The session's line tap (:meth:`repetrel_host.Printer.tap_lines`): what tells
+        the host's own lines from the test's in :attr:`executed`."""
+        self._sent.append((command, own))
 
     @property
     def is_fake(self) -> bool:
@@ -388,7 +396,26 @@ class HyrelController:
 
     @property
     def executed(self) -> list[str]:
-        """Every command the fake executed, in order (the session's greeting included)."""
+        """The commands the fake executed for the test, in order: its commands and its
+        jobs' lines (a job's header, its safe stop), without the host's own lines (the
+        greeting, temperature polls, the syncs of Hyrel's link): :attr:`all_executed`
+        has those too."""
+        # The n-th time the fake ran a command is the n-th time the session sent that
+        # command, which the session's tap says was its own or not. (A line lost to a
+        # fault or an abort shifts that count: read all_executed then.)
+        owners: dict[str, deque[bool]] = {}
+        for command, own in list(self._sent):
+            owners.setdefault(command, deque()).append(own)
+        ran = []
+        for command in self.all_executed:
+            sent = owners.get(command)
+            if not (sent and sent.popleft()):
+                ran.append(command)
+        return ran
+
+    @property
+    def all_executed(self) -> list[str]:
+        """Every command the fake executed, in order, the host's own lines included."""
         self._request("the executed-command log", "status")  # flushes the log first
         return self.log_path.read_text(encoding="ascii", errors="replace").splitlines()
 

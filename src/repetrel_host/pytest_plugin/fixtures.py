@@ -148,6 +148,7 @@ def _hyrel_session(
             baud=link.baud,
             protocol=link.protocol,
             poll_interval=POLL_INTERVAL,
+            line_tap=hyrel_controller.note_sent,  # from the greeting on
         )
         printer.tap_wire(recorder.tap)
         asyncio.get_running_loop().create_task(record_events(printer, recorder))

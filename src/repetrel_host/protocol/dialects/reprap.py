@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import re
 from collections import deque
+from collections.abc import Callable
 from enum import Enum
 
 from repetrel_host.errors import UsageError
@@ -142,6 +143,7 @@ class RepRapDialect:
     acks_say_received = False  # an ok comes once the controller took the line to run
     last_ran: object | None = None
     last_sent: object | None = None  # the tag of the last caller's line first transmitted
+    on_first_send: Callable[[str, object, bool], None] | None = None
 
     def __init__(
         self,
@@ -224,6 +226,8 @@ class RepRapDialect:
         unnumbered line: M108 and M410 then draw an ok (OctoPrint counts it too), which is
         counted in flight so that it acknowledges none of the host's lines; M112 halts."""
         data = command.encode("ascii") + b"\n"
+        if self.on_first_send is not None:
+            self.on_first_send(command, None, False)
         if command_word(command) == "M112" or self._phase is not Phase.RUNNING:
             self.stats.bytes_sent += len(data)
             self._outgoing += data
@@ -850,6 +854,8 @@ class RepRapDialect:
             self._guard.sent_again(line.number, now)
         else:
             line.transmitted = True
+            if self.on_first_send is not None:
+                self.on_first_send(line.command, line.tag, line.is_host_line)
             if not line.is_host_line:
                 self.stats.lines_sent += 1
                 self.last_sent = line.tag
