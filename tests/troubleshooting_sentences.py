@@ -469,7 +469,8 @@ def _printed(call: ast.Call, place: _Place, reader: _Reader) -> list[Sentence]:
     out = []
     where = f"{place.module.name}:{call.lineno}"
     for fixed, names in reader.templates(call.args[0], place.module, place.scope):
-        fixed = tuple(_MARKUP.sub("", part) for part in fixed)
+        # As rich shows it: its tags gone, an escaped bracket (\[host]) a bracket.
+        fixed = tuple(_MARKUP.sub("", part).replace("\\[", "[") for part in fixed)
         head = fixed[0]
         prefix = next((p for p in PREFIXES if head.startswith(p)), None)
         if prefix is not None:
