@@ -517,3 +517,45 @@ def test_hyrel_protocol_runs_the_same_tests_over_hyrels_link(pytester: pytest.Py
     result = run(pytester, "--hyrel-protocol=marlin")
     assert result.ret != 0
     assert "--hyrel-protocol: 'marlin' is not reprap or hyrel" in result.stderr.str()
+
+
+def test_an_async_test_runs_without_pytest_asyncios_warning(pytester: pytest.Pytester) -> None:
+    # A lab's first async test, with no pytest-asyncio settings of its own.
+    pytester.makepyfile(
+        """
+        import pytest
+
+        @pytest.mark.asyncio
+        async def test_the_printer_answers(hyrel_aprinter):
+            assert (await hyrel_aprinter.command("M105")).ok
+        """
+    )
+    result = run(pytester, "-W", "error::pytest.PytestDeprecationWarning")
+    result.assert_outcomes(passed=1)
+    assert "asyncio_default_fixture_loop_scope=function" in result.stdout.str()
+    # The lab's own setting wins.
+    result = run(pytester, "-o", "asyncio_default_fixture_loop_scope=module")
+    result.assert_outcomes(passed=1)
+    assert "asyncio_default_fixture_loop_scope=module" in result.stdout.str()
+
+
+def test_without_pytest_timeout_a_printer_test_fails_in_one_sentence(
+    pytester: pytest.Pytester,
+) -> None:
+    pytester.makepyfile(
+        """
+        def test_needs_the_printer(hyrel_printer):
+            pass
+
+        def test_without_it():
+            pass
+        """
+    )
+    result = pytester.runpytest_subprocess(
+        "-p", "no:cacheprovider", "-p", "no:timeout", timeout=150
+    )
+    result.assert_outcomes(passed=1, errors=1)
+    assert (
+        "hyrel: the plugin needs pytest-timeout, so that a printer that stops answering fails "
+        "its test instead of hanging the run: pip install 'repetrel-host[hil]'"
+    ) in one_line(result.stdout.str())

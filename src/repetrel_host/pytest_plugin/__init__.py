@@ -28,6 +28,13 @@ The plugin's modules: ``options`` (command line, environment, ini file, markers)
 fixtures, which is what pytest reads from a plugin.
 """
 
+try:
+    import pytest  # noqa: F401  (what every module here needs)
+except ModuleNotFoundError:  # the plugin without its extra, imported by hand
+    raise ModuleNotFoundError(
+        "repetrel_host.pytest_plugin needs pytest: pip install 'repetrel-host[hil]'"
+    ) from None
+
 from repetrel_host.pytest_plugin.facade import (
     AsyncHyrelPrinter,
     AsyncRunningJob,

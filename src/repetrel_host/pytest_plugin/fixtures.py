@@ -110,6 +110,12 @@ def hyrel_controller(
     tmp_path_factory: pytest.TempPathFactory,
 ) -> Iterator[HyrelController]:
     """The controller under test: the real port, or a fake started for this test."""
+    if not request.config.pluginmanager.hasplugin("timeout"):
+        pytest.fail(
+            "hyrel: the plugin needs pytest-timeout, so that a printer that stops answering "
+            "fails its test instead of hanging the run: pip install 'repetrel-host[hil]'",
+            pytrace=False,
+        )
     if hyrel_options.hardware:
         yield HyrelController(hyrel_options.port)
         return

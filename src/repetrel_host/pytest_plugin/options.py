@@ -31,14 +31,27 @@ _OPTIONS = {
 OPTIONS_KEY = pytest.StashKey["HyrelOptions"]()
 
 
+# pytest-asyncio warns in every run where this is unset, which a lab writing its first
+# async printer test has not met yet; the plugin gives it the default pytest-asyncio
+# announces. A value set in the ini file or with -o still wins.
+ASYNCIO_LOOP_SCOPE = "asyncio_default_fixture_loop_scope"
+_parser: pytest.Parser | None = None  # this run's, for the default above
+
+
 def pytest_addoption(parser: pytest.Parser) -> None:
+    global _parser
+    _parser = parser
     group = parser.getgroup("hyrel", "Hyrel printers (repetrel-host)")
     for name, text in _OPTIONS.items():
         group.addoption(f"--hyrel-{name}", dest=f"hyrel_{name}", metavar=name.upper(), help=text)
         parser.addini(f"hyrel_{name}", f"--hyrel-{name}: {text}", default="")
 
 
+@pytest.hookimpl(tryfirst=True)  # before pytest-asyncio reads its settings
 def pytest_configure(config: pytest.Config) -> None:
+    if config.pluginmanager.hasplugin("asyncio") and _parser is not None:
+        help = "default scope of the event loop of async fixtures (repetrel-host: function)"
+        _parser.addini(ASYNCIO_LOOP_SCOPE, help, default="function")
     for line in (
         "hyrel_hardware: runs only on a real printer (--hyrel-port)",
         "hyrel_fake_only: runs only on the fake controller (it needs fault injection)",
