@@ -31,6 +31,7 @@ from repetrel_host.console import ConsoleActions, read_line, stop_delayed_text, 
 from repetrel_host.errors import HostError, JobError, SafeStopError, UsageError
 from repetrel_host.events import (
     Message,
+    NoAnswerYet,
     Notice,
     Paused,
     PauseReason,
@@ -480,6 +481,8 @@ class PrinterConsole:
                 self.temperatures = event.readings
             elif isinstance(event, StateChanged):
                 self._state_changed(event)
+            elif isinstance(event, NoAnswerYet):
+                self.say(f"session: {event.text}")
             else:
                 self._show(event)
 
