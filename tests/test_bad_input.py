@@ -24,7 +24,11 @@ BAD_INPUT, LINK_FAILURE = 2, 3
 
 def one_sentence(stderr: str) -> str:
     assert "Traceback" not in stderr
-    lines = [line for line in stderr.splitlines() if line.strip() and ": warning: " not in line]
+    lines = [
+        line
+        for line in stderr.splitlines()
+        if line.strip() and ": warning: " not in line and not line.startswith("connecting to ")
+    ]
     assert len(lines) == 1, stderr
     return lines[0]
 

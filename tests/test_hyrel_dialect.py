@@ -25,6 +25,7 @@ from repetrel_host.protocol.events import (
     ControllerReady,
     Failed,
     FailureKind,
+    GreetingRetry,
     LineAcknowledged,
     LineRefused,
 )
@@ -82,9 +83,25 @@ def test_a_long_heat_up_keeps_the_link_alive_and_the_watchdog_quiet() -> None:
 def test_a_controller_that_never_answers_the_ping_fails_the_greeting() -> None:
     marlin = ControllerSimulator(ControllerSettings(banner=False))
     result = run_loopback(["G28"], dialect=HyrelDialect(HYREL_WINDOW), controller=marlin)
-    assert result.failure is not None and result.failure.kind is FailureKind.TIMEOUT
-    assert "no answer to 5 pings (0x07)" in result.failure.reason
+    assert result.failure is not None and result.failure.kind is FailureKind.NO_ANSWER
+    assert result.failure.reason == "no answer to Hyrel's ping (0x07), sent 3 times in 9 s"
     assert result.executed == []
+
+
+def test_each_unanswered_ping_is_told_as_it_goes_again() -> None:
+    dialect = HyrelDialect(HYREL_WINDOW)
+    dialect.start(0.0)
+    assert dialect.data_to_send(0.0) == b"\x07"
+    told = []
+    while dialect.failure is None:
+        now = dialect.next_deadline()
+        assert now is not None
+        dialect.handle_timeout(now)
+        assert dialect.data_to_send(now) == (b"" if dialect.failure else b"\x07")
+        while (event := dialect.next_event()) is not None:
+            told.append(event)
+    assert told[:-1] == [GreetingRetry(2, 3, 3.0), GreetingRetry(3, 3, 6.0)]
+    assert told[-1] == dialect.failure and dialect.failure.kind is FailureKind.NO_ANSWER
 
 
 def test_a_line_the_controller_refuses_stops_the_job_naming_it() -> None:

@@ -5,6 +5,7 @@ from itertools import product
 import pytest
 
 from repetrel_host.errors import UsageError
+from repetrel_host.protocol import replies
 from repetrel_host.protocol.controller import Accepted, ControllerProtocol
 from repetrel_host.protocol.dialects.reprap import (
     HELLO_ATTEMPTS,
@@ -18,6 +19,7 @@ from repetrel_host.protocol.events import (
     Event,
     Failed,
     FailureKind,
+    GreetingRetry,
     LineAcknowledged,
     Notice,
     ProbeKind,
@@ -436,6 +438,39 @@ def test_opening_line_is_repeated_when_unanswered() -> None:
         now += HELLO_TIMEOUT
         host.handle_timeout(now)
     assert host.failure is not None and "M110" in host.failure.reason
+
+
+def test_each_unanswered_greeting_is_told_as_it_goes_again_then_it_fails_naming_it() -> None:
+    host = RepRapDialect()  # with the greeting's check, as a session greets
+    host.start(0.0)
+    host.data_to_send(0.0)
+    told: list[Event] = []
+    now = 0.0
+    while host.failure is None:
+        now = host.next_deadline() or now
+        host.handle_timeout(now)
+        host.data_to_send(now)
+        told += events(host)
+    assert (HELLO_ATTEMPTS, HELLO_TIMEOUT) == (3, 3.0)  # 9 s of silence, not 20
+    assert told[:-1] == [GreetingRetry(2, 3, 3.0), GreetingRetry(3, 3, 6.0)]
+    assert told[-1] == host.failure and host.failure.kind is FailureKind.NO_ANSWER
+    assert host.failure.reason == "no answer to M110 (line numbering reset), sent 3 times in 9 s"
+
+
+def test_a_boot_banner_puts_the_next_greeting_off() -> None:
+    """A board that resets as the port opens drops the first greeting while it boots; its
+    "start" restarts the wait, so the next greeting finds it listening."""
+    host = dialect()
+    host.start(0.0)
+    host.data_to_send(0.0)
+    host.receive_data(b"start\n", 2.5)
+    host.handle_timeout(HELLO_TIMEOUT)
+    assert host.data_to_send(HELLO_TIMEOUT) == b"" and events(host) == [
+        ControllerMessage(replies.Start(), "start")
+    ]
+    host.handle_timeout(2.5 + HELLO_TIMEOUT)
+    assert host.data_to_send(2.5 + HELLO_TIMEOUT) == frame(1, "M110 N1") + ping(2)
+    assert events(host) == [GreetingRetry(2, HELLO_ATTEMPTS, 2.5 + HELLO_TIMEOUT)]
 
 
 def test_unexpected_ok_is_ignored() -> None:

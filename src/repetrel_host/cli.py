@@ -26,7 +26,13 @@ import typer
 from repetrel_host import __version__
 from repetrel_host import history as print_history
 from repetrel_host.config import UserConfig, load_user_config
-from repetrel_host.console import ConsoleActions, read_line, stop_delayed_text, summary_text
+from repetrel_host.console import (
+    Connecting,
+    ConsoleActions,
+    read_line,
+    stop_delayed_text,
+    summary_text,
+)
 from repetrel_host.errors import (
     ConfigError,
     ControllerError,
@@ -716,6 +722,9 @@ async def _send(
     port, chosen_because = choose_port(options.port, user)
     if chosen_because is not None:
         console.print(f"{chosen_because}.", markup=False)
+    # On stderr, as the failure's sentence: stdout holds the run's own story.
+    connecting = Connecting(lambda text: errors.print(text, markup=False))
+    connecting.start(port, link.baud)
     printer = await connect(
         port,
         flow=link.flow,
@@ -730,7 +739,9 @@ async def _send(
         poll_while_printing=True,
         reply_timeout=options.reply_timeout,
         fake_log=options.fake_log,
+        on_event=connecting,
     )
+    connecting.connected = True
     try:
         plan = _plan_for(printer, plan, user, errors, options.force)
         job, estimate = await _stream(console, errors, printer, plan, user, options)

@@ -12,13 +12,15 @@ import asyncio
 import os
 import shlex
 import shutil
+from collections.abc import Callable
 from pathlib import Path
 from typing import Protocol, TextIO
 
 from repetrel_host.camera import Camera
 from repetrel_host.config import HostSettings
-from repetrel_host.events import StopDelayed
+from repetrel_host.events import NoAnswerYet, PrinterEvent, StopDelayed
 from repetrel_host.job import ActionKind, HostAction
+from repetrel_host.links import FAKE_PORT, SIM_PORT
 from repetrel_host.pump import Outcome, Summary
 
 SPEECH_PROGRAMS = ("espeak-ng", "espeak", "spd-say", "say")
@@ -180,6 +182,25 @@ async def read_line(stream: TextIO) -> str | None:
             return data.decode(errors="replace") if data else None
         data += chunk
     return data.decode(errors="replace")
+
+
+class Connecting:
+    """What ``hyrel-send`` (and its ``--console``) says while ``connect()`` greets the
+    controller, so that a port that does not answer is no silence: where, at once, then
+    each greeting that goes again, as it goes (the session's ``on_event``). Quiet once
+    :attr:`connected`: the session's own events say what follows."""
+
+    def __init__(self, say: Callable[[str], None]) -> None:
+        self.say = say
+        self.connected = False
+
+    def start(self, port: str, baud: int) -> None:
+        if port not in (FAKE_PORT, SIM_PORT):  # started here, answering at once
+            self.say(f"connecting to {port} at {baud} baud...")
+
+    def __call__(self, event: PrinterEvent) -> None:
+        if isinstance(event, NoAnswerYet) and not self.connected:
+            self.say(event.text)
 
 
 def summary_text(name: str, summary: Summary, where: str) -> str:

@@ -18,6 +18,7 @@ __all__ = [
     "Failed",
     "JobEvent",
     "Message",
+    "NoAnswerYet",
     "Notice",
     "PauseReason",
     "Paused",
@@ -65,6 +66,25 @@ class Message:
     """A line from the controller that is not an answer to a command (echo:, //, >IN:...)."""
 
     text: str
+
+
+@dataclass(frozen=True, slots=True)
+class NoAnswerYet:
+    """The controller on ``port`` has not answered the greeting yet: it goes again now, as
+    greeting ``attempt`` of ``attempts`` (the connection fails once the last one goes
+    unanswered); ``waited``: seconds since the first. Told as it happens: to ``connect()``'s
+    ``on_event`` before it returns, and in :meth:`Printer.events` when the session greets
+    again (after a reset, an unplug)."""
+
+    port: str
+    baud: int
+    attempt: int
+    attempts: int
+    waited: float
+
+    @property
+    def text(self) -> str:
+        return f"no answer yet: greeting again, {self.attempt} of {self.attempts}"
 
 
 @dataclass(frozen=True, slots=True)
@@ -148,7 +168,7 @@ class Failed:
     error: HostError
 
 
-PrinterEvent = StateChanged | Temperatures | Message | Notice
+PrinterEvent = StateChanged | Temperatures | Message | Notice | NoAnswerYet
 JobEvent = (
     Progress
     | Resend

@@ -47,6 +47,7 @@ from repetrel_host.protocol.events import (
     ControllerReady,
     Failed,
     FailureKind,
+    GreetingRetry,
     LineAcknowledged,
     LineRefused,
     Notice,
@@ -89,6 +90,9 @@ class Listener:
     def ready(self, probe: ProbeKind, identity: str) -> None:
         """The greeting is over: lines flow (``identity``: what the controller said of
         itself in the greeting, or "")."""
+
+    def greeting_retry(self, retry: GreetingRetry) -> None:
+        """No answer to the greeting yet: it goes again now (before :meth:`ready`)."""
 
     def acknowledged(self, line: JobLine) -> None:
         """A line of the running job (or its header or safe stop) was acknowledged."""
@@ -497,6 +501,8 @@ class Pump:
                     listener.resend(event.tag)
             elif isinstance(event, ControllerReady):
                 listener.ready(event.probe, event.identity)
+            elif isinstance(event, GreetingRetry):
+                listener.greeting_retry(event)
             elif isinstance(event, Notice):
                 listener.notice(event.text)
             elif isinstance(event, LineRefused):
@@ -692,7 +698,7 @@ def failure_error(event: Failed, run: Run | None = None) -> HostError:
     error: HostError
     if event.kind is FailureKind.CONTROLLER or event.kind is FailureKind.RESET:
         error = ControllerError(reason)
-    elif event.kind is FailureKind.TIMEOUT:
+    elif event.kind is FailureKind.TIMEOUT or event.kind is FailureKind.NO_ANSWER:
         error = LinkError(reason)
     else:
         error = ProtocolError(reason)

@@ -47,6 +47,7 @@ from repetrel_host.events import (
     Failed,
     JobEvent,
     Message,
+    NoAnswerYet,
     Notice,
     Paused,
     PauseReason,
@@ -83,7 +84,7 @@ from repetrel_host.protocol.dialect import Statistics
 from repetrel_host.protocol.dialects import create_dialect
 from repetrel_host.protocol.dialects.reprap import DEFAULT_REPLY_TIMEOUT
 from repetrel_host.protocol.events import Failed as DialectFailed
-from repetrel_host.protocol.events import FailureKind, ProbeKind
+from repetrel_host.protocol.events import FailureKind, GreetingRetry, ProbeKind
 from repetrel_host.protocol.flow import FlowControl, FlowMode
 from repetrel_host.protocol.framing import clean_line
 from repetrel_host.protocol.reports import Firmware, JobReport, ReportReader, parse_temperatures
@@ -192,12 +193,19 @@ class _Hub(Generic[E]):
         self._queues: list[asyncio.Queue[object]] = []
         self._backlog: deque[E] | None = deque(maxlen=backlog) if backlog else None
         self._closed = False
+        # Called at once with each event, on the session's path (connect()'s on_event).
+        self.callbacks: list[Callable[[E], None]] = []
 
     def publish(self, event: E) -> None:
         if self._backlog is not None:
             self._backlog.append(event)
         for queue in self._queues:
             queue.put_nowait(event)
+        for callback in self.callbacks:
+            try:
+                callback(event)
+            except Exception:  # a listener's bug must not break the session
+                log.exception("an on_event callback failed on %r", event)
 
     def close(self) -> None:
         self._closed = True
@@ -1137,6 +1145,17 @@ class Printer:
             with contextlib.suppress(TimeoutError):  # polled until it took (if ever)
                 await asyncio.wait_for(asyncio.shield(asked), FIRMWARE_TIMEOUT)
 
+    def _no_answer(self, reason: str) -> str:
+        """The greeting went unanswered: one sentence with the port, the baud rate, and
+        what most likely stands in the way."""
+        causes = "the wrong port, the wrong baud rate, or the board still booting"
+        if self.settings.protocol == "hyrel":
+            causes = (
+                "the wrong port, the wrong baud rate, the board still booting, or a "
+                "controller that does not speak Hyrel's own link"
+            )
+        return f"{self.port} at {self.settings.baud} baud: {reason}; likely {causes}"
+
     def _made(self, connection: _Connection) -> None:
         if self._closing:
             if connection.transport is not None:
@@ -1405,6 +1424,13 @@ class _PumpListener(Listener):
     def __init__(self, printer: Printer) -> None:
         self.printer = printer
 
+    def greeting_retry(self, retry: GreetingRetry) -> None:
+        printer = self.printer
+        baud = printer.settings.baud
+        event = NoAnswerYet(printer.port, baud, retry.attempt, retry.attempts, retry.waited)
+        log.debug("%s at %d baud: %s", printer.port, baud, event.text)
+        printer._hub.publish(event)
+
     def ready(self, probe: ProbeKind, identity: str) -> None:
         self.printer._greeting = identity
         ready = self.printer._ready
@@ -1534,6 +1560,8 @@ class _PumpListener(Listener):
     def failed(self, failure: DialectFailed) -> None:
         printer = self.printer
         error = failure_error(failure)
+        if failure.kind is FailureKind.NO_ANSWER:
+            error = LinkError(printer._no_answer(failure.reason))
         if printer.state is State.CONNECTING:
             # The greeting (or its M115) failed: whoever greets says why.
             printer._fail_waiters(error)
@@ -1644,6 +1672,7 @@ def connect(
     fake_args: Iterable[str] = (),
     sim: ControllerSettings | None = None,
     line_tap: Callable[[str, bool], None] | None = None,
+    on_event: Callable[[PrinterEvent], None] | None = None,
 ) -> _Connect:
     """Open a printer session on ``port`` and greet the controller.
 
@@ -1662,6 +1691,11 @@ def connect(
     lost. ``reconnect_wait``: a job whose link failed before its safe stop was confirmed
     ends once the safe stop went after a reconnect, or after this many seconds.
     ``line_tap``: :meth:`Printer.tap_lines` from the greeting's first line on.
+    ``on_event``: called at once with each of the session's events (what
+    :meth:`Printer.events` yields) from the port's opening on, for the session's life:
+    before ``connect()`` returns, an :class:`~repetrel_host.events.NoAnswerYet` for each
+    greeting that goes again unanswered. It runs on the session's path: it must only take
+    note (print a line, set a flag), never block.
     """
 
     async def opening() -> Printer:
@@ -1699,6 +1733,8 @@ def connect(
         printer = Printer(opened, settings)
         if line_tap is not None:
             printer.tap_lines(line_tap)
+        if on_event is not None:
+            printer._hub.callbacks.append(on_event)
         try:
             await printer._open()
         except BaseException:

@@ -27,10 +27,17 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from repetrel_host.config import UserConfig
-from repetrel_host.console import ConsoleActions, read_line, stop_delayed_text, summary_text
+from repetrel_host.console import (
+    Connecting,
+    ConsoleActions,
+    read_line,
+    stop_delayed_text,
+    summary_text,
+)
 from repetrel_host.errors import HostError, JobError, SafeStopError, UsageError
 from repetrel_host.events import (
     Message,
+    NoAnswerYet,
     Notice,
     Paused,
     PauseReason,
@@ -50,6 +57,7 @@ from repetrel_host.planning import (
     explicit_machine,
     history_file,
     link_settings,
+    resolve_port,
 )
 from repetrel_host.protocol.reports import format_temperatures
 from repetrel_host.pump import Outcome
@@ -126,8 +134,12 @@ async def _run(options: ConsoleOptions, user: UserConfig) -> int:
     link = link_settings(
         options.link, explicit_machine(JobRequest(options.loadout, options.machine), user)
     )
+    port = resolve_port(options.port, user)
+    # On stderr, before the console's own lines: a port that does not answer is no silence.
+    connecting = Connecting(lambda text: print(text, file=sys.stderr, flush=True))
+    connecting.start(port, link.baud)
     printer = await connect(
-        options.port,
+        port,
         options.machine,
         options.loadout,
         link.flow,
@@ -139,7 +151,9 @@ async def _run(options: ConsoleOptions, user: UserConfig) -> int:
         poll_interval=POLL_INTERVAL,
         poll_while_printing=True,  # the status line's temperatures during a !print too
         fake_log=options.fake_log,
+        on_event=connecting,
     )
+    connecting.connected = True  # from now on, the session's events say it (_watch_printer)
     console = PrinterConsole(printer, user, options)
     try:
         if sys.stdin.isatty():
@@ -480,6 +494,8 @@ class PrinterConsole:
                 self.temperatures = event.readings
             elif isinstance(event, StateChanged):
                 self._state_changed(event)
+            elif isinstance(event, NoAnswerYet):
+                self.say(f"session: {event.text}")
             else:
                 self._show(event)
 

@@ -16,6 +16,9 @@ class FailureKind(Enum):
     RESET = "reset"  # the controller (re)booted: its queue and state are gone
     PROTOCOL = "protocol"  # a request the host cannot honour
     TIMEOUT = "timeout"  # the controller fell silent
+    # the controller never answered the greeting: nothing there, or not listening (the
+    # wrong port, the wrong baud rate, a board still booting, another protocol)
+    NO_ANSWER = "no answer"
 
 
 class ProbeKind(Enum):
@@ -42,6 +45,18 @@ class ControllerReady:
 
     probe: ProbeKind = ProbeKind.CHECKSUM
     identity: str = ""
+
+
+@dataclass(frozen=True, slots=True)
+class GreetingRetry:
+    """No answer to the greeting within its timeout: it goes again now, as greeting
+    ``attempt`` of ``attempts`` (the greeting fails once the last goes unanswered);
+    ``waited``: seconds since the first went out. Only before the controller first
+    answered (a renumbering mid-stream is not told)."""
+
+    attempt: int
+    attempts: int
+    waited: float
 
 
 class LineAcknowledged(NamedTuple):
@@ -103,6 +118,7 @@ class Failed:
 
 Event = (
     ControllerReady
+    | GreetingRetry
     | LineAcknowledged
     | ResendRequested
     | ControllerMessage

@@ -107,5 +107,7 @@ async def record_events(printer: rh.Printer, recorder: WireRecorder) -> None:
         if isinstance(event, rh.StateChanged):
             why = f" ({event.reason})" if event.reason else ""
             recorder.note(f"state: {event.state.value}{why}")
+        elif isinstance(event, rh.NoAnswerYet):
+            recorder.note(f"session: {event.text}")
         elif isinstance(event, rh.Message | rh.Notice):
             recorder.note(f"{type(event).__name__.lower()}: {event.text}")

@@ -24,6 +24,7 @@ from typing import Any
 import repetrel_host as rh
 from repetrel_host.camera import Camera, SnapshotFailed
 from repetrel_host.config import Loadout, UserConfig, find_loadout, load_library, load_loadout
+from repetrel_host.events import PrinterEvent
 from repetrel_host.gcode.analysis import Summary
 from repetrel_host.gcode.lint import Finding, Severity
 from repetrel_host.gcode.marks import SlicerMarks
@@ -84,8 +85,10 @@ class PrinterConfig:
     snapshots_kept: int = 500
     tags: tuple[str, ...] = ()  # in a farm: what jobs may ask of it (tag=abs)
 
-    def connect(self, user: UserConfig) -> Any:
-        """``rh.connect(...)`` for this printer."""
+    def connect(
+        self, user: UserConfig, on_event: Callable[[PrinterEvent], None] | None = None
+    ) -> Any:
+        """``rh.connect(...)`` for this printer (``on_event``: its events as they come)."""
         flow: rh.FlowControl | str | None = self.flow
         if self.rx_buffer is not None or self.max_lines is not None:
             # What is not given is the machine's, else the protocol's window (as hyrel-send).
@@ -110,6 +113,7 @@ class PrinterConfig:
             # (where the firmware does not report temperatures itself).
             poll_while_printing=True,
             protocol=self.protocol,
+            on_event=on_event,
         )
 
 
@@ -346,8 +350,10 @@ class PrinterService:
     async def _connect(self) -> None:
         delay = RECONNECT_FIRST
         while not self._stopping:
+            if not self.last_error:  # not again at each try of a port that stays away
+                log.info("printer %s: connecting to %s", self.name, self.port)
             try:
-                self.printer = await self.config.connect(self.user)
+                self.printer = await self.config.connect(self.user, self._heard)
             except rh.HostError as exc:
                 if str(exc) != self.last_error:
                     log.warning("printer %s: %s (trying again)", self.name, exc)
@@ -361,6 +367,15 @@ class PrinterService:
             self.changed()
             self._forwarding = asyncio.get_running_loop().create_task(self._forward(self.printer))
             return
+
+    def _heard(self, event: PrinterEvent) -> None:
+        """The session's events as they come, before connect() returns too: a greeting
+        that goes again unanswered is logged as it happens (once the port fails alike
+        again and again, only at the debug level)."""
+        if isinstance(event, rh.NoAnswerYet):
+            level = logging.DEBUG if self.last_error else logging.INFO
+            where = f"{event.port} at {event.baud} baud"
+            log.log(level, "printer %s: %s: %s", self.name, where, event.text)
 
     async def _ending(self, patience: float) -> bool:
         """Wait until the running job ended, for at most ``patience`` seconds, or until its
@@ -691,6 +706,8 @@ class PrinterService:
                 self.publish(
                     {"type": "temperatures", "printer": name, "time": now, "readings": readings}
                 )
+            elif isinstance(event, rh.NoAnswerYet):
+                continue  # logged as it came (_heard)
             else:
                 self.publish({"type": "message", "printer": name, "text": event.text})
 

@@ -53,6 +53,7 @@ from repetrel_host.protocol.events import (
     Event,
     Failed,
     FailureKind,
+    GreetingRetry,
     LineAcknowledged,
     LineRefused,
     ProbeKind,
@@ -69,8 +70,12 @@ from repetrel_host.protocol.hyrel import (
 )
 
 DEFAULT_WINDOW = HYREL_WINDOW  # 2 KB: the controller's headroom
-HELLO_TIMEOUT = 2.0  # for the ping's answer; a late answer within it is not a reboot
-HELLO_ATTEMPTS = 5
+# For the ping's answer; a late answer within it is not a reboot. As the RepRap dialect's
+# greeting (see there): a live controller answers at once, and 3 pings 3 s apart, each
+# retry told (GreetingRetry), give a board still booting 9 s without making the wrong port
+# or baud rate a long wait.
+HELLO_TIMEOUT = 3.0
+HELLO_ATTEMPTS = 3
 KEEPALIVE = 10.0  # the longest quiet from the host: well inside the 30 s watchdog
 STATUS_ATTEMPTS = 4  # unanswered status requests in a row: the controller is gone
 STATUS_AFTER = 5.0  # lines waiting this long for an ACK: ask whether the controller is there
@@ -195,6 +200,7 @@ class HyrelDialect:
         self._failure: Failed | None = None
         self._hello_attempts = 0
         self._hello_deadline = 0.0
+        self._started_at = 0.0
         self._late_pings = 0
         self._last_sent_at = 0.0
         self._last_progress_at = 0.0  # an ACK, an answer: the controller is there
@@ -206,7 +212,7 @@ class HyrelDialect:
         """Ping the controller; its ``>Hy:`` answer opens the stream."""
         if self._phase is not Phase.IDLE:
             raise UsageError("the dialect was already started")
-        self._last_sent_at = self._last_progress_at = now
+        self._last_sent_at = self._last_progress_at = self._started_at = now
         self._ping(now)
 
     def send(
@@ -590,14 +596,16 @@ class HyrelDialect:
         if phase is Phase.GREETING:
             if now < self._hello_deadline:
                 return
+            waited = now - self._started_at
             if self._hello_attempts >= HELLO_ATTEMPTS:
                 self._fail(
-                    FailureKind.TIMEOUT,
-                    f"no answer to {HELLO_ATTEMPTS} pings (0x07): is a Hyrel controller "
-                    "there, on its own link?",
+                    FailureKind.NO_ANSWER,
+                    f"no answer to Hyrel's ping (0x07), sent {self._hello_attempts} times "
+                    f"in {waited:.0f} s",
                 )
                 return
             self._ping(now)
+            self._events.append(GreetingRetry(self._hello_attempts, HELLO_ATTEMPTS, waited))
             return
         if phase is not Phase.RUNNING:
             return

@@ -51,6 +51,7 @@ from repetrel_host.protocol.events import (
     Event,
     Failed,
     FailureKind,
+    GreetingRetry,
     LineAcknowledged,
     Notice,
     ProbeKind,
@@ -83,9 +84,18 @@ SLOW_PING_INTERVAL = 20.0  # then one probe this often: a lost answer must not s
 # replies, without a resend request (Marlin halts and says little more).
 SUSPECT_ERROR_GRACE = 0.2
 SUSPECT_ERROR_LINES = 2
-# Boards that reset when the port opens need about two seconds to boot.
-HELLO_TIMEOUT = 2.0
-HELLO_ATTEMPTS = 10  # a corrupted M110 or a garbled answer costs one timeout
+# A greeting unanswered this long (after the last byte either way) goes again. A live
+# controller answers within milliseconds; the wait is for a board that resets when the
+# port opens (Marlin on an Arduino's USB): its bootloader takes the first second or two and
+# drops what comes meanwhile, then Marlin says "start" (which restarts this wait) and reads
+# the next greeting. OctoPrint waits up to 30 s for an answer, Klipper retries its identify
+# every 5 s: both for daemons that wait for a printer to be switched on.
+HELLO_TIMEOUT = 3.0
+# Greetings that go unanswered before the greeting fails: 9 s of silence. The second and
+# third cover a board still in its bootloader (and a corrupted M110); more would only make
+# the wrong port or baud rate, by far the likeliest causes, a longer wait. Each retry is
+# told (GreetingRetry) as it goes. Greeting again after a garbled answer costs nothing here.
+HELLO_ATTEMPTS = 3
 # The gap line of the greeting's check, sent again when it arrived corrupted.
 GAP_CHECK_ATTEMPTS = 3
 # Warn once when more than this share of lines needed resending (after enough lines).
@@ -170,6 +180,8 @@ class RepRapDialect:
         self._check_at_greeting = probe is None
         self._gap_attempts = 0
         self._greeting_attempts = 0
+        self._unanswered_greetings = 0  # timeouts of this greeting (HELLO_ATTEMPTS)
+        self._started_at = 0.0
         self._greeted = False
         # command, tag, unbuffered, confirm
         self._pending: deque[tuple[str, object, bool, bool]] = deque()
@@ -198,6 +210,7 @@ class RepRapDialect:
         if self._phase is not Phase.IDLE:
             raise UsageError("the dialect was already started")
         self._last_received_at = self._last_sent_at = self._last_progress_at = now
+        self._started_at = now
         self._begin_greeting()
 
     pause_command = None  # the host holds a job at M0 (the controller's ok says it stopped)
@@ -380,15 +393,27 @@ class RepRapDialect:
             return
         window = self._window
         if self._phase is not Phase.RUNNING:
-            if self._greeting_attempts >= HELLO_ATTEMPTS:
-                self._fail(
-                    FailureKind.TIMEOUT,
-                    "the controller did not answer M110 (line numbering reset)",
-                )
+            self._unanswered_greetings += 1
+            unanswered = self._unanswered_greetings
+            if unanswered >= HELLO_ATTEMPTS:
+                if self._greeted:  # renumbering mid-stream: it stopped answering
+                    self._fail(
+                        FailureKind.TIMEOUT,
+                        "the controller did not answer M110 (line numbering reset)",
+                    )
+                else:
+                    self._fail(
+                        FailureKind.NO_ANSWER,
+                        f"no answer to M110 (line numbering reset), sent {unanswered} "
+                        f"times in {now - self._started_at:.0f} s",
+                    )
                 return
             # No answer (the board still booting, a line lost): greet again, with new
             # numbers; a check that got no answer is given up.
             self._regreet()
+            if not self._greeted:
+                waited = now - self._started_at
+                self._events.append(GreetingRetry(unanswered + 1, HELLO_ATTEMPTS, waited))
             return
         if self._line_error_at is not None:
             # The error answered the oldest line, refused without a resend request: its
@@ -782,7 +807,7 @@ class RepRapDialect:
     # --- transmission -------------------------------------------------------
 
     def _begin_greeting(self) -> None:
-        self._greeting_attempts = 0
+        self._greeting_attempts = self._unanswered_greetings = 0
         self._restart_greeting()
 
     def _restart_greeting(self) -> None:
