@@ -544,6 +544,27 @@ def test_a_controller_counting_every_valid_line_is_probed_with_m105_lines() -> N
     assert acked(host) == [3, 4]  # the probes are the host's own lines
 
 
+def test_a_controller_counting_every_valid_line_gets_at_most_64_bytes_in_flight() -> None:
+    # OctoPrint's virtual printer reads a 64-byte buffer; a write that does not fit holds
+    # the lock its error replies need, so with more in flight each error stalls it 10 s.
+    host = RepRapDialect(FlowControl(FlowMode.BUFFERED, rx_buffer=4096, max_lines=96))
+    host.start(0.0)
+    assert host.data_to_send(0.0) == HELLO + GAP
+    host.receive_data(b"ok\nError: expected line 1 got 2\nResend:1\nok\n", 0.0)
+    assert host.data_to_send(0.0) == ping(1)
+    host.receive_data(b"Error: Missing checksum\nResend:2\nok\n", 0.0)
+    assert host.data_to_send(0.0) == frame(1, "M110 N1") + frame(2, "M105")
+    host.receive_data(b"ok\n" + OCTOPRINT_TEMPERATURES, 0.0)
+    assert any(isinstance(e, Notice) and "64 bytes" in e.text for e in events(host))
+    for i in range(10):
+        host.send(f"G1 X{i}.123 Y{i}.456 E{i}.789", i)  # 31-32 bytes framed
+    assert host.data_to_send(0.0) == frame(3, "G1 X0.123 Y0.456 E0.789") + frame(
+        4, "G1 X1.123 Y1.456 E1.789"
+    )
+    host.receive_data(b"ok\n", 0.001)
+    assert host.data_to_send(0.001) == frame(5, "G1 X2.123 Y2.456 E2.789")
+
+
 def command_probing() -> RepRapDialect:
     host = RepRapDialect(FlowControl(FlowMode.UNBUFFERED), probe=ProbeKind.COMMAND)
     host.start(0.0)

@@ -87,6 +87,12 @@ HELLO_TIMEOUT = 2.0
 HELLO_ATTEMPTS = 10  # a corrupted M110 or a garbled answer costs one timeout
 # The gap line of the greeting's check, sent again when it arrived corrupted.
 GAP_CHECK_ATTEMPTS = 3
+# The controller that the greeting's check finds counting lines its own way is OctoPrint's
+# virtual printer (the only one known to). Its receive buffer holds 64 bytes, and a write
+# that does not fit waits for room while holding the lock its error replies need: with more
+# than 64 bytes in flight, each error it reports (its simulated ones, the refusals of lines
+# in flight behind them) stalls it for its 10 s write timeout, or several.
+VIRTUAL_PRINTER_RX_BUFFER = 64
 # Warn once when more than this share of lines needed resending (after enough lines).
 RESEND_WARNING_RATIO = 0.10
 RESEND_WARNING_AFTER = 100
@@ -765,12 +771,15 @@ class RepRapDialect:
         expected = self._history.next_number
         if number == expected + 1 and _is_checksum_error(previous):
             # It named a line it never got, and now takes it for received: renumber,
-            # and from now on probe with lines that run.
+            # and from now on probe with lines that run. It answers as OctoPrint's
+            # virtual printer does: keep within that one's receive buffer too.
             self._probing.kind = ProbeKind.COMMAND
+            self._window.limit_bytes(VIRTUAL_PRINTER_RX_BUFFER)
             self._events.append(
                 Notice(
                     "the controller's answer to a bad checksum names a line it never got; "
-                    "probing with numbered M105 lines instead"
+                    "probing with numbered M105 lines instead, at most "
+                    f"{self._window.byte_limit} bytes in flight"
                 )
             )
             self._regreet()
