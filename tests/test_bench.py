@@ -1,6 +1,7 @@
 """The benchmarks run (on small inputs; their figures live in bench/README.md)."""
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -115,3 +116,24 @@ def test_farm_bench_reports_latency_throughput_and_claims() -> None:
     assert figures["jobs_per_second_six_printers"] > 0
     assert figures["simulated_printers"] == 40 and figures["claims_per_second"] > 0
     assert "99th percentile" in done.stdout
+
+
+VS_OCTOPRINT = Path(__file__).parent.parent / "bench" / "vs_octoprint.py"
+# OctoPrint is not among the test extra's packages: its own virtualenv, when there is one.
+OCTOPRINT_PYTHON = Path(os.environ.get("OCTOPRINT_PYTHON", "/tmp/octo-venv/bin/python"))
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.skipif(not OCTOPRINT_PYTHON.exists(), reason="no OctoPrint virtualenv")
+def test_the_octoprint_bench_runs_every_host_exactly_once(tmp_path: Path) -> None:
+    options = ["--runs", "1", "--lines", "300", "--keep", str(tmp_path)]
+    result = subprocess.run(
+        [sys.executable, str(VS_OCTOPRINT), "--octoprint-python", str(OCTOPRINT_PYTHON), *options],
+        capture_output=True,
+        text=True,
+        timeout=280,
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+    for host in ("octoprint", "unbuffered", "buffered"):
+        assert f"round 1 {host}: " in result.stdout
+    assert result.stdout.count("exactly once") == 3

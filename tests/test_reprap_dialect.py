@@ -102,7 +102,7 @@ def test_greeting_waits_for_the_ping_answer() -> None:
 @pytest.mark.parametrize("trailing_ok", [True, False])
 def test_the_ok_that_ends_an_error_is_not_taken_for_the_next_line(trailing_ok: bool) -> None:
     host = greeted(FlowControl(FlowMode.UNBUFFERED))
-    host.send("G28", 0)
+    host.send("G1 X0", 0)  # not G28: an unbuffered command's ok measures the machine
     host.data_to_send(1.0)
     host.receive_data(b"ok\n", 1.010)  # measures a 10 ms round trip
     host.send("G1 X1", 1)
@@ -579,6 +579,27 @@ def test_a_controller_counting_every_valid_line_is_probed_with_m105_lines() -> N
     assert acked(host) == [3, 4]  # the probes are the host's own lines
 
 
+def test_a_controller_counting_every_valid_line_gets_at_most_64_bytes_in_flight() -> None:
+    # OctoPrint's virtual printer reads a 64-byte buffer; a write that does not fit holds
+    # the lock its error replies need, so with more in flight each error stalls it 10 s.
+    host = RepRapDialect(FlowControl(FlowMode.BUFFERED, rx_buffer=4096, max_lines=96))
+    host.start(0.0)
+    assert host.data_to_send(0.0) == HELLO + GAP
+    host.receive_data(b"ok\nError: expected line 1 got 2\nResend:1\nok\n", 0.0)
+    assert host.data_to_send(0.0) == ping(1)
+    host.receive_data(b"Error: Missing checksum\nResend:2\nok\n", 0.0)
+    assert host.data_to_send(0.0) == frame(1, "M110 N1") + frame(2, "M105")
+    host.receive_data(b"ok\n" + OCTOPRINT_TEMPERATURES, 0.0)
+    assert any(isinstance(e, Notice) and "64 bytes" in e.text for e in events(host))
+    for i in range(10):
+        host.send(f"G1 X{i}.123 Y{i}.456 E{i}.789", i)  # 31-32 bytes framed
+    assert host.data_to_send(0.0) == frame(3, "G1 X0.123 Y0.456 E0.789") + frame(
+        4, "G1 X1.123 Y1.456 E1.789"
+    )
+    host.receive_data(b"ok\n", 0.001)
+    assert host.data_to_send(0.001) == frame(5, "G1 X2.123 Y2.456 E2.789")
+
+
 def command_probing() -> RepRapDialect:
     host = RepRapDialect(FlowControl(FlowMode.UNBUFFERED), probe=ProbeKind.COMMAND)
     host.start(0.0)
@@ -637,6 +658,52 @@ def test_a_line_dropped_without_a_resend_request_is_probed_for_within_a_round_tr
     assert acked(host) == [1, 2]
 
 
+def test_a_heat_up_does_not_stretch_the_retransmission_timeout() -> None:
+    # An unbuffered command's ok comes once the machine finished it: 20 s of heating is
+    # not a round trip. Counted as one, it held the timeout at 5 s for hundreds of lines,
+    # and the next dropped line (OctoPrint's virtual printer drops one) waited that long.
+    host = greeted(FlowControl(FlowMode.UNBUFFERED))
+    host.send("G1 X1", 0)
+    host.data_to_send(1.0)
+    host.receive_data(b"ok\n", 1.002)
+    host.send("M109 S200", 1)
+    assert host.data_to_send(1.002) == frame(2, "M109 S200")
+    host.receive_data(b"ok\n", 21.0)
+    host.send("G1 X2", 2)
+    host.send("G1 X3", 3)
+    assert host.data_to_send(21.0) == frame(3, "G1 X2")
+    host.receive_data(b"ok\n", 21.002)
+    assert host.retransmission_timeout == MIN_RTO
+    assert host.data_to_send(21.002) == frame(4, "G1 X3")
+    host.receive_data(b"Error: No Line Number with checksum, Last Line: 3\n", 21.004)
+    deadline = host.next_deadline()
+    assert deadline is not None and deadline <= 21.004 + MIN_RTO
+    host.handle_timeout(deadline)
+    assert host.data_to_send(deadline) == ping(5)
+    host.receive_data(
+        b"Error:Line Number is not Last Line Number+1, Last Line: 3\nResend: 4\n", deadline
+    )
+    assert host.data_to_send(deadline) == frame(4, "G1 X3")
+    host.receive_data(b"ok\n", deadline + 0.002)
+    assert acked(host) == [1, 2, 3, 4]
+
+
+def test_lines_sent_behind_a_heat_up_do_not_stretch_the_retransmission_timeout() -> None:
+    # Buffered: the lines sent behind an M109 wait in the controller until it is done,
+    # so their oks come as late as its own.
+    host = greeted(FlowControl(FlowMode.BUFFERED))
+    host.send("G1 X1", 0)
+    host.data_to_send(1.0)
+    host.receive_data(b"ok\n", 1.002)
+    host.send("M109 S200", 1)
+    for i in range(2, 6):
+        host.send(f"G1 X{i}", i)
+    host.data_to_send(1.002)
+    host.receive_data(b"ok\n" * 5, 21.0)
+    assert acked(host) == [1, 2, 3, 4, 5, 6]
+    assert host.retransmission_timeout == MIN_RTO
+
+
 def test_a_probe_after_a_stall_never_repeats_the_greetings_probe() -> None:
     host = greeted(FlowControl(FlowMode.UNBUFFERED))
     now = 1.0
@@ -655,6 +722,39 @@ def test_a_probe_after_a_stall_never_repeats_the_greetings_probe() -> None:
         sent.append(host.data_to_send(deadline))
     assert ping(1) not in sent  # the greeting's probe, N1 M105 S0*9999
     assert sent == [ping(6)] * 3
+
+
+def test_the_refusals_of_a_command_probes_copies_send_nothing_again() -> None:
+    # The probe went three times while the controller heated; the first copy ran, the
+    # two others draw a refusal each, asking for the line after it. By then the host
+    # sent the next lines: obeying would send again lines the controller holds.
+    host = RepRapDialect(FlowControl(FlowMode.BUFFERED), probe=ProbeKind.COMMAND)
+    host.start(0.0)
+    assert host.data_to_send(0.0) == HELLO + frame(1, "M105")
+    host.receive_data(b"ok\n" + OCTOPRINT_TEMPERATURES, 0.001)
+    host.send("M109 S200", 0)
+    assert host.data_to_send(0.01) == frame(2, "M109 S200")
+    now, sent = 0.01, []
+    while len(sent) < 3:
+        deadline = host.next_deadline()
+        assert deadline is not None
+        now = deadline
+        host.handle_timeout(now)
+        sent.append(host.data_to_send(now))
+    assert sent == [frame(3, "M105")] * 3
+    assert now >= 40.0  # a copy every 20 s while the command runs, not more
+    now += 1.0
+    host.receive_data(b"ok\n" + OCTOPRINT_TEMPERATURES, now)
+    host.send("G1 X1", 1)
+    host.send("G1 X2", 2)
+    assert host.data_to_send(now) == frame(4, "G1 X1") + frame(5, "G1 X2")
+    refusal = b"Error: expected line 4 got 3\nResend:4\nok\n"
+    host.receive_data(refusal * 2, now + 0.002)
+    assert host.data_to_send(now + 0.002) == b""
+    host.receive_data(b"ok\nok\n", now + 0.004)
+    assert acked(host) == [2, 4, 5]
+    host.request_sync()
+    assert host.data_to_send(now + 0.004) == frame(6, "M105")
 
 
 def test_a_command_probe_that_gets_no_answer_goes_again_not_a_new_one() -> None:

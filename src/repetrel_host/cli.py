@@ -777,7 +777,8 @@ def _announce(console: Out, printer: Printer, plan: JobPlan) -> None:
     if printer.probe is ProbeKind.COMMAND:
         console.print(
             "The controller's answer to a bad checksum names a line it never got: "
-            "probing with numbered M105 lines (they run; they are harmless)."
+            "probing with numbered M105 lines (they run; they are harmless), and, as "
+            "OctoPrint's virtual printer, at most 64 bytes in flight."
         )
     elif printer.probe is ProbeKind.ANSWER:
         console.print(

@@ -63,6 +63,11 @@ class Window:
         # Only for flow control (a garbled N costs a resend, never a line).
         self.read_through = -1
 
+    def limit_bytes(self, byte_limit: int) -> None:
+        """Keep at most ``byte_limit`` bytes in flight (if that is fewer), and batch to match."""
+        self.byte_limit = min(self.byte_limit, byte_limit)
+        self.batch_bytes = self.byte_limit // REFILL_FRACTION
+
     def push(self, transmission: Transmission) -> None:
         self.in_flight.append(transmission)
         self.bytes += len(transmission.wire)

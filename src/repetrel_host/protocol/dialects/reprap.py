@@ -98,6 +98,12 @@ HELLO_TIMEOUT = 3.0
 HELLO_ATTEMPTS = 3
 # The gap line of the greeting's check, sent again when it arrived corrupted.
 GAP_CHECK_ATTEMPTS = 3
+# The controller that the greeting's check finds counting lines its own way is OctoPrint's
+# virtual printer (the only one known to). Its receive buffer holds 64 bytes, and a write
+# that does not fit waits for room while holding the lock its error replies need: with more
+# than 64 bytes in flight, each error it reports (its simulated ones, the refusals of lines
+# in flight behind them) stalls it for its 10 s write timeout, or several.
+VIRTUAL_PRINTER_RX_BUFFER = 64
 # Warn once when more than this share of lines needed resending (after enough lines).
 RESEND_WARNING_RATIO = 0.10
 RESEND_WARNING_AFTER = 100
@@ -126,17 +132,18 @@ _CHECK_PHASES = frozenset({Phase.GAP_CHECK, Phase.PROBE_CHECK})
 class _Probing:
     """The probe in flight, if any, and how many went unanswered."""
 
-    __slots__ = ("attempt", "current", "kind", "unanswered")
+    __slots__ = ("attempt", "copies", "current", "kind", "unanswered")
 
     def __init__(self, kind: ProbeKind) -> None:
         self.kind = kind
         self.current: Transmission | None = None
         self.attempt = 0  # probes sent since one was last answered
         self.unanswered = 0  # timeouts in a row while a long command runs
+        self.copies = 0  # a command probe's line sent again, since one was last answered
 
     def answered(self) -> None:
         self.current = None
-        self.attempt = self.unanswered = 0
+        self.attempt = self.unanswered = self.copies = 0
 
     def superseded(self) -> None:
         """A resend request answers a probe too: its line is now just a stale transmission."""
@@ -192,6 +199,8 @@ class RepRapDialect:
         self._last_received_at = 0.0
         self._last_sent_at = 0.0
         self._last_progress_at = 0.0
+        self._machine_waited_until = 0.0  # the ok of the last unbuffered command
+        self._owed_refusals = (-1, 0)  # (line asked for, count): see _probe_answered
         self._previous_reply: replies.Reply | None = None
         self._trailing_ok_until: float | None = None  # an ok by then ends an error reply
         self._suspect_error: tuple[str, float] | None = None  # (text, when it becomes fatal)
@@ -365,10 +374,16 @@ class RepRapDialect:
         wait = self._rtt.backed_off(probing.unanswered)
         probe = probing.current
         if probe is not None:
-            if probing.unanswered >= MAX_UNANSWERED_PINGS and window.waiting_on_unbuffered():
-                # A long command holds the probes back: ask again, but seldom.
+            if (
+                probe.line is not None or probing.unanswered >= MAX_UNANSWERED_PINGS
+            ) and window.waiting_on_unbuffered():
+                # A long command holds the probes back: ask again, but seldom. A command
+                # probe at once: it waits in the controller behind the command and is
+                # answered after it, and each copy sent meanwhile fills its buffer too.
                 return probe.sent_at + SLOW_PING_INTERVAL
-            return probe.sent_at + wait
+            # From the last progress too: the oks of the lines ahead of the probe just
+            # came, so its answer is one round trip behind them.
+            return max(probe.sent_at, self._last_progress_at) + wait
         # A line error that no resend request followed: the controller dropped the
         # line without asking for it again. Probe within a round trip, not later.
         refused = None if self._line_error_at is None else self._line_error_at + self._rtt.rto
@@ -435,11 +450,13 @@ class RepRapDialect:
         probe = probing.current
         if probe is not None and probe.line is not None:
             # A command probe runs: the same line goes again (refused if it arrived), so
-            # that probes never pile up in a controller busy heating.
+            # that probes never pile up in a controller busy heating. Each copy that finds
+            # it ran draws a refusal (see _probe_answered).
             window.discard(probe)
             self._transmit(probe.line, now)
             probing.current = window.in_flight[-1]
             probing.attempt += 1
+            probing.copies += 1
             self.stats.pings += 1
             return
         if probe is not None:
@@ -557,8 +574,20 @@ class RepRapDialect:
         line = transmission.line
         if transmission.stale or line is None:
             return
-        # Karn: no samples from retransmissions.
-        if not transmission.retransmitted and self._rtt.sample(now - transmission.sent_at):
+        # Karn: no samples from retransmissions. Nor from the time a command took to run: an
+        # unbuffered command's ok comes once the machine finished it (a heat-up: minutes),
+        # and so do the oks of lines sent behind it. One such sample held the timeout at its
+        # ceiling for hundreds of lines: every lost ok then cost 5 s. (M110 is answered at
+        # once: its round trip is the first measured.)
+        if line.unbuffered and not line.is_reset:
+            self._machine_waited_until = now
+            if not transmission.retransmitted:
+                self._probing.unanswered = 0
+        elif (
+            not transmission.retransmitted
+            and transmission.sent_at >= self._machine_waited_until
+            and self._rtt.sample(now - transmission.sent_at)
+        ):
             self._probing.unanswered = 0
         if line.is_host_line:
             return  # the probe behind an M110 confirms the reset
@@ -586,6 +615,11 @@ class RepRapDialect:
             self.stats.ignored_resend_requests += 1  # garbled: the two lines disagree
             return
         self._trailing_ok_until = now + self._rtt.trailing_ok_window
+        owed_for, owed = self._owed_refusals
+        if owed and number == owed_for:
+            self._owed_refusals = (owed_for, owed - 1)  # a copy of a command probe refused
+            self.stats.ignored_resend_requests += 1
+            return
         phase = self._phase
         if phase is Phase.GAP_CHECK:
             self._gap_refused(number, previous, now)
@@ -660,6 +694,7 @@ class RepRapDialect:
 
     def _probe_answered(self, probe: Transmission, accepted_through: int, now: float) -> None:
         """The controller accepted every line through ``accepted_through`` and nothing after."""
+        copies = self._probing.copies if probe.line is not None else 0
         self._probing.answered()
         # Every transmission before the probe was answered (replies come in order),
         # whether or not its ok reached us; none was sent after it.
@@ -669,6 +704,14 @@ class RepRapDialect:
         self._history.cursor = accepted_through + 1
         if self._phase is Phase.GREETING:
             self._finish_greeting(accepted_through)
+        if copies:
+            # A command probe sent more than once ran once (its first copy, taken as the
+            # one that answered); each later copy is refused with a request for the line
+            # after it, which answers no transmission of ours. Obeyed, it would send again
+            # lines the controller holds, each refusal a round trip more (and OctoPrint's
+            # virtual printer, its buffer full, a 10 s stall). Those answers come before
+            # any ok for a line sent from now on: the first such ok ends the count.
+            self._owed_refusals = (probe.number + 1, copies)
 
     def _finish_greeting(self, accepted_through: int) -> None:
         self._phase = Phase.RUNNING
@@ -757,12 +800,15 @@ class RepRapDialect:
         expected = self._history.next_number
         if number == expected + 1 and _is_checksum_error(previous):
             # It named a line it never got, and now takes it for received: renumber,
-            # and from now on probe with lines that run.
+            # and from now on probe with lines that run. It answers as OctoPrint's
+            # virtual printer does: keep within that one's receive buffer too.
             self._probing.kind = ProbeKind.COMMAND
+            self._window.limit_bytes(VIRTUAL_PRINTER_RX_BUFFER)
             self._events.append(
                 Notice(
                     "the controller's answer to a bad checksum names a line it never got; "
-                    "probing with numbered M105 lines instead"
+                    "probing with numbered M105 lines instead, at most "
+                    f"{self._window.byte_limit} bytes in flight"
                 )
             )
             self._regreet()
@@ -784,6 +830,8 @@ class RepRapDialect:
         number = line.number
         if number > self._acked_through:
             self._acked_through = number
+        if self._owed_refusals[1]:
+            self._owed_refusals = (-1, 0)  # they came before this ok, or never will
         self._guard.progress(number)
         if not line.acknowledged:  # after a resend the controller may acknowledge it again
             line.acknowledged = True
