@@ -9,7 +9,7 @@ import os
 import shlex
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal, TypeVar
+from typing import Literal, TypeVar
 
 import pytest
 
@@ -35,10 +35,6 @@ from repetrel_host.pytest_plugin.report import (
     record_events,
 )
 from repetrel_host.pytest_plugin.teardown import PluginSession
-
-if TYPE_CHECKING:
-    pass
-
 
 # Seconds a session on real hardware may take to be READY again before a test.
 READY_TIMEOUT = 30.0
