@@ -135,6 +135,7 @@ def test_a_broken_link_fails_the_build(tmp_path: Path):
     config["docs_dir"] = str(docs)
     config["nav"] = ["index.md", "streaming.md"]
     config["plugins"] = ["search"]
+    config["hooks"] = [str(ROOT / hook) for hook in config.get("hooks", [])]  # from the copy
     (tmp_path / "mkdocs.yml").write_text(yaml.safe_dump(config))
     built = mkdocs_build(tmp_path / "site", tmp_path / "mkdocs.yml")
     assert built.returncode != 0
