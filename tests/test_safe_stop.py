@@ -110,7 +110,9 @@ def test_without_an_emergency_parser_the_held_stop_is_told_at_once(tmp_path: Pat
     warning = " ".join(stdout.split())
     assert "the safe stop is held up: the controller is waiting for a heater (M190 S60" in warning
     assert "no emergency parser" in warning and "bed" in warning and "power switch" in warning
-    last = " ".join(stderr.split())
+    said = stderr.split("\n", 1)
+    assert said[0].startswith("connecting to ")  # said at once, then the last word
+    last = " ".join(said[1].split())
     assert last.startswith("not safe: the safe stop was abandoned before the controller confirmed")
     assert "heaters that may be on: bed" in last and "hotend T0" in last
     assert heaters["B"] == 60.0  # truly on: the sentence was true
