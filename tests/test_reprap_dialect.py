@@ -10,6 +10,7 @@ from repetrel_host.protocol.controller import Accepted, ControllerProtocol
 from repetrel_host.protocol.dialects.reprap import (
     HELLO_ATTEMPTS,
     HELLO_TIMEOUT,
+    NOISY_HELLO_ATTEMPTS,
     UNBUFFERED_GRACE,
     RepRapDialect,
 )
@@ -470,7 +471,30 @@ def test_a_boot_banner_puts_the_next_greeting_off() -> None:
     ]
     host.handle_timeout(2.5 + HELLO_TIMEOUT)
     assert host.data_to_send(2.5 + HELLO_TIMEOUT) == frame(1, "M110 N1") + ping(2)
-    assert events(host) == [GreetingRetry(2, HELLO_ATTEMPTS, 2.5 + HELLO_TIMEOUT)]
+    # Heard from, the board is there: it gets the patience of a noisy link.
+    assert events(host) == [GreetingRetry(2, NOISY_HELLO_ATTEMPTS, 2.5 + HELLO_TIMEOUT)]
+
+
+def test_a_controller_heard_from_is_greeted_with_more_patience_than_a_silent_port() -> None:
+    """Its answers to the greeting lost on a noisy link, a controller that said anything
+    of its own (here an error) is greeted NOISY_HELLO_ATTEMPTS times, not failed after 3."""
+    host = RepRapDialect()
+    host.start(0.0)
+    host.data_to_send(0.0)
+    host.receive_data(b"Error:Line Number is not Last Line Number+1, Last Line: 7\n", 0.5)
+    told: list[Event] = []
+    now = 0.0
+    while host.failure is None:
+        now = host.next_deadline() or now
+        host.handle_timeout(now)
+        host.data_to_send(now)
+        told += events(host)
+    retries = [event for event in told if isinstance(event, GreetingRetry)]
+    assert [retry.attempt for retry in retries] == list(range(2, NOISY_HELLO_ATTEMPTS + 1))
+    assert NOISY_HELLO_ATTEMPTS > HELLO_ATTEMPTS
+    assert host.failure.reason.startswith(
+        f"no answer to M110 (line numbering reset), sent {NOISY_HELLO_ATTEMPTS} times"
+    )
 
 
 def test_unexpected_ok_is_ignored() -> None:

@@ -96,6 +96,10 @@ HELLO_TIMEOUT = 3.0
 # the wrong port or baud rate, by far the likeliest causes, a longer wait. Each retry is
 # told (GreetingRetry) as it goes. Greeting again after a garbled answer costs nothing here.
 HELLO_ATTEMPTS = 3
+# A controller heard from (an ok, a resend request, an error, its boot banner) whose answers
+# to the greeting get lost or garbled on a noisy link, and a renumbering mid-job: each lost
+# answer costs a timeout, and giving up stops a job that could go on.
+NOISY_HELLO_ATTEMPTS = 10
 # The gap line of the greeting's check, sent again when it arrived corrupted.
 GAP_CHECK_ATTEMPTS = 3
 # The controller that the greeting's check finds counting lines its own way is OctoPrint's
@@ -188,6 +192,7 @@ class RepRapDialect:
         self._gap_attempts = 0
         self._greeting_attempts = 0
         self._unanswered_greetings = 0  # timeouts of this greeting (HELLO_ATTEMPTS)
+        self._heard = False  # a reply of the controller's came (not noise): it is there
         self._started_at = 0.0
         self._greeted = False
         # command, tag, unbuffered, confirm
@@ -410,7 +415,8 @@ class RepRapDialect:
         if self._phase is not Phase.RUNNING:
             self._unanswered_greetings += 1
             unanswered = self._unanswered_greetings
-            if unanswered >= HELLO_ATTEMPTS:
+            attempts = NOISY_HELLO_ATTEMPTS if self._greeted or self._heard else HELLO_ATTEMPTS
+            if unanswered >= attempts:
                 if self._greeted:  # renumbering mid-stream: it stopped answering
                     self._fail(
                         FailureKind.TIMEOUT,
@@ -428,7 +434,7 @@ class RepRapDialect:
             self._regreet()
             if not self._greeted:
                 waited = now - self._started_at
-                self._events.append(GreetingRetry(unanswered + 1, HELLO_ATTEMPTS, waited))
+                self._events.append(GreetingRetry(unanswered + 1, attempts, waited))
             return
         if self._line_error_at is not None:
             # The error answered the oldest line, refused without a resend request: its
@@ -511,6 +517,8 @@ class RepRapDialect:
                 if self._suspect_lines > SUSPECT_ERROR_LINES:
                     self._fail_suspect()
                     return
+        if not isinstance(reply, replies.Message):
+            self._heard = True
         if isinstance(reply, replies.Ok):
             self._handle_ok(reply, now)
         elif isinstance(reply, replies.Resend):
