@@ -437,8 +437,12 @@ def router() -> APIRouter:
     @router.post("/printers/{name}/command")
     async def command(request: Request, name: str, body: Command) -> dict[str, Any]:
         reply = await answered(server_of(request).service(name).command(body.command))
-        lines, ok = reply.lines, reply.ok
-        return {"command": reply.command, "lines": lines, "ok": ok, "ok_line": reply.ok_line}
+        return {
+            "command": reply.command,
+            "lines": reply.lines,
+            "ok": reply.ok,
+            "ok_line": reply.ok_line,
+        }
 
     @router.post("/printers/{name}/{action}", status_code=204)
     async def control(request: Request, name: str, action: str) -> Response:
