@@ -496,6 +496,9 @@ def test_a_job_fails_when_the_link_goes_and_is_never_resumed(rig: Rig, tmp_path:
             assert done[-1] == "M105"
             assert done[-1 - len(rig.safe_stop) : -1] == rig.safe_stop
             ran = done[: -1 - len(rig.safe_stop)]
+            if not rig.hyrel:  # the owed stop's M108 first, should a heat wait hold it up
+                assert ran[-1] == "M108"
+                ran = ran[:-1]
             # What was on its way when the cable went, and nothing after the reconnect.
             assert ran == [c for c in commands if not c.startswith("!!")][: len(ran)]
             assert len(ran) < 1000  # the 8 KB a Hyrel controller holds, at most

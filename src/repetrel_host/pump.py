@@ -38,7 +38,7 @@ from repetrel_host.errors import (
     UsageError,
 )
 from repetrel_host.gcode.commands import command_word
-from repetrel_host.gcode.heaters import WAITS, HeaterLog, complete_safe_stop
+from repetrel_host.gcode.heaters import WAITS, HeaterLog, complete_safe_stop, turns_off
 from repetrel_host.job import ActionKind, HostAction, JobItem, JobLine
 from repetrel_host.protocol import replies
 from repetrel_host.protocol.dialect import Dialect
@@ -170,6 +170,7 @@ class Run:
         self.stop_deadline: float | None = None  # when a stop not confirmed is told as late
         self.stop_requests = 0
         self.safe_stop_queued = False  # the stop began: its safe stop went to the dialect
+        self.safe_stop_completed = False  # made whole for the heaters on (complete_safe_stop)
         self.safe_stop_lines: list[JobLine] = []  # queued at the stop, not yet confirmed
         self.safe_stop_unsent: list[JobLine] = []  # of those, never on the wire (a failure)
         self.breaking: JobLine | None = None  # the heat wait M108 went for, and when
@@ -606,13 +607,23 @@ class Pump:
         urgent = self.dialect.abort()  # where the link can: what the controller holds too
         if waiting:
             self.dialect.end_wait()  # should the abort not have ended the hold as well
-        # Every heater the session set, by its index (Marlin's M104 S0 is the active one's).
-        run.safe_stop = complete_safe_stop(run.safe_stop, self.heaters, self.hotends)
+        self._complete_safe_stop(run)
         run.safe_stop_queued = True
         for command in run.safe_stop:
             line = JobLine(0, 0, command, 0, SAFE_STOP_SOURCE)
             run.safe_stop_lines.append(line)
-            self.dialect.send(command, line, urgent=urgent)
+            # Urgent lines run in no promised order: only those that turn something off go
+            # so (a lift's G91, G0 Z10, G90 out of order is an absolute move); the rest go
+            # in order behind them, the controller's queue dropped by the abort.
+            self.dialect.send(command, line, urgent=urgent and turns_off(command))
+
+    def _complete_safe_stop(self, run: Run) -> None:
+        """The run's safe stop, whole for every heater and fan the session turned on (by
+        its index: Marlin's M104 S0 is the active hotend's), as it stands now: computed
+        once, as the stop begins or as the run ends without one (then owed)."""
+        if not run.safe_stop_queued and not run.safe_stop_completed:
+            run.safe_stop = complete_safe_stop(run.safe_stop, self.heaters, self.hotends)
+            run.safe_stop_completed = True
 
     def _break_waits(self, run: Run, now: float) -> None:
         """While a stop waits behind a heat wait of the job: M108 where the firmware takes
@@ -672,6 +683,7 @@ class Pump:
         if run.finished:
             return
         run.finished = True
+        self._complete_safe_stop(run)  # what is owed, should this end be a failure
         self._note_ran(run)
         self.run = None
         if run.held:  # a pause that came as the job ended holds nothing after it

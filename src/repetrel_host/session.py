@@ -62,7 +62,7 @@ from repetrel_host.events import (
     Temperatures,
 )
 from repetrel_host.gcode.commands import command_word
-from repetrel_host.gcode.heaters import HeaterLog, complete_safe_stop
+from repetrel_host.gcode.heaters import Heater, HeaterLog, complete_safe_stop
 from repetrel_host.job import MAX_COMMAND_LENGTH, ActionKind, HostAction, JobItem, JobLine
 from repetrel_host.links import Link, make_link
 from repetrel_host.planning import (
@@ -81,7 +81,7 @@ from repetrel_host.planning import (
 from repetrel_host.planning import safe_stop as safe_stop_for
 from repetrel_host.protocol import replies
 from repetrel_host.protocol.dialect import Statistics
-from repetrel_host.protocol.dialects import create_dialect
+from repetrel_host.protocol.dialects import create_dialect, release_bytes
 from repetrel_host.protocol.dialects.reprap import DEFAULT_REPLY_TIMEOUT
 from repetrel_host.protocol.events import Failed as DialectFailed
 from repetrel_host.protocol.events import FailureKind, GreetingRetry, ProbeKind
@@ -533,6 +533,9 @@ class Printer:
         # The safe stop a job that failed (the link, the controller) could not send, and
         # the job that waits for it to go (after a reconnect) before it ends.
         self._owed_safe_stop: list[str] = []
+        # A safe stop owed from before this session (a server's restart): the whole of it,
+        # made once the controller said who it is, for the heaters kept from before.
+        self._owe_whole_safe_stop = False
         self._owing: tuple[PrintJob, Run] | None = None
         self._owing_timer: asyncio.TimerHandle | None = None
         self._heaters = HeaterLog()  # every heater the session's commands set
@@ -575,9 +578,16 @@ class Printer:
 
     @property
     def owed_safe_stop(self) -> list[str]:
-        """Safe-stop commands a job could not send (its link failed), still to go: they go
-        first once the controller answers again."""
-        return list(self._owed_safe_stop)
+        """Safe-stop commands a job could not send (its link failed), or owed from before
+        the session (``connect(owe_safe_stop=...)``), still to go: they go first once the
+        controller answers again, after what it still holds or waits for is dropped or
+        ended where the link can (Hyrel's abort and end-wait, Marlin's M108)."""
+        return self.safe_stop if self._owe_whole_safe_stop else list(self._owed_safe_stop)
+
+    @property
+    def heater_log(self) -> HeaterLog:
+        """Every heater (and fan) the session's commands set: what a safe stop turns off."""
+        return self._heaters
 
     def heaters_on(self) -> list[str]:
         """The heaters that may be on: set above zero by a command the session sent (and
@@ -788,6 +798,7 @@ class Printer:
         job ends with a ControllerError, and no safe stop is owed."""
         self._urgent("M112")
         self._owed_safe_stop = []  # the controller halted: its heaters are off
+        self._owe_whole_safe_stop = False
         if self._pump is not None:
             error = ControllerError(
                 "stopped by an emergency stop (M112): the controller halted (heaters off) "
@@ -1027,6 +1038,9 @@ class Printer:
     async def _send_owed_safe_stop(self) -> None:
         """What a failed job could not send: heaters off before anything else. Each line
         is owed until the controller confirms it; the job that waits for them ends then."""
+        if self._owe_whole_safe_stop:  # the profile is known now: made whole once
+            self._owed_safe_stop = self.safe_stop
+            self._owe_whole_safe_stop = False
         owed = list(self._owed_safe_stop)
         if not owed:
             return
@@ -1162,7 +1176,36 @@ class Printer:
                 connection.transport.close()
             return
         self._connection = connection
-        self._start_pump()
+        if self._clear_for_safe_stop():
+            self._spawn(self._start_pump_when_quiet())
+        else:
+            self._start_pump()
+
+    def _clear_for_safe_stop(self) -> bool:
+        """With a safe stop owed, before the greeting: what the controller still holds or
+        waits for must not hold the safe stop (nor the greeting) up (:func:`release_bytes`).
+        True when it wrote."""
+        if not (self._owed_safe_stop or self._owe_whole_safe_stop):
+            return False
+        self._tell_owing(Notice("a safe stop is owed: ending what the controller holds first"))
+        self._write(release_bytes(self.settings.protocol))
+        return True
+
+    async def _until_quiet(self) -> None:
+        """Until the controller has said nothing for QUIET s (at most QUIET_MAX): late
+        answers to what went before must not be taken for the greeting's."""
+        quiet_since = self._loop.time()
+        while self._loop.time() - quiet_since < QUIET_MAX:
+            wait = self._last_data_at + QUIET - self._loop.time()
+            if wait <= 0:
+                break
+            await asyncio.sleep(wait)
+
+    async def _start_pump_when_quiet(self) -> None:
+        self._last_data_at = self._loop.time()
+        await self._until_quiet()
+        if self._connection is not None and not self._closing and self._pump is None:
+            self._start_pump()
 
     def _start_pump(self) -> None:
         settings = self.settings
@@ -1184,14 +1227,14 @@ class Printer:
             return
         self._set_state(State.CONNECTING, reason)
         # Late answers to what went before must not be taken for the new greeting's.
-        quiet_since = self._loop.time()
-        while self._loop.time() - quiet_since < QUIET_MAX:
-            wait = self._last_data_at + QUIET - self._loop.time()
-            if wait <= 0:
-                break
-            await asyncio.sleep(wait)
+        await self._until_quiet()
         if self._connection is None or self._closing:
             return
+        if self._clear_for_safe_stop():
+            self._last_data_at = self._loop.time()
+            await self._until_quiet()
+            if self._connection is None or self._closing:
+                return
         self._ready = self._loop.create_future()
         self._start_pump()
         try:
@@ -1673,6 +1716,7 @@ def connect(
     sim: ControllerSettings | None = None,
     line_tap: Callable[[str, bool], None] | None = None,
     on_event: Callable[[PrinterEvent], None] | None = None,
+    owe_safe_stop: Iterable[Heater] | None = None,
 ) -> _Connect:
     """Open a printer session on ``port`` and greet the controller.
 
@@ -1695,7 +1739,10 @@ def connect(
     :meth:`Printer.events` yields) from the port's opening on, for the session's life:
     before ``connect()`` returns, an :class:`~repetrel_host.events.NoAnswerYet` for each
     greeting that goes again unanswered. It runs on the session's path: it must only take
-    note (print a line, set a flag), never block.
+    note (print a line, set a flag), never block. ``owe_safe_stop``: a safe stop is owed
+    from before (a server's restart after its job was cut), for these heaters besides
+    those the profile names: it goes first, made whole, once the controller answers
+    (:attr:`Printer.owed_safe_stop`).
     """
 
     async def opening() -> Printer:
@@ -1735,6 +1782,9 @@ def connect(
             printer.tap_lines(line_tap)
         if on_event is not None:
             printer._hub.callbacks.append(on_event)
+        if owe_safe_stop is not None:
+            printer._heaters.restore(owe_safe_stop)
+            printer._owe_whole_safe_stop = True
         try:
             await printer._open()
         except BaseException:

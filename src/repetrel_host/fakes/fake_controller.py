@@ -364,7 +364,13 @@ def build_parser() -> argparse.ArgumentParser:
         default=1,
         metavar="N",
         help="hotends T0..T<N-1>: M104 T<i> for one it does not have is refused, as Marlin "
-        "refuses it (Marlin's link only)",
+        "refuses it (on Hyrel's link: heads T0..T<N-1>, T47 every one)",
+    )
+    parser.add_argument(
+        "--no-extruder-count",
+        action="store_true",
+        help="M115 does not say EXTRUDER_COUNT, as some firmwares (a host learns the hotends "
+        "from the commands it sent)",
     )
     parser.add_argument(
         "--chamber", action="store_true", help="a heated chamber (M141, M191; C: in reports)"
@@ -444,6 +450,7 @@ def settings_from_args(args: argparse.Namespace) -> ControllerSettings:
         heat_rate=args.heat_rate,
         faults=faults,
         extruders=args.extruders,
+        extruder_count=not args.no_extruder_count,
         chamber=args.chamber,
         emergency_parser=not args.no_emergency_parser,
         autoreport=not args.no_autoreport,

@@ -25,7 +25,8 @@ heaters, faults); the link is Hyrel's:
 Choices of this fake where the notes are silent (a real controller may differ): the
 temperature report's form (``>ST: T:... B:...``), the messages' wording, a layer pause
 held like a move pause, urgent lines run in the order they came (after the command in
-hand), owed ACKs still sent after an abort, the ``>Hy:`` line it says when it restarts,
+hand; ``urgent_order newest`` on the control channel: newest first), owed ACKs still sent
+after an abort, the ``>Hy:`` line it says when it restarts,
 the report sent before M30's notice.
 """
 
@@ -37,6 +38,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, fields
 
 from repetrel_host.fakes.simulator import (
+    _T_WORD,
     ControllerSettings,
     ControllerSimulator,
     Faults,
@@ -47,6 +49,7 @@ from repetrel_host.protocol.hyrel import NOTICED, Control, read_line
 
 ACK_HEADROOM = 2048  # bytes free in the receive buffer for a line's ACK to go
 RX_BUFFER = 8192
+ALL_HEADS = frozenset({40, 41, 47})  # v5 groups: all devices, yoke 1's heads, every head
 WATCHDOG = 30.0  # seconds of a silent host before the extruders stop
 M115_REPLY = (
     b"FIRMWARE_NAME:>Hy: repetrel-host-fake_1.0 PROTOCOL_VERSION:1.0 "
@@ -174,12 +177,21 @@ class HyrelControllerSimulator(ControllerSimulator):
         self.metrics: Metrics | None = None  # counted from the first M772 on
         self._reports = 0  # M772's mask: bit 0, the M773 report at M30
         self._held = False  # a pause byte, an M0: nothing runs until end-wait
+        self.urgent_newest_first = False  # urgent lines run newest first (urgent_order)
         self._heard_at: float | None = None  # the host's last byte (armed by the first)
         settings = settings or ControllerSettings(rx_buffer=RX_BUFFER, banner=False)
         check_faults(settings.faults)
         super().__init__(settings, now=now, on_execute=on_execute)
 
     def control(self, text: str, now: float) -> None:
+        """As the base's, and ``urgent_order newest|oldest``: the order urgent lines run in
+        (the notes promise none; a controller may run the newest first)."""
+        verb, _, argument = text.strip().partition(" ")
+        if verb == "urgent_order":
+            if argument.strip() not in ("newest", "oldest"):
+                raise ValueError("urgent_order takes newest or oldest")
+            self.urgent_newest_first = argument.strip() == "newest"
+            return
         super().control(text, now)
         check_faults(self.faults)
 
@@ -236,9 +248,12 @@ class HyrelControllerSimulator(ControllerSimulator):
         if not line.urgent:
             queue.append(command)
             return
-        # Ahead of the queue, after the command in hand and urgent lines that came before.
+        # Ahead of the queue, after the command in hand and urgent lines that came before
+        # (ahead of those too, newest first, with ``urgent_order newest``).
         place = 0
-        while place < len(queue) and (queue[place].urgent or queue[place].started):
+        while place < len(queue) and (
+            queue[place].started or (queue[place].urgent and not self.urgent_newest_first)
+        ):
             place += 1
         queue.insert(place, command)
 
@@ -272,11 +287,25 @@ class HyrelControllerSimulator(ControllerSimulator):
         return self._held
 
     def _heater_for(self, kind: str, command: _Command, now: float) -> str | None:
-        """Hyrel's T words address heads and beds (T47: every head): one heater of each
-        kind here."""
+        """Hyrel's T words address heads and beds: with one head (``extruders``), every
+        head address is it; with several, ``T<n>`` is head n (v5 addressing) and no T the
+        active tool's. A group (T40 all devices, T41 yoke 1, T47 every head) is its first
+        head here; :meth:`_set_heater` sets every one."""
         if kind == "C":
             return "C" if "C" in self.heaters else None
-        return kind
+        if kind == "B" or self.settings.extruders == 1:
+            return kind
+        match = _T_WORD.search(command.text[len(command.word) :])
+        index = int(match.group(1)) if match else self.tool
+        return "T" if index == 0 or index >= self.settings.extruders else f"T{index}"
+
+    def _set_heater(self, command: _Command, now: float) -> None:
+        """As the base does; a group address sets every head."""
+        super()._set_heater(command, now)
+        match = _T_WORD.search(command.text[len(command.word) :])
+        if command.word == "M104" and match and int(match.group(1)) in ALL_HEADS:
+            for index in range(1, self.settings.extruders):
+                self._set_target(f"T{index}", command.text, now)
 
     def _process_head(self, now: float) -> bool:
         if self._held:
@@ -294,6 +323,8 @@ class HyrelControllerSimulator(ControllerSimulator):
                 metrics.move(command.text)
             return
         self._set_heater(command, now)
+        if word[:1] == "T" and word[1:].isdigit() and int(word[1:]) < self.settings.extruders:
+            self.tool = int(word[1:])
         if metrics is not None:
             metrics.set_mode(word, command.text)
         if word == "M112":  # halts as Marlin's does (the notes say nothing of Hyrel's)

@@ -123,6 +123,7 @@ class ControllerSettings:
     heat_rate: float | None = None
     faults: Faults = field(default_factory=Faults)
     extruders: int = 1  # hotends T0..T<n-1> (Marlin's EXTRUDER_COUNT)
+    extruder_count: bool = True  # M115 says EXTRUDER_COUNT (some firmwares do not)
     chamber: bool = False  # a heated chamber (M141, M191; C: in reports)
     # Marlin's EMERGENCY_PARSER: M108, M112 and M410 act as they arrive, ahead of the
     # queue (M108's line still runs in its turn, and draws its ok). Without it they run
@@ -545,6 +546,8 @@ class ControllerSimulator:
             reply = M115_REPLY.format(
                 extruders=settings.extruders, parser=parser, autoreport=int(settings.autoreport)
             )
+            if not settings.extruder_count:
+                reply = reply.replace(f" EXTRUDER_COUNT:{settings.extruders}", "")
             self._reply(reply.encode(), now)
         elif word == "M155" and not self.settings.autoreport:
             self._reply(f'echo:Unknown command: "{command.text}"\n'.encode(), now)

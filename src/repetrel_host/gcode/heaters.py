@@ -3,14 +3,17 @@
 A safe stop's ``M104 S0`` turns off only the active hotend on Marlin: a job that heated T0
 and T1 and stopped while T1 was active would leave T0 hot. :class:`HeaterLog` follows the
 commands sent (a job's and the console's): each temperature command's heater by its kind
-and T word (a hotend without one is the active tool's), and the tool changes.
-:func:`complete_safe_stop` then names every hotend in place of a bare ``M104 S0``, and
-adds the chamber when one was heated. Pure: no I/O.
+and T word (a hotend without one is the active tool's), the tool changes, and the fans.
+:func:`complete_safe_stop` is the one place a safe stop is made whole, for every path that
+sends one (a stop, a link lost and found, a restart): it names every hotend in place of a
+bare ``M104 S0``, turns off a bed, a chamber and each numbered fan that was turned on.
+:func:`turns_off` tells the lines that may run in any order. Pure: no I/O.
 """
 
 from __future__ import annotations
 
 import re
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 from repetrel_host.gcode.commands import command_word
@@ -22,6 +25,9 @@ HEATING = {
     "M141": ("chamber", False), "M191": ("chamber", True),
 }  # fmt: skip
 WAITS = frozenset(word for word, (_, waits) in HEATING.items() if waits)
+# Lines that only turn something off: fans, a CO2 laser (M620 E0), a spindle (M5), and
+# heaters set to 0.
+_OFF_WORDS = frozenset({"M107", "M5", "M620"})
 _WORD = re.compile(r"([A-Z])\s*(-?\d+(?:\.\d*)?)", re.IGNORECASE)
 
 
@@ -47,6 +53,15 @@ class HeaterLog:
     def __init__(self) -> None:
         self.tool = 0
         self.heaters: dict[tuple[str, int | None], Heater] = {}
+        self.fans: set[int] = set()  # fans turned on by an M106 P<n> (n > 0)
+        # Called whenever the heaters that may be on change (a server keeps them, so that
+        # a safe stop after its restart still turns every one off).
+        self.on_change: Callable[[], None] | None = None
+
+    def restore(self, heaters: Iterable[Heater]) -> None:
+        """Take ``heaters`` as set (kept from before a restart): each may be on."""
+        for heater in heaters:
+            self.heaters[(heater.kind, heater.index)] = heater
 
     def note(self, command: str, confirmed: bool = False) -> None:
         """A command sent (``confirmed``: the controller confirmed it). A heater counts as
@@ -56,6 +71,11 @@ class HeaterLog:
         word = command_word(command)
         if word[:1] == "T" and word[1:].isdigit():
             self.tool = int(word[1:])
+            return
+        if word == "M106":
+            fan = _word_value(command, "P")
+            if fan is not None and int(fan) > 0:
+                self.fans.add(int(fan))
             return
         heating = HEATING.get(word)
         if heating is None:
@@ -73,6 +93,9 @@ class HeaterLog:
         if not confirmed and previous is not None and float(target) < previous.target:
             return
         self.heaters[key] = Heater(kind, index, float(target), command)
+        was_on = previous is not None and previous.target > 0
+        if was_on != (float(target) > 0) and self.on_change is not None:
+            self.on_change()
 
     def hotends(self) -> list[int]:
         """The hotends (by index) any command set, off or on."""
@@ -84,10 +107,11 @@ class HeaterLog:
 
 
 def complete_safe_stop(commands: list[str], log: HeaterLog, hotends: int = 1) -> list[str]:
-    """``commands`` with a bare ``M104 S0`` (the active hotend's, on Marlin) in place of
-    one ``M104 T<i> S0`` for every hotend the log saw set and every one of the
-    controller's ``hotends``, where there are several; and a chamber that was heated
-    turned off after the bed (unless the sequence does already)."""
+    """``commands`` made whole for what the log saw turned on: a bare ``M104 S0`` (the
+    active hotend's, on Marlin) becomes one ``M104 T<i> S0`` for every hotend the log saw
+    set and every one of the controller's ``hotends``, where there are several; a bare
+    ``M107`` is followed by ``M107 P<n>`` for each numbered fan turned on; a bed and a
+    chamber that were heated are turned off (unless the sequence does already)."""
     indices = sorted({*log.hotends(), *range(hotends)})
     done: list[str] = []
     for command in commands:
@@ -95,15 +119,55 @@ def complete_safe_stop(commands: list[str], log: HeaterLog, hotends: int = 1) ->
             done.extend(f"M104 T{index} S0" for index in indices)
         else:
             done.append(command)
-    chambers = [h for h in log.heaters.values() if h.kind == "chamber" and h.target > 0]
-    if chambers and not any(command_word(c) in ("M141", "M191") for c in commands):
-        offs = [f"M141 T{h.index} S0" if h.index is not None else "M141 S0" for h in chambers]
-        beds = [i for i, c in enumerate(done) if command_word(c) == "M140"]
-        at = beds[-1] + 1 if beds else len(done)
+        if command_word(command) == "M107" and not {"T", "P"} & _letters(command):
+            done.extend(f"M107 P{fan}" for fan in sorted(log.fans))
+    words = {command_word(c) for c in commands}
+    on = [h for h in log.heaters.values() if h.target > 0]
+    offs: list[str] = []
+    if any(h.kind == "hotend" for h in on) and not words & {"M104", "M109"}:
+        offs += [f"M104 T{index} S0" for index in indices] if indices != [0] else ["M104 S0"]
+    if any(h.kind == "bed" for h in on) and not words & {"M140", "M190"}:
+        offs.append("M140 S0")
+    if not words & {"M141", "M191"}:
+        chambers = [h for h in on if h.kind == "chamber"]
+        offs += [f"M141 T{h.index} S0" if h.index is not None else "M141 S0" for h in chambers]
+    if offs:  # after the last heater line, before any move: heat off first
+        heating = [i for i, c in enumerate(done) if command_word(c) in HEATING]
+        at = heating[-1] + 1 if heating else _first_move(done)
         done[at:at] = offs
     return done
 
 
+def turns_off(command: str) -> bool:
+    """Whether ``command`` only turns something off (a fan, a laser, a spindle, a heater
+    to 0): such lines may run in any order (Hyrel's urgent lines promise none)."""
+    word = command_word(command)
+    if word == "M620":
+        return _word_value(command, "E") == 0
+    if word in _OFF_WORDS:
+        return True
+    return word in HEATING and _word_value(command, "S") == 0
+
+
+def _first_move(commands: list[str]) -> int:
+    """Where the first move or mode change is (G91, G0...), else the end."""
+    return next((i for i, c in enumerate(commands) if c[:1] in "Gg"), len(commands))
+
+
+def _letters(command: str) -> set[str]:
+    return {found.upper() for found, _ in _WORD.findall(command[len(command_word(command)) :])}
+
+
+def _word_value(command: str, letter: str) -> float | None:
+    for found, value in _WORD.findall(command[len(command_word(command)) :]):
+        if found.upper() == letter:
+            return float(value)
+    return None
+
+
 def _is_bare_hotend_off(command: str) -> bool:
-    words = {letter.upper(): value for letter, value in _WORD.findall(command)}
-    return command_word(command) == "M104" and "T" not in words and float(words.get("S", -1)) == 0
+    return (
+        command_word(command) == "M104"
+        and _word_value(command, "T") is None
+        and _word_value(command, "S") == 0
+    )

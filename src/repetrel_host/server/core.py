@@ -109,8 +109,7 @@ class PrintServer:
             )
         for service in self.services.values():
             owing = self.store.owing(service.name)
-            if owing:  # interrupted, or ended without its safe stop confirmed
-                service.owed_safe_stop = True
+            if owing:  # interrupted, or ended without its safe stop confirmed (connect sends it)
                 log.warning(
                     "printer %s: the safe stop of job %s is owed: it goes as soon as the "
                     "printer answers",

@@ -26,6 +26,7 @@ from repetrel_host.camera import Camera, SnapshotFailed
 from repetrel_host.config import Loadout, UserConfig, find_loadout, load_library, load_loadout
 from repetrel_host.events import PrinterEvent
 from repetrel_host.gcode.analysis import Summary
+from repetrel_host.gcode.heaters import Heater
 from repetrel_host.gcode.lint import Finding, Severity
 from repetrel_host.gcode.marks import SlicerMarks
 from repetrel_host.job import ActionKind, HostAction
@@ -86,9 +87,13 @@ class PrinterConfig:
     tags: tuple[str, ...] = ()  # in a farm: what jobs may ask of it (tag=abs)
 
     def connect(
-        self, user: UserConfig, on_event: Callable[[PrinterEvent], None] | None = None
+        self,
+        user: UserConfig,
+        on_event: Callable[[PrinterEvent], None] | None = None,
+        owe_safe_stop: list[Heater] | None = None,
     ) -> Any:
-        """``rh.connect(...)`` for this printer (``on_event``: its events as they come)."""
+        """``rh.connect(...)`` for this printer (``on_event``: its events as they come;
+        ``owe_safe_stop``: the heaters of a safe stop owed from before a restart)."""
         flow: rh.FlowControl | str | None = self.flow
         if self.rx_buffer is not None or self.max_lines is not None:
             # What is not given is the machine's, else the protocol's window (as hyrel-send).
@@ -114,6 +119,7 @@ class PrinterConfig:
             poll_while_printing=True,
             protocol=self.protocol,
             on_event=on_event,
+            owe_safe_stop=owe_safe_stop,
         )
 
 
@@ -217,7 +223,6 @@ class PrinterService:
         self.printer: rh.Printer | None = None
         self.running: Running | None = None
         self.held = False  # the queue waits for a release (after an interrupted job)
-        self.owed_safe_stop = False
         self.selected: Path | None = None  # OctoPrint's selected file, started by "start"
         # The last job, kept after it ended (OctoPrint shows its file and final progress
         # until another file is selected), with how and when it ended.
@@ -329,9 +334,7 @@ class PrinterService:
         """Print the next queued job if the printer is ready and the queue not held."""
         printer = self.printer
         assert printer is not None
-        if self.owed_safe_stop and printer.state is rh.State.READY:
-            await self._send_safe_stop()
-        elif (
+        if (
             printer.state is rh.State.READY
             and not printer.owed_safe_stop
             and self.store.owing(self.name)
@@ -352,8 +355,10 @@ class PrinterService:
         while not self._stopping:
             if not self.last_error:  # not again at each try of a port that stays away
                 log.info("printer %s: connecting to %s", self.name, self.port)
+            # A safe stop owed from before a restart goes first, for every heater kept.
+            owed = self.store.heaters(self.name) if self.store.owing(self.name) else None
             try:
-                self.printer = await self.config.connect(self.user, self._heard)
+                self.printer = await self.config.connect(self.user, self._heard, owed)
             except rh.HostError as exc:
                 if str(exc) != self.last_error:
                     log.warning("printer %s: %s (trying again)", self.name, exc)
@@ -363,6 +368,7 @@ class PrinterService:
                 continue
             log.info("printer %s: connected on %s", self.name, self.port)
             self.last_error = ""
+            self._keep_heaters(self.printer)
             self.printer.watch(self.changed)
             self.changed()
             self._forwarding = asyncio.get_running_loop().create_task(self._forward(self.printer))
@@ -395,19 +401,17 @@ class PrinterService:
                 ending.exception()  # retrieved: the loop records how it ended
         return running.job.done
 
-    async def _send_safe_stop(self) -> None:
-        printer = self.printer
-        assert printer is not None
-        commands = printer.safe_stop
-        log.warning("printer %s: sending the interrupted job's safe stop %s", self.name, commands)
-        try:
-            for command in commands:
-                await printer.command(command, timeout=SAFE_STOP_TIMEOUT)
-        except (rh.HostError, TimeoutError) as exc:
-            log.warning("printer %s: the safe stop did not go: %s", self.name, exc)
-            return
-        self.owed_safe_stop = False
-        self._sent()
+    def _keep_heaters(self, printer: rh.Printer) -> None:
+        """The heaters the session turned on, kept in the store as they change (before the
+        line that turns one on goes), and now: a safe stop owed after a kill -9 and a
+        restart turns every one of them off."""
+        heaters = printer.heater_log
+
+        def keep() -> None:
+            self.store.keep_heaters(self.name, heaters.on())
+
+        heaters.on_change = keep
+        keep()
 
     def _sent(self) -> None:
         """The safe stop the printer was owed went: its jobs' records say so."""

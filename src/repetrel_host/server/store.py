@@ -20,6 +20,7 @@ from enum import StrEnum
 from pathlib import Path
 from typing import Any, Protocol
 
+from repetrel_host.gcode.heaters import Heater
 from repetrel_host.protocol.reports import JobReport
 
 PROGRESS_INTERVAL = 0.5  # seconds between progress records of a streaming job
@@ -45,6 +46,13 @@ CREATE TABLE IF NOT EXISTS jobs (
     safe_stop TEXT                -- 'owed': not confirmed (goes at the next contact); 'sent'
 );
 CREATE INDEX IF NOT EXISTS jobs_by_printer ON jobs (printer, state, position);
+-- The heaters each printer's session turned on and not yet off, as far as the controller
+-- confirmed: JSON [[kind, index, target, command]...]. Written as they change, before the
+-- line goes, so that the safe stop owed after a kill -9 turns every one of them off.
+CREATE TABLE IF NOT EXISTS heaters (
+    printer TEXT PRIMARY KEY,
+    heaters TEXT NOT NULL
+);
 """
 # Columns added since the first schema, added to an older data folder's table as it opens.
 _ADDED_COLUMNS = {
@@ -424,6 +432,27 @@ class Store:
             "SELECT id FROM jobs WHERE printer = ? AND safe_stop = ? ORDER BY id", (printer, OWED)
         ).fetchall()
         return [row[0] for row in rows]
+
+    def keep_heaters(self, printer: str, heaters: list[Heater]) -> None:
+        """The heaters that may be on at ``printer`` now (kept across restarts)."""
+        rows = [[h.kind, h.index, h.target, h.command] for h in heaters]
+        with self._transaction() as db:
+            db.execute(
+                "INSERT INTO heaters (printer, heaters) VALUES (?, ?) ON CONFLICT (printer)"
+                " DO UPDATE SET heaters = excluded.heaters",
+                (printer, json.dumps(rows)),
+            )
+
+    def heaters(self, printer: str) -> list[Heater]:
+        """The heaters kept by :meth:`keep_heaters` (none when nothing was kept)."""
+        row = self._db.execute("SELECT heaters FROM heaters WHERE printer = ?", (printer,))
+        found = row.fetchone()
+        if found is None:
+            return []
+        return [
+            Heater(kind, index, float(target), command)
+            for kind, index, target, command in json.loads(found[0])
+        ]
 
     def safe_stop_sent(self, printer: str) -> list[int]:
         """The safe stop the printer was owed went (and was confirmed); returns those jobs."""

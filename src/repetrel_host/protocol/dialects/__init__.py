@@ -28,3 +28,17 @@ def create_dialect(
 
         return HyrelDialect(flow, checksum=checksum, reply_timeout=reply_timeout)
     raise ConfigError(f"unknown protocol '{name}' (known: {', '.join(PROTOCOLS)})")
+
+
+def release_bytes(name: str) -> bytes:
+    """What to write on a connection before its greeting when a safe stop is owed, so that
+    nothing the controller still holds or waits for holds the safe stop up: on Hyrel's
+    link abort (the job's lines it holds are dropped: they must not run after a failed
+    job) and end-wait (a pause, its own M0, a heat-up); on the RepRap link ``M108``, which
+    ends a heat wait where the firmware reads it at once (Marlin's emergency parser), and
+    elsewhere is one more command, answered before the greeting's quiet ends."""
+    if name == "hyrel":
+        from repetrel_host.protocol.hyrel import Control
+
+        return bytes([Control.ABORT, Control.END_WAIT])
+    return b"M108\n"

@@ -1,0 +1,165 @@
+"""Every way a run ends leaves every heater off (issue 35): each path (a cancel, a link
+lost and found) in each phase of a job (printing, a heat wait, paused, the safe stop
+itself), on both links, against the pty fake. What is asserted is read at the fake: its
+heater targets and what it executed, never the host's own account.
+
+The job heats two hotends and the bed, as the bug report's did: T0, T1 and the bed must
+all be off at the end, whichever hotend was active when the run ended.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+import repetrel_host as rh
+from repetrel_host.fakes.fake_controller import BuiltInFake
+from tests.helpers import executed
+
+pytestmark = pytest.mark.timeout(90)
+MOVES = "".join(f"G1 X{i % 50} F600\n" for i in range(3000))
+HEATING = "M140 S60\nM104 T0 S200\nM104 T1 S210\n"
+PHASES = ["printing", "heat wait", "paused", "safe stop"]
+ALL_OFF = {"T": 0.0, "T1": 0.0, "B": 0.0}
+
+
+def targets(fake: BuiltInFake) -> dict[str, float]:
+    readings = fake.request("status")["temperatures"]
+    return {name: float(target) for name, (_, target) in readings.items()}
+
+
+async def until(check: Any, timeout: float = 20.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not check():
+        if time.monotonic() > deadline:
+            raise AssertionError("timed out")
+        await asyncio.sleep(0.02)
+
+
+def ran(log: Path, command: str) -> bool:
+    return log.exists() and command in log.read_text().splitlines()
+
+
+def fake_args(protocol: str, phase: str) -> list[str]:
+    args = [
+        "--protocol",
+        protocol,
+        "--extruders",
+        "2",
+        "--no-extruder-count",
+        "--move-time",
+        "0.01",
+    ]
+    if phase == "heat wait":
+        args += ["--heat-rate", "1"]  # the job's M109 waits minutes
+    if phase == "safe stop":
+        args += ["--command-time", "0.3"]  # each line of the safe stop takes a while
+    return args
+
+
+def job_text(phase: str) -> str:
+    # T1 is active when the run ends: a bare M104 S0 would leave T0 hot.
+    wait = "M109 T1 S210\n" if phase == "heat wait" else ""
+    return HEATING + "T1\n" + wait + MOVES
+
+
+async def into_phase(printer: rh.Printer, job: rh.PrintJob, log: Path, phase: str) -> None:
+    """Run the job until it is in ``phase``."""
+    if phase == "heat wait":
+        await until(lambda: ran(log, "T1"))
+        await asyncio.sleep(0.5)  # M109 waits for its heater now
+        return
+    await until(lambda: ran(log, "G1 X20 F600"))
+    if phase == "paused":
+        await printer.pause()
+    elif phase == "safe stop":
+        job.stop()
+        await until(lambda: ran(log, "M107") or ran(log, "M107 T47"))
+
+
+@pytest.mark.parametrize("protocol", ["reprap", "hyrel"])
+@pytest.mark.parametrize("phase", PHASES)
+def test_a_cancel_turns_off_every_heater(tmp_path: Path, protocol: str, phase: str) -> None:
+    log = tmp_path / "fake.log"
+    job_path = tmp_path / "two.gcode"
+    job_path.write_text(job_text(phase))
+
+    async def scenario(fake: BuiltInFake) -> None:
+        async with rh.connect(fake.port, protocol=protocol, poll_interval=None) as printer:
+            job = await printer.print(job_path, history=False)
+            await into_phase(printer, job, log, phase)
+            if phase != "safe stop":
+                await printer.cancel()
+                assert (await job.wait()).outcome is rh.Outcome.CANCELLED
+            else:  # a second stop abandons the one under way, and says what may be on
+                assert job.stop()
+                with pytest.raises(rh.SafeStopError, match=r"abandoned.*may be on"):
+                    await job.wait()
+                # Its lines still go as the controller takes them, the session open.
+                await until(lambda: ran(log, "M84"))
+
+    with BuiltInFake(log, fake_args(protocol, phase), control=True) as fake:
+        asyncio.run(scenario(fake))
+        assert targets(fake) == ALL_OFF, executed(log)[-12:]
+
+
+@pytest.mark.parametrize("protocol", ["reprap", "hyrel"])
+@pytest.mark.parametrize("phase", PHASES)
+def test_a_link_lost_and_found_turns_off_every_heater(
+    tmp_path: Path, protocol: str, phase: str
+) -> None:
+    log = tmp_path / "fake.log"
+    job_path = tmp_path / "two.gcode"
+    job_path.write_text(job_text(phase))
+
+    async def scenario(fake: BuiltInFake) -> None:
+        async with rh.connect(fake.port, protocol=protocol, poll_interval=None) as printer:
+            job = await printer.print(job_path, history=False)
+            await into_phase(printer, job, log, phase)
+            assert fake.request("link_drop 2")["ok"]
+            error = None
+            with contextlib.suppress(rh.HostError):
+                await job.wait()
+            error = job._done.exception() if job._done.done() else None
+            assert error is None or "safe stop went" in str(error) or phase == "safe stop"
+
+    with BuiltInFake(log, fake_args(protocol, phase), control=True) as fake:
+        asyncio.run(scenario(fake))
+        done = executed(log)
+        assert targets(fake) == ALL_OFF, done[-12:]
+        # The lift ran once at most: a second would lift twice.
+        lifts = [c for c in done if c == "G0 Z10"]
+        assert len(lifts) <= 1, done[-20:]
+
+
+def test_hyrels_urgent_safe_stop_keeps_the_lift_in_order_whatever_order_urgent_lines_run(
+    tmp_path: Path,
+) -> None:
+    """Hyrel's urgent lines promise no order: a controller that runs the newest first must
+    still lift relative (G91, G0 Z10, G90), never an absolute move to Z10 into the part."""
+    log = tmp_path / "fake.log"
+    job_path = tmp_path / "two.gcode"
+    job_path.write_text(job_text("printing"))
+
+    async def scenario(fake: BuiltInFake) -> None:
+        async with rh.connect(fake.port, protocol="hyrel", poll_interval=None) as printer:
+            job = await printer.print(job_path, history=False)
+            await until(lambda: ran(log, "G1 X20 F600"))
+            await printer.cancel()
+            assert (await job.wait()).outcome is rh.Outcome.CANCELLED
+
+    args = ["--protocol", "hyrel", "--extruders", "2", "--move-time", "0.01"]
+    with BuiltInFake(log, [*args, "--command-time", "0.1"], control=True) as fake:
+        assert fake.request("urgent_order newest")["ok"]
+        asyncio.run(scenario(fake))
+        heaters = targets(fake)
+    done = executed(log)
+    stop = done[done.index("M107 T47") :]
+    motion = [c for c in stop if c in ("G91", "G0 Z10", "G90", "M84")]
+    assert motion == ["G91", "G0 Z10", "G90", "M84"], stop
+    assert heaters == ALL_OFF
