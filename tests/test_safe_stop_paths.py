@@ -19,6 +19,7 @@ import pytest
 
 import repetrel_host as rh
 from repetrel_host.fakes.fake_controller import BuiltInFake
+from repetrel_host.gcode.heaters import Heater, HeaterLog, complete_safe_stop, turns_off
 from tests.helpers import executed
 
 pytestmark = pytest.mark.timeout(90)
@@ -163,3 +164,57 @@ def test_hyrels_urgent_safe_stop_keeps_the_lift_in_order_whatever_order_urgent_l
     motion = [c for c in stop if c in ("G91", "G0 Z10", "G90", "M84")]
     assert motion == ["G91", "G0 Z10", "G90", "M84"], stop
     assert heaters == ALL_OFF
+
+
+# --- the one safe stop, made whole (pure) ---------------------------------------------
+
+
+def logged(*commands: str) -> HeaterLog:
+    log = HeaterLog()
+    for command in commands:
+        log.note(command)
+    return log
+
+
+def test_the_safe_stop_names_every_hotend_bed_chamber_and_fan_turned_on() -> None:
+    log = logged("M104 T0 S200", "T1", "M109 S210", "M141 S40", "M106 P1 S255")
+    marlin = ["M107", "M104 S0", "M140 S0", "G91", "G0 Z10", "G90", "M84"]
+    assert complete_safe_stop(marlin, log) == [
+        "M107", "M107 P1", "M104 T0 S0", "M104 T1 S0", "M140 S0", "M141 S0",
+        "G91", "G0 Z10", "G90", "M84",
+    ]  # fmt: skip
+
+
+def test_a_configured_safe_stop_that_forgets_a_heater_still_turns_it_off() -> None:
+    log = logged("M140 S60", "M104 S200")
+    assert complete_safe_stop(["M107", "G91", "G0 Z10", "G90"], log) == [
+        "M107", "M104 S0", "M140 S0", "G91", "G0 Z10", "G90"
+    ]  # fmt: skip
+    # Made whole once: doing it again changes nothing.
+    done = complete_safe_stop(["M107", "M104 S0"], logged("M104 T1 S200", "M106 P2"))
+    assert complete_safe_stop(done, logged("M104 T1 S200")) == done
+
+
+def test_hyrels_group_addresses_are_left_as_they_are() -> None:
+    hyrel = ["M107 T47", "M620 T47 E0", "M104 T47 S0", "M140 T46 S0", "M5", "G91", "G0 Z10"]
+    assert complete_safe_stop(hyrel, logged("M104 T1 S200", "M140 S60")) == hyrel
+
+
+def test_only_lines_that_turn_something_off_may_run_in_any_order() -> None:
+    anywhere = ["M107", "M107 T47", "M104 T47 S0", "M140 S0", "M620 T47 E0", "M5", "M141 S0"]
+    in_order = ["G91", "G0 Z10", "G90", "M84", "M104 S200", "M620 T47 E1", "M106 S255"]
+    assert all(turns_off(c) for c in anywhere)
+    assert not any(turns_off(c) for c in in_order)
+
+
+def test_the_heater_log_tells_when_the_heaters_on_change_and_takes_them_back() -> None:
+    log = HeaterLog()
+    changes: list[list[str]] = []
+    log.on_change = lambda: changes.append([h.describe() for h in log.on()])
+    log.note("M104 T1 S210")
+    log.note("M104 T1 S215")  # still on: no change
+    log.note("M104 T1 S0", confirmed=True)
+    assert changes == [["hotend T1 at 210 °C (M104 T1 S210)"], []]
+    again = HeaterLog()
+    again.restore([Heater("hotend", 1, 210.0, "M104 T1 S210")])
+    assert complete_safe_stop(["M104 S0"], again) == ["M104 T0 S0", "M104 T1 S0"]
