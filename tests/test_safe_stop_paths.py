@@ -218,3 +218,11 @@ def test_the_heater_log_tells_when_the_heaters_on_change_and_takes_them_back() -
     again = HeaterLog()
     again.restore([Heater("hotend", 1, 210.0, "M104 T1 S210")])
     assert complete_safe_stop(["M104 S0"], again) == ["M104 T0 S0", "M104 T1 S0"]
+
+
+def test_hyrels_group_address_confirmed_at_0_turns_every_head_off_in_the_log() -> None:
+    log = logged("M104 T0 S200", "M104 T1 S210", "M140 S60")
+    log.note("M104 T47 S0", confirmed=True)
+    assert [h.describe() for h in log.on()] == ["bed at 60 °C (M140 S60)"]
+    log.note("M140 T46 S0", confirmed=True)
+    assert log.on() == []

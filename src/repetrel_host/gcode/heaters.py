@@ -25,6 +25,13 @@ HEATING = {
     "M141": ("chamber", False), "M191": ("chamber", True),
 }  # fmt: skip
 WAITS = frozenset(word for word, (_, waits) in HEATING.items() if waits)
+# Hyrel's group addresses (v5: all devices, yoke 1, every head, every bed; v4: every head,
+# every bed): a confirmed 0 for one turns off every heater of its kind.
+_GROUPS: dict[str, frozenset[int]] = {
+    "hotend": frozenset({40, 41, 47, 100}),
+    "bed": frozenset({40, 46, 90}),
+    "chamber": frozenset({40, 46}),
+}
 # Lines that only turn something off: fans, a CO2 laser (M620 E0), a spindle (M5), and
 # heaters set to 0.
 _OFF_WORDS = frozenset({"M107", "M5", "M620"})
@@ -81,6 +88,7 @@ class HeaterLog:
         if heating is None:
             return
         kind = heating[0]
+        on_before = self._on_keys()
         words = {letter.upper(): value for letter, value in _WORD.findall(command[len(word) :])}
         target = words.get("S", words.get("R"))  # Marlin's M109 R waits for cooling too
         if target is None:
@@ -88,14 +96,20 @@ class HeaterLog:
         index = int(float(words["T"])) if "T" in words else None
         if index is None and kind == "hotend":
             index = self.tool
+        if index in _GROUPS[kind] and float(target) == 0 and confirmed:
+            for key, heater in list(self.heaters.items()):
+                if heater.kind == kind and heater.target > 0:
+                    self.heaters[key] = Heater(kind, heater.index, 0.0, command)
         key = (kind, index)
         previous = self.heaters.get(key)
         if not confirmed and previous is not None and float(target) < previous.target:
             return
         self.heaters[key] = Heater(kind, index, float(target), command)
-        was_on = previous is not None and previous.target > 0
-        if was_on != (float(target) > 0) and self.on_change is not None:
+        if self.on_change is not None and self._on_keys() != on_before:
             self.on_change()
+
+    def _on_keys(self) -> set[tuple[str, int | None]]:
+        return {key for key, heater in self.heaters.items() if heater.target > 0}
 
     def hotends(self) -> list[int]:
         """The hotends (by index) any command set, off or on."""
