@@ -12,7 +12,6 @@ import contextlib
 import os
 import re
 import shlex
-import signal
 import sys
 import time
 from collections.abc import Awaitable, Callable, Iterator
@@ -69,6 +68,12 @@ from repetrel_host.protocol.flow import FlowMode
 from repetrel_host.pump import Outcome, Summary
 from repetrel_host.resume import RESUME_SOURCE, HomeAxes, resume_command, resume_from
 from repetrel_host.session import RECONNECT_WAIT, Printer, PrintJob, connect
+from repetrel_host.stop_signals import (
+    StopSignals,
+    exit_code_of_stop,
+    interrupt_on_stop_signals,
+    stopping_text,
+)
 from repetrel_host.terminal import CONSOLE_HELP, ConsoleOptions, run_console
 
 if TYPE_CHECKING:
@@ -118,7 +123,10 @@ class Out:
         return self._console
 
     def print(self, text: str, markup: bool | None = None) -> None:
-        self.console.print(text, markup=markup)
+        # A terminal that went away (a closed window, a dropped ssh session: SIGHUP) takes
+        # no more words; the run goes on to its safe stop, and its record says how it ended.
+        with contextlib.suppress(OSError):
+            self.console.print(text, markup=markup)
 
     def bell(self) -> None:
         self.console.bell()
@@ -487,6 +495,10 @@ def send(
             tuple(sys.argv[1:]),
         )
         code = asyncio.run(_send(console, errors, plan, user, options))
+    except KeyboardInterrupt:  # Ctrl-C, SIGTERM or SIGHUP before the job's first line
+        with contextlib.suppress(OSError):  # a closed terminal (SIGHUP) takes no words
+            errors.print("interrupted before streaming began.")
+        code = exit_code_of_stop()
     except (JobError, ConfigError, UsageError) as exc:
         errors.print(f"error: {exc}", markup=False)
         code = EXIT_BAD_INPUT
@@ -763,7 +775,7 @@ async def _send(
             f"The fake controller's log of executed commands: {printer.link.log_path}",
             markup=False,
         )
-    return EXIT_INTERRUPTED if summary.outcome is Outcome.CANCELLED else EXIT_OK
+    return exit_code_of_stop() if summary.outcome is Outcome.CANCELLED else EXIT_OK
 
 
 def _announce(console: Out, printer: Printer, plan: JobPlan) -> None:
@@ -854,7 +866,7 @@ async def _stream(
     keys = Keys(sys.stdin)
     enter: asyncio.Future[None] | None = None  # an M0 waiting for Enter (or p)
 
-    def interrupt() -> None:
+    def interrupt(signum: int) -> None:
         nonlocal interrupts
         interrupts += 1
         if job.reconnecting_for_safe_stop:
@@ -862,8 +874,8 @@ async def _stream(
             job.stop()
             return
         if interrupts == 1:
-            console.print("stopping: sending the safe-stop sequence (Ctrl-C again to abandon it)")
             job.stop()
+            console.print(stopping_text(signum))
             return
         job.stop()  # abandoned (or the wait for a reconnect given up): the end says what
 
@@ -913,7 +925,8 @@ async def _stream(
                 )
 
     tasks: set[asyncio.Task[None]] = set()
-    loop.add_signal_handler(signal.SIGINT, interrupt)
+    signals = StopSignals(interrupt)
+    signals.install()
     keyboard = keys.start(key)
     if keyboard:
         console.print("Keys: p pauses and resumes; Ctrl-C stops the job safely.")
@@ -929,12 +942,13 @@ async def _stream(
         keys.stop()
         for running in (refresher, watcher, *tasks):
             running.cancel()
-        loop.remove_signal_handler(signal.SIGINT)
+        signals.remove()
         _update(progress, task, job, started, status)
         if completed:  # its last state, as output that is not a terminal keeps it
             progress.update(task, completed=job.size, left="")  # trailing comments too
             progress.status = progress.status.split(" · *")[0]  # no time left to explain
-        progress.stop()
+        with contextlib.suppress(OSError):  # a terminal gone (SIGHUP) takes no last frame
+            progress.stop()
         await actions.close()
     # The slicer's estimate, beside the real duration in the summary (the file's ends only).
     return job, await asyncio.to_thread(slicer_estimate, plan.job.path)
@@ -1070,11 +1084,13 @@ def _value(protocol: Protocol | None) -> str | None:
 
 def main() -> None:
     """Console-script entry point."""
+    interrupt_on_stop_signals()  # SIGTERM, SIGHUP: as Ctrl-C, never the end on the spot
     try:
         app()
     except KeyboardInterrupt:
-        Out(stderr=True).print("interrupted before streaming began.")
-        raise SystemExit(EXIT_INTERRUPTED) from None
+        with contextlib.suppress(OSError):  # a closed terminal (SIGHUP) takes no words
+            Out(stderr=True).print("interrupted before streaming began.")
+        raise SystemExit(exit_code_of_stop()) from None
     except HostError as exc:  # a last guard: one sentence, never a traceback
         Out(stderr=True).print(f"error: {exc}", markup=False)
         raise SystemExit(EXIT_BAD_INPUT) from None

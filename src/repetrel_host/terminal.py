@@ -63,12 +63,13 @@ from repetrel_host.protocol.reports import format_temperatures
 from repetrel_host.pump import Outcome
 from repetrel_host.resume import resume_from
 from repetrel_host.session import Printer, PrintJob, connect
+from repetrel_host.stop_signals import StopSignals, exit_code_of_stop, stopping_text
 
 if TYPE_CHECKING:
+    from prompt_toolkit.application import Application
     from prompt_toolkit.history import History
 
 EXIT_OK = 0
-EXIT_INTERRUPTED = 130
 PROMPT = "> "
 # Temperatures are polled this often (a job printing or not): the status line stays current.
 POLL_INTERVAL = 2.0
@@ -127,7 +128,10 @@ def run_console(
         if name == "--force":
             raise UsageError("--force goes with a job: at the console, !print FILE --force")
         raise UsageError(f"{name} does not go with --console")
-    return asyncio.run(_run(options, user))
+    try:
+        return asyncio.run(_run(options, user))
+    except KeyboardInterrupt:  # SIGTERM or SIGHUP before the console's own handling
+        return exit_code_of_stop()
 
 
 async def _run(options: ConsoleOptions, user: UserConfig) -> int:
@@ -197,9 +201,12 @@ class PrinterConsole:
         self._interrupts = 0
         self._closed = False
         self._interrupted = asyncio.Event()
+        self._signals = StopSignals(self._on_stop_signal)
+        self._prompt: Application[str] | None = None  # the interactive prompt, while it runs
 
     def say(self, text: str) -> None:
-        self.screen.print(text, markup=False)
+        with contextlib.suppress(OSError):  # a closed terminal (SIGHUP) takes no words
+            self.screen.print(text, markup=False)
 
     # --- running ----------------------------------------------------------------
 
@@ -215,6 +222,7 @@ class PrinterConsole:
         )
         with patch_stdout(raw=True):
             self._start()
+            self._prompt = session.app  # a stop signal ends its prompt (as Ctrl-D)
             while True:
                 try:
                     # Ctrl-C at the prompt is a key (it clears the line); a SIGINT from
@@ -225,9 +233,9 @@ class PrinterConsole:
                     continue
                 except EOFError:
                     line = "!quit"
-                if not await self.handle(line):
+                if self._interrupted.is_set() or not await self.handle(line):
                     await self.close()  # still above the prompt: what the stop prints
-                    return EXIT_OK
+                    return exit_code_of_stop() if self._interrupted.is_set() else EXIT_OK
 
     async def piped(self) -> int:
         """Read plain lines from a pipe or a file; each command waits for its reply."""
@@ -237,10 +245,10 @@ class PrinterConsole:
             while True:
                 reading = asyncio.create_task(read_line(sys.stdin))
                 await asyncio.wait({reading, interrupted}, return_when=asyncio.FIRST_COMPLETED)
-                if interrupted.done():
+                if self._interrupted.is_set():
                     reading.cancel()
                     await self._wait_for_job()
-                    return EXIT_INTERRUPTED
+                    return exit_code_of_stop()
                 line = reading.result()
                 if line is None:
                     break
@@ -253,13 +261,13 @@ class PrinterConsole:
                 if self.printer.state is State.PAUSED:
                     self._stop_unanswerable(job, job.where())
                 await self._wait_for_job()
-            return EXIT_OK
+            return exit_code_of_stop() if self._interrupted.is_set() else EXIT_OK
         finally:
             interrupted.cancel()
 
     def _start(self) -> None:
         self._announce()
-        asyncio.get_running_loop().add_signal_handler(signal.SIGINT, self._on_sigint)
+        self._signals.install()
         self._printer_watcher = asyncio.create_task(self._watch_printer())
         # The status line's temperatures at once, not after the first poll.
         self._spawn(self._quietly("M105"))
@@ -281,14 +289,13 @@ class PrinterConsole:
         if self._closed:
             return
         self._closed = True
-        loop = asyncio.get_running_loop()
-        with contextlib.suppress(ValueError, RuntimeError):
-            loop.remove_signal_handler(signal.SIGINT)
         job = self.printer.job
         if job is not None and not job.done:
             self.say(f"stopping {job.name} with the safe-stop sequence first")
-        await self.printer.close()
+        await self.printer.close()  # a second stop signal meanwhile abandons its safe stop
         await self._wait_for_job()
+        with contextlib.suppress(ValueError, RuntimeError):
+            self._signals.remove()
         owed = self.printer.owed_safe_stop
         if owed:
             heaters = ", ".join(self.printer.heaters_on()) or "none known"
@@ -585,19 +592,22 @@ class PrinterConsole:
         if self.printer.job is not None:
             self.say("!cancel stops the job safely (Ctrl-C only clears the line)")
 
-    def _on_sigint(self) -> None:
-        """A SIGINT outside the prompt: from a pipe, stop the job safely and leave (a
-        second one abandons the safe stop); at a terminal, the hint."""
-        if sys.stdin.isatty():
+    def _on_stop_signal(self, signum: int) -> None:
+        """A SIGINT outside the prompt at a terminal: the hint. Otherwise (a SIGINT from a
+        pipe, a SIGTERM, a SIGHUP): stop the job safely and leave (a second one abandons
+        the safe stop)."""
+        if signum == signal.SIGINT and sys.stdin.isatty():
             self._hint_cancel()
             return
         self._interrupts += 1
         self._interrupted.set()
+        if self._prompt is not None and self._prompt.is_running:
+            self._prompt.exit(exception=EOFError())
         job = self.printer.job
-        if job is None:
+        if job is None or job.done:
             return
         if self._interrupts == 1:
-            self.say("stopping: sending the safe-stop sequence (Ctrl-C again to abandon it)")
+            self.say(stopping_text(signum))
         job.stop()  # a second one abandons it: the job's watcher says what was not confirmed
 
     def _spawn(self, coroutine: Coroutine[Any, Any, None]) -> None:

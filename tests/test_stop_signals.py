@@ -1,0 +1,190 @@
+"""SIGTERM and SIGHUP stop a run as Ctrl-C does (issue 35): hyrel-send and its console send
+the safe stop (a second signal abandons it, and says so), whether a terminal is left or not,
+and exit with 128 + the signal. Read at the fake: its heater targets and executed log."""
+
+from __future__ import annotations
+
+import fcntl
+import json
+import os
+import pty
+import signal
+import subprocess
+import sys
+import termios
+import time
+from pathlib import Path
+
+import pytest
+
+from repetrel_host.fakes.fake_controller import BuiltInFake
+from tests.helpers import executed
+
+pytestmark = pytest.mark.timeout(90)
+JOB = "M140 S60\nM104 T0 S200\nM104 T1 S210\nT1\n" + "".join(
+    f"G1 X{i % 50} F600\n" for i in range(3000)
+)
+ALL_OFF = {"T": 0.0, "T1": 0.0, "B": 0.0}
+SIGNALS = [signal.SIGTERM, signal.SIGHUP]
+
+
+def fake_args(protocol: str, *more: str) -> list[str]:
+    return ["--protocol", protocol, "--extruders", "2", "--no-extruder-count", *more]
+
+
+def targets(fake: BuiltInFake) -> dict[str, float]:
+    readings = fake.request("status")["temperatures"]
+    return {name: float(target) for name, (_, target) in readings.items()}
+
+
+def wait_for_log(log: Path, command: str, timeout: float = 20) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if log.exists() and command in log.read_text().splitlines():
+            return
+        time.sleep(0.02)
+    raise AssertionError(f"{command} never ran")
+
+
+def sender(*args: str) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [sys.executable, "-m", "repetrel_host.cli", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        stdin=subprocess.DEVNULL,
+        text=True,
+    )
+
+
+@pytest.mark.parametrize("protocol", ["reprap", "hyrel"])
+@pytest.mark.parametrize("signum", SIGNALS, ids=lambda s: s.name)
+def test_a_signal_stops_hyrel_send_with_its_safe_stop(
+    tmp_path: Path, protocol: str, signum: signal.Signals
+) -> None:
+    job, log = tmp_path / "two.gcode", tmp_path / "fake.log"
+    job.write_text(JOB)
+    with BuiltInFake(log, fake_args(protocol, "--move-time", "0.01"), control=True) as fake:
+        process = sender(str(job), "--port", fake.port, "--protocol", protocol, "--no-history")
+        wait_for_log(log, "G1 X20 F600")
+        process.send_signal(signum)
+        stdout, stderr = process.communicate(timeout=60)
+        heaters = targets(fake)
+    assert process.returncode == 128 + signum, stdout + stderr
+    assert f"{signum.name}: stopping: sending the safe-stop sequence" in stdout
+    assert heaters == ALL_OFF
+    done = [c for c in executed(log) if c != "M115"]
+    assert done[-1] == "M84"
+
+
+def test_a_second_signal_abandons_the_safe_stop_and_says_so(tmp_path: Path) -> None:
+    job, log = tmp_path / "two.gcode", tmp_path / "fake.log"
+    job.write_text(JOB)
+    slow = fake_args("reprap", "--move-time", "0.01", "--command-time", "0.5")
+    with BuiltInFake(log, slow, control=True) as fake:
+        process = sender(str(job), "--port", fake.port, "--no-history")
+        wait_for_log(log, "G1 X20 F600")
+        process.send_signal(signal.SIGTERM)
+        wait_for_log(log, "M107")  # the safe stop is under way
+        process.send_signal(signal.SIGHUP)
+        stdout, stderr = process.communicate(timeout=60)
+        heaters = targets(fake)
+    assert process.returncode == 5, stdout + stderr
+    said = " ".join((stdout + stderr).split())
+    assert "the safe stop was abandoned before the controller confirmed" in said
+    assert "heaters that may be on" in said
+    assert heaters != ALL_OFF  # truly still on: what it said was true
+
+
+def test_a_signal_before_streaming_begins_ends_it_with_one_sentence(tmp_path: Path) -> None:
+    job = tmp_path / "two.gcode"
+    job.write_text(JOB)
+    # A port that never answers: the greeting waits (seconds) when the signal comes.
+    with BuiltInFake(tmp_path / "fake.log", ["--identify-time", "30"]) as fake:
+        process = sender(str(job), "--port", fake.port, "--no-history")
+        time.sleep(1.5)
+        process.send_signal(signal.SIGTERM)
+        stdout, stderr = process.communicate(timeout=30)
+    assert process.returncode == 143, stdout + stderr
+    assert "Traceback" not in stderr
+    assert stderr.strip().endswith("interrupted before streaming began.")
+
+
+def test_a_closed_terminal_still_gets_the_safe_stop_and_the_history_says_how_it_ended(
+    tmp_path: Path,
+) -> None:
+    """The terminal goes (its pty closed: the kernel sends SIGHUP); nothing can be written
+    any more, but the safe stop goes and the run's record says how it ended."""
+    job, log, history = tmp_path / "two.gcode", tmp_path / "fake.log", tmp_path / "history"
+    job.write_text(JOB)
+    main, terminal = pty.openpty()
+    more = ["--history", str(history)]
+    with BuiltInFake(log, fake_args("reprap", "--move-time", "0.01"), control=True) as fake:
+        process = subprocess.Popen(
+            [sys.executable, "-m", "repetrel_host.cli", str(job), "--port", fake.port, *more],
+            stdin=terminal,
+            stdout=terminal,
+            stderr=terminal,
+            start_new_session=True,  # its own session, whose controlling terminal this is
+            preexec_fn=lambda: fcntl.ioctl(0, termios.TIOCSCTTY, 0),
+        )
+        os.close(terminal)
+        try:
+            seen = b""
+            while b"Keys: p pauses" not in seen:
+                seen += os.read(main, 4096)
+            wait_for_log(log, "G1 X20 F600")
+        finally:
+            os.close(main)  # the terminal is gone: SIGHUP, and no more output
+        status = process.wait(timeout=60)
+        heaters = targets(fake)
+    assert status == 129
+    assert heaters == ALL_OFF
+    (record,) = history.glob("*.json")
+    assert json.loads(record.read_text())["outcome"] == "cancelled"
+
+
+@pytest.mark.parametrize("signum", SIGNALS, ids=lambda s: s.name)
+def test_a_signal_stops_the_consoles_job_with_its_safe_stop(
+    tmp_path: Path, signum: signal.Signals
+) -> None:
+    job, log = tmp_path / "two.gcode", tmp_path / "fake.log"
+    job.write_text(JOB)
+    with BuiltInFake(log, fake_args("reprap", "--move-time", "0.01"), control=True) as fake:
+        console = subprocess.Popen(
+            [sys.executable, "-m", "repetrel_host.cli", "--console", "--port", fake.port],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        assert console.stdin is not None
+        console.stdin.write(f"!print {job}\n")
+        console.stdin.flush()
+        wait_for_log(log, "G1 X20 F600")
+        console.send_signal(signum)
+        stdout, stderr = console.communicate(timeout=60)
+        heaters = targets(fake)
+    assert console.returncode == 128 + signum, stdout + stderr
+    assert f"{signum.name}: stopping: sending the safe-stop sequence" in stdout
+    assert heaters == ALL_OFF
+
+
+def test_a_signal_at_the_interactive_console_stops_its_job_and_leaves(tmp_path: Path) -> None:
+    from tests.terminal import Screen
+
+    job, log = tmp_path / "two.gcode", tmp_path / "fake.log"
+    job.write_text(JOB)
+    with BuiltInFake(log, fake_args("reprap", "--move-time", "0.01"), control=True) as fake:
+        screen = Screen("--console", "--port", fake.port, home=tmp_path)
+        try:
+            screen.expect("Type G-code")
+            screen.send(f"!print {job}\r")
+            wait_for_log(log, "G1 X20 F600")
+            screen.child.kill(signal.SIGTERM)
+            status = screen.wait(timeout=60)
+        finally:
+            screen.child.close(force=True)
+        heaters = targets(fake)
+    assert status == 143, screen.text()[-2000:]
+    assert "SIGTERM: stopping: sending the safe-stop sequence" in screen.text()
+    assert heaters == ALL_OFF
