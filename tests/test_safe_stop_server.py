@@ -80,3 +80,20 @@ def test_a_restart_after_kill_9_turns_off_every_heater_the_job_turned_on(
         )
     done = executed(fake.log_path)
     assert done.count("G0 Z10") == 1, done[-20:]  # lifted once
+
+
+@pytest.mark.parametrize("protocol", ["reprap", "hyrel"])
+def test_sigterm_stops_the_servers_job_with_every_heater_off(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server], tmp_path: Path, protocol: str
+) -> None:
+    fake = bench(
+        "--protocol", protocol, "--extruders", "2", "--no-extruder-count", "--move-time", "0.01"
+    )
+    config = server_config(tmp_path, bench={"port": fake.port, "protocol": protocol})
+    server = servers({}, "--config", str(config))
+    with server.client() as client:
+        job = client.post("/v1/printers/bench/jobs", files={"file": ("two.gcode", HEATING + MOVES)})
+        assert job.status_code == 201, job.text
+        wait_for(lambda: ran(fake, "G1 X20 F600"), what="the moves")
+    assert server.stop(signal.SIGTERM) == 0
+    assert targets(fake) == ALL_OFF
