@@ -131,8 +131,10 @@ class Job:
                 where = f"{self.name}:{number}"
                 command = clean_line(raw, where)
                 if len(command) > MAX_COMMAND_LENGTH:
+                    cut = len(raw) >= MAX_KEPT_LINE  # only its start was kept
+                    size = f"over {MAX_KEPT_LINE}" if cut else str(len(command))
                     raise JobError(
-                        f"{where}: the command is {len(command)} characters long; "
+                        f"{where}: the command is {size} characters long; "
                         f"controllers take at most {MAX_COMMAND_LENGTH}"
                     )
                 if command:
@@ -199,35 +201,56 @@ class Job:
 
 _CAMERA_WORDS = {"M790": ActionKind.LAYER, "M791": ActionKind.SNAPSHOT}
 _HOST_WORDS = frozenset({"M0", "M1", "M110", "M718", "M719", "M792", *_CAMERA_WORDS})
-_LINE = re.compile(rb"([^\r\n]*)(\r\n|\r|\n)")
+_ENDING = re.compile(rb"\r\n|\r|\n")
 # Marlin's line buffer holds 96 bytes and Repetrel cuts lines at 100 characters: a
 # longer command would arrive cut, fail its checksum and be asked for forever.
 MAX_COMMAND_LENGTH = 96
+# Of a longer line only this much is kept as it is read (see _raw_lines).
+MAX_KEPT_LINE = 1 << 16
 _READ_SIZE = 1 << 16
 
 
 def _raw_lines(handle: BinaryIO) -> Iterator[tuple[bytes, int]]:
-    """Lines without their ending (LF, CRLF or a lone CR), with the offset past each."""
+    """Lines without their ending (LF, CRLF or a lone CR), with the offset past each.
+
+    Linear in the file's size, whatever its lines (a line of megabytes without an end
+    costs what its bytes do), and bounded in memory: of a line longer than
+    :data:`MAX_KEPT_LINE` only its first bytes are kept. That is safe: what would be sent
+    is its command before any comment, and one that long is refused anyway (it is over
+    :data:`MAX_COMMAND_LENGTH`)."""
     offset = 0
-    pending = b""
+    parts: list[bytes] = []  # the line so far
+    kept = 0  # its bytes in parts
+    held_cr = False  # the last chunk ended with a CR: maybe the first half of a CRLF
     while True:
         try:
             chunk = handle.read(_READ_SIZE)
         except OSError as exc:  # a stick pulled out, a network share gone
             raise JobError(f"{handle.name}: cannot be read on ({exc.strerror})") from None
-        data = pending + chunk
-        if chunk and data.endswith(b"\r"):
-            data, pending = data[:-1], b"\r"  # maybe the first half of a CRLF
-        else:
-            pending = b""
-        end = 0
-        for match in _LINE.finditer(data):
-            end = match.end()
-            offset += len(match.group(0))
-            yield match.group(1), offset
-        pending = data[end:] + pending
+        if held_cr:
+            crlf = chunk.startswith(b"\n")
+            line, length = b"".join(parts), offset + 1 + crlf
+            offset, parts, kept, held_cr = length, [], 0, False
+            yield line, offset
+            chunk = chunk[crlf:]
         if not chunk:
-            if pending:
-                offset += len(pending)
-                yield pending, offset
+            if parts or kept:
+                yield b"".join(parts), offset
             return
+        if chunk.endswith(b"\r"):
+            chunk, held_cr = chunk[:-1], True
+        start = 0
+        for ending in _ENDING.finditer(chunk):
+            piece = chunk[start : ending.start()]
+            offset += ending.end() - start
+            if parts:
+                yield b"".join((*parts, piece[: MAX_KEPT_LINE - kept])), offset
+                parts, kept = [], 0
+            else:
+                yield piece[:MAX_KEPT_LINE], offset
+            start = ending.end()
+        rest = chunk[start:]
+        offset += len(rest)
+        if rest and kept < MAX_KEPT_LINE:
+            parts.append(rest[: MAX_KEPT_LINE - kept])
+            kept += len(parts[-1])

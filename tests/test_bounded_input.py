@@ -1,0 +1,120 @@
+"""No input holds the host up (issue 35): a file of long lines is read in time linear in
+its size, a command longer than a controller takes is refused with its line number and
+never sent, and the server goes on answering (another printer streaming on) while such a
+file is uploaded and analysed."""
+
+from __future__ import annotations
+
+import asyncio
+import io
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+
+import repetrel_host as rh
+from repetrel_host.fakes.fake_controller import BuiltInFake
+from repetrel_host.job import MAX_KEPT_LINE, _raw_lines
+from tests.helpers import executed
+from tests.test_server import Server, bench, job_state, servers, wait_for
+
+__all__ = ["bench", "servers"]  # the fixtures, used by name
+pytestmark = pytest.mark.timeout(60)
+# The bug report's file: 300 KB of NUL bytes without a line end, then a 200 KB line.
+NULS_THEN_A_LONG_LINE = b"G28\n" + b"\0" * 300_000 + b"G1 X1 " + b"Y2 " * 66_000 + b"\nG1 X2\n"
+LONG_COMMAND = b"G28\nG1 X1 " + b"Y2 " * 170_000 + b"\nG1 X2\n"
+
+
+def test_lines_of_any_length_are_read_whole_or_bounded_with_their_offsets() -> None:
+    data = b"G28\r\n;" + b"c" * 300_000 + b"\rG1 X1\nG1 X2"
+    handle = io.BytesIO(data)
+    lines = list(_raw_lines(handle))
+    assert [line[:4] for line, _ in lines] == [b"G28", b";ccc", b"G1 X", b"G1 X"]
+    assert len(lines[1][0]) == MAX_KEPT_LINE  # only its start is kept
+    assert [offset for _, offset in lines] == [5, 300_007, 300_013, len(data)]
+
+
+@pytest.mark.parametrize("content", [NULS_THEN_A_LONG_LINE, LONG_COMMAND], ids=["nuls", "long"])
+def test_check_refuses_a_file_of_long_lines_at_once_naming_the_line(
+    tmp_path: Path, content: bytes
+) -> None:
+    job = tmp_path / "long.gcode"
+    job.write_bytes(content)
+    result = subprocess.run(
+        [sys.executable, "-m", "repetrel_host.cli", str(job), "--check"],
+        capture_output=True,
+        text=True,
+        timeout=20,  # it took minutes: the reading was quadratic in a line's length
+    )
+    assert result.returncode == 2, result.stdout + result.stderr
+    assert "error: long.gcode:2: the command" in result.stderr
+
+
+def test_a_command_too_long_is_never_sent_and_the_job_stops_before_it(tmp_path: Path) -> None:
+    job = tmp_path / "long.gcode"
+    job.write_bytes(b"".join(b"G1 X%d\n" % i for i in range(50)) + LONG_COMMAND)
+    log = tmp_path / "fake.log"
+
+    async def scenario(port: str) -> None:
+        async with rh.connect(port, poll_interval=None) as printer:
+            plan = printer.plan(job)  # a plan is not checked first: it streams as it reads
+            streaming = await printer.print(plan, history=False)
+            with pytest.raises(rh.JobError, match=r"long\.gcode:52: the command is over"):
+                await streaming.wait()
+
+    with BuiltInFake(log) as fake:
+        asyncio.run(scenario(fake.port))
+        done = executed(log)
+    assert done[:51] == [f"G1 X{i}" for i in range(50)] + ["G28"]
+    assert not any(command.startswith("G1 X1 Y2") for command in done)
+    assert done[-1] == "M84"  # then the safe stop
+
+
+def test_the_server_answers_and_another_printer_streams_on_while_long_lines_are_uploaded(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
+) -> None:
+    busy, idle = bench("--move-time", "0.005"), bench()
+    server = servers({"busy": busy.port, "idle": idle.port})
+    moves = [f"G1 X{i % 200} F3000" for i in range(1500)]
+    with server.client() as client:
+        printing = client.post(
+            "/v1/printers/busy/jobs", files={"file": ("moves.gcode", "\n".join(moves) + "\n")}
+        ).json()["id"]
+        wait_for(lambda: job_state(client, printing)["lines"] > 50, what="the job streaming")
+        answers: list[float] = []
+        stop = threading.Event()
+
+        def poll() -> None:  # the API while the uploads are analysed: it answers
+            with server.client() as poller:
+                while not stop.is_set():
+                    started = time.monotonic()
+                    assert poller.get("/v1/printers/busy", timeout=10).status_code == 200
+                    answers.append(time.monotonic() - started)
+                    time.sleep(0.05)
+
+        polling = threading.Thread(target=poll)
+        polling.start()
+        wait_for(lambda: answers, what="the API's first answer")
+        try:
+            for name, content in (
+                ("nuls.gcode", NULS_THEN_A_LONG_LINE),
+                ("cmd.gcode", LONG_COMMAND),
+            ):
+                upload = client.post(
+                    "/v1/printers/idle/jobs", files={"file": (name, content)}, timeout=20
+                )
+                assert upload.status_code in (400, 422), upload.text
+                assert "refused" in upload.json()["error"], upload.text
+                assert "2: the command" in upload.text, upload.text
+            before = len(answers)
+            wait_for(lambda: len(answers) > before, what="the API answering after the uploads")
+        finally:
+            stop.set()
+            polling.join(timeout=20)
+        wait_for(lambda: job_state(client, printing)["state"] == "completed", what="the job")
+    assert executed(busy.log_path)[-len(moves) :] == moves  # each line once, in order
+    assert "G1 X1 Y2" not in " ".join(executed(idle.log_path))
