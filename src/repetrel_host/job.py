@@ -207,7 +207,9 @@ _ENDING = re.compile(rb"\r\n|\r|\n")
 MAX_COMMAND_LENGTH = 96
 # Of a longer line only this much is kept as it is read (see _raw_lines).
 MAX_KEPT_LINE = 1 << 16
-_READ_SIZE = 1 << 16
+# Read a megabyte at a time: in a thread, reading 64 KB at a time (a GIL release and retake
+# each time, a few milliseconds apart) starved the event loop of the GIL for most of a second.
+_READ_SIZE = 1 << 20
 
 
 def _raw_lines(handle: BinaryIO) -> Iterator[tuple[bytes, int]]:

@@ -10,6 +10,7 @@ PrusaSlicer's ``OctoPrint.cpp`` uses it; Moonraker's queue endpoints.
 
 from __future__ import annotations
 
+import functools
 import re
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
@@ -39,7 +40,20 @@ from repetrel_host.server.octoprint import appkeys, rest, socket
 __all__ = ["PrintServer", "create_app"]
 
 
+def _long_part_headers() -> None:
+    """python-multipart refuses a form part whose header is over 4 KB, and Starlette gives
+    no way to say otherwise: an upload named with 5,000 characters (OctoPrint takes it,
+    and stores it shortened) was "Invalid multipart data.". Its parser, as Starlette makes
+    it, takes headers of up to 64 KB."""
+    import python_multipart
+
+    module: Any = python_multipart  # its class replaced by a maker of it
+    if not isinstance(module.MultipartParser, functools.partial):
+        module.MultipartParser = functools.partial(module.MultipartParser, max_header_size=1 << 16)
+
+
 def create_app(server: PrintServer) -> FastAPI:
+    _long_part_headers()
     push = socket.Push(server)
 
     @asynccontextmanager
@@ -71,7 +85,8 @@ def create_app(server: PrintServer) -> FastAPI:
         problems = "; ".join(
             f"{'.'.join(str(p) for p in error['loc'])}: {error['msg']}" for error in exc.errors()
         )
-        return JSONResponse(status_code=400, content={"detail": f"bad request: {problems}"})
+        said = f"bad request: {problems}"
+        return JSONResponse(status_code=400, content={"error": said, "detail": said})
 
     static = resources.files("repetrel_host.server").joinpath("static")
     page = static.joinpath("index.html").read_text()

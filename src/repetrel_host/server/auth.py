@@ -98,7 +98,8 @@ class RequestGuard:
         limit = server.max_upload + 65536  # the form's own bytes
         headers = {key.decode("latin-1").lower(): value for key, value in scope["headers"]}
         length = headers.get("content-length", b"")
-        too_big = {"detail": f"the upload is over {server.max_upload} bytes"}
+        said = f"the upload is over {server.max_upload} bytes"
+        too_big = {"error": said, "detail": said}  # OctoPrint's clients read "error"
         if length.isdigit() and int(length) > limit:
             await JSONResponse(too_big, 413)(scope, receive, send)
             return

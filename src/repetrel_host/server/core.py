@@ -45,9 +45,11 @@ if TYPE_CHECKING:
 log = logging.getLogger("repetrel_host.server")
 
 G_CODE_SUFFIXES = (".gcode", ".gco", ".g")
-_SAFE_NAME = re.compile(r"[^A-Za-z0-9._ ()+-]")
 # An upload's name: the filesystem takes 255 bytes; room is left for "-2" and its kin.
 MAX_NAME = 200
+# A file name's bytes (UTF-8): filesystems take 255; room is left for a "-12" after it.
+MAX_NAME_BYTES = 240
+_SAFE_MARKS = frozenset("._ ()+-")  # kept in a file name beside letters and digits
 MAX_PATH = 1024
 T = TypeVar("T")
 _HASHES: dict[tuple[Path, int, int], str] = {}
@@ -176,17 +178,31 @@ def server_of(request: Request) -> PrintServer:
     return server
 
 
+def upload_name(name: str) -> str:
+    """The name an upload was given, without its folders."""
+    return name.replace("\\", "/").rsplit("/", 1)[-1].strip()
+
+
+def _cleaned(name: str) -> str:
+    """Letters and digits of any script, and ``._ ()+-``; anything else ``_``."""
+    return "".join(c if c.isalnum() or c in _SAFE_MARKS else "_" for c in name)
+
+
 def safe_file_name(name: str) -> tuple[str, str]:
-    """The upload's own name, without folders, in safe characters, and a note when it was
-    shortened to fit the filesystem; 400 if nothing is left or it is not a G-code file."""
-    base = name.replace("\\", "/").rsplit("/", 1)[-1].strip()
-    cleaned = _SAFE_NAME.sub("_", base).lstrip(".")
+    """The upload's own name, without folders, in safe characters (letters and digits of
+    any script kept), and a note when it was shortened to fit the filesystem (at most
+    :data:`MAX_NAME` characters and :data:`MAX_NAME_BYTES` bytes); 400 if nothing is left
+    or it is not a G-code file."""
+    cleaned = _cleaned(upload_name(name)).lstrip(".")
     if not cleaned or not cleaned.lower().endswith(G_CODE_SUFFIXES):
         raise HTTPException(400, f"'{_shown(name)}' is not a G-code file name (.gcode, .gco, .g)")
-    if len(cleaned) <= MAX_NAME:
+    if len(cleaned) <= MAX_NAME and len(cleaned.encode()) <= MAX_NAME_BYTES:
         return cleaned, ""
     stem, dot, suffix = cleaned.rpartition(".")
-    short = f"{stem[: MAX_NAME - len(suffix) - 1]}{dot}{suffix}"
+    stem = stem[: MAX_NAME - len(suffix) - 1]
+    while len(f"{stem}.{suffix}".encode()) > MAX_NAME_BYTES:
+        stem = stem[:-1]
+    short = f"{stem}{dot}{suffix}"
     return short, f"the name was over {MAX_NAME} characters: shortened to {short}"
 
 
@@ -205,7 +221,7 @@ def safe_folder(path: str) -> Path:
         raise HTTPException(
             400, f"path '{_shown(path)}' is too long (names of at most {MAX_NAME} characters)"
         )
-    return Path(*(_SAFE_NAME.sub("_", part) for part in parts)) if parts else Path()
+    return Path(*(_cleaned(part) for part in parts)) if parts else Path()
 
 
 @dataclass(frozen=True)
@@ -246,8 +262,10 @@ async def save_upload(
         # Analysed now, in a thread (OctoPrint's gcodeAnalysis): a listing need not read it.
         summary = await asyncio.to_thread(_analysed, partial)
         made_from = stamp(partial)
-        target, note = _free_name(server, target_dir / name)
+        given = upload_name(upload.filename or "")
+        target, note = _free_name(server, _own_place(server, target_dir / name, given))
         partial.replace(target)
+        server.store.keep_upload_name(relative(server, target), given)
     except BaseException:
         partial.unlink(missing_ok=True)
         raise
@@ -303,6 +321,21 @@ def file_hash(path: Path) -> str:
                 digest.update(chunk)
         known = _HASHES[key] = digest.hexdigest()
     return known
+
+
+def _own_place(server: PrintServer, target: Path, given: str) -> Path:
+    """Where an upload first named ``given`` goes: its cleaned name ``target``, unless a
+    file there came under another name (two names that clean or shorten alike): then
+    ``-1``, ``-2``... after the stem, as OctoPrint does. The same name replaces."""
+    stem, suffix = target.stem, target.suffix
+    chosen, number = target, 0
+    while chosen.exists():
+        came_as = server.store.upload_name(relative(server, chosen)) or chosen.name
+        if came_as == given:
+            break
+        number += 1
+        chosen = target.with_name(f"{stem}-{number}{suffix}")
+    return chosen
 
 
 def _free_name(server: PrintServer, target: Path) -> tuple[Path, str]:

@@ -49,6 +49,12 @@ CREATE INDEX IF NOT EXISTS jobs_by_printer ON jobs (printer, state, position);
 -- The heaters each printer's session turned on and not yet off, as far as the controller
 -- confirmed: JSON [[kind, index, target, command]...]. Written as they change, before the
 -- line goes, so that the safe stop owed after a kill -9 turns every one of them off.
+-- The name each stored upload was given (before it was cleaned and shortened), by its
+-- path: two names that clean alike stay two files; the same name replaces.
+CREATE TABLE IF NOT EXISTS uploads (
+    path TEXT PRIMARY KEY,
+    original TEXT NOT NULL
+);
 CREATE TABLE IF NOT EXISTS heaters (
     printer TEXT PRIMARY KEY,
     heaters TEXT NOT NULL
@@ -432,6 +438,21 @@ class Store:
             "SELECT id FROM jobs WHERE printer = ? AND safe_stop = ? ORDER BY id", (printer, OWED)
         ).fetchall()
         return [row[0] for row in rows]
+
+    def keep_upload_name(self, path: str, original: str) -> None:
+        """The stored upload ``path`` was given the name ``original``."""
+        with self._transaction() as db:
+            db.execute(
+                "INSERT INTO uploads (path, original) VALUES (?, ?) ON CONFLICT (path)"
+                " DO UPDATE SET original = excluded.original",
+                (path, original),
+            )
+
+    def upload_name(self, path: str) -> str | None:
+        """The name the upload stored at ``path`` was given (None: not known)."""
+        row = self._db.execute("SELECT original FROM uploads WHERE path = ?", (path,))
+        found = row.fetchone()
+        return str(found[0]) if found is not None else None
 
     def keep_heaters(self, printer: str, heaters: list[Heater]) -> None:
         """The heaters that may be on at ``printer`` now (kept across restarts)."""

@@ -16,7 +16,9 @@ from repetrel_host.server.analyses import stamp
 from repetrel_host.server.core import G_CODE_SUFFIXES, PrintServer
 
 
-def _url(base: str, location: str) -> str:
+def resource_url(base: str, location: str) -> str:
+    """A file's or folder's resource, its name quoted (letters of any script: a header
+    such as Location takes ASCII only)."""
     return f"{base}/api/files/local/{quote(location)}"
 
 
@@ -36,7 +38,7 @@ def file_entry(server: PrintServer, path: Path, base: str) -> dict[str, Any]:
         "date": int(stat.st_mtime),
         "hash": core.file_hash(path),
         "refs": {
-            "resource": _url(base, location),
+            "resource": resource_url(base, location),
             "download": f"{base}/downloads/files/local/{quote(location)}",
         },
         "prints": server.store.prints(core.relative(server, path)),
@@ -60,7 +62,7 @@ def folder_entry(server: PrintServer, path: Path, base: str, depth: int | None) 
         "origin": "local",
         "type": "folder",
         "typePath": ["folder"],
-        "refs": {"resource": _url(base, location)},
+        "refs": {"resource": resource_url(base, location)},
     }
     if depth is None or depth > 0:
         children = entries(server, path, base, None if depth is None else depth - 1)

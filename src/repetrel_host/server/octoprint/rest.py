@@ -18,6 +18,7 @@ import secrets
 import shutil
 from pathlib import Path
 from typing import Annotated, Any
+from urllib.parse import quote
 
 from fastapi import APIRouter, Depends, File, Form, HTTPException, Query, Request, UploadFile
 from fastapi.responses import FileResponse, JSONResponse, Response
@@ -308,7 +309,7 @@ def router() -> APIRouter:
                     "name": folder.name,
                     "path": location,
                     "origin": "local",
-                    "refs": {"resource": f"{base}/api/files/local/{location}"},
+                    "refs": {"resource": files.resource_url(base, location)},
                 },
                 "done": True,
             }
@@ -399,10 +400,10 @@ def router() -> APIRouter:
                 core.file_changed(server, source, "removed", "move", folder)
             core.file_changed(server, target, "added", body.command, folder)
             where = target.relative_to(server.files).as_posix()
-            resource = f"{_base(request)}/api/files/local/{where}"
+            resource = files.resource_url(_base(request), where)
             refs = {"resource": resource}
             if target.is_file():
-                refs["download"] = f"{_base(request)}/downloads/files/local/{where}"
+                refs["download"] = f"{_base(request)}/downloads/files/local/{quote(where)}"
             answer = {"name": target.name, "path": where, "origin": "local", "refs": refs}
             return JSONResponse(answer, 201, headers={"Location": resource})
         if body.command == "select":
