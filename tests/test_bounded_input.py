@@ -6,6 +6,7 @@ file is uploaded and analysed."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import io
 import subprocess
 import sys
@@ -19,6 +20,7 @@ import pytest
 import repetrel_host as rh
 from repetrel_host.fakes.fake_controller import BuiltInFake
 from repetrel_host.job import MAX_KEPT_LINE, _raw_lines
+from repetrel_host.planning import PRECHECK_LIMIT
 from tests.helpers import executed
 from tests.test_server import Server, bench, job_state, servers, wait_for
 
@@ -118,3 +120,36 @@ def test_the_server_answers_and_another_printer_streams_on_while_long_lines_are_
         wait_for(lambda: job_state(client, printing)["state"] == "completed", what="the job")
     assert executed(busy.log_path)[-len(moves) :] == moves  # each line once, in order
     assert "G1 X1 Y2" not in " ".join(executed(idle.log_path))
+
+
+def test_a_job_is_planned_and_checked_off_the_event_loop(tmp_path: Path) -> None:
+    # Up to 4 MB a job is checked whole before its first line: the loop (every other
+    # printer's stream, the server's answers) runs on meanwhile.
+    job = tmp_path / "moves.gcode"
+    job.write_bytes(b"".join(b"G1 X%d Y%d F3000\n" % (i % 200, i % 150) for i in range(150_000)))
+    assert job.stat().st_size < PRECHECK_LIMIT
+
+    async def scenario(port: str) -> int:
+        async with rh.connect(port, poll_interval=None) as printer:
+            ticks = 0
+            done = asyncio.Event()
+
+            async def tick() -> None:
+                nonlocal ticks
+                while not done.is_set():
+                    ticks += 1
+                    await asyncio.sleep(0)
+
+            ticker = asyncio.ensure_future(tick())
+            await asyncio.sleep(0)
+            before = ticks
+            streaming = await printer.print(job, history=False)
+            done.set()
+            await ticker
+            streaming.stop()
+            with contextlib.suppress(rh.HostError):
+                await streaming.wait()
+            return ticks - before
+
+    with BuiltInFake(tmp_path / "fake.log") as fake:
+        assert asyncio.run(scenario(fake.port)) > 0  # it was 0: print() held the loop

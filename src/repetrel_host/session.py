@@ -855,16 +855,20 @@ class Printer:
         if self._job is not None or self.state is State.PRINTING or self.state is State.PAUSED:
             raise UsageError("a job is already running on this printer")
         self._check_can_command()
+        # Planning (a resume reads up to its line) and the check before the first line
+        # read the file: a thread's work, not the event loop's (every printer's stream).
         if isinstance(job, JobPlan):
-            plan = job if from_line is None else resumed(job, from_line)
+            plan = job if from_line is None else await asyncio.to_thread(resumed, job, from_line)
         else:
-            plan = self.plan(job, header=header, from_line=from_line)
+            plan = await asyncio.to_thread(
+                functools.partial(self.plan, job, header=header, from_line=from_line)
+            )
         warn = on_warning or self._warn
         checker = None
         if plan.checked_as_it_streams:
             checker = plan.streaming_checker(warn, force)
         elif not isinstance(job, JobPlan):
-            findings = plan.check()
+            findings = await asyncio.to_thread(plan.check)
             for finding in findings:
                 warn(finding.format(plan.job.name))
             plan.refuse(findings, force, "force=True")

@@ -221,17 +221,20 @@ def analyse(path: Path, until_line: int | None = None, moves: bool = True) -> An
 
 def chunks(handle: BinaryIO) -> Iterator[bytes]:
     """The file in pieces of whole lines (about 1 MB each, so memory stays small)."""
-    rest = b""
+    rest: list[bytes] = []  # a line without its end yet, in pieces: joined once
     while chunk := handle.read(_CHUNK):
-        data = rest + chunk
         # After the last LF; in a file of lone CRs, after the last CR but a final one
         # (it may be the first half of a CRLF).
+        if b"\n" not in chunk and b"\r" not in chunk[:-1]:
+            rest.append(chunk)  # a line of megabytes: not copied again for each chunk
+            continue
+        data = b"".join((*rest, chunk))
         cut = data.rfind(b"\n") + 1 or data.rfind(b"\r", 0, len(data) - 1) + 1
-        data, rest = data[:cut], data[cut:]
+        data, rest = data[:cut], [data[cut:]]
         if data:
             yield data
-    if rest:
-        yield rest
+    if any(rest):
+        yield b"".join(rest)
 
 
 def scan(pieces: Iterable[bytes], until_line: int | None = None, moves: bool = True) -> Analysis:
