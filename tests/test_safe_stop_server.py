@@ -97,3 +97,25 @@ def test_sigterm_stops_the_servers_job_with_every_heater_off(
         wait_for(lambda: ran(fake, "G1 X20 F600"), what="the moves")
     assert server.stop(signal.SIGTERM) == 0
     assert targets(fake) == ALL_OFF
+
+
+def test_a_cancel_held_up_by_a_heat_wait_reads_cancelling_until_it_ends(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
+) -> None:
+    # No emergency parser: nothing breaks the M190, the safe stop waits for it.
+    fake = bench("--heat-rate", "5", "--no-emergency-parser")
+    server = servers({"bench": fake.port})
+    text = "M140 S60\nM190 S60\nM104 S200\n" + MOVES
+    with server.client() as client:
+        job = client.post("/v1/printers/bench/jobs", files={"file": ("wait.gcode", text)})
+        assert job.status_code == 201, job.text
+        wait_for(lambda: ran(fake, "M140 S60"), what="the heat wait")
+        cancel = client.post("/api/job", json={"command": "cancel"})
+        assert cancel.status_code == 204
+        state = client.get("/api/printer").json()["state"]
+        assert state["text"] == "Cancelling" and state["flags"]["cancelling"], state
+        assert client.get("/api/job").json()["state"] == "Cancelling"
+        assert client.get("/v1/printers/bench").json()["job"]["stopping"] is True
+        wait_for(lambda: client.get("/api/job").json()["state"] != "Cancelling", timeout=30)
+        assert job_state(client, job.json()["id"])["state"] == "cancelled"
+    assert targets(fake) == {"T": 0.0, "B": 0.0}

@@ -86,6 +86,8 @@ def _running_json(service: PrinterService) -> dict[str, Any]:
     return {
         **record.as_json(),
         "state": "paused" if service.state == "paused" else "printing",
+        # Its safe stop under way (a cancel held up by a heat wait): OctoPrint's Cancelling.
+        "stopping": job.stopping,
         "lines": job.lines,
         "last_line": last.source_line if last else 0,
         "bytes": job.offset,
