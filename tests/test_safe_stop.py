@@ -302,3 +302,25 @@ def test_a_stop_held_up_too_long_offers_the_e_key_for_an_emergency_stop(tmp_path
     assert status == 4, text[-2000:]
     assert "stopped by an emergency stop (M112)" in text
     assert hung and heaters == {"T": 0.0, "B": 0.0}
+
+
+def test_after_a_lost_link_the_resume_hint_says_which_lines_may_have_run(tmp_path: Path) -> None:
+    """Lines on their way when the link went lost their oks with it: some of them may have
+    run. The hint names that window, and a command that repeats them and one that skips
+    them: the last line the fake ran lies between the two."""
+    job = tmp_path / "job.gcode"
+    job.write_text("".join(f"G1 X{i % 50} Y{i} F600\n" for i in range(400)))
+    log = tmp_path / "fake.log"
+    with BuiltInFake(log, ["--move-time", "0.02"], control=True) as fake:
+        sender = start(job, fake.port, "--no-history")
+        wait_for_log(log, "G1 X30 Y30 F600")
+        assert fake.request("link_drop 2")["ok"]
+        stdout, _ = sender.communicate(timeout=60)
+        done = executed(log)
+    repeat = resume_line(stdout)
+    (window,) = [text for text in stdout.splitlines() if text.startswith("Lines ")]
+    skip = int(shlex.split(window.split(": ")[-1])[-1])
+    assert f"Lines {repeat} to {skip - 1} were sent and not confirmed" in window, stdout
+    moves = [c for c in done if c.startswith("G1 ")]
+    last_ran = int(moves[-1].split("Y")[1].split()[0]) + 1  # its line in the file
+    assert repeat - 1 <= last_ran <= skip - 1, (repeat, last_ran, skip)

@@ -66,7 +66,13 @@ from repetrel_host.protocol.dialects.reprap import DEFAULT_REPLY_TIMEOUT
 from repetrel_host.protocol.events import ProbeKind
 from repetrel_host.protocol.flow import FlowMode
 from repetrel_host.pump import Outcome, Summary
-from repetrel_host.resume import RESUME_SOURCE, HomeAxes, resume_command, resume_from
+from repetrel_host.resume import (
+    RESUME_SOURCE,
+    HomeAxes,
+    resume_command,
+    resume_from,
+    resume_window,
+)
 from repetrel_host.session import RECONNECT_WAIT, Printer, PrintJob, connect
 from repetrel_host.stop_signals import (
     StopSignals,
@@ -1047,6 +1053,9 @@ def _print_resume_hint(console: Out, job: PrintJob, options: Options) -> None:
     if found is None or line is None:
         return
     console.print(f"To resume from the first line {found[0]}: {found[1]}", markup=False)
+    window = resume_window(job, options.command_line)
+    if window is not None:  # neither choice is sure: which repeats, which skips
+        console.print(window[0].upper() + window[1:], markup=False)
     layer = scan_marks(job.plan.job.path, until_line=line).at(line).layer
     if layer is not None:
         # A reset or a lost link also loses what the controller had taken but not yet run

@@ -186,6 +186,10 @@ class Run:
         # was received (Hyrel's link); elsewhere an acknowledged line is taken to run.
         self.ran: JobLine | None = None
         self.acks_say_received = False
+        # The last job line on the wire when the run ended (None: none, or a stop's line
+        # went after it): lines after the last acknowledged, up to it, may have run.
+        self.last_sent: JobLine | None = None
+        self.sent_before: object | None = None  # the dialect's last_sent as the job began
         self.ran_before: object | None = None  # what had run when the job began: not its
         self.header_acknowledged = 0
         self.outcome: Outcome | None = None
@@ -304,6 +308,7 @@ class Pump:
             raise UsageError("a job is already running on this connection")
         self.run = run
         run.ran_before = self.dialect.last_ran
+        run.sent_before = self.dialect.last_sent
         stats = self.dialect.stats
         run.resends_before = stats.resend_requests
         run.retransmissions_before = stats.retransmissions
@@ -684,6 +689,9 @@ class Pump:
             return
         run.finished = True
         self._complete_safe_stop(run)  # what is owed, should this end be a failure
+        sent = self.dialect.last_sent
+        if isinstance(sent, JobLine) and sent.index and sent is not run.sent_before:
+            run.last_sent = sent
         self._note_ran(run)
         self.run = None
         if run.held:  # a pause that came as the job ended holds nothing after it

@@ -370,6 +370,21 @@ def resume_from(job: PrintJob, arguments: tuple[str, ...]) -> tuple[str, str] | 
     return after, resume_command(arguments, line)
 
 
+def resume_window(job: PrintJob, arguments: tuple[str, ...]) -> str | None:
+    """After :func:`resume_from`'s line, what is not sure: lines sent and not confirmed when
+    the job ended (a lost link takes their oks with it), some of which may have run; the
+    sentence says which command repeats them and which skips them. None when none were."""
+    line, sent = job.resume_line, job.sent_through
+    if line is None or sent is None or sent < line:
+        return None
+    skip = resume_command(arguments, sent + 1)
+    return (
+        f"lines {line} to {sent} were sent and not confirmed: some may have run. Resuming "
+        f"from line {line} runs them again (any that ran, twice); this skips them (any that "
+        f"did not run, never): {skip}"
+    )
+
+
 def resume_command(arguments: tuple[str, ...], line: int, option: str = "--from-line") -> str:
     """hyrel-send's command line with ``--from-line line`` (or ``option``) in place of any
     earlier resume."""

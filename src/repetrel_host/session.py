@@ -342,6 +342,14 @@ class PrintJob:
         return self._run.resume_line
 
     @property
+    def sent_through(self) -> int | None:
+        """The source line of the last job line on the wire when the job ended (None while
+        it runs, or when none went): from :attr:`resume_line` to it, lines were sent and
+        not confirmed, and some may have run (a lost link takes their oks with it)."""
+        sent = self._run.last_sent
+        return sent.source_line if sent is not None else None
+
+    @property
     def resume_known_to_run(self) -> bool:
         """:attr:`resume_line` follows a line known to have run (Hyrel's link), not one
         acknowledged (an ok: taken to run, as its firmware took it)."""

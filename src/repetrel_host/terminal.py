@@ -61,7 +61,7 @@ from repetrel_host.planning import (
 )
 from repetrel_host.protocol.reports import format_temperatures
 from repetrel_host.pump import Outcome
-from repetrel_host.resume import resume_from
+from repetrel_host.resume import resume_from, resume_window
 from repetrel_host.session import Printer, PrintJob, connect
 from repetrel_host.stop_signals import StopSignals, exit_code_of_stop, stopping_text
 
@@ -572,6 +572,9 @@ class PrinterConsole:
         found = resume_from(job, tuple(arguments))
         if found is not None:
             self.say(f"to resume from the first line {found[0]}: {found[1]}")
+        window = resume_window(job, tuple(arguments))
+        if window is not None:
+            self.say(window)
 
     def _paused(self, job: PrintJob, event: Paused) -> None:
         message = f": {event.message}" if event.message else ""
