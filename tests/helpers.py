@@ -9,6 +9,7 @@ import time
 from collections.abc import Iterable
 from pathlib import Path
 
+from repetrel_host.fakes.fake_controller import BuiltInFake
 from repetrel_host.job import Job
 
 DATA = Path(__file__).parent / "data"
@@ -83,3 +84,24 @@ def run_server_cli(*args: str, timeout: float = 60) -> subprocess.CompletedProce
         timeout=timeout,
         stdin=subprocess.DEVNULL,
     )
+
+
+# Two hotends and a bed, as issue 35's reports heated them (with no EXTRUDER_COUNT said,
+# so that the host learns T1 from the job alone).
+TWO_HOTENDS = ["--extruders", "2", "--no-extruder-count"]
+
+
+def heater_targets(fake: BuiltInFake) -> dict[str, float]:
+    """Each heater's target on the fake, as it reports them itself (not the host's account)."""
+    readings = fake.request("status")["temperatures"]
+    return {name: float(target) for name, (_, target) in readings.items()}
+
+
+def wait_for_log(log: Path, command: str, timeout: float = 20) -> None:
+    """Until the fake has executed ``command`` (its log is flushed as it goes)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if log.exists() and command in log.read_text().splitlines():
+            return
+        time.sleep(0.02)
+    raise AssertionError(f"{command} never ran: {log.read_text()[-2000:] if log.exists() else ''}")

@@ -322,7 +322,11 @@ def test_a_node_killed_mid_job_leaves_it_interrupted_and_rejoins(
         assert client.get("/v1/printers/a1").json()["held"] is True
         local = client.get(f"/v1/jobs/{job['local_id']}").json()
         assert local["farm_job"] == long_job and local["state"] == "interrupted"
-    assert {p["name"]: p["state"] for p in farm.view()["printers"]}["a1"] != "offline"
+    # Back once it answered and its owed safe stop went (before the session is ready).
+    farm.wait(
+        lambda: {p["name"]: p["state"] for p in farm.view()["printers"]}["a1"] != "offline",
+        what="a1 back",
+    )
     # Its resume command: the rest of the file, on a1 (its part is on that bed), once the
     # person who looked at it releases a1.
     line = job["last_line"] + 1

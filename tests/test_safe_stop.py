@@ -17,7 +17,8 @@ import pytest
 
 from repetrel_host.fakes.fake_controller import BuiltInFake
 from repetrel_host.job import Job
-from tests.helpers import DATA, executed
+from tests.helpers import DATA, executed, wait_for_log
+from tests.helpers import heater_targets as targets
 
 pytestmark = pytest.mark.timeout(90)
 HEAT = DATA / "heat.gcode"  # G28, M140 S60, M190 S60, M104 S200, M109 S200, moves
@@ -36,22 +37,6 @@ def start(job: Path, port: str, *args: str) -> subprocess.Popen[str]:
         stdin=subprocess.DEVNULL,
         text=True,
     )
-
-
-def wait_for_log(log: Path, command: str, timeout: float = 20) -> None:
-    """Until the fake has executed ``command`` (its log is flushed as it goes)."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if log.exists() and command in log.read_text().splitlines():
-            return
-        time.sleep(0.02)
-    raise AssertionError(f"{command} never ran: {log.read_text() if log.exists() else ''}")
-
-
-def targets(fake: BuiltInFake) -> dict[str, float]:
-    """Each heater's target on the fake, as it reports them itself."""
-    readings = fake.request("status")["temperatures"]
-    return {name: float(target) for name, (_, target) in readings.items()}
 
 
 def job_lines(job: Path) -> list[tuple[int, str]]:

@@ -12,7 +12,8 @@ from pathlib import Path
 import pytest
 
 from repetrel_host.fakes.fake_controller import BuiltInFake
-from tests.helpers import executed
+from tests.helpers import TWO_HOTENDS, executed
+from tests.helpers import heater_targets as targets
 from tests.test_server import Server, bench, job_state, server_config, servers, wait_for
 
 __all__ = ["bench", "servers"]  # the fixtures, used by name
@@ -20,11 +21,6 @@ pytestmark = pytest.mark.timeout(120)
 HEATING = "M140 S60\nM104 T0 S200\nM104 T1 S210\nT1\n"
 MOVES = "".join(f"G1 X{i % 50} F600\n" for i in range(3000))
 ALL_OFF = {"T": 0.0, "T1": 0.0, "B": 0.0}
-
-
-def targets(fake: BuiltInFake) -> dict[str, float]:
-    readings = fake.request("status")["temperatures"]
-    return {name: float(target) for name, (_, target) in readings.items()}
 
 
 def ran(fake: BuiltInFake, command: str) -> bool:
@@ -41,15 +37,7 @@ def test_a_restart_after_kill_9_turns_off_every_heater_the_job_turned_on(
     protocol: str,
     phase: str,
 ) -> None:
-    args = [
-        "--protocol",
-        protocol,
-        "--extruders",
-        "2",
-        "--no-extruder-count",
-        "--move-time",
-        "0.01",
-    ]
+    args = ["--protocol", protocol, *TWO_HOTENDS, "--move-time", "0.01"]
     if phase == "heat wait":
         args += ["--heat-rate", "1"]
     fake = bench(*args)
@@ -86,9 +74,7 @@ def test_a_restart_after_kill_9_turns_off_every_heater_the_job_turned_on(
 def test_sigterm_stops_the_servers_job_with_every_heater_off(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server], tmp_path: Path, protocol: str
 ) -> None:
-    fake = bench(
-        "--protocol", protocol, "--extruders", "2", "--no-extruder-count", "--move-time", "0.01"
-    )
+    fake = bench("--protocol", protocol, *TWO_HOTENDS, "--move-time", "0.01")
     config = server_config(tmp_path, bench={"port": fake.port, "protocol": protocol})
     server = servers({}, "--config", str(config))
     with server.client() as client:

@@ -18,7 +18,8 @@ from pathlib import Path
 import pytest
 
 from repetrel_host.fakes.fake_controller import BuiltInFake
-from tests.helpers import executed
+from tests.helpers import TWO_HOTENDS, executed, wait_for_log
+from tests.helpers import heater_targets as targets
 
 pytestmark = pytest.mark.timeout(90)
 JOB = "M140 S60\nM104 T0 S200\nM104 T1 S210\nT1\n" + "".join(
@@ -29,21 +30,7 @@ SIGNALS = [signal.SIGTERM, signal.SIGHUP]
 
 
 def fake_args(protocol: str, *more: str) -> list[str]:
-    return ["--protocol", protocol, "--extruders", "2", "--no-extruder-count", *more]
-
-
-def targets(fake: BuiltInFake) -> dict[str, float]:
-    readings = fake.request("status")["temperatures"]
-    return {name: float(target) for name, (_, target) in readings.items()}
-
-
-def wait_for_log(log: Path, command: str, timeout: float = 20) -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if log.exists() and command in log.read_text().splitlines():
-            return
-        time.sleep(0.02)
-    raise AssertionError(f"{command} never ran")
+    return ["--protocol", protocol, *TWO_HOTENDS, *more]
 
 
 def sender(*args: str) -> subprocess.Popen[str]:

@@ -394,7 +394,8 @@ class Pump:
             return False
         run.stop_requests += 1
         if run.stop_requests > 1:
-            missing = ", ".join(run.safe_stop_missing)
+            # Nothing missing: every line went (on Hyrel's link: received), not known to run.
+            missing = ", ".join(run.safe_stop_missing) or "that it ran"
             cause = f" (the job had stopped: {run.error})" if run.error is not None else ""
             awaited = self.dialect.awaiting
             held = awaited[1] if awaited is not None else None
