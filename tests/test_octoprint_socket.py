@@ -24,12 +24,12 @@ from typing import Any
 import httpx
 import pytest
 import websocket
-from octorest import WebSocketEventHandler
+from octorest import OctoRest, WebSocketEventHandler
 
 from repetrel_host.fakes.fake_controller import BuiltInFake
 from repetrel_host.server.octoprint.socket import LOG_LINES, terminal_lines
 from tests.helpers import DATA, executed
-from tests.test_server import Server, bench, gcode, servers, wait_for
+from tests.test_server import KEY, Server, bench, gcode, servers, wait_for
 
 __all__ = ["bench", "servers"]  # the fixtures, from the server's tests
 
@@ -592,3 +592,51 @@ def test_sockjs_info_greeting_and_bad_requests_answer_as_sockjs(
         assert anyone.post("/sockjs/1/polled/xhr_send", content=auth).status_code == 204
         history = anyone.post("/sockjs/1/polled/xhr").text
         assert json.loads(history[1:])[0]["history"]["state"]["text"] == "Operational"
+
+
+# --- a cancel held up by a heat wait ---------------------------------------------------------
+
+
+def test_a_cancel_behind_a_heat_wait_reads_cancelling_to_clients_and_the_socket(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
+) -> None:
+    """Without an emergency parser nothing breaks the M109: the safe stop waits for it. Until
+    it ends, octorest's state (/api/connection), /api/printer's text and flags, /api/job and
+    the socket's current say Cancelling, as OctoPrint does; then Operational."""
+    fake = bench("--heat-rate", "1", "--no-emergency-parser")
+    server = servers({"bench": fake.port})
+    rest = OctoRest(url=server.url, apikey=KEY)
+    listener = Listener(socket_url(server))
+    try:
+        listener.wait(lambda: listener.messages, "the connected message")
+        listener.send({"auth": passive_login(server)})
+        listener.wait(lambda: listener.of("history"), "the history")
+        job = upload(server, "wait.gcode", "M104 S40\nM109 S40\n" + gcode(50), print="true")
+
+        def heating() -> bool:
+            fake.request("status")  # the log is flushed before the answer
+            return "M104 S40" in executed(fake.log_path)
+
+        wait_for(heating, what="the heat wait")
+        rest.cancel()
+        assert rest.state() == "Cancelling"
+        state = rest.printer()["state"]
+        assert state["text"] == "Cancelling", state
+        assert state["flags"]["cancelling"] and state["flags"]["printing"], state
+        assert rest.job_info()["state"] == "Cancelling"
+        listener.wait(lambda: "Cancelling" in listener.states(), "Cancelling on the socket")
+        current = next(c for c in listener.of("current") if c["state"]["text"] == "Cancelling")
+        assert current["state"]["flags"]["cancelling"], current["state"]
+
+        wait_for(lambda: rest.state() != "Cancelling", timeout=90, what="the stop's end")
+        # Operational (the bed not cleared: the queue waits, as after any job).
+        assert rest.state().startswith("Operational")
+        assert not rest.printer()["state"]["flags"]["cancelling"]
+        listener.wait(
+            lambda: listener.states()[-1].startswith("Operational"), "Operational on the socket"
+        )
+        with server.client() as client:
+            assert client.get(f"/v1/jobs/{job['job']['id']}").json()["state"] == "cancelled"
+    finally:
+        listener.close()
+    assert "G1 X49 F3000" not in executed(fake.log_path)  # the moves after it never ran

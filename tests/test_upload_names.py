@@ -71,6 +71,16 @@ def test_every_refusal_says_why_in_error(servers: Callable[..., Server], tmp_pat
         too_big = client.post("/api/files/local", files={"file": ("big.gcode", b"G28\n" * 400_000)})
         assert too_big.status_code == 413
         assert "the upload is over" in too_big.json()["error"]
+        # Sent in chunks, without its length: refused as it comes, and says why too.
+        head = b'--xx\r\nContent-Disposition: form-data; name="file"; filename="big.gcode"\r\n\r\n'
+        chunks = iter([head, *[b"G28\n" * 1000] * 600, b"\r\n--xx--\r\n"])
+        streamed = client.post(
+            "/api/files/local",
+            content=chunks,
+            headers={"Content-Type": "multipart/form-data; boundary=xx"},
+        )
+        assert streamed.status_code == 413
+        assert "the upload is over" in streamed.json()["error"]
         no_file = client.post("/v1/printers/demo/jobs", data={"name": "x"})
         assert no_file.status_code == 400
         assert no_file.json()["error"].startswith("bad request: ")
