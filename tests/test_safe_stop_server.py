@@ -70,10 +70,20 @@ def test_a_restart_after_kill_9_turns_off_every_heater_the_job_turned_on(
     assert done.count("G0 Z10") == 1, done[-20:]  # lifted once
 
 
-@pytest.mark.parametrize("protocol", ["reprap", "hyrel"])
-def test_sigterm_stops_the_servers_job_with_every_heater_off(
-    bench: Callable[..., BuiltInFake], servers: Callable[..., Server], tmp_path: Path, protocol: str
+@pytest.mark.parametrize(
+    ("signum", "protocol"),
+    [(signal.SIGTERM, "reprap"), (signal.SIGTERM, "hyrel"), (signal.SIGHUP, "reprap")],
+    ids=["SIGTERM-reprap", "SIGTERM-hyrel", "SIGHUP-reprap"],
+)
+def test_a_stop_signal_stops_the_servers_job_with_every_heater_off(
+    bench: Callable[..., BuiltInFake],
+    servers: Callable[..., Server],
+    tmp_path: Path,
+    signum: signal.Signals,
+    protocol: str,
 ) -> None:
+    """SIGTERM (systemd) and SIGHUP (the terminal or ssh session it ran in, gone) stop the
+    server as Ctrl-C does: the job's safe stop, then exit 0 (a stop asked for)."""
     fake = bench("--protocol", protocol, *TWO_HOTENDS, "--move-time", "0.01")
     config = server_config(tmp_path, bench={"port": fake.port, "protocol": protocol})
     server = servers({}, "--config", str(config))
@@ -81,7 +91,7 @@ def test_sigterm_stops_the_servers_job_with_every_heater_off(
         job = client.post("/v1/printers/bench/jobs", files={"file": ("two.gcode", HEATING + MOVES)})
         assert job.status_code == 201, job.text
         wait_for(lambda: ran(fake, "G1 X20 F600"), what="the moves")
-    assert server.stop(signal.SIGTERM) == 0
+    assert server.stop(signum) == 0
     assert targets(fake) == ALL_OFF
 
 

@@ -33,6 +33,30 @@ def fake_args(protocol: str, *more: str) -> list[str]:
     return ["--protocol", protocol, *TWO_HOTENDS, *more]
 
 
+def on_a_terminal(*args: str, home: Path) -> tuple[subprocess.Popen[bytes], int]:
+    """hyrel-send ARGS on a new pty that is its controlling terminal, so that closing the
+    pty's main side sends it SIGHUP as a closed window does; the process and that side."""
+    main, terminal = pty.openpty()
+    env = {k: v for k, v in os.environ.items() if k != "HYREL_PORT"}
+    process = subprocess.Popen(
+        [sys.executable, "-m", "repetrel_host.cli", *args],
+        stdin=terminal,
+        stdout=terminal,
+        stderr=terminal,
+        env={**env, "HOME": str(home), "XDG_DATA_HOME": str(home / "data")},
+        start_new_session=True,  # its own session, whose controlling terminal this is
+        preexec_fn=lambda: fcntl.ioctl(0, termios.TIOCSCTTY, 0),
+    )
+    os.close(terminal)
+    return process, main
+
+
+def read_until(main: int, text: bytes) -> None:
+    seen = b""
+    while text not in seen:
+        seen += os.read(main, 4096)
+
+
 def sender(*args: str) -> subprocess.Popen[str]:
     return subprocess.Popen(
         [sys.executable, "-m", "repetrel_host.cli", *args],
@@ -103,22 +127,11 @@ def test_a_closed_terminal_still_gets_the_safe_stop_and_the_history_says_how_it_
     any more, but the safe stop goes and the run's record says how it ended."""
     job, log, history = tmp_path / "two.gcode", tmp_path / "fake.log", tmp_path / "history"
     job.write_text(JOB)
-    main, terminal = pty.openpty()
     more = ["--history", str(history)]
     with BuiltInFake(log, fake_args("reprap", "--move-time", "0.01"), control=True) as fake:
-        process = subprocess.Popen(
-            [sys.executable, "-m", "repetrel_host.cli", str(job), "--port", fake.port, *more],
-            stdin=terminal,
-            stdout=terminal,
-            stderr=terminal,
-            start_new_session=True,  # its own session, whose controlling terminal this is
-            preexec_fn=lambda: fcntl.ioctl(0, termios.TIOCSCTTY, 0),
-        )
-        os.close(terminal)
+        process, main = on_a_terminal(str(job), "--port", fake.port, *more, home=tmp_path)
         try:
-            seen = b""
-            while b"Keys: p pauses" not in seen:
-                seen += os.read(main, 4096)
+            read_until(main, b"Keys: p pauses")
             wait_for_log(log, "G1 X20 F600")
         finally:
             os.close(main)  # the terminal is gone: SIGHUP, and no more output
@@ -130,15 +143,49 @@ def test_a_closed_terminal_still_gets_the_safe_stop_and_the_history_says_how_it_
     assert json.loads(record.read_text())["outcome"] == "cancelled"
 
 
-@pytest.mark.parametrize("signum", SIGNALS, ids=lambda s: s.name)
+def test_with_the_terminal_gone_an_abandoned_safe_stop_is_told_by_the_history_and_exit_5(
+    tmp_path: Path,
+) -> None:
+    """No terminal to say it on: the run's record names what was not confirmed and the
+    heaters that may be on, and the exit code says not safe."""
+    job, log, history = tmp_path / "two.gcode", tmp_path / "fake.log", tmp_path / "history"
+    job.write_text(JOB)
+    slow = fake_args("reprap", "--move-time", "0.01", "--command-time", "0.5")
+    with BuiltInFake(log, slow, control=True) as fake:
+        process, main = on_a_terminal(
+            str(job), "--port", fake.port, "--history", str(history), home=tmp_path
+        )
+        try:
+            read_until(main, b"Keys: p pauses")
+            wait_for_log(log, "G1 X20 F600")
+        finally:
+            os.close(main)  # SIGHUP: the safe stop begins
+        wait_for_log(log, "M107")  # under way
+        process.send_signal(signal.SIGTERM)
+        status = process.wait(timeout=60)
+        heaters = targets(fake)
+    assert status == 5
+    (record,) = [json.loads(path.read_text()) for path in history.glob("*.json")]
+    assert record["outcome"] == "failed", record
+    assert "the safe stop was abandoned before the controller confirmed" in record["error"]
+    assert "heaters that may be on: bed at 60" in record["error"], record
+    assert heaters != ALL_OFF  # truly still on: what it said was true
+
+
+@pytest.mark.parametrize(
+    ("signum", "protocol"),
+    [(signal.SIGTERM, "reprap"), (signal.SIGHUP, "reprap"), (signal.SIGTERM, "hyrel")],
+    ids=["SIGTERM-reprap", "SIGHUP-reprap", "SIGTERM-hyrel"],
+)
 def test_a_signal_stops_the_consoles_job_with_its_safe_stop(
-    tmp_path: Path, signum: signal.Signals
+    tmp_path: Path, signum: signal.Signals, protocol: str
 ) -> None:
     job, log = tmp_path / "two.gcode", tmp_path / "fake.log"
     job.write_text(JOB)
-    with BuiltInFake(log, fake_args("reprap", "--move-time", "0.01"), control=True) as fake:
+    with BuiltInFake(log, fake_args(protocol, "--move-time", "0.01"), control=True) as fake:
+        more = ["--protocol", protocol]
         console = subprocess.Popen(
-            [sys.executable, "-m", "repetrel_host.cli", "--console", "--port", fake.port],
+            [sys.executable, "-m", "repetrel_host.cli", "--console", "--port", fake.port, *more],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
@@ -174,4 +221,86 @@ def test_a_signal_at_the_interactive_console_stops_its_job_and_leaves(tmp_path: 
         heaters = targets(fake)
     assert status == 143, screen.text()[-2000:]
     assert "SIGTERM: stopping: sending the safe-stop sequence" in screen.text()
+    assert heaters == ALL_OFF
+
+
+def test_a_second_signal_at_the_console_abandons_the_safe_stop_and_exits_5(
+    tmp_path: Path,
+) -> None:
+    """As hyrel-send: the words name the heaters that may be on, and the exit code is not
+    safe (5), not 143, which says the safe stop was confirmed."""
+    job, log = tmp_path / "two.gcode", tmp_path / "fake.log"
+    job.write_text(JOB)
+    slow = fake_args("reprap", "--move-time", "0.01", "--command-time", "0.5")
+    with BuiltInFake(log, slow, control=True) as fake:
+        console = subprocess.Popen(
+            [sys.executable, "-m", "repetrel_host.cli", "--console", "--port", fake.port],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        assert console.stdin is not None
+        console.stdin.write(f"!print {job}\n")
+        console.stdin.flush()
+        wait_for_log(log, "G1 X20 F600")
+        console.send_signal(signal.SIGTERM)
+        wait_for_log(log, "M107")  # the safe stop is under way
+        console.send_signal(signal.SIGHUP)
+        stdout, stderr = console.communicate(timeout=60)
+        heaters = targets(fake)
+    assert console.returncode == 5, stdout + stderr
+    said = " ".join(stdout.split())
+    assert "not safe: the safe stop was abandoned before the controller confirmed" in said
+    assert "heaters that may be on: bed at 60" in said
+    assert heaters != ALL_OFF
+
+
+def test_a_closed_terminal_at_the_interactive_console_stops_its_job_safely(
+    tmp_path: Path,
+) -> None:
+    """The console's terminal goes (SIGHUP, and its prompt can no longer draw): the job's
+    safe stop goes, the history says cancelled, and the exit code is 129, not a failure."""
+    job, log, history = tmp_path / "two.gcode", tmp_path / "fake.log", tmp_path / "history"
+    job.write_text(JOB)
+    with BuiltInFake(log, fake_args("reprap", "--move-time", "0.01"), control=True) as fake:
+        process, main = on_a_terminal(
+            "--console", "--port", fake.port, "--history", str(history), home=tmp_path
+        )
+        try:
+            read_until(main, b"Type G-code")
+            os.write(main, f"!print {job}\r".encode())
+            wait_for_log(log, "G1 X20 F600")
+        finally:
+            os.close(main)
+        status = process.wait(timeout=60)
+        heaters = targets(fake)
+    assert status == 129
+    assert heaters == ALL_OFF
+    (record,) = history.glob("*.json")
+    assert json.loads(record.read_text())["outcome"] == "cancelled"
+
+
+@pytest.mark.parametrize("leave", ["!quit", "Ctrl-D"])
+def test_leaving_the_console_while_a_job_heats_turns_every_heater_off(
+    tmp_path: Path, leave: str
+) -> None:
+    from tests.terminal import Screen
+
+    job, log = tmp_path / "two.gcode", tmp_path / "fake.log"
+    job.write_text(JOB)
+    with BuiltInFake(log, fake_args("reprap", "--move-time", "0.01"), control=True) as fake:
+        screen = Screen("--console", "--port", fake.port, home=tmp_path)
+        try:
+            screen.expect("Type G-code")
+            screen.send(f"!print {job}\r")
+            wait_for_log(log, "G1 X20 F600")
+            assert targets(fake) == {"T": 200.0, "T1": 210.0, "B": 60.0}
+            screen.send("!quit\r" if leave == "!quit" else "\x04")
+            status = screen.wait(timeout=60)
+        finally:
+            screen.child.close(force=True)
+        heaters = targets(fake)
+    assert status == 0, screen.text()[-2000:]
+    assert "stopping two.gcode with the safe-stop sequence first" in screen.text()
     assert heaters == ALL_OFF

@@ -70,6 +70,7 @@ if TYPE_CHECKING:
     from prompt_toolkit.history import History
 
 EXIT_OK = 0
+EXIT_NOT_SAFE = 5  # as hyrel-send's: the last job's safe stop was not confirmed
 PROMPT = "> "
 # Temperatures are polled this often (a job printing or not): the status line stays current.
 POLL_INTERVAL = 2.0
@@ -160,11 +161,12 @@ async def _run(options: ConsoleOptions, user: UserConfig) -> int:
     connecting.connected = True  # from now on, the session's events say it (_watch_printer)
     console = PrinterConsole(printer, user, options)
     try:
-        if sys.stdin.isatty():
-            return await console.interactive()
-        return await console.piped()
+        code = await (console.interactive() if sys.stdin.isatty() else console.piped())
     finally:
         await console.close()
+    # Left with the machine maybe not safe (a second stop signal, a lost link): say so
+    # in the exit code too, whatever ended the console.
+    return EXIT_NOT_SAFE if console.left_unsafe else code
 
 
 class _Screen:
@@ -203,6 +205,8 @@ class PrinterConsole:
         self._interrupted = asyncio.Event()
         self._signals = StopSignals(self._on_stop_signal)
         self._prompt: Application[str] | None = None  # the interactive prompt, while it runs
+        self._last_unsafe = False  # the last job ended without its safe stop confirmed
+        self.left_unsafe = False  # so, or a safe stop owed, as the console closed
 
     def say(self, text: str) -> None:
         with contextlib.suppress(OSError):  # a closed terminal (SIGHUP) takes no words
@@ -231,7 +235,7 @@ class PrinterConsole:
                 except KeyboardInterrupt:
                     self._hint_cancel()
                     continue
-                except EOFError:
+                except (EOFError, OSError):  # Ctrl-D; or the terminal is gone (EIO)
                     line = "!quit"
                 if self._interrupted.is_set() or not await self.handle(line):
                     await self.close()  # still above the prompt: what the stop prints
@@ -297,6 +301,7 @@ class PrinterConsole:
         with contextlib.suppress(ValueError, RuntimeError):
             self._signals.remove()
         owed = self.printer.owed_safe_stop
+        self.left_unsafe = self._last_unsafe or bool(owed)
         if owed:
             heaters = ", ".join(self.printer.heaters_on()) or "none known"
             self.say(
@@ -547,9 +552,11 @@ class PrinterConsole:
                         f"warning: {stop_delayed_text(event)}. Wait for it; or {now}; or "
                         "!cancel again to stop waiting for it"
                     )
+            self._last_unsafe = False
             try:
                 summary = await job.wait()
             except SafeStopError as exc:
+                self._last_unsafe = True
                 self.say(f"{job.name}: not safe: {exc}")
                 self._resume_hint(job)
             except HostError as exc:

@@ -5,7 +5,7 @@ the same in a TOML file (``--config server.toml``: ``data_dir``, ``bind``, ``api
 ``max_upload_mb``, ``mqtt``, ``mqtt_discovery_prefix``..., and a ``[printers]`` table of
 ``name = "port"``, or of ``[printers.NAME]`` tables: ``port``, ``machine``, ``protocol``,
 ``report``...). Logs go to stderr, one line each, without times (journald adds them).
-SIGTERM or Ctrl-C stops feeding, runs the safe stop on a printing machine, and exits.
+SIGTERM, SIGHUP or Ctrl-C stops feeding, runs the safe stop on a printing machine, and exits.
 """
 
 from __future__ import annotations
@@ -419,6 +419,9 @@ def serve(
     # 0 (130 for Ctrl-C) once the printers are safe, not as if killed.
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
     signal.signal(signal.SIGINT, lambda *_: sys.exit(130))
+    # SIGHUP (the terminal or ssh session it was started in, gone) would end it on the
+    # spot, heaters on: it stops as SIGTERM does, with the printers' safe stop.
+    signal.signal(signal.SIGHUP, lambda *_: signal.raise_signal(signal.SIGTERM))
     uvicorn.run(
         create_app(server),
         host=host,
