@@ -6,12 +6,15 @@ import re
 from typing import Any
 
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from repetrel_host.errors import ControllerError
 from repetrel_host.fakes.hyrel_simulator import HyrelControllerSimulator
 from repetrel_host.fakes.loopback import LoopbackResult, run_loopback
 from repetrel_host.fakes.simulator import ControllerSettings, ControllerSimulator, Faults
 from repetrel_host.protocol.dialects.hyrel import (
+    ANSWER_AT_ONCE,
     KEEPALIVE,
     STATUS_AFTER,
     SYNC_AFTER,
@@ -272,22 +275,85 @@ def test_an_answer_garbled_or_cut_in_two_is_still_one_answer() -> None:
     events = list(iter(dialect.next_event, None))
     assert [type(e) for e in events] == [LineAcknowledged, ControllerMessage]
     assert not dialect.is_done  # the second half of the first answer is not the second
-    dialect.receive_data(b"FIRMWARE_NAXE:>Hy: Hydra PROTOCOL_VERSION:1.0\n", 0.3)
+    assert dialect.data_to_send(0.2) == b"\x05"  # so that something comes between answers
+    dialect.receive_data(STATUS_REPORT + b"FIRMWARE_NAXE:>Hy: Hydra PROTOCOL_VERSION:1.0\n", 0.3)
     assert dialect.is_done
 
 
-def test_an_answer_whose_newline_was_garbled_runs_into_the_next_and_both_count() -> None:
+def test_answers_a_garbled_newline_ran_together_count_once_and_the_last_m115_goes_again() -> None:
     dialect = greeted()
     dialect.send("G1 X1", confirm=True)
     assert dialect.data_to_send(0.0) == b"N1 G1 X1\nN2 M115\n"
     dialect.send("G1 X2", confirm=True)
     assert dialect.data_to_send(0.1) == b"N3 G1 X2\nN4 M115\n"
-    # The first answer's newline garbled into an "r": it runs into the second. Counted
-    # once, every answer after it would be taken for the M115 before its own.
+    # The first answer's newline garbled into an "r": it runs into the second, or into
+    # itself said again: nothing came between them. Counted once; the last M115 may wait
+    # for an answer that came: it goes again, right after itself, and one answer is both's.
+    dialect.receive_data(b"\x06\x06\x06\x06FIRMWARE_NAME:>Hy: Hydra PROTOCOL_VERSION:1.0r", 0.2)
+    dialect.receive_data(b"FIRMWARE_NAME:>Hy: Hydra PROTOCOL_VERSION:1.0\n", 0.3)
+    assert not dialect.is_done
+    assert dialect.data_to_send(0.3) == b"\x05N5 M115\n"
+    dialect.receive_data(
+        STATUS_REPORT + b"\x06FIRMWARE_NAME:>Hy: Hydra PROTOCOL_VERSION:1.0\n", 0.4
+    )
+    assert dialect.is_done and dialect.stats.lost_acks == 0
+    events = list(iter(dialect.next_event, None))
+    assert [type(e) for e in events if not isinstance(e, ControllerMessage)] == [
+        LineAcknowledged
+    ] * 2
+    # The repeat ran right behind it, at once: its own answer came with the first, or
+    # comes now. Not come within ANSWER_AT_ONCE, it came before: nothing waits any longer.
+    dialect.handle_timeout(0.4 + ANSWER_AT_ONCE)
+    dialect.send("G4 P1000", "dwell", confirm=True)
+    assert dialect.data_to_send(1.5).endswith(b"N6 G4 P1000\nN7 M115\n")
+    dialect.receive_data(b"\x06\x06" + STATUS_REPORT, 1.51)
+    assert not dialect.is_done
+    dialect.receive_data(IDENTITY, 2.5)  # the dwell's, taken for its sync's
+    assert dialect.is_done and dialect.data_to_send(2.5) == b""
+
+
+def test_an_ack_inside_two_answers_run_together_does_not_tell_them_apart() -> None:
+    dialect = greeted()
+    dialect.send("G1 X1", confirm=True)
+    assert dialect.data_to_send(0.0) == b"N1 G1 X1\nN2 M115\n"
+    dialect.send("G1 X2", confirm=True)
+    assert dialect.data_to_send(0.1) == b"N3 G1 X2\nN4 M115\n"
+    # The byte between them may be the first's newline, garbled into an ACK: the second
+    # is not counted. The last M115 goes again, and one answer is both's.
+    dialect.receive_data(b"\x06\x06\x06FIRMWARE_NAME:>Hy: Hydra PROTOCOL_VERSION:1.0\x06", 0.2)
+    dialect.receive_data(IDENTITY, 0.3)
+    assert not dialect.is_done
+    assert dialect.data_to_send(0.3) == b"\x05N5 M115\n"
+    dialect.receive_data(STATUS_REPORT + b"\x06" + IDENTITY, 0.4)
+    assert dialect.is_done
+
+
+def test_answers_run_together_with_acks_between_them_both_count() -> None:
+    dialect = greeted()
+    dialect.send("G1 X1", confirm=True)
+    assert dialect.data_to_send(0.0) == b"N1 G1 X1\nN2 M115\n"
+    dialect.send("G1 X2", confirm=True)
+    assert dialect.data_to_send(0.1) == b"N3 G1 X2\nN4 M115\n"
+    # The first's newline garbled; the second came long after, lines ACKed meanwhile:
+    # one garbled byte is one ACK at most, two were written between the answers.
     dialect.receive_data(b"\x06\x06FIRMWARE_NAME:>Hy: Hydra PROTOCOL_VERSION:1.0r", 0.2)
     dialect.receive_data(b"\x06\x06FIRMWARE_NAME:>Hy: Hydra PROTOCOL_VERSION:1.0\n", 0.3)
     assert dialect.is_done and dialect.stats.lost_acks == 0
-    assert [type(e) for e in iter(dialect.next_event, None)] == [LineAcknowledged] * 2
+
+
+def test_an_ack_byte_in_place_of_an_answers_first_letter_does_not_tell_it_apart() -> None:
+    dialect = greeted()
+    dialect.send("G1 X1", confirm=True)
+    dialect.data_to_send(0.0)
+    dialect.send("G4 P5000", "dwell", confirm=True)
+    assert dialect.data_to_send(0.1) == b"N3 G4 P5000\nN4 M115\n"
+    dialect.receive_data(b"\x06" * 4, 0.15)
+    # Said twice, the second's "F" garbled into an ACK byte: no byte came between them.
+    dialect.receive_data(IDENTITY + b"\x06" + IDENTITY[1:], 0.2)
+    assert not dialect.is_done  # the dwell has not run
+    dialect.receive_data(STATUS_REPORT, 0.21)
+    dialect.receive_data(IDENTITY, 5.1)
+    assert dialect.is_done
 
 
 def test_cancel_aborts_and_what_the_aborted_lines_still_earn_is_not_taken_for_the_safe_stop() -> (
@@ -310,7 +376,7 @@ def test_cancel_aborts_and_what_the_aborted_lines_still_earn_is_not_taken_for_th
     assert dialect.data_to_send(0.2) == b"N5 M115\n"  # it came: the sync may go
     dialect.receive_data(b"\x06\x06", 0.3)  # the safe stop's line, the sync
     assert dialect.next_event() == LineAcknowledged(4, "M104 S0", "off", "")
-    dialect.receive_data(b"FIRMWARE_NAME:>Hy: Hydra PROTOCOL_VERSION:1.0\n", 0.4)
+    dialect.receive_data(b"FIRMWARE_NAME:>Hy: Hydra PROTOCOL_VERSION:1.0\n", 0.4)  # its ACK first
     assert dialect.is_done
 
 
@@ -560,12 +626,16 @@ def test_syncs_go_among_as_many_lines_as_run_in_a_sync_interval() -> None:
 def watch_what_ran(commands: list[str], settings: ControllerSettings) -> tuple[int, int]:
     """Stream ``commands`` (tagged 1, 2, ...) to the simulated controller; return how far
     :attr:`HyrelDialect.last_ran` ever was ahead of what the controller ran (never past
-    it: 0 at most) and behind it, at every step."""
+    it: 0 at most) and behind it, at every step. The job is done only once the controller
+    ran every line, each once."""
     ran = 0
+    run: list[str] = []
 
     def executed(command: str) -> None:
         nonlocal ran
-        ran += command != "M115"
+        if command != "M115":
+            ran += 1
+            run.append(command)
 
     dialect = HyrelDialect(HYREL_WINDOW)
     controller = HyrelControllerSimulator(settings, on_execute=executed)
@@ -599,13 +669,17 @@ def watch_what_ran(commands: list[str], settings: ControllerSettings) -> tuple[i
                 t for t in (controller.next_wakeup(), dialect.next_deadline()) if t is not None
             ]
             now = max(min(upcoming), now + 1e-9)
+    assert run == commands  # done once the last line ran, every line once, in order
     return ahead, behind
 
 
 MOVE_TIME = 0.02  # 50 moves a second: a slow job
 
 
-NOISE = [Faults(drop_ok=0.05, garble=0.05, seed=seed) for seed in (1, 2, 3)]
+NOISE = [
+    *(Faults(drop_ok=0.05, garble=0.05, seed=seed) for seed in (1, 2, 3)),
+    Faults(drop_ok=0.05, garble=0.05, identity_twice=0.3, seed=4),
+]
 
 
 @pytest.mark.parametrize("faults", [Faults(), *NOISE])
@@ -650,4 +724,173 @@ def test_garbled_notices_and_lost_acks_never_put_what_ran_ahead(seed: int) -> No
         faults=faults,
     )
     ahead, _ = watch_what_ran(NOTICED_JOB, settings)
+    assert ahead <= 0
+
+
+IDENTITY = b"FIRMWARE_NAME:>Hy: Hydra PROTOCOL_VERSION:1.0\n"
+STATUS_REPORT = b">ST: T:20.0 /0.0 B:20.0 /0.0\n"
+
+
+def test_an_identity_said_twice_at_once_answers_one_m115() -> None:
+    dialect = greeted()
+    dialect.send("G1 X1", "before", confirm=True)
+    assert dialect.data_to_send(0.0) == b"N1 G1 X1\nN2 M115\n"
+    dialect.send("G4 P5000", "dwell")
+    dialect.send("G1 X2", "after", confirm=True)
+    assert dialect.data_to_send(0.1) == b"N3 G4 P5000\nN4 G1 X2\nN5 M115\n"
+    dialect.receive_data(b"\x06" * 5, 0.11)
+    # The first M115 ran; the controller says so twice. The second M115 waits behind the
+    # dwell: taken for its answer, the repeat would call the dwell and G1 X2 run.
+    dialect.receive_data(IDENTITY * 2, 0.2)
+    events = list(iter(dialect.next_event, None))
+    told = [e.tag for e in events if isinstance(e, LineAcknowledged)]
+    assert told == ["dwell", "before"]  # the dwell received (its ACK), G1 X1 run
+    assert dialect.last_ran is None and not dialect.is_done
+    # Something between this answer and the next; and the last M115, which may wait for
+    # an answer not taken, goes again right after itself.
+    assert dialect.data_to_send(0.2) == b"\x05N6 M115\n"
+    dialect.receive_data(STATUS_REPORT, 0.21)
+    dialect.receive_data(IDENTITY, 5.2)  # its own answer, once the dwell ended
+    assert dialect.last_ran == "dwell" and dialect.is_done
+
+
+def test_an_identity_quoted_in_a_message_is_no_answer() -> None:
+    dialect = greeted()
+    dialect.send("G4 P5000", "dwell")
+    dialect.send("G1 X2", "after", confirm=True)
+    assert dialect.data_to_send(0.0) == b"N1 G4 P5000\nN2 G1 X2\nN3 M115\n"
+    dialect.receive_data(b"\x06" * 3, 0.01)
+    dialect.receive_data(b">IN: " + IDENTITY + b">GB: identity FIRMWARE_NAME:>Hy: Hydra\n", 5.0)
+    events = list(iter(dialect.next_event, None))
+    assert [type(e) for e in events] == [LineAcknowledged] + [ControllerMessage] * 2
+    assert dialect.last_ran is None and not dialect.is_done  # the dwell received, not run
+    dialect.receive_data(IDENTITY, 5.1)
+    assert dialect.last_ran == "dwell" and dialect.is_done
+
+
+def test_two_answers_taken_for_one_leave_no_lag_the_last_m115_goes_again() -> None:
+    """Two M115s ran with nothing said between them, their answers read at once: taken
+    for one answer said twice (what cannot be told is not counted). The second M115 is
+    asked again, right after itself: one answer is both's, and the next ones count."""
+    dialect = greeted()
+    dialect.send("G1 X1", "first", confirm=True)
+    dialect.data_to_send(0.0)
+    dialect.send("G1 X2", "second", confirm=True)
+    assert dialect.data_to_send(0.01) == b"N3 G1 X2\nN4 M115\n"
+    dialect.receive_data(b"\x06" * 4, 0.02)
+    dialect.receive_data(IDENTITY * 2, 0.1)
+    events = list(iter(dialect.next_event, None))
+    assert [e.tag for e in events if isinstance(e, LineAcknowledged)] == ["first"]
+    assert not dialect.is_done
+    assert dialect.data_to_send(0.1) == b"\x05N5 M115\n"  # the last M115, again
+    assert dialect.data_to_send(0.2) == b""  # once
+    dialect.receive_data(STATUS_REPORT + b"\x06", 0.2)
+    dialect.receive_data(IDENTITY, 0.3)
+    events = list(iter(dialect.next_event, None))
+    assert [e.tag for e in events if isinstance(e, LineAcknowledged)] == ["second"]
+    assert dialect.is_done
+    # The repeat, right behind it, not answered at once: its answer came before. Nothing
+    # waits for an answer that came: the next line's sync is answered as usual.
+    dialect.handle_timeout(0.3 + ANSWER_AT_ONCE)
+    dialect.send("G1 X3", "third", confirm=True)
+    assert dialect.data_to_send(2.0) == b"N6 G1 X3\nN7 M115\n"
+    dialect.receive_data(b"\x06\x06", 2.01)  # its ACK, between the answers
+    dialect.receive_data(IDENTITY, 2.1)
+    assert dialect.is_done
+    events = list(iter(dialect.next_event, None))
+    assert [e.tag for e in events if isinstance(e, LineAcknowledged)] == ["third"]
+
+
+def test_a_notice_after_an_m115_whose_answer_was_taken_for_a_repeat_drops_it() -> None:
+    dialect = greeted()
+    dialect.send("G1 X1", "first", confirm=True)
+    dialect.data_to_send(0.0)
+    dialect.send("G1 X2", "second", confirm=True)
+    dialect.data_to_send(0.01)
+    dialect.send("M106 S255", "fan")
+    dialect.send("G1 X3", "third", confirm=True)
+    assert dialect.data_to_send(0.02) == b"N5 M106 S255\nN6 G1 X3\nN7 M115\n"
+    dialect.receive_data(b"\x06" * 7, 0.03)
+    dialect.receive_data(IDENTITY * 2, 0.1)  # the second taken for a repeat
+    # The fan's notice: the M115 before it ran, its answer came before the notice.
+    dialect.receive_data(b">MC:M106: S255:\n", 0.2)
+    dialect.receive_data(IDENTITY, 0.3)  # the last M115's
+    assert dialect.is_done and dialect.data_to_send(0.3) == b""
+    events = list(iter(dialect.next_event, None))
+    told = [e.tag for e in events if isinstance(e, LineAcknowledged)]
+    assert told == ["fan", "first", "second", "third"]  # the fan's at its ACK
+
+
+def test_answers_run_together_by_a_garbled_newline_are_one_without_an_ack_between() -> None:
+    dialect = greeted()
+    dialect.send("G1 X1", confirm=True)
+    dialect.data_to_send(0.0)
+    dialect.send("G4 P5000", "dwell")
+    dialect.send("G1 X2", confirm=True)
+    dialect.data_to_send(0.1)
+    dialect.receive_data(b"\x06" * 5, 0.11)
+    # An answer said twice, the first's newline garbled: one line, nothing between them.
+    dialect.receive_data(IDENTITY[:-1] + b"r" + IDENTITY, 0.2)
+    assert dialect.last_ran is None and not dialect.is_done
+
+
+# A dwell with moves before and after it: the M115s among them answered twice, the
+# identity quoted unasked after the dwell, on a clean or a noisy link.
+DWELL_JOB = [
+    *(f"G1 X{i} Y1" for i in range(40)),
+    "G4 P2000",
+    *(f"G1 X{i} Y2" for i in range(48)),
+    "M104 S0",
+    *(f"G1 X{i} Y3" for i in range(30)),
+]
+IDENTITY_FAULTS = [
+    Faults(identity_twice=1.0),
+    Faults(unasked_identity=1.0),
+    *(
+        Faults(identity_twice=0.3, unasked_identity=1.0, drop_ok=0.05, garble=0.02, seed=seed)
+        for seed in range(1, 9)
+    ),
+]
+
+
+@pytest.mark.parametrize("faults", IDENTITY_FAULTS)
+def test_an_identity_said_twice_or_unasked_never_calls_a_line_run_before_it_ran(
+    faults: Faults,
+) -> None:
+    settings = ControllerSettings(
+        rx_buffer=8192, banner=False, move_time=0.02, latency=0.001, bandwidth=11_520,
+        faults=faults,
+    )  # fmt: skip
+    # Never ahead of the controller (the resume point, were the link cut in the dwell, is
+    # not past the first line it did not run), done once its last line ran, each once.
+    ahead, _ = watch_what_ran(DWELL_JOB, settings)
+    assert ahead <= 0
+
+
+HYREL_COMMANDS = [
+    "G1 X1 Y2 E0.1", "G1 X20 Y5", "G4 P300", "G4 P0", "M104 S0", "M106 S255", "M107",
+    "M82", "M73 P5",
+]  # fmt: skip
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    commands=st.lists(st.sampled_from(HYREL_COMMANDS), min_size=1, max_size=400),
+    twice=st.sampled_from([0.0, 0.3, 1.0]),
+    unasked=st.sampled_from([0.0, 1.0]),
+    drop=st.sampled_from([0.0, 0.05]),
+    garble=st.sampled_from([0.0, 0.02]),
+    seed=st.integers(0, 2**16),
+)
+def test_any_job_under_the_links_faults_runs_once_and_is_never_called_run_early(
+    commands: list[str], twice: float, unasked: float, drop: float, garble: float, seed: int
+) -> None:
+    faults = Faults(
+        identity_twice=twice, unasked_identity=unasked, drop_ok=drop, garble=garble, seed=seed
+    )
+    settings = ControllerSettings(
+        rx_buffer=8192, banner=False, move_time=0.005, latency=0.001, bandwidth=11_520,
+        faults=faults,
+    )  # fmt: skip
+    ahead, _ = watch_what_ran(commands, settings)
     assert ahead <= 0

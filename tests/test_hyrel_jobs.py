@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shlex
 import signal
 import subprocess
 import sys
@@ -223,3 +224,63 @@ def test_a_big_job_starts_at_once_and_is_checked_as_it_streams(tmp_path: Path) -
     assert "big.gcode:5: error: T3 selects yoke 1, slot 4" in result.stderr
     assert executed(log)[:4] == ["G28", "T1", "G1 X5", "G1 X6"]
     assert "G1 X7" not in executed(log) and "T3" not in executed(log)
+
+
+# Moves, a dwell, moves: the controller answers each M115 twice (its identity said again
+# at once); a controller that did so once called such a job done during the dwell and
+# resumed 48 lines past it.
+DWELL_JOB = (
+    [f"G1 X{i} F6000" for i in range(40)] + ["G4 P4000"] + [f"G1 Y{i} F6000" for i in range(48)]
+)
+SAYS_IT_TWICE = ["--protocol", "hyrel", "--move-time", "0.01", "--faults", "identity_twice=1"]
+
+
+def job_lines(log: Path) -> list[str]:
+    """What the fake ran of the job: its log without the host's M115s."""
+    return [c for c in log.read_text().splitlines() if c != "M115"]
+
+
+@pytest.mark.timeout(60)
+def test_an_identity_said_twice_does_not_end_a_job_before_its_last_line_ran(
+    tmp_path: Path,
+) -> None:
+    job = tmp_path / "dwell.gcode"
+    job.write_text("".join(f"{line}\n" for line in DWELL_JOB))
+    log = tmp_path / "fake.log"
+    with BuiltInFake(log, SAYS_IT_TWICE) as fake:
+        result = hyrel_send(
+            str(job), "--port", fake.port, "--protocol", "hyrel", "--no-history", "--no-header"
+        )
+        ran = job_lines(log)  # when hyrel-send said done
+    assert result.returncode == 0, result.stderr
+    assert ran == DWELL_JOB  # every line, once, in order, before the job was called done
+
+
+@pytest.mark.timeout(90)
+def test_a_link_cut_during_a_dwell_resumes_at_no_line_past_what_ran(tmp_path: Path) -> None:
+    job = tmp_path / "dwell.gcode"
+    job.write_text("".join(f"{line}\n" for line in DWELL_JOB))
+    log = tmp_path / "fake.log"
+    with BuiltInFake(log, SAYS_IT_TWICE, control=True) as fake:
+        process = subprocess.Popen(
+            [sys.executable, "-m", "repetrel_host.cli", str(job), "--port", fake.port,
+             "--protocol", "hyrel", "--no-history", "--no-header"],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL, text=True,
+        )  # fmt: skip
+        deadline = time.monotonic() + 30
+        while "G1 X39 F6000" not in job_lines(log) and time.monotonic() < deadline:
+            time.sleep(0.02)
+        ran = job_lines(log)  # the dwell began: what follows it has not run
+        assert fake.request("link_drop 2")["ok"]
+        stdout, stderr = process.communicate(timeout=60)
+    assert process.returncode == 3, stderr
+    assert ran == DWELL_JOB[: len(ran)] and len(ran) == 40
+    prefix = "To resume from the first line not known to have run: "
+    (hint,) = [line[len(prefix) :] for line in stdout.splitlines() if line.startswith(prefix)]
+    line = int(shlex.split(hint)[-1])
+    # Not past the dwell, the first line the controller had not run when the link went.
+    assert line <= len(ran) + 1
+    # The job's lines ran once each, in order; then only the safe stop.
+    done = job_lines(log)
+    run = next(i for i, (a, b) in enumerate(zip(done, DWELL_JOB, strict=False)) if a != b)
+    assert run >= len(ran) and not [c for c in done[run:] if c in DWELL_JOB]

@@ -108,3 +108,22 @@ def test_the_m773_report_is_picked_out_of_the_controllers_lines() -> None:
     for text in lines[2:6]:
         cut.feed(text)
     assert cut.report is not None and not cut.report.complete
+
+
+def test_the_host_tells_where_acks_came_among_the_lines() -> None:
+    receiver = HostReceiver()
+    assert receiver.feed(b"\x06FIRMWARE_NAME: a\nFIRMWARE_NAME: a\nFIRM") == [
+        "FIRMWARE_NAME: a",
+        "FIRMWARE_NAME: a",
+    ]
+    # An ACK before the first; nothing between the first and the second: written together.
+    assert receiver.acked_ahead == [True, False] and receiver.acks_before == [1, 1]
+    assert receiver.take_acks() == 1
+    # An ACK inside a line (not between it and the line before), one after it, one in the
+    # next before its text, one after the last line: in the order they came.
+    assert receiver.feed(b"WARE\x06_NAME: b\n\x06\n\x06>MC:M107:\n\x06") == [
+        "FIRMWARE_NAME: b",
+        ">MC:M107:",
+    ]
+    assert receiver.acked_ahead == [False, True] and receiver.acks_before == [1, 3]
+    assert receiver.take_acks() == 4

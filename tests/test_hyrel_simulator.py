@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import os
 import select
+import subprocess
+import sys
 import time
 import tty
 from pathlib import Path
@@ -12,6 +14,7 @@ import pytest
 
 from repetrel_host.fakes.fake_controller import BuiltInFake
 from repetrel_host.fakes.hyrel_simulator import (
+    M115_REPLY,
     PING_REPLY,
     RESTART_REPLY,
     HyrelControllerSimulator,
@@ -201,3 +204,27 @@ def test_a_reset_says_so_with_a_hyrel_identity_line() -> None:
     wire.send(frame("!!DEBUG:reset"))
     wire.run(0.1)
     assert wire.lines == [RESTART_REPLY.decode().strip()]
+
+
+def test_an_identity_said_twice_and_one_unasked_after_a_dwell() -> None:
+    faults = Faults(identity_twice=1.0, unasked_identity=1.0)
+    settings = ControllerSettings(rx_buffer=8192, banner=False, faults=faults)
+    wire = Wire(HyrelControllerSimulator(settings))
+    wire.send(frame("M115") + frame("G4 P500") + frame("G1 X1"))
+    wire.run(0.1)
+    answer = M115_REPLY.decode().strip()
+    assert wire.lines == [answer, answer]  # at once, nothing between them
+    wire.run(0.6)
+    assert wire.lines[2:] == [f">IN: {answer}"]  # once the dwell ended, unasked
+    assert wire.controller.executed == ["M115", "G4 P500", "G1 X1"]
+    # They are this link's: Marlin's fake refuses them.
+    fake = subprocess.run(
+        [sys.executable, "-m", "repetrel_host.fakes.fake_controller", "--faults",
+         "identity_twice=1"],
+        capture_output=True, text=True, timeout=30,
+    )  # fmt: skip
+    assert fake.returncode != 0
+    assert fake.stderr.strip() == (
+        "hyrel-fake-controller: --faults: identity_twice and unasked_identity are faults of "
+        "Hyrel's link"
+    )

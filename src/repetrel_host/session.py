@@ -1535,13 +1535,22 @@ class _PumpListener(Listener):
         if text.startswith("Cap:") or "FIRMWARE_NAME:" in text:
             printer._sign(text)
         reported = self._temperatures(text, text)
-        if printer._commands and not (reported and printer._autoreport):
+        if printer._commands and not (reported and self._unasked(reply, printer._commands[0])):
             printer._commands[0].lines.append(text)
             return
         # A Hyrel notice (an M-code ran) tells what ran; it is no message for the user.
         notice = isinstance(reply, replies.HyrelReport) and reply.tag == "MC"
         if not reported and not notice:
             printer._broadcast(Message(text))
+
+    def _unasked(self, reply: replies.Reply, command: _Command) -> bool:
+        """Whether a temperature report is no part of ``command``'s reply: the firmware's
+        own reports, or Hyrel's status report (0x05, which the host asks for between its
+        syncs' answers and for the temperatures) while a command other than M105 runs."""
+        if self.printer._autoreport:
+            return True
+        status = isinstance(reply, replies.HyrelReport) and reply.tag == "ST"
+        return status and command_word(command.command) != "M105"
 
     def _temperatures(self, text: str, line: str) -> bool:
         readings = parse_temperatures(text)

@@ -414,8 +414,9 @@ def build_parser() -> argparse.ArgumentParser:
         "spurious_resend=0.005 resend_without_ok=1 flush_on_error=1 drop_duplicates=1 "
         "busy_interval=2 seed=7'; and two controllers' ways: counted_resend=1 (OctoPrint's "
         "virtual printer's answer to a bad checksum) and drop_with_error=0.01 (lines dropped "
-        "with only an error line); with --protocol hyrel: corrupt, garble and drop_ok (ACK "
-        "bytes lost) (default: none)",
+        "with only an error line); with --protocol hyrel: corrupt, garble, drop_ok (ACK "
+        "bytes lost), identity_twice=0.1 (M115s answered twice) and unasked_identity=1 (the "
+        "identity in an info line after G4 dwells) (default: none)",
     )
     return parser
 
@@ -434,6 +435,8 @@ def settings_from_args(args: argparse.Namespace) -> ControllerSettings:
         faults = Faults.parse(args.faults)
         if args.protocol == "hyrel":
             check_hyrel_faults(faults)
+        elif faults.identity_twice or faults.unasked_identity:
+            raise ValueError("identity_twice and unasked_identity are faults of Hyrel's link")
     except ValueError as exc:
         raise SystemExit(f"hyrel-fake-controller: --faults: {exc}") from None
     return ControllerSettings(

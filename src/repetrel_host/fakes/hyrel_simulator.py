@@ -19,8 +19,11 @@ heaters, faults); the link is Hyrel's:
   bit 0, arms the ``M773`` report that ``M30`` sends (``M773`` sends it at once), in the
   reference's form (hyrel-gcode-reference.txt, M773): what ran since M772 (positions
   from X0 Y0 Z0, times at the feed rate);
-- faults: ``corrupt`` and ``garble`` as on Marlin's link, ``drop_ok`` for ACK bytes; the
-  others are Marlin's ways (or, ``duplicate_ok``, one no host can survive here) and refused.
+- faults: ``corrupt`` and ``garble`` as on Marlin's link, ``drop_ok`` for ACK bytes,
+  ``identity_twice`` (an M115 answered twice, the second line right after the first) and
+  ``unasked_identity`` (after a G4's dwell, the identity unasked in an info line, ``>IN:
+  FIRMWARE_NAME:...``); the others are Marlin's ways (or, ``duplicate_ok``, one no host
+  can survive here) and refused.
 
 Choices of this fake where the notes are silent (a real controller may differ): the
 temperature report's form (``>ST: T:... B:...``), the messages' wording, a layer pause
@@ -60,7 +63,9 @@ RESTART_REPLY = b">Hy: repetrel-host fake controller (Hyrel link) restarted\n"
 _CONTROL_BYTES = frozenset(int(byte) for byte in Control) - {Control.URGENT, Control.ACK}
 # Faults of this link: lines corrupted on the way, replies garbled, ACKs lost. (An ACK sent
 # twice cannot be told from two: no host could keep the buffer from overflowing.)
-LINK_FAULTS = frozenset({"corrupt", "garble", "drop_ok", "seed"})
+LINK_FAULTS = frozenset(
+    {"corrupt", "garble", "drop_ok", "identity_twice", "unasked_identity", "seed"}
+)
 _MOVES = frozenset({"G0", "G1", "G2", "G3"})
 _AXIS = re.compile(r"([XYZEF])\s*(-?\d*\.?\d+)", re.IGNORECASE)
 
@@ -338,7 +343,10 @@ class HyrelControllerSimulator(ControllerSimulator):
         elif word == "M105":
             self._reply(f">ST: {self._temperatures(now)}\n".encode(), now)
         elif word == "M115":
-            self._reply(M115_REPLY, now)
+            twice = self._chance(self.faults.identity_twice)
+            self._reply(M115_REPLY * (1 + twice), now)
+        elif word == "G4" and self._chance(self.faults.unasked_identity):
+            self._reply(b">IN: " + M115_REPLY, now)
         elif word == "M772":
             match = re.search(r"S\s*(\d+)", command.text)
             self._reports = int(match.group(1)) if match else 0

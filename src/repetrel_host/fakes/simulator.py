@@ -78,6 +78,10 @@ class Faults:
     # no resend request, no ok.
     drop_with_error: float = 0.0
     busy_interval: float | None = None  # "echo:busy: processing" while a command blocks
+    # Hyrel's link: M115s answered twice (the identity line said again at once), and G4
+    # dwells followed by the identity unasked, quoted in an info line (">IN: FIRMWARE_...").
+    identity_twice: float = 0.0
+    unasked_identity: float = 0.0
     seed: int = 0
 
     @classmethod

@@ -65,33 +65,76 @@ def mark_urgent(line: bytes) -> bytes:
 
 
 class HostReceiver:
-    """Splits what the controller sends into ACK credits and text lines.
+    """Splits what the controller sends into ACK credits and text lines, in their order.
 
     An ACK byte may come between lines or inside one (the controller sends it as soon as
     it has taken a line, whatever it is writing): it is counted and taken out of the text.
+    :attr:`acks_before` says, for each line :meth:`feed` returns, how many of the ACKs not
+    yet taken came before that line's end (the controller wrote them first).
     """
 
     def __init__(self) -> None:
-        self._partial = bytearray()
+        self._partial = bytearray()  # as it came, control bytes and all
+        self._partial_acks = 0  # ACKs in it, counted already
+        self._acked = False  # an ACK came in blank lines since the last line
         self.acks = 0  # ACK bytes not yet taken with :meth:`take_acks`
+        self.acks_before: list[int] = []
+        self.acked_ahead: list[bool] = []
+        self.acks_inside: list[list[int]] = []
         self.end_wait_echoes = 0
 
     def feed(self, data: bytes) -> list[str]:
-        """The complete lines in ``data`` (and what came before it), without control bytes."""
-        if Control.ACK in data or Control.END_WAIT in data:
-            self.acks += data.count(Control.ACK)
-            self.end_wait_echoes += data.count(Control.END_WAIT)
-            data = data.replace(b"\x06", b"").replace(b"\x01", b"")
-        buffer = self._partial
-        buffer += data
-        *complete, rest = buffer.split(b"\n")
+        """The complete lines in ``data`` (and what came before it), without control bytes.
+        :attr:`acked_ahead` says, for each, whether an ACK came between the line before
+        and its text; :attr:`acks_inside`, where in its text ACKs came."""
+        *complete, rest = (self._partial + data).split(b"\n")
+        lines: list[str] = []
+        self.acks_before = before = []
+        self.acked_ahead = ahead = []
+        self.acks_inside = inside = []
+        acks = self.acks - self._partial_acks  # those in the partial line are counted again
+        acked = self._acked
+        for raw in complete:
+            count = raw.count(Control.ACK)
+            acks += count
+            line = _text(raw).decode("ascii", errors="replace").strip()
+            if line:
+                lines.append(line)
+                before.append(acks)
+                lead = len(raw) - len(raw.lstrip(_BLANK))
+                ahead.append(acked or Control.ACK in raw[:lead])
+                inside.append(_ack_places(raw[lead:]) if count else [])
+                acked = False
+            else:
+                acked = acked or count > 0
+        self._acked = acked
         self._partial = bytearray(rest)
-        lines = (line.decode("ascii", errors="replace").strip() for line in complete)
-        return [line for line in lines if line]
+        self._partial_acks = rest.count(Control.ACK)
+        self.acks = acks + self._partial_acks
+        self.end_wait_echoes += data.count(Control.END_WAIT)
+        return lines
 
     def take_acks(self) -> int:
         acks, self.acks = self.acks, 0
         return acks
+
+
+_BLANK = b"\x06\x01 \t\r"  # what may come before a line's text
+
+
+def _ack_places(raw: bytes | bytearray) -> list[int]:
+    """Where in the text of ``raw`` (its ACK and end-wait bytes taken out) ACKs came."""
+    places: list[int] = []
+    at = 0
+    for piece in raw.split(b"\x06")[:-1]:
+        at += len(piece.replace(b"\x01", b""))
+        places.append(at)
+    return places
+
+
+def _text(raw: bytes | bytearray) -> bytes:
+    """A received line without the ACK and end-wait bytes that came inside it."""
+    return bytes(raw).replace(b"\x06", b"").replace(b"\x01", b"")
 
 
 @dataclass(frozen=True, slots=True)

@@ -7,8 +7,8 @@ There is no resend: a line the controller refuses (its checksum) cannot be sent 
 its place, so the stream fails, naming it.
 
 An ACK says "received", not "run". What has run is learned from what the controller
-writes as it runs commands, in order: ``M115``'s identity line (``FIRMWARE_NAME:>Hy:
-...``), which says that every line before that M115 ran too, and the ``>MC:M<n>: ...``
+writes as it runs commands, in order: ``M115``'s answer (``FIRMWARE_NAME:>Hy: ...``),
+which says that every line before that M115 ran too, and the ``>MC:M<n>: ...``
 notices of the M-codes it reports (:data:`~repetrel_host.protocol.hyrel.NOTICED`; no
 others are awaited). A notice says that a received line of its code and values ran: the
 host takes it for the oldest such line not known to have run (so for every line before it,
@@ -21,6 +21,25 @@ point) follows the job, fast or slow, and one just before an ``M0`` (which waits
 follows it waits behind it). Up to 8 KB of job may wait in the controller when the last ACK
 comes: a job ends once a sync's answer says its last line ran, and with it all the
 controller wrote meanwhile.
+
+Answers are counted by the link's order, not by their text: nothing in an answer says
+which M115 it is for, and taking one too many would call lines run that have not (a job
+done during a dwell, a resume point past lines that never ran). An answer is a line that is
+no message (``>IN: FIRMWARE_NAME:...`` quotes the identity; an answer and a message that a
+garbled newline ran together are told apart). A controller that says an answer twice
+writes the two together: an answer with nothing between it and the one before (no ACK
+byte, no message) is that one said again, and is not taken. So that something does come
+between two real answers, the host asks for a status report (0x05, answered as it
+arrives) after reading one while M115s wait, and sends a sync among the lines only after a
+line that takes time (a move, a dwell) and not a few lines behind one still waiting. What
+cannot be told this way (two M115s run within that round trip) is not counted: the M115
+waiting then may wait for an answer that came. A notice of a later line ends that wait
+(the M115 ran: its answer came before); else, once no line follows it, the last M115 goes
+again right after itself. An M115 right behind the one an answer was last taken for,
+nothing between them, runs as soon as it is received: not answered within
+:data:`ANSWER_AT_ONCE` of both, its answer came before, and it waits no longer (it says no
+more than that one). An identity line in the answer's very form, unasked, cannot be told
+from an answer.
 
 The controller stops its extruders after 30 s without a byte from the host: the dialect
 sends the watchdog byte whenever it has been quiet for :data:`KEEPALIVE` seconds, through
@@ -39,7 +58,7 @@ from __future__ import annotations
 
 import re
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from enum import Enum
 
@@ -84,6 +103,19 @@ STATUS_AFTER = 5.0  # lines waiting this long for an ACK: ask whether the contro
 # long command holds its ACKs back too: then the sync waits its turn, and does no harm.
 SYNC_AFTER = 0.5
 SYNC_COMMAND = "M115"  # answered when run: every line before it ran
+ANSWER_NAME = "FIRMWARE_NAME:"
+# The parts of an answer: a line holding one is a piece of an answer (cut in two by a
+# garbled newline, or quoted), never a message between two answers.
+_ANSWER_PARTS = ("FIRMWARE", "PROTOCOL_VERSION", "HYREL_PROTOCOL", "MACHINE_TYPE")
+# A status report asked after an answer (to come between it and the next) and not come in
+# this long is asked again: it, or its reply, was lost or garbled.
+SEPARATOR_RETRY = 0.5
+# An M115 right behind one answered (nothing between them), received, runs at once: its
+# answer comes within a round trip. Not come in this long, it came before, not taken.
+ANSWER_AT_ONCE = 1.0
+# Lines waited this long for an ACK: a sync goes even right behind an M115 still waiting
+# (its answer may have come, not taken). The status requests wake the dialect by then.
+STALL_PATIENCE = STATUS_AFTER
 SYNC_RETRY = 30.0  # an M115 unanswered this long: its answer may be lost, another may go
 # Syncs among the lines: each answer says how far the controller got (the resume point
 # after a stop: what ran since the last one runs again), and releases lines whose ACK was
@@ -105,6 +137,8 @@ RATE_AFTER = 0.1  # seconds since the last answer that told how fast lines run
 HOST_RESERVE = 128
 RECENT = 1024  # lines remembered by number (an error names one)
 _LINE_NUMBER = re.compile(r"\bline\s+(\d+)|\bN(\d+)\b", re.IGNORECASE)
+_TAG = re.compile(r">..:")  # a message's
+_TAKE_TIME = frozenset({"G0", "G1", "G2", "G3", "G4", "G28"})  # moves, dwells, homing
 _FATAL = re.compile(r"checksum|watchdog", re.IGNORECASE)
 _FIELD = re.compile(r"([A-Za-z])\s*(-?\d+(?:\.\d*)?)")
 _NOTICE_VALUES = "TS"  # the values a notice gives of its line (">MC:M<n>: T<t>: S<s>:")
@@ -130,6 +164,9 @@ class _Sent:
     host_line: bool = False  # a sync, an urgent M112: not the caller's
     confirm: bool = False  # told once it ran, not once it was received
     reaches: int = 0  # a sync just before an M0: its answer says the M0 was reached too
+    again: bool = False  # an M115 sent right after the last one, which may wait in vain
+    received: bool = False  # its ACK came (or an answer said it ran)
+    received_at: float = 0.0
 
 
 class HyrelDialect:
@@ -166,6 +203,7 @@ class HyrelDialect:
         self._pending: deque[tuple[str, str, object, bool, bool]] = deque()
         self._in_flight: deque[_Sent] = deque()  # waiting for their ACK
         self._in_flight_bytes = 0
+        self._host_in_flight = 0  # the host's own lines among them
         self._stale_acks = 0  # ACKs that may still come for lines an abort dropped
         self._awaiting: deque[_Sent] = deque()  # confirm lines not yet known to have run
         self._unran: deque[_Sent] = deque()  # the caller's plain lines not known to have run
@@ -180,6 +218,12 @@ class HyrelDialect:
         self._m115s: deque[_Sent] = deque()
         self._stale_answers = 0  # answers that may still come for M115s an abort dropped
         self._answer_fragment = False  # the last line was an answer cut in two
+        self._separated = True  # a message came since the last answer
+        self._cut_tag = False  # the last line was a bare tag: the next may be its text
+        self._doubt = False  # the oldest M115 waiting may have had its answer not taken
+        self._answered_seq = -1  # the M115 an answer was last taken for, and when
+        self._answered_at = 0.0
+        self._fence_asked_at: float | None = None  # a status report asked as a separator
         self._recent: dict[int, object] = {}  # line number -> tag, of the last RECENT lines
         self._next_number = 1
         self._seq = 0
@@ -189,6 +233,8 @@ class HyrelDialect:
         self._sync_requested = False
         self._sync_sent_at: float | None = None  # an M115 after the last caller line
         self._since_m115 = 0  # caller lines sent since the last M115
+        self._moved_since_m115 = False  # a move or a dwell among them: it takes time
+        self._asked_again = False  # an M115 waited SYNC_RETRY: another goes in any case
         self._sync_every = SYNC_EVERY_MIN  # lines that run in SYNC_INTERVAL, as told
         self._told_at = 0.0  # the answer that told it last, and the line it confirmed
         self._told_seq = 0
@@ -243,9 +289,11 @@ class HyrelDialect:
         self._outgoing.append(Control.ABORT)
         self._stale_acks += len(self._in_flight)
         self._in_flight.clear()
+        self._host_in_flight = 0
         self._in_flight_bytes = 0
         self._stale_answers += len(self._m115s)
         self._m115s.clear()
+        self._doubt = False
         self._unran.clear()  # dropped, as far as anyone knows: none of them counts as run
         self._sync_sent_at = None
         self._since_m115 = 0
@@ -269,8 +317,11 @@ class HyrelDialect:
         would wait its turn behind up to 8 KB of a job: minutes of stale temperatures.)"""
         if self._phase is not Phase.RUNNING:
             return False
-        self._outgoing.append(Control.STATUS)
+        self._ask_status()
         return True
+
+    def _ask_status(self) -> None:
+        self._outgoing.append(Control.STATUS)
 
     def request_sync(self) -> None:
         self._sync_requested = True
@@ -319,6 +370,11 @@ class HyrelDialect:
     def data_to_send(self, now: float) -> bytes:
         if self._phase is Phase.RUNNING:
             pending = self._pending
+            if not self._separated and self._fence_asked_at is None and self._m115s:
+                # Something between the last answer and the next (an M115's own ACK may be
+                # lost, and one that went before the answer came may run at any time).
+                self._fence_asked_at = now
+                self._ask_status()
             while pending and self._has_room(pending[0][0], pending[0][4]):
                 command, word, tag, confirm, urgent_line = pending.popleft()
                 # The M0's own notice may be lost, and what follows it waits behind it:
@@ -329,11 +385,25 @@ class HyrelDialect:
                 sent = self._transmit(command, word, tag, now, confirm=confirm, urgent=urgent_line)
                 if sync is not None:
                     sync.reaches = sent.seq
-                due = self._since_m115 >= self._sync_every
+                # Not among lines that all run at once: two answers together could not
+                # be told from one said twice (the second would not be counted).
+                due = self._since_m115 >= self._sync_every and self._moved_since_m115
                 if due and self._has_room(SYNC_COMMAND, False, True):
                     self._transmit(SYNC_COMMAND, SYNC_COMMAND, None, now, host_line=True)
-            if self._wants_sync() and self._has_room(SYNC_COMMAND, False, host_line=True):
+            if self._wants_sync(now) and self._has_room(SYNC_COMMAND, False, host_line=True):
                 self._transmit(SYNC_COMMAND, SYNC_COMMAND, None, now, host_line=True)
+            m115s = self._m115s
+            if (
+                self._doubt
+                and m115s
+                and not m115s[-1].again
+                and m115s[-1].seq == self._seq
+                and not pending
+            ):
+                # The last M115 may wait for an answer not taken: it goes again, right
+                # after itself (past the window if need be), and waits no longer once the
+                # repeat's answer is taken for it (see _answered_in_vain_from).
+                self._transmit(SYNC_COMMAND, SYNC_COMMAND, None, now, host_line=True).again = True
         if not self._outgoing:
             return b""
         self._last_sent_at = now
@@ -341,7 +411,7 @@ class HyrelDialect:
         self._outgoing.clear()
         return data
 
-    def _wants_sync(self) -> bool:
+    def _wants_sync(self, now: float) -> bool:
         """Lines must be known to have run and nothing will say so: send an M115 after the
         last of them (after an abort, once they are all received, so that the answers it
         left behind came first), or once lines waited long for their ACK (to release
@@ -349,9 +419,21 @@ class HyrelDialect:
         if self._synced_seq >= self._last_caller_seq or self._sync_sent_at is not None:
             return False
         if self._stalled:
-            return True
+            # Not a few lines behind an M115 still waiting: its answer releases the lines
+            # before it, and two M115s run at once could not be told from one answer said
+            # twice. (Should that answer not be taken, one goes after STALL_PATIENCE.)
+            near = self._m115s and self._since_m115 < SYNC_EVERY_MIN
+            return not near or now >= self._acked_at + STALL_PATIENCE or self._asked_again
         wanted = self._sync_requested or bool(self._awaiting)
         return wanted and not self._pending and not (self._stale_answers and self._in_flight)
+
+    def _answered_in_vain_from(self) -> float | None:
+        """When the oldest M115 waiting was due to be answered at once: it is right behind
+        the one an answer was last taken for (nothing between them) and was received."""
+        m115s = self._m115s
+        if not m115s or m115s[0].seq != self._answered_seq + 1 or not m115s[0].received:
+            return None
+        return max(self._answered_at, m115s[0].received_at)
 
     def _has_room(self, command: str, urgent_line: bool, host_line: bool = False) -> bool:
         if not self._in_flight:
@@ -362,7 +444,8 @@ class HyrelDialect:
         if self.checksum:
             size += 7  # "*<sum>": a line of 96 ASCII bytes sums to at most 5 digits
         limit = self._host_byte_limit if host_line else self._byte_limit
-        lines = len(self._in_flight) - host_line  # a sync may go past the line limit
+        # The caller's lines: a sync goes past the line limit, and none holds a line back.
+        lines = len(self._in_flight) - self._host_in_flight - host_line
         return lines < self._line_limit and self._in_flight_bytes + size <= limit
 
     def _transmit(
@@ -389,6 +472,7 @@ class HyrelDialect:
         if received:  # the first line waiting: its ACK is due from now
             self._last_progress_at = self._acked_at = now
         self._in_flight.append(sent)
+        self._host_in_flight += host_line
         self._in_flight_bytes += sent.size
         self._outgoing += wire
         self.stats.bytes_sent += len(wire)
@@ -396,14 +480,17 @@ class HyrelDialect:
             self._recent[number] = tag
             self._recent.pop(number - RECENT, None)
         if word == "M115":
+            self._asked_again = False
             self._m115s.append(sent)
             self._sync_sent_at = now
             self._since_m115 = 0
+            self._moved_since_m115 = False
             if received:
                 self._stale_answers = 0  # what an abort left behind came before those ACKs
         elif not host_line:
             self._sync_sent_at = None  # a line after the last M115: it confirms not this one
             self._since_m115 += 1
+            self._moved_since_m115 = self._moved_since_m115 or word in _TAKE_TIME
         if not host_line:
             self._last_caller_seq = seq
             self.stats.lines_sent += 1
@@ -428,13 +515,21 @@ class HyrelDialect:
     def receive_data(self, data: bytes, now: float) -> None:
         if not data or self._phase is Phase.FAILED:
             return
-        lines = self._receiver.feed(data)
-        for _ in range(self._receiver.take_acks()):
-            self._acknowledged(now)
-        for text in lines:
-            self._handle_line(text, now)
+        receiver = self._receiver
+        lines = receiver.feed(data)
+        acks = receiver.take_acks()
+        taken = 0
+        for text, before, acked, inside in zip(
+            lines, receiver.acks_before, receiver.acked_ahead, receiver.acks_inside, strict=True
+        ):
+            for _ in range(before - taken):  # in the order the controller wrote them
+                self._acknowledged(now)
+            taken = before
+            self._handle_line(text, now, acked, inside)
             if self._failure is not None:
                 return
+        for _ in range(acks - taken):
+            self._acknowledged(now)
 
     def _acknowledged(self, now: float) -> None:
         if self._stale_acks:
@@ -447,11 +542,14 @@ class HyrelDialect:
         self._last_progress_at = self._acked_at = now
         self._status_asked = 0
         self._stalled = False
-        self._release(self._in_flight.popleft())
+        self._release(self._in_flight.popleft(), now)
 
-    def _release(self, sent: _Sent) -> None:
+    def _release(self, sent: _Sent, now: float) -> None:
         """A line leaves the window; a plain caller's line is acknowledged with it."""
         self._in_flight_bytes -= sent.size
+        self._host_in_flight -= sent.host_line
+        if not sent.received:
+            sent.received, sent.received_at = True, now
         if not sent.host_line and not sent.confirm:
             self._tell(sent)
 
@@ -459,16 +557,50 @@ class HyrelDialect:
         number = sent.number if sent.number is not None else -1
         self._events.append(LineAcknowledged(number, sent.command, sent.tag, ""))
 
-    def _handle_line(self, text: str, now: float) -> None:
+    def _handle_line(
+        self, text: str, now: float, acked: bool = False, acks_inside: Sequence[int] = ()
+    ) -> None:
+        """``acked``: an ACK came between the line before and this one; ``acks_inside``:
+        where in it ACKs came."""
+        run_in = _run_in(text)
+        if run_in:  # a message whose newline was garbled, and an answer after it
+            self._handle_line(text[: run_in - 1], now, acked)
+            text, acked, acks_inside = text[run_in:], False, [a - run_in for a in acks_inside]
+        run_on = _run_on(text) if not text.startswith(">") and ANSWER_NAME in text else 0
+        if run_on:  # an answer whose newline was garbled, and a message after it
+            self._handle_line(text[:run_on], now, acked, acks_inside)
+            text, acked = text[run_on:], False
         reply = replies.classify(text)
         self._last_progress_at = now
         self._status_asked = 0
         hyrel = reply if isinstance(reply, replies.HyrelReport) else None
-        answers = self._answers_in(text)  # first: one cut by a garbled ':' reads ">Hy: ..."
-        if answers:
-            for _ in range(answers):
+        cut_tag, self._cut_tag = self._cut_tag, hyrel is not None and not hyrel.text
+        answers = self._answers_in(text, hyrel)  # first: one cut in two may read ">Hy: ..."
+        if answers or any(part in text for part in _ANSWER_PARTS):
+            # Written apart from the line before: an ACK, or bytes of garbled ones, came
+            # before its name, whole (not a garbled byte of it, nor that line's newline).
+            name_at = _name_at(text)
+            if answers and (name_at > 0 or (name_at == 0 and acked)):
+                self._separated = True
+            if cut_tag:
+                self._separated = False  # ">IN:" and, cut off, the identity it quoted
+            starts = _answer_starts(text, answers)
+            for index in range(answers):  # run together by a garbled newline
+                # Two ACKs between them: written apart (the newline, garbled, is one byte).
+                between = [at for at in acks_inside if starts[index - 1] < at <= starts[index]]
+                if index and len(between) >= 2:
+                    self._separated = True
                 self._answered(reply, text, now)
+            if not answers and ANSWER_NAME in text:  # a quote, or one run into a message
+                self._doubt = self._doubt or bool(self._m115s)  # (a newline garbled)
+            if not answers:
+                self._events.append(ControllerMessage(reply, text))
             return
+        if acked or (hyrel is not None and hyrel.tag != "HY" and hyrel.text):
+            self._separated = True
+            self._fence_asked_at = None
+        elif not self._separated and self._m115s:
+            self._fence_asked_at = None  # a status reply garbled, maybe: ask again at once
         if hyrel is not None and hyrel.tag == "HY":
             self._identity(text, now)
             return
@@ -496,28 +628,43 @@ class HyrelDialect:
         else:
             self._fail(FailureKind.RESET, f"the controller reset (it says: {text})")
 
-    def _answers_in(self, text: str) -> int:
+    def _answers_in(self, text: str, hyrel: replies.HyrelReport | None) -> int:
         """M115 answers in a line, even with a byte garbled: each has its name or its
         version field (both halves of one that a garbled newline cut in two count once;
-        one whose newline was garbled runs into the next line, another answer maybe)."""
-        named = text.count("FIRMWARE_NAME:")
+        one whose newline was garbled runs into the next line, another answer maybe).
+        A message is none, even quoting one (only the second half of one cut in two may
+        read ``>Hy: ...``)."""
+        if hyrel is not None and not _near_hy(hyrel.tag):
+            self._answer_fragment = False
+            return 0
+        named = text.count(ANSWER_NAME)
         versioned = text.count("PROTOCOL_VERSION:")
         answers = max(named, versioned - self._answer_fragment)
         self._answer_fragment = named > versioned
         return answers
 
     def _answered(self, reply: replies.Reply, text: str, now: float) -> None:
-        """An M115 ran, so did every line before it (whatever ACKs were lost on the way)."""
+        """An M115 ran, so did every line before it (whatever ACKs were lost on the way),
+        unless this is the answer before said again."""
+        separated, self._separated = self._separated, False
+        self._fence_asked_at = None
+        m115s = self._m115s
+        if not separated:
+            # Not taken. Should it have been an M115's own, the oldest waits in vain.
+            self._doubt = self._doubt or bool(m115s)
+            return
         if self._stale_answers:
             self._stale_answers -= 1  # an M115's that an abort dropped: it ran before
             return
         if not self._m115s:
             self._events.append(ControllerMessage(reply, text))  # nobody asked
             return
-        m115 = self._m115s.popleft()
+        m115 = m115s.popleft()
         if not m115.host_line:
             self._events.append(ControllerMessage(reply, text))  # the caller's answer
-        if not self._m115s:
+        self._doubt = self._doubt and bool(m115s)  # the next may be the one answered
+        self._answered_seq, self._answered_at = m115.seq, now
+        if not m115s:
             self._sync_sent_at = None
         seq = max(m115.seq, m115.reaches)
         self._learn_rate(seq, now)
@@ -529,7 +676,7 @@ class HyrelDialect:
         in_flight = self._in_flight
         while in_flight and in_flight[0].seq <= seq:
             self.stats.lost_acks += 1
-            self._release(in_flight.popleft())
+            self._release(in_flight.popleft(), now)
 
     def _learn_rate(self, seq: int, now: float) -> None:
         """Lines that run in SYNC_INTERVAL: those confirmed since the answer that last told,
@@ -554,7 +701,22 @@ class HyrelDialect:
                 return
             if sent.word == notice.code and _agrees(notice, sent.command):
                 self._confirm_through(sent.seq)
+                self._ran_before(sent.seq)
                 return
+
+    def _ran_before(self, seq: int) -> None:
+        """The M115s before line ``seq`` ran (its notice came): their answers came before,
+        taken or not. None of them waits any longer."""
+        m115s = self._m115s
+        if not m115s or m115s[0].seq >= seq:
+            return
+        while m115s and m115s[0].seq < seq:
+            self._answered_seq = m115s.popleft().seq
+        self._synced_seq = max(self._synced_seq, self._answered_seq)
+        self._answered_at = self._last_progress_at
+        self._doubt = False
+        if not m115s:
+            self._sync_sent_at = None
 
     def _confirm_through(self, seq: int) -> None:
         """Every line up to ``seq`` ran: commands up to it have their reply."""
@@ -589,6 +751,11 @@ class HyrelDialect:
                 deadline = min(deadline, self._acked_at + SYNC_AFTER)
         if self._sync_sent_at is not None:
             deadline = min(deadline, self._sync_sent_at + SYNC_RETRY)
+        if self._fence_asked_at is not None and self._m115s:
+            deadline = min(deadline, self._fence_asked_at + SEPARATOR_RETRY)
+        answered_at = self._answered_in_vain_from()
+        if answered_at is not None:
+            deadline = min(deadline, answered_at + ANSWER_AT_ONCE)
         return deadline
 
     def handle_timeout(self, now: float) -> None:
@@ -624,10 +791,23 @@ class HyrelDialect:
                 return
             self._status_asked += 1
             self._last_progress_at = now  # the next request after as long again
-            self._outgoing.append(Control.STATUS)
+            self._ask_status()
+        answered_at = self._answered_in_vain_from()
+        if answered_at is not None and now >= answered_at + ANSWER_AT_ONCE:
+            # Right behind one answered, nothing between them, received: it ran at once,
+            # and its answer came then (not taken). It says no more than that one.
+            self._answered_seq = self._m115s.popleft().seq
+            self._synced_seq = max(self._synced_seq, self._answered_seq)
+            self._doubt = False
+            if not self._m115s:
+                self._sync_sent_at = None
+        asked = self._fence_asked_at
+        if asked is not None and now >= asked + SEPARATOR_RETRY and self._m115s:
+            self._fence_asked_at = now  # its reply, or the report it asked for, was lost
+            self._ask_status()
         if self._sync_sent_at is not None and now >= self._sync_sent_at + SYNC_RETRY:
             self._sync_sent_at = None  # its answer was lost, or it waits long: ask again
-            self._stalled = True
+            self._stalled = self._asked_again = True
         if now >= self._last_sent_at + KEEPALIVE and not self._outgoing:
             self._outgoing.append(Control.WATCHDOG)
 
@@ -655,6 +835,52 @@ def _agrees(notice: Notice, command: str) -> bool:
     return all(values.get(letter) == value for letter, value in given.items()) and all(
         given.get(letter) == values[letter] for letter in _NOTICE_VALUES if letter in values
     )
+
+
+def _answer_starts(text: str, answers: int) -> list[int]:
+    """Where each of the ``answers`` answers in ``text`` begins, as far as can be told (by
+    their names, or their version fields); else 0 for each."""
+    for mark in (ANSWER_NAME, "PROTOCOL_VERSION:"):
+        starts = [match.start() for match in re.finditer(re.escape(mark), text)]
+        if len(starts) == answers:
+            return starts
+    return [0] * answers
+
+
+def _name_at(text: str) -> int:
+    """Where an answer's name begins in ``text``, one byte of it garbled or not; -1 if
+    nowhere (one garbled byte leaves its first seven bytes whole, or its last seven)."""
+    at = text.find(ANSWER_NAME[:7])
+    if at < 0:
+        at = text.find(ANSWER_NAME[7:])
+        at = at - 7 if at >= 7 else -1
+    return at
+
+
+def _near_hy(tag: str) -> bool:
+    """Whether a tag reads ``HY`` but for one garbled byte: the second half of an answer
+    cut in two begins with ``>Hy:``."""
+    return tag[0] == "H" or tag[1] == "Y"
+
+
+def _run_in(text: str) -> int:
+    """Where an answer begins that a garbled newline ran into the message before it
+    (``>ST: T:20.0 ...?FIRMWARE_NAME:...``), or 0: a message of its own text first, then
+    one byte (the newline) that no quote puts before a name (a space, a colon)."""
+    at = text.find(ANSWER_NAME, 5)
+    if at < 0 or not text.startswith(">") or text[at - 1] in " :":
+        return 0
+    said = _TAG.sub("", text[: at - 1], count=1)
+    return at if len(said.strip()) > 1 else 0
+
+
+def _run_on(text: str) -> int:
+    """Where a message begins that a garbled newline ran onto the end of an answer
+    (``FIRMWARE_NAME:... HYREL_PROTOCOL:1?>ST: T:20.0 ...``), or 0."""
+    for match in _TAG.finditer(text, 1):
+        if match.group().upper() != ">HY:":
+            return match.start()
+    return 0
 
 
 def _named(text: str) -> int | None:
