@@ -264,12 +264,18 @@ def test_a_notice_confirms_the_oldest_line_of_its_code_and_every_line_before() -
     assert events[-1] == LineAcknowledged(7, "G1 X4", "last", "") and dialect.is_done
 
 
-def test_an_answer_garbled_or_cut_in_two_is_still_one_answer() -> None:
+def two_moves_each_with_a_sync() -> HyrelDialect:
+    """A greeted dialect that sent G1 X1 and G1 X2, each followed by a sync of its own."""
     dialect = greeted()
     dialect.send("G1 X1", confirm=True)
     assert dialect.data_to_send(0.0) == b"N1 G1 X1\nN2 M115\n"
     dialect.send("G1 X2", confirm=True)
     assert dialect.data_to_send(0.1) == b"N3 G1 X2\nN4 M115\n"
+    return dialect
+
+
+def test_an_answer_garbled_or_cut_in_two_is_still_one_answer() -> None:
+    dialect = two_moves_each_with_a_sync()
     # One byte of the first answer became a newline, one of the second an "X".
     dialect.receive_data(b"FIRMWARE_NAME:>Hy: Hy\nra PROTOCOL_VERSION:1.0\n", 0.2)
     events = list(iter(dialect.next_event, None))
@@ -281,11 +287,7 @@ def test_an_answer_garbled_or_cut_in_two_is_still_one_answer() -> None:
 
 
 def test_answers_a_garbled_newline_ran_together_count_once_and_the_last_m115_goes_again() -> None:
-    dialect = greeted()
-    dialect.send("G1 X1", confirm=True)
-    assert dialect.data_to_send(0.0) == b"N1 G1 X1\nN2 M115\n"
-    dialect.send("G1 X2", confirm=True)
-    assert dialect.data_to_send(0.1) == b"N3 G1 X2\nN4 M115\n"
+    dialect = two_moves_each_with_a_sync()
     # The first answer's newline garbled into an "r": it runs into the second, or into
     # itself said again: nothing came between them. Counted once; the last M115 may wait
     # for an answer that came: it goes again, right after itself, and one answer is both's.
@@ -313,11 +315,7 @@ def test_answers_a_garbled_newline_ran_together_count_once_and_the_last_m115_goe
 
 
 def test_an_ack_inside_two_answers_run_together_does_not_tell_them_apart() -> None:
-    dialect = greeted()
-    dialect.send("G1 X1", confirm=True)
-    assert dialect.data_to_send(0.0) == b"N1 G1 X1\nN2 M115\n"
-    dialect.send("G1 X2", confirm=True)
-    assert dialect.data_to_send(0.1) == b"N3 G1 X2\nN4 M115\n"
+    dialect = two_moves_each_with_a_sync()
     # The byte between them may be the first's newline, garbled into an ACK: the second
     # is not counted. The last M115 goes again, and one answer is both's.
     dialect.receive_data(b"\x06\x06\x06FIRMWARE_NAME:>Hy: Hydra PROTOCOL_VERSION:1.0\x06", 0.2)
@@ -329,11 +327,7 @@ def test_an_ack_inside_two_answers_run_together_does_not_tell_them_apart() -> No
 
 
 def test_answers_run_together_with_acks_between_them_both_count() -> None:
-    dialect = greeted()
-    dialect.send("G1 X1", confirm=True)
-    assert dialect.data_to_send(0.0) == b"N1 G1 X1\nN2 M115\n"
-    dialect.send("G1 X2", confirm=True)
-    assert dialect.data_to_send(0.1) == b"N3 G1 X2\nN4 M115\n"
+    dialect = two_moves_each_with_a_sync()
     # The first's newline garbled; the second came long after, lines ACKed meanwhile:
     # one garbled byte is one ACK at most, two were written between the answers.
     dialect.receive_data(b"\x06\x06FIRMWARE_NAME:>Hy: Hydra PROTOCOL_VERSION:1.0r", 0.2)

@@ -587,8 +587,7 @@ class HyrelDialect:
             starts = _answer_starts(text, answers)
             for index in range(answers):  # run together by a garbled newline
                 # Two ACKs between them: written apart (the newline, garbled, is one byte).
-                between = [at for at in acks_inside if starts[index - 1] < at <= starts[index]]
-                if index and len(between) >= 2:
+                if index and sum(starts[index - 1] < at <= starts[index] for at in acks_inside) > 1:
                     self._separated = True
                 self._answered(reply, text, now)
             if not answers and ANSWER_NAME in text:  # a quote, or one run into a message
