@@ -137,3 +137,21 @@ def test_the_octoprint_bench_runs_every_host_exactly_once(tmp_path: Path) -> Non
     for host in ("octoprint", "unbuffered", "buffered"):
         assert f"round 1 {host}: " in result.stdout
     assert result.stdout.count("exactly once") == 3
+
+
+LOOP_DELAY = Path(__file__).parent.parent / "bench" / "loop_delay.py"
+
+
+@pytest.mark.timeout(120)
+def test_loop_delay_bench_reports_each_step_and_every_line_once() -> None:
+    result = subprocess.run(
+        [sys.executable, str(LOOP_DELAY), "--size-mb", "5"],
+        capture_output=True,
+        text=True,
+        timeout=110,
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+    steps = [line.split(":")[0].strip() for line in result.stdout.splitlines()[:4]]
+    assert steps == ["upload long.gcode", "check long.gcode", "upload big.gcode", "check big.gcode"]
+    assert "answers meanwhile: " in result.stdout
+    assert "every line sent once, in order: True" in result.stdout

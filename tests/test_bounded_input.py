@@ -8,6 +8,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import io
+import os
+import signal
 import subprocess
 import sys
 import threading
@@ -21,6 +23,7 @@ import repetrel_host as rh
 from repetrel_host.fakes.fake_controller import BuiltInFake
 from repetrel_host.job import MAX_KEPT_LINE, _raw_lines
 from repetrel_host.planning import PRECHECK_LIMIT
+from repetrel_host.server.workers import in_worker, stop_workers
 from tests.helpers import executed
 from tests.test_server import Server, bench, job_state, servers, wait_for
 
@@ -153,3 +156,54 @@ def test_a_job_is_planned_and_checked_off_the_event_loop(tmp_path: Path) -> None
 
     with BuiltInFake(tmp_path / "fake.log") as fake:
         assert asyncio.run(scenario(fake.port)) > 0  # it was 0: print() held the loop
+
+
+def test_file_work_runs_in_another_process_and_a_dead_worker_is_replaced() -> None:
+    # The server's checks and analyses run here: a thread would share the interpreter's
+    # lock with the event loop (every printer's stream) for as long as a big file takes.
+    try:
+        assert in_worker(os.getpid) != os.getpid()
+        with pytest.raises(rh.JobError, match="the process reading the file ended"):
+            in_worker(os._exit, 3)  # a worker killed (out of memory, kill -9) mid-work
+        assert in_worker(os.getpid) != os.getpid()  # new workers for the next file
+    finally:
+        stop_workers()
+
+
+def _workers_of(pid: int) -> list[int]:
+    """The server's file workers (its children started by multiprocessing's spawn)."""
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        with contextlib.suppress(OSError):
+            parent = int(stat.read_text().rsplit(")", 1)[1].split()[1])
+            command_line = (stat.parent / "cmdline").read_bytes()
+            if parent == pid and b"spawn_main" in command_line:
+                found.append(int(stat.parent.name))
+    return found
+
+
+def _gone(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z"
+    except OSError:
+        return True
+
+
+def test_the_servers_file_workers_are_replaced_when_killed_and_end_with_it(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
+) -> None:
+    server = servers({"idle": bench().port})
+    assert server.process is not None
+    with server.client() as client:
+        first = client.post("/v1/files", files={"file": ("a.gcode", "G28\nG1 X1\n")})
+        assert first.status_code == 201, first.text
+        workers = wait_for(lambda: _workers_of(server.process.pid), what="a file worker")
+        for pid in workers:
+            os.kill(pid, signal.SIGKILL)
+        second = client.post("/v1/files", files={"file": ("b.gcode", "G28\nG1 X1\nG1 X2\n")})
+        assert second.status_code == 201, second.text
+        checked = client.get("/v1/files/b.gcode/check").json()
+        assert (checked["errors"], checked["lines"]) == (0, 3)
+        workers = wait_for(lambda: _workers_of(server.process.pid), what="new file workers")
+    server.stop(signal.SIGKILL)  # no shutdown of its own: the workers see it gone
+    wait_for(lambda: all(_gone(pid) for pid in workers), timeout=10, what="the workers ending")

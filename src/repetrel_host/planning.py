@@ -129,6 +129,10 @@ class JobPlan:
             raise JobError(f"{self.job.path}: holds no G-code command (nothing to send)")
         return findings
 
+    def check_and_count(self) -> tuple[list[Finding], int]:
+        """:meth:`check`, and the number of lines that go on the wire (host codes do not)."""
+        return self.check(), sum(1 for _ in self.job.lines())
+
     def streaming_checker(
         self, warn: Callable[[str], None], force: bool
     ) -> Callable[[int, str], None]:

@@ -3,10 +3,11 @@
 per file, valid while the file's size and time are those it was made from) so that a restart
 reads no file again.
 
-A file is analysed as it is uploaded (in the upload's thread), or as its job starts when it
-never was; a listing that finds a file without one (put there by hand, moved with its folder)
-shows it without and has it analysed in the background, one file at a time, as OctoPrint
-does. Nothing here runs on the event loop but :meth:`Analyses.known` (memory only)."""
+A file is analysed as it is uploaded, or as its job starts when it never was (in a worker
+process, :mod:`~repetrel_host.server.workers`); a listing that finds a file without one (put
+there by hand, moved with its folder) shows it without and has it analysed in the
+background, one file at a time, as OctoPrint does. Nothing here runs on the event loop but
+:meth:`Analyses.known` (memory only)."""
 
 from __future__ import annotations
 
@@ -19,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from repetrel_host.gcode.analysis import Analysis, Summary, analyse
+from repetrel_host.server.workers import in_worker
 
 log = logging.getLogger("repetrel_host.server")
 
@@ -88,7 +90,7 @@ class Analyses:
         """``path`` read once, now (any thread but the event loop's): with ``moves``, its
         summary is kept. :class:`OSError` when it cannot be read."""
         before = stamp(path)
-        found = analyse(path, moves=moves)
+        found = in_worker(analyse, path, moves=moves)
         if found.summary is not None and stamp(path) == before:  # not changed meanwhile
             self.keep(path, found.summary, before)
         return found

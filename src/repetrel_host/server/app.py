@@ -36,6 +36,7 @@ from repetrel_host.server import native
 from repetrel_host.server.auth import RequestGuard
 from repetrel_host.server.core import PrintServer, server_of
 from repetrel_host.server.octoprint import appkeys, rest, socket
+from repetrel_host.server.workers import stop_workers
 
 __all__ = ["PrintServer", "create_app"]
 
@@ -64,6 +65,7 @@ def create_app(server: PrintServer) -> FastAPI:
         finally:
             await server.stop()  # SIGTERM: running jobs stop with their safe stop
             await push.stop()
+            stop_workers()
 
     app = FastAPI(title="repetrel-host print server", version=rh.__version__, lifespan=lifespan)
     app.state.server = server

@@ -38,6 +38,7 @@ from repetrel_host.server.events import EventHub
 from repetrel_host.server.mqtt import MqttSettings
 from repetrel_host.server.printers import PrinterConfig, PrinterService, Refused
 from repetrel_host.server.store import JobRecord, JobState, Store
+from repetrel_host.server.workers import in_worker
 
 if TYPE_CHECKING:
     from repetrel_host.server.farm.node import FarmNode, FarmSettings
@@ -51,6 +52,11 @@ MAX_NAME = 200
 MAX_NAME_BYTES = 240
 _SAFE_MARKS = frozenset("._ ()+-")  # kept in a file name beside letters and digits
 MAX_PATH = 1024
+# An upload goes to disk as it comes, this many bytes at a time: one fsync of a gigabyte at
+# its end would hold up every other fsync on the disk meanwhile, the store's commits on the
+# event loop among them (measured: a SQLite commit waited 110-180 ms behind a 1 GB fsync,
+# under 10 ms behind flushes of 16 MB).
+FLUSH_EVERY = 16 << 20
 T = TypeVar("T")
 _HASHES: dict[tuple[Path, int, int], str] = {}
 
@@ -282,7 +288,7 @@ async def receive(server: PrintServer, upload: UploadFile, partial: Path, digest
     """Write ``upload`` to the new file ``partial`` a megabyte at a time, feeding
     ``digest``; on disk (fsync) before the client hears it is there. Its size; 413 past
     the server's largest upload (the caller removes ``partial``)."""
-    size = 0
+    size = unflushed = 0
     with partial.open("xb") as out:
         while chunk := await upload.read(1 << 20):
             size += len(chunk)
@@ -290,6 +296,11 @@ async def receive(server: PrintServer, upload: UploadFile, partial: Path, digest
                 raise HTTPException(413, f"the upload is over {server.max_upload} bytes")
             out.write(chunk)
             digest.update(chunk)
+            unflushed += len(chunk)
+            if unflushed >= FLUSH_EVERY:
+                out.flush()
+                await asyncio.to_thread(os.fdatasync, out.fileno())
+                unflushed = 0
         out.flush()
         await asyncio.to_thread(os.fsync, out.fileno())
     return size
@@ -298,7 +309,7 @@ async def receive(server: PrintServer, upload: UploadFile, partial: Path, digest
 def _analysed(path: Path) -> Summary | None:
     """The upload's analysis; None (and logged) when it fails: the upload is kept."""
     try:
-        return analyse(path).summary
+        return in_worker(analyse, path).summary
     except Exception:
         log.exception("the analysis of the upload %s failed", path.name)
         return None
@@ -420,10 +431,9 @@ def file_changed(
 def check(server: PrintServer, printer: str, path: Path) -> tuple[list[str], int]:
     """The job lint's findings (``error: file:line: ...``) and the number of lines to send."""
     try:
-        plan, findings = server.services[printer].check(path)
+        _, findings, commands = server.services[printer].check(path)
     except rh.HostError as exc:  # named by the file's name, not its place on the server
         return [f"error: {str(exc).replace(str(path), path.name)}"], 0
-    commands = sum(1 for _ in plan.job.lines())  # what goes on the wire: host codes do not
     return [f"{f.severity}: {path.name}:{f.line}: {f.message}" for f in findings], commands
 
 

@@ -42,6 +42,7 @@ from repetrel_host.planning import (
 from repetrel_host.server.analyses import Analyses
 from repetrel_host.server.events import Event
 from repetrel_host.server.store import PROGRESS_INTERVAL, JobQueue, JobRecord, JobState, Store
+from repetrel_host.server.workers import in_worker
 
 log = logging.getLogger("repetrel_host.server")
 
@@ -591,15 +592,16 @@ class PrinterService:
         printer = self.printer
         return plan_job(path, self.request, self.user, printer.firmware if printer else None)
 
-    def check(self, path: Path) -> tuple[JobPlan, list[Finding]]:
-        """The job lint for this printer (any thread); a file with no errors is remembered as
-        checked, so that its job starts without a second pass."""
+    def check(self, path: Path) -> tuple[JobPlan, list[Finding], int]:
+        """The job lint for this printer, and the lines the job sends (any thread but the
+        event loop's: a worker process reads the file). A file with no errors is remembered
+        as checked, so that its job starts without a second pass."""
         plan = self.plan(path)
         before = _fingerprint(plan)
-        findings = plan.check()
+        findings, lines = in_worker(plan.check_and_count)
         if not any(f.severity is Severity.ERROR for f in findings):
             self._checked[path] = before
-        return plan, findings
+        return plan, findings, lines
 
     def was_checked(self, path: Path) -> bool:
         """``path``, as it is now, passed this printer's check already (any thread)."""

@@ -29,6 +29,7 @@ from repetrel_host.server.auth import user_of
 from repetrel_host.server.core import PrintServer, receive, safe_file_name, server_of
 from repetrel_host.server.farm import needs
 from repetrel_host.server.farm.node import FILE_TIMEOUT, TIMEOUT, FarmNode
+from repetrel_host.server.workers import in_worker
 
 log = logging.getLogger("repetrel_host.server.farm")
 
@@ -127,7 +128,7 @@ def _plan_elsewhere(path: Path, printer: dict[str, Any], user: UserConfig) -> An
             loadout.write_text(loadout_text)
         try:
             plan = plan_job(path, JobRequest(loadout, printer["caps"].get("machine")), user)
-            return plan, plan.check()
+            return plan, *in_worker(plan.check_and_count)
         except rh.HostError:
             return None
 
@@ -170,15 +171,14 @@ def eligibility(
         if checked is None:
             eligible.append(key)  # checked again by the node that claims it
             continue
-        plan, findings = checked
+        _, findings, lines = checked
         errors = [f.format(name) for f in findings if f.severity is Severity.ERROR]
         if errors:
             why_not[key] = "; ".join(errors[:2])
             continue
         eligible.append(key)
         warnings += [f.format(name) for f in findings if f.severity is not Severity.ERROR]
-        if not commands:
-            commands = sum(1 for _ in plan.job.lines())
+        commands = lines
     return eligible, why_not, sorted(set(warnings)), commands
 
 

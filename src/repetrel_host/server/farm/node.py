@@ -392,7 +392,7 @@ class FarmNode:
             errors: list[str] = []
             try:  # a file this printer passed before (another copy) is not read again
                 if not await asyncio.to_thread(service.was_checked, path):
-                    _, findings = await asyncio.to_thread(service.check, path)
+                    _, findings, _ = await asyncio.to_thread(service.check, path)
                     errors = [
                         f.format(record.name) for f in findings if f.severity is Severity.ERROR
                     ]
