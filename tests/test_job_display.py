@@ -12,7 +12,7 @@ from pathlib import Path
 import pexpect
 import pytest
 
-from repetrel_host.gcode.marks import scan_marks
+from repetrel_host.gcode.analysis import scan_marks
 from tests.helpers import CONE, executed, job_commands
 from tests.terminal import Screen
 

@@ -1,9 +1,11 @@
-"""The house's floors: what each part of the package may import (see ../shared/DESIGN.md),
-read from the source, and the old import paths that still work."""
+"""The house's floors, read from the source: what each part of the package may import, and
+no import circle among its modules (type-only and late imports count: a circle of types is
+one too)."""
 
 from __future__ import annotations
 
 import ast
+import graphlib
 from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parent.parent / "src" / "repetrel_host"
@@ -51,12 +53,35 @@ def test_only_the_plugin_imports_pytest() -> None:
     assert users == []
 
 
-def test_the_old_import_paths_still_work() -> None:
-    from repetrel_host.fakes.fake_controller import BuiltInFake
-    from repetrel_host.fakes.simulator import ControllerSimulator
-    from repetrel_host.pytest_plugin import HyrelPrinter
-    from repetrel_host.testing.fake_controller import BuiltInFake as OldFake
-    from repetrel_host.testing.pytest_plugin import HyrelPrinter as OldPrinter
-    from repetrel_host.testing.simulator import ControllerSimulator as OldSimulator
+def _module_name(path: Path) -> str:
+    parts = path.relative_to(PACKAGE.parent).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
-    assert (OldFake, OldSimulator, OldPrinter) == (BuiltInFake, ControllerSimulator, HyrelPrinter)
+
+def _imported_modules(path: Path, known: set[str]) -> set[str]:
+    """The package's modules that ``path`` imports, anywhere in it (relative ones too)."""
+    name = _module_name(path)
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            found.update(alias.name for alias in node.names if alias.name in known)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                up = package.split(".")[: len(package.split(".")) - node.level + 1]
+                base = ".".join([*up, base] if base else up)
+            for alias in node.names:
+                member = f"{base}.{alias.name}"
+                found.add(member if member in known else base)
+    return (found & known) - {name}
+
+
+def test_no_module_imports_one_that_imports_it_back() -> None:
+    paths = sorted(PACKAGE.rglob("*.py"))
+    known = {_module_name(path) for path in paths}
+    graph = {_module_name(path): _imported_modules(path, known) for path in paths}
+    try:
+        graphlib.TopologicalSorter(graph).prepare()
+    except graphlib.CycleError as exc:
+        raise AssertionError(f"an import circle: {' -> '.join(exc.args[1])}") from None

@@ -5,7 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from repetrel_host.gcode import analysis
-from repetrel_host.gcode.marks import Layer, scan_marks
+from repetrel_host.gcode.analysis import scan_marks
+from repetrel_host.gcode.marks import Layer
 from repetrel_host.job import Job
 
 DATA = Path(__file__).parent / "data"
@@ -82,7 +83,7 @@ def test_until_line_reads_no_further_than_needed(tmp_path: Path, monkeypatch) ->
 
 
 def test_the_slicers_estimate_is_read_from_the_files_ends(tmp_path: Path) -> None:
-    from repetrel_host.gcode.marks import slicer_estimate
+    from repetrel_host.gcode.analysis import slicer_estimate
 
     body = "".join(f"G1 X{i % 100} Y1 F3000\n" for i in range(20000))  # 400 KB between
     prusa = tmp_path / "prusa.gcode"

@@ -1,4 +1,4 @@
-"""Reply classification (PROTOCOL-NOTES.md sections 1, 2 and 4)."""
+"""Reply classification (docs/protocol.md and docs/hyrel-link.md)."""
 
 import pytest
 

@@ -13,7 +13,7 @@ from repetrel_host.config import load_user_config
 from repetrel_host.errors import UsageError
 from repetrel_host.fakes.fake_controller import BuiltInFake
 from repetrel_host.fakes.hyrel_simulator import RX_BUFFER
-from repetrel_host.gcode.marks import scan_marks
+from repetrel_host.gcode.analysis import scan_marks
 from repetrel_host.job import Job, JobLine
 from repetrel_host.planning import JobRequest, plan_job, resumed
 from repetrel_host.protocol.dialects.hyrel import SYNC_EVERY

@@ -24,7 +24,6 @@ WITHOUT_EXTRAS = {
     "repetrel_host.server.farm.db": "No module named 'psycopg'",
     "repetrel_host.server.farm.node": "No module named 'psycopg'",
     "repetrel_host.pytest_plugin": "needs pytest: pip install 'repetrel-host[hil]'",
-    "repetrel_host.testing.pytest_plugin": "needs pytest: pip install 'repetrel-host[hil]'",
 }
 
 IMPORT_ALL = """

@@ -43,8 +43,8 @@ from repetrel_host.errors import (
     UsageError,
 )
 from repetrel_host.events import Message, Notice, Paused, PauseReason, Resend, State, StopDelayed
+from repetrel_host.gcode.analysis import scan_marks, slicer_estimate
 from repetrel_host.gcode.lint import Finding, Severity
-from repetrel_host.gcode.marks import scan_marks, slicer_estimate
 from repetrel_host.job import HostAction
 from repetrel_host.links import FAKE_PORT, FakeLink
 from repetrel_host.planning import (

@@ -22,7 +22,8 @@ from rich.console import RenderableType
 from rich.progress import Progress, ProgressColumn, Task
 from rich.text import Text
 
-from repetrel_host.gcode.marks import Position, SlicerMarks, scan_marks
+from repetrel_host.gcode.analysis import scan_marks
+from repetrel_host.gcode.marks import Position, SlicerMarks
 from repetrel_host.protocol.reports import format_temperatures
 
 if TYPE_CHECKING:

@@ -25,9 +25,9 @@ from repetrel_host.config import (
 )
 from repetrel_host.errors import ConfigError, JobError, UsageError
 from repetrel_host.gcode import addressing
+from repetrel_host.gcode.analysis import scan_marks
 from repetrel_host.gcode.header import header_commands, safe_stop_commands, safe_stop_for_either
 from repetrel_host.gcode.lint import Finding, Linter, Severity
-from repetrel_host.gcode.marks import scan_marks
 from repetrel_host.job import Job, JobItem, JobLine
 from repetrel_host.links import FAKE_PORT
 from repetrel_host.ports import AUTO_PORT

@@ -33,12 +33,9 @@ import shlex
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from enum import StrEnum
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 from repetrel_host.gcode.commands import command_word
-
-if TYPE_CHECKING:
-    from repetrel_host.session import PrintJob
 
 RESUME_SOURCE = "resume"  # JobLine.source of the preamble's lines
 LIFT = 10.0  # mm above the highest Z of the skipped part (the safe stop lifts 10 mm too)
@@ -359,7 +356,21 @@ def _n(value: float) -> str:
     return "0" if text in ("", "-0") else text
 
 
-def resume_from(job: PrintJob, arguments: tuple[str, ...]) -> tuple[str, str] | None:
+class EndedJob(Protocol):
+    """What a job that did not complete says of where it stopped (the session's
+    :class:`~repetrel_host.session.PrintJob`)."""
+
+    @property
+    def resume_line(self) -> int | None: ...
+
+    @property
+    def resume_known_to_run(self) -> bool: ...
+
+    @property
+    def sent_through(self) -> int | None: ...
+
+
+def resume_from(job: EndedJob, arguments: tuple[str, ...]) -> tuple[str, str] | None:
     """Where a job that did not complete goes on, as hyrel-send and the console say it:
     which first line (``not acknowledged``, or ``not known to have run``) and the command
     from it; None where none of it ran."""
@@ -370,7 +381,7 @@ def resume_from(job: PrintJob, arguments: tuple[str, ...]) -> tuple[str, str] | 
     return after, resume_command(arguments, line)
 
 
-def resume_window(job: PrintJob, arguments: tuple[str, ...]) -> str | None:
+def resume_window(job: EndedJob, arguments: tuple[str, ...]) -> str | None:
     """After :func:`resume_from`'s line, what is not sure: lines sent and not confirmed when
     the job ended (a lost link takes their oks with it), some of which may have run; the
     sentence says which command repeats them and which skips them. None when none were."""

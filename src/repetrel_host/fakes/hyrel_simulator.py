@@ -1,4 +1,4 @@
-"""The simulated controller speaking Hyrel's own link (PROTOCOL-NOTES.md §4).
+"""The simulated controller speaking Hyrel's own link (docs/hyrel-link.md).
 
 The machine is :class:`ControllerSimulator`'s (receive buffer, command slots, planner,
 heaters, faults); the link is Hyrel's:

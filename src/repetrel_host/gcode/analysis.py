@@ -659,3 +659,35 @@ def _with_z(layer: Layer, z_changes: list[tuple[int, float]]) -> Layer:
     if index < len(z_changes):
         return Layer(layer.number, layer.line, z_changes[index][1])
     return Layer(layer.number, layer.line, z_changes[-1][1] if z_changes else None)
+
+
+def scan_marks(path: Path, until_line: int | None = None) -> SlicerMarks:
+    """The slicer's marks in ``path`` (none for an unreadable file); ``until_line``: read
+    no further than the piece holding that line (what a resume needs of a big file)."""
+    try:
+        return analyse(path, until_line, moves=False).marks
+    except OSError:
+        return SlicerMarks()
+
+
+def slicer_estimate(path: Path, span: int = 1 << 16) -> float | None:
+    """The slicer's estimate of the whole print in seconds, from the file's first and last
+    ``span`` bytes, where slicers write it (Cura's ``;TIME:`` and PrusaSlicer's first
+    ``M73 R`` at the top, PrusaSlicer's "estimated printing time" at the end); None where
+    the file gives none. Cheap for any size of file."""
+    try:
+        with path.open("rb") as handle:
+            head = handle.read(span)
+            size = handle.seek(0, 2)
+            handle.seek(max(size - span, len(head)))
+            tail = handle.read()
+    except OSError:
+        return None
+    if size > len(head) + len(tail):  # a gap between them: whole lines on both sides
+        head = head[: head.rfind(b"\n") + 1]
+        tail = tail[tail.find(b"\n") + 1 :]
+    marks = scan(iter([head, tail]), None, False).marks
+    if marks.total_seconds is not None:
+        return marks.total_seconds
+    first = next((left for _, _, left in marks.progress if left is not None), None)
+    return first * 60 if first is not None else None  # M73 R: minutes left at the start

@@ -7,7 +7,7 @@ import re
 _WORD = re.compile(r"([A-Za-z])\s*(\d+)(\.\d+)?")
 
 # Commands a controller acknowledges only after its motion queue drained and
-# the command finished (reprap-gcode-protocol.txt; PROTOCOL-NOTES.md section 1).
+# the command finished (docs/protocol.md, "Numbered lines").
 # Their long waits are not communication failures.
 UNBUFFERED = frozenset(
     {

@@ -25,7 +25,6 @@ from __future__ import annotations
 from bisect import bisect_right
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import TypeVar
 
 T = TypeVar("T")
@@ -87,40 +86,3 @@ class SlicerMarks:
 def _last_at(items: list[T], line: int, key: Callable[[T], int]) -> T | None:
     index = bisect_right(items, line, key=key)
     return items[index - 1] if index else None
-
-
-def scan_marks(path: Path, until_line: int | None = None) -> SlicerMarks:
-    """The slicer's marks in ``path`` (none for an unreadable file); ``until_line``: read
-    no further than the piece holding that line (what a resume needs of a big file)."""
-    # The one pass over a file is analysis's (which builds on this module's types).
-    from repetrel_host.gcode.analysis import analyse
-
-    try:
-        return analyse(path, until_line, moves=False).marks
-    except OSError:
-        return SlicerMarks()
-
-
-def slicer_estimate(path: Path, span: int = 1 << 16) -> float | None:
-    """The slicer's estimate of the whole print in seconds, from the file's first and last
-    ``span`` bytes, where slicers write it (Cura's ``;TIME:`` and PrusaSlicer's first
-    ``M73 R`` at the top, PrusaSlicer's "estimated printing time" at the end); None where
-    the file gives none. Cheap for any size of file."""
-    from repetrel_host.gcode.analysis import scan
-
-    try:
-        with path.open("rb") as handle:
-            head = handle.read(span)
-            size = handle.seek(0, 2)
-            handle.seek(max(size - span, len(head)))
-            tail = handle.read()
-    except OSError:
-        return None
-    if size > len(head) + len(tail):  # a gap between them: whole lines on both sides
-        head = head[: head.rfind(b"\n") + 1]
-        tail = tail[tail.find(b"\n") + 1 :]
-    marks = scan(iter([head, tail]), None, False).marks
-    if marks.total_seconds is not None:
-        return marks.total_seconds
-    first = next((left for _, _, left in marks.progress if left is not None), None)
-    return first * 60 if first is not None else None  # M73 R: minutes left at the start

@@ -1,6 +1,6 @@
 """The controller side of the line protocol: check a received line, answer errors.
 
-Marlin's rules and reply strings (PROTOCOL-NOTES.md section 2): a numbered line
+Marlin's rules and reply strings (docs/protocol.md, "Marlin's replies"): a numbered line
 must be the last number plus one (except M110, which sets it), and must carry
 a matching checksum; otherwise the controller answers ``Error:...``,
 ``Resend: <last + 1>`` and ``ok``, and executes nothing.

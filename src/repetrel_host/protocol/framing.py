@@ -34,7 +34,7 @@ def reset_command(number: int) -> str:
     """The M110 command that sets the controller's line number to ``number``.
 
     Marlin reads the second N of ``N<k> M110 N<k>``, Repetier the first: giving
-    both the same value makes them agree (PROTOCOL-NOTES.md section 1).
+    both the same value makes them agree (docs/protocol.md, "Numbered lines").
     """
     return f"M110 N{number}"
 

@@ -1,4 +1,4 @@
-"""Hyrel's own controller link, both sides of the wire: pure, no I/O (PROTOCOL-NOTES.md §4).
+"""Hyrel's own controller link, both sides of the wire: pure, no I/O (docs/hyrel-link.md).
 
 What the notes give (from a public port of the Hyrel "Hydra" firmware; Repetrel itself is
 closed): every line the controller receives earns one ACK byte (0x06) while its receive

@@ -1,7 +1,7 @@
 """Classify one line received from a controller.
 
-Reply strings are Marlin's and RepRap's (PROTOCOL-NOTES.md sections 1-2), plus
-Hyrel's tagged lines (section 4).
+Reply strings are Marlin's and RepRap's (docs/protocol.md), plus Hyrel's tagged lines
+(docs/hyrel-link.md).
 """
 
 from __future__ import annotations

@@ -39,9 +39,7 @@ from repetrel_host.pytest_plugin.facade import (
     AsyncHyrelPrinter,
     AsyncRunningJob,
     HyrelController,
-    HyrelJob,
     HyrelPrinter,
-    PrintResult,
     RunningJob,
 )
 from repetrel_host.pytest_plugin.fixtures import (
@@ -52,6 +50,7 @@ from repetrel_host.pytest_plugin.fixtures import (
     hyrel_options,
     hyrel_printer,
 )
+from repetrel_host.pytest_plugin.jobs import HyrelJob, PrintResult
 from repetrel_host.pytest_plugin.options import (
     HyrelOptions,
     pytest_addoption,

@@ -2,19 +2,16 @@
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
-import threading
 import time
 from collections import deque
-from collections.abc import AsyncIterator, Awaitable, Callable, Coroutine, Iterator
-from dataclasses import dataclass
-from functools import cached_property
-from itertools import islice
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
 import pytest
+
+from repetrel_host.pytest_plugin.jobs import HyrelJob, PrintResult, as_job
 
 if TYPE_CHECKING:
     import repetrel_host as rh
@@ -23,115 +20,6 @@ if TYPE_CHECKING:
     from repetrel_host.pytest_plugin.teardown import PluginSession
 
 T = TypeVar("T")
-
-
-class Portal:
-    """An event loop in its own thread, which the session lives on, so that plain
-    synchronous tests can use it and async tests on any loop can await it."""
-
-    def __init__(self) -> None:
-        self.loop = asyncio.new_event_loop()
-        self._thread = threading.Thread(
-            target=self.loop.run_forever, name="hyrel-session", daemon=True
-        )
-        self._thread.start()
-
-    def call(self, coroutine: Coroutine[Any, Any, T], timeout: float | None = None) -> T:
-        """Run ``coroutine`` on the portal's loop and wait for its result."""
-        future = asyncio.run_coroutine_threadsafe(coroutine, self.loop)
-        try:
-            return future.result(timeout)
-        except BaseException:  # a timeout, Ctrl-C: it stops there too
-            future.cancel()
-            raise
-
-    async def acall(self, coroutine: Coroutine[Any, Any, T]) -> T:
-        """The same, awaited from another event loop."""
-        return await asyncio.wrap_future(asyncio.run_coroutine_threadsafe(coroutine, self.loop))
-
-    def close(self) -> None:
-        async def cancel_the_rest() -> None:
-            tasks = [t for t in asyncio.all_tasks() if t is not asyncio.current_task()]
-            for task in tasks:
-                task.cancel()
-            await asyncio.gather(*tasks, return_exceptions=True)
-
-        with contextlib.suppress(Exception):
-            self.call(cancel_the_rest(), 10)
-        self.loop.call_soon_threadsafe(self.loop.stop)
-        self._thread.join(10)
-        if not self._thread.is_alive():
-            self.loop.close()
-
-
-# --- jobs -------------------------------------------------------------------------
-
-
-FILE_SUFFIXES = (".gcode", ".gco", ".g", ".nc")
-
-
-@dataclass(frozen=True)
-class HyrelJob:
-    """A job for :meth:`HyrelPrinter.print`: a G-code file, with the loadout's header or not."""
-
-    path: Path
-    header: bool = True
-    history: Path | None = None  # where the stream as transmitted is kept
-
-
-def as_job(job: HyrelJob | Path | str) -> HyrelJob:
-    if isinstance(job, HyrelJob):
-        return job
-    if isinstance(job, str) and "\n" in job:
-        raise ValueError(
-            "print() takes hyrel_job(...) or a file's path; for G-code text, use hyrel_job(text)"
-        )
-    return HyrelJob(Path(job))
-
-
-class PrintResult:
-    """How a job went: which of its lines the controller acknowledged, and how it ended."""
-
-    def __init__(
-        self,
-        job: HyrelJob,
-        running: rh.PrintJob,
-        summary: rh.Summary | None,
-        error: rh.HostError | None,
-    ) -> None:
-        self.job = job
-        self.summary = summary  # None when it failed
-        self.error = error
-        plan = running.plan
-        self.header = [line.command for line in plan.header]  # the header it was sent with
-        self.header_acknowledged = self.header[: running.header_lines]
-        last = running.last
-        self.last_line = last.source_line if last is not None else 0  # file line; 0: none
-        # Safe-stop commands not confirmed, when the job was stopped.
-        self.safe_stop_missing = running.safe_stop_missing if running.stopping else []
-        self._file = plan.job  # read with the machine's own pause command for M0
-        self._count = running.lines
-
-    @property
-    def completed(self) -> bool:
-        """Every line was acknowledged and the job was not cancelled."""
-        from repetrel_host.pump import Outcome
-
-        return self.summary is not None and self.summary.outcome is Outcome.COMPLETED
-
-    @cached_property
-    def commands(self) -> list[str]:
-        """The job's lines as sent (an M0 becomes the machine's pause command)."""
-        return [line.command for line in self._file.lines()]
-
-    @cached_property
-    def acknowledged(self) -> list[str]:
-        """Those the controller acknowledged, in order (they go and are confirmed in order)."""
-        return [line.command for line in islice(self._file.lines(), self._count)]
-
-    def __repr__(self) -> str:
-        how = "completed" if self.completed else f"ended ({self.error or 'cancelled'})"
-        return f"<PrintResult {self.job.path.name}: {how}; {self._count} lines acknowledged>"
 
 
 class HyrelPrinter:

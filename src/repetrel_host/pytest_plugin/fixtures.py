@@ -13,20 +13,15 @@ from typing import Literal, TypeVar
 
 import pytest
 
-from repetrel_host.pytest_plugin.facade import (
-    FILE_SUFFIXES,
-    AsyncHyrelPrinter,
-    HyrelController,
-    HyrelJob,
-    HyrelPrinter,
-    Portal,
-)
+from repetrel_host.pytest_plugin.facade import AsyncHyrelPrinter, HyrelController, HyrelPrinter
+from repetrel_host.pytest_plugin.jobs import FILE_SUFFIXES, HyrelJob
 from repetrel_host.pytest_plugin.options import (
     HyrelOptions,
     link_for,
     plugin_options,
     wanted_machines,
 )
+from repetrel_host.pytest_plugin.portal import Portal
 from repetrel_host.pytest_plugin.report import (
     MARK_KEY,
     RECORDER_KEY,

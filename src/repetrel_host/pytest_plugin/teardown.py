@@ -13,7 +13,8 @@ if TYPE_CHECKING:
     from repetrel_host.events import PrinterEvent
     from repetrel_host.pytest_plugin.report import WireRecorder
 
-from repetrel_host.pytest_plugin.facade import HyrelJob, Portal, PrintResult
+from repetrel_host.pytest_plugin.jobs import HyrelJob, PrintResult
+from repetrel_host.pytest_plugin.portal import Portal
 
 
 class PluginSession:

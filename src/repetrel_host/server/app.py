@@ -10,6 +10,7 @@ PrusaSlicer's ``OctoPrint.cpp`` uses it; Moonraker's queue endpoints.
 
 from __future__ import annotations
 
+import asyncio
 import functools
 import re
 from collections.abc import AsyncIterator
@@ -35,6 +36,7 @@ import repetrel_host as rh
 from repetrel_host.server import native
 from repetrel_host.server.auth import RequestGuard
 from repetrel_host.server.core import PrintServer, server_of
+from repetrel_host.server.mqtt import MqttBridge, MqttSettings
 from repetrel_host.server.octoprint import appkeys, rest, socket
 from repetrel_host.server.workers import stop_workers
 
@@ -53,17 +55,26 @@ def _long_part_headers() -> None:
         module.MultipartParser = functools.partial(module.MultipartParser, max_header_size=1 << 16)
 
 
-def create_app(server: PrintServer) -> FastAPI:
+def create_app(server: PrintServer, mqtt: MqttSettings | None = None) -> FastAPI:
+    """The app of ``server``: its APIs and page; with ``mqtt``, its bridge to that broker."""
     _long_part_headers()
     push = socket.Push(server)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         await server.start()
+        bridge = None
+        if mqtt is not None:
+            bridge = asyncio.create_task(MqttBridge(server, mqtt).run(), name="mqtt")
         try:
             yield
         finally:
             await server.stop()  # SIGTERM: running jobs stop with their safe stop
+            if bridge is not None:  # after the printers: their last events go out
+                await asyncio.sleep(0.2)
+                bridge.cancel()
+                await asyncio.gather(bridge, return_exceptions=True)
+            server.close()
             await push.stop()
             stop_workers()
 

@@ -25,9 +25,8 @@ from fastapi import (
 
 import repetrel_host as rh
 from repetrel_host.config import UserConfig
-from repetrel_host.gcode.analysis import Analysis, Summary, analyse
+from repetrel_host.gcode.analysis import Analysis, Summary, analyse, scan_marks
 from repetrel_host.gcode.layer_moves import layer_moves
-from repetrel_host.gcode.marks import scan_marks
 from repetrel_host.gcode.thumbnails import ThumbnailError
 from repetrel_host.gcode.thumbnails import read as read_thumbnail
 from repetrel_host.planning import layer_line
@@ -35,7 +34,6 @@ from repetrel_host.resume import resume_command
 from repetrel_host.server.access import Access
 from repetrel_host.server.analyses import Analyses, Stamp, describe, stamp
 from repetrel_host.server.events import EventHub
-from repetrel_host.server.mqtt import MqttSettings
 from repetrel_host.server.printers import PrinterConfig, PrinterService, Refused
 from repetrel_host.server.store import JobRecord, JobState, Store
 from repetrel_host.server.workers import in_worker
@@ -71,7 +69,6 @@ class PrintServer:
         api_key: str,
         max_upload: int,
         user: UserConfig | None = None,
-        mqtt: MqttSettings | None = None,
         automatic_transition: bool = False,
         public_read: bool = False,
         presets: dict[str, dict[str, float | None]] | None = None,
@@ -86,8 +83,6 @@ class PrintServer:
         self.user = user or UserConfig()
         self.store = Store(data_dir / "jobs.sqlite")
         self.events = EventHub()
-        self.mqtt = mqtt
-        self._bridge: asyncio.Task[None] | None = None
         self._uuids: dict[str, str] | None = None  # printer_uuid's, once read
         # Each file's analysis, kept in the data folder (made at its upload).
         self.analyses = Analyses(data_dir / "analysis", data_dir)
@@ -142,20 +137,15 @@ class PrintServer:
             service.start()
         if self.farm is not None:
             await self.farm.start()
-        if self.mqtt is not None:
-            from repetrel_host.server.mqtt import MqttBridge
-
-            bridge = MqttBridge(self, self.mqtt)
-            self._bridge = asyncio.get_running_loop().create_task(bridge.run(), name="mqtt")
 
     async def stop(self) -> None:
+        """Every printer stopped (a running job with its safe stop), then the farm's part;
+        the store stays open for what reports their ends (:meth:`close` after)."""
         await asyncio.gather(*(service.stop() for service in self.services.values()))
         if self.farm is not None:  # after the printers: their jobs' ends are reported
             await self.farm.stop()
-        if self._bridge is not None:  # after the printers: their last events go out
-            await asyncio.sleep(0.2)
-            self._bridge.cancel()
-            await asyncio.gather(self._bridge, return_exceptions=True)
+
+    def close(self) -> None:
         self.store.close()
 
     def printer_uuid(self, name: str) -> str:

@@ -408,7 +408,6 @@ def serve(
         printers,
         key,
         settings.max_upload_mb * 1024 * 1024,
-        mqtt=_mqtt(settings),
         automatic_transition=settings.automatic_transition,
         public_read=settings.public_read,
         presets={name: p.model_dump() for name, p in settings.presets.items()},
@@ -423,7 +422,7 @@ def serve(
     # spot, heaters on: it stops as SIGTERM does, with the printers' safe stop.
     signal.signal(signal.SIGHUP, lambda *_: signal.raise_signal(signal.SIGTERM))
     uvicorn.run(
-        create_app(server),
+        create_app(server, _mqtt(settings)),
         host=host,
         port=port,
         log_level="info",

@@ -26,16 +26,14 @@ import contextlib
 import json
 import logging
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import aiomqtt
 
+from repetrel_host.server.events import Event, EventHub
 from repetrel_host.server.homeassistant import DEFAULT_PREFIX, Discovery
-from repetrel_host.server.printers import Refused
-
-if TYPE_CHECKING:
-    from repetrel_host.server.core import PrintServer
-    from repetrel_host.server.events import Event
+from repetrel_host.server.printers import PrinterService, Refused
+from repetrel_host.server.store import Store
 
 log = logging.getLogger("repetrel_host.server")
 
@@ -64,10 +62,21 @@ class MqttSettings:
     discovery_prefix: str | None = DEFAULT_PREFIX  # Home Assistant's; None: no discovery
 
 
+class Served(Protocol):
+    """What the bridge reads of the print server (the app's
+    :class:`~repetrel_host.server.core.PrintServer`, whose lifespan starts the bridge)."""
+
+    events: EventHub
+    services: dict[str, PrinterService]
+    store: Store
+
+    def printer_uuid(self, name: str) -> str: ...
+
+
 class MqttBridge:
     """Publishes the server's events to a broker; takes commands when allowed."""
 
-    def __init__(self, server: PrintServer, settings: MqttSettings) -> None:
+    def __init__(self, server: Served, settings: MqttSettings) -> None:
         self.server = server
         self.settings = settings
         self.prefix = settings.prefix.rstrip("/")

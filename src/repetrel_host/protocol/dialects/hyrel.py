@@ -1,6 +1,6 @@
 """Hyrel's own link, the host's side: ACK credit, control bytes, tagged messages (sans-IO).
 
-PROTOCOL-NOTES.md §4. The controller answers every line it receives with one ACK byte
+docs/hyrel-link.md. The controller answers every line it receives with one ACK byte
 while its receive buffer has headroom: the window is credit, counted in lines and bytes
 as the RepRap dialect counts them, and each ACK releases the oldest line on the wire.
 There is no resend: a line the controller refuses (its checksum) cannot be sent again in

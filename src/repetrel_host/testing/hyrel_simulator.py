@@ -1,3 +1,0 @@
-"""Moved to :mod:`repetrel_host.fakes.hyrel_simulator`; this name still works."""
-
-from repetrel_host.fakes.hyrel_simulator import *  # noqa: F403
