@@ -39,7 +39,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 import httpx  # noqa: E402
-from tests.pg import PASSWORD, Postgres  # noqa: E402
+from tests.support.pg import PASSWORD, Postgres  # noqa: E402
 
 from repetrel_host.fakes.fake_controller import BuiltInFake  # noqa: E402
 from repetrel_host.server.farm import needs  # noqa: E402

@@ -30,8 +30,8 @@ import httpx
 
 sys.path.insert(0, str(Path(__file__).parent.parent))
 
-from tests.helpers import executed
-from tests.test_server import KEY, Server
+from tests.support.helpers import executed
+from tests.support.server import KEY, Server
 
 from repetrel_host.fakes.fake_controller import BuiltInFake
 

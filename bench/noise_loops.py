@@ -3,7 +3,7 @@
     python bench/noise_loops.py                 # 1,600 random jobs (four seeds of 400)
     python bench/noise_loops.py --jobs 400 --seed 1000
 
-Each job is drawn as the property test in tests/test_loopback.py draws them: up to 150
+Each job is drawn as the property test in tests/protocol/test_loopback.py draws them: up to 150
 commands, either flow mode, each fault at 0, 1, 5 or 15 %, Marlin's flush, duplicate drop
 and missing ok switched at random, a receive buffer of 40-256 bytes, renumbering every 5-500
 lines. Printed: how many jobs did not run exactly once to a confirmed end (the host stops

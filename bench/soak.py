@@ -12,7 +12,7 @@ duplicated, 0.5 % spurious resend requests, on a link with ``--latency`` each wa
 On Hyrel's own link (``--protocol hyrel``; its 8 KB buffer, the window its 2 KB headroom)
 the noise is what that link can survive: 2 % of ACK bytes lost, 1 % of replies garbled
 (ACKs, answers and notices among them). A line corrupted on its way has no resend there:
-the job stops, naming it (tests/test_hyrel_dialect.py); it is no part of a soak.
+the job stops, naming it (tests/protocol/test_hyrel_dialect.py); it is no part of a soak.
 
 - ``memory`` runs the host core against the simulated controller on simulated time:
   the stall figure is exact and the run is deterministic (same seed, same numbers).

@@ -2,10 +2,17 @@ from pathlib import Path
 
 import pytest
 
-from tests.helpers import CONE, job_commands
+from tests.support.helpers import CONE, job_commands
 
-# pytester: the plugin's own tests; the page's fixtures; the farm's PostgreSQL.
-pytest_plugins = ["pytester", "tests.page", "tests.pg"]
+# pytester: the plugin's own tests; a server and its fakes; the page's fixtures; the farm's
+# PostgreSQL and nodes.
+pytest_plugins = [
+    "pytester",
+    "tests.support.server",
+    "tests.support.page",
+    "tests.support.pg",
+    "tests.support.farm",
+]
 
 
 @pytest.fixture(scope="session")

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.pg import needs_postgres
+from tests.support.pg import needs_postgres
 
 SOAK = Path(__file__).parent.parent / "bench" / "soak.py"
 

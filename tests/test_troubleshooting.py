@@ -1,5 +1,5 @@
 """docs/troubleshooting.md explains every sentence the programs print when something goes
-wrong (collected from the source: tests/troubleshooting_sentences.py says what counts),
+wrong (collected from the source: tests/support/troubleshooting_sentences.py says what counts),
 and quotes none that the code no longer says.
 
 The page quotes a sentence as a list item that starts with it in backticks::
@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.troubleshooting_sentences import (
+from tests.support.troubleshooting_sentences import (
     EXCLUDED,
     SRC,
     Sentence,

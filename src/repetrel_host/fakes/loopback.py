@@ -105,7 +105,7 @@ def run_loopback(
     return LoopbackResult(executed, recorder.indexes, recorder.failure, now, host, controller, run)
 
 
-# Heavy random noise, as the property test in tests/test_loopback.py and
+# Heavy random noise, as the property test in tests/protocol/test_loopback.py and
 # bench/noise_loops.py draw it: jobs of these commands, each fault at one of these rates.
 NOISE_COMMANDS = ("G1 X1 Y2 E3", "G28", "M105", "G4 P1", "G92 E0", "M400", "T1")
 NOISE_RATES = (0.0, 0.01, 0.05, 0.15)
