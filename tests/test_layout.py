@@ -15,12 +15,24 @@ UPPER = ("session", "cli", "console", "terminal", "display", "server", "pytest_p
 LOW = ("protocol", "fakes", "links", "gcode", "pump")
 
 
+def module_name(path: Path) -> str:
+    parts = path.relative_to(PACKAGE.parent).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+MODULES = {module_name(path) for path in PACKAGE.rglob("*.py")}
+
+
 def imports(path: Path) -> set[str]:
-    """The modules that ``path`` imports by absolute name, anywhere in it."""
+    """The modules that ``path`` imports, anywhere in it (ruff refuses relative imports, so
+    each has its absolute name): ``from a.b import c`` is ``a.b.c`` where that is one of the
+    package's modules, else ``a.b``."""
     found = set()
     for node in ast.walk(ast.parse(path.read_text())):
-        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            found.add(node.module)
+        if isinstance(node, ast.ImportFrom) and node.module:
+            for alias in node.names:
+                member = f"{node.module}.{alias.name}"
+                found.add(member if member in MODULES else node.module)
         elif isinstance(node, ast.Import):
             found.update(alias.name for alias in node.names)
     return found
@@ -53,34 +65,11 @@ def test_only_the_plugin_imports_pytest() -> None:
     assert users == []
 
 
-def _module_name(path: Path) -> str:
-    parts = path.relative_to(PACKAGE.parent).with_suffix("").parts
-    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
-
-
-def _imported_modules(path: Path, known: set[str]) -> set[str]:
-    """The package's modules that ``path`` imports, anywhere in it (relative ones too)."""
-    name = _module_name(path)
-    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
-    found = set()
-    for node in ast.walk(ast.parse(path.read_text())):
-        if isinstance(node, ast.Import):
-            found.update(alias.name for alias in node.names if alias.name in known)
-        elif isinstance(node, ast.ImportFrom):
-            base = node.module or ""
-            if node.level:
-                up = package.split(".")[: len(package.split(".")) - node.level + 1]
-                base = ".".join([*up, base] if base else up)
-            for alias in node.names:
-                member = f"{base}.{alias.name}"
-                found.add(member if member in known else base)
-    return (found & known) - {name}
-
-
 def test_no_module_imports_one_that_imports_it_back() -> None:
-    paths = sorted(PACKAGE.rglob("*.py"))
-    known = {_module_name(path) for path in paths}
-    graph = {_module_name(path): _imported_modules(path, known) for path in paths}
+    graph = {
+        module_name(path): (imports(path) & MODULES) - {module_name(path)}
+        for path in PACKAGE.rglob("*.py")
+    }
     try:
         graphlib.TopologicalSorter(graph).prepare()
     except graphlib.CycleError as exc:
