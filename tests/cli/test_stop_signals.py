@@ -4,6 +4,7 @@ and exit with 128 + the signal. Read at the fake: its heater targets and execute
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import json
 import os
@@ -13,6 +14,7 @@ import subprocess
 import sys
 import termios
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -20,6 +22,7 @@ import pytest
 from repetrel_host.fakes.fake_controller import BuiltInFake
 from tests.support.helpers import TWO_HOTENDS, executed, wait_for_log
 from tests.support.helpers import heater_targets as targets
+from tests.support.terminal import Screen
 
 pytestmark = pytest.mark.timeout(90)
 JOB = "M140 S60\nM104 T0 S200\nM104 T1 S210\nT1\n" + "".join(
@@ -187,6 +190,18 @@ def console_printing(job: Path, port: str, *options: str) -> subprocess.Popen[st
     return console
 
 
+@contextlib.contextmanager
+def screen_printing(job: Path, port: str, home: Path) -> Iterator[Screen]:
+    """The same at the interactive console, on a terminal of its own (closed after)."""
+    screen = Screen("--console", "--port", port, home=home)
+    try:
+        screen.expect("Type G-code")
+        screen.send(f"!print {job}\r")
+        yield screen
+    finally:
+        screen.child.close(force=True)
+
+
 @pytest.mark.parametrize(
     ("signum", "protocol"),
     [(signal.SIGTERM, "reprap"), (signal.SIGHUP, "reprap"), (signal.SIGTERM, "hyrel")],
@@ -209,20 +224,13 @@ def test_a_signal_stops_the_consoles_job_with_its_safe_stop(
 
 
 def test_a_signal_at_the_interactive_console_stops_its_job_and_leaves(tmp_path: Path) -> None:
-    from tests.support.terminal import Screen
-
     job, log = tmp_path / "two.gcode", tmp_path / "fake.log"
     job.write_text(JOB)
     with BuiltInFake(log, fake_args("reprap", "--move-time", "0.01"), control=True) as fake:
-        screen = Screen("--console", "--port", fake.port, home=tmp_path)
-        try:
-            screen.expect("Type G-code")
-            screen.send(f"!print {job}\r")
+        with screen_printing(job, fake.port, tmp_path) as screen:
             wait_for_log(log, "G1 X20 F600")
             screen.child.kill(signal.SIGTERM)
             status = screen.wait(timeout=60)
-        finally:
-            screen.child.close(force=True)
         heaters = targets(fake)
     assert status == 143, screen.text()[-2000:]
     assert "SIGTERM: stopping: sending the safe-stop sequence" in screen.text()
@@ -281,21 +289,14 @@ def test_a_closed_terminal_at_the_interactive_console_stops_its_job_safely(
 def test_leaving_the_console_while_a_job_heats_turns_every_heater_off(
     tmp_path: Path, leave: str
 ) -> None:
-    from tests.support.terminal import Screen
-
     job, log = tmp_path / "two.gcode", tmp_path / "fake.log"
     job.write_text(JOB)
     with BuiltInFake(log, fake_args("reprap", "--move-time", "0.01"), control=True) as fake:
-        screen = Screen("--console", "--port", fake.port, home=tmp_path)
-        try:
-            screen.expect("Type G-code")
-            screen.send(f"!print {job}\r")
+        with screen_printing(job, fake.port, tmp_path) as screen:
             wait_for_log(log, "G1 X20 F600")
             assert targets(fake) == {"T": 200.0, "T1": 210.0, "B": 60.0}
             screen.send("!quit\r" if leave == "!quit" else "\x04")
             status = screen.wait(timeout=60)
-        finally:
-            screen.child.close(force=True)
         heaters = targets(fake)
     assert status == 0, screen.text()[-2000:]
     assert "stopping two.gcode with the safe-stop sequence first" in screen.text()
