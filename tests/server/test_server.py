@@ -10,7 +10,6 @@ import signal
 import sqlite3
 import stat
 import subprocess
-import sys
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -22,7 +21,7 @@ import pytest
 
 from repetrel_host.fakes.fake_controller import BuiltInFake
 from tests.support.fake_camera import png
-from tests.support.helpers import MARLIN_SAFE_STOP, executed, hyrel_send
+from tests.support.helpers import MARLIN_SAFE_STOP, executed, hyrel_send, run_server_cli
 from tests.support.paths import DATA, ROOT
 from tests.support.server import (
     CAMERA,
@@ -507,19 +506,8 @@ def test_a_failing_camera_and_m792_actions_are_told_and_the_job_goes_on(
 
 def test_a_bad_camera_setting_gets_one_sentence(tmp_path: Path) -> None:
     config = camera_config(tmp_path, {"demo": "fake"}, demo='fswebcam "unclosed')
-    result = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "repetrel_host.server.main",
-            "--config",
-            str(config),
-            "--data-dir",
-            str(tmp_path / "data"),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=30,
+    result = run_server_cli(
+        "--config", str(config), "--data-dir", str(tmp_path / "data"), timeout=30
     )
     assert result.returncode == 2
     assert result.stderr == (
@@ -602,14 +590,8 @@ def test_a_protocol_defaults_the_window_that_rx_buffer_and_max_lines_do_not_give
 
 def test_a_bad_protocol_gets_one_sentence(tmp_path: Path) -> None:
     config = server_config(tmp_path, demo={"port": "fake", "protocol": "marlin"})
-    result = subprocess.run(
-        [
-            *(sys.executable, "-m", "repetrel_host.server.main"),
-            *("--config", str(config), "--data-dir", str(tmp_path / "data")),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=30,
+    result = run_server_cli(
+        "--config", str(config), "--data-dir", str(tmp_path / "data"), timeout=30
     )
     assert result.returncode == 2
     assert result.stderr == (
@@ -680,14 +662,9 @@ def test_a_second_server_on_the_same_data_folder_is_refused(
     servers: Callable[..., Server],
 ) -> None:
     first = servers({"demo": "fake"})
-    second = subprocess.run(
-        [
-            *(sys.executable, "-m", "repetrel_host.server.main"),
-            *("--data-dir", str(first.data_dir), "--printer", "demo=fake"),
-            *("--bind", f"127.0.0.1:{free_port()}"),
-        ],
-        capture_output=True,
-        text=True,
+    second = run_server_cli(
+        *("--data-dir", str(first.data_dir), "--printer", "demo=fake"),
+        *("--bind", f"127.0.0.1:{free_port()}"),
         timeout=30,
     )
     assert second.returncode == 2
@@ -720,14 +697,6 @@ def test_a_new_server_makes_a_key_kept_private_and_an_upload_limit(
 
 
 def test_bad_server_settings_get_one_sentence(tmp_path: Path) -> None:
-    def run(*args: str) -> subprocess.CompletedProcess[str]:
-        return subprocess.run(
-            [sys.executable, "-m", "repetrel_host.server.main", *args],
-            capture_output=True,
-            text=True,
-            timeout=30,
-        )
-
     for args, message in (
         (["--data-dir", str(tmp_path)], "no printer: give --printer NAME=PORT"),
         (["--printer", "a=fake"], "give --data-dir DIR"),
@@ -735,12 +704,12 @@ def test_bad_server_settings_get_one_sentence(tmp_path: Path) -> None:
         (["--data-dir", str(tmp_path), "--printer", "a/b=fake"], "printer name 'a/b'"),
         (["--data-dir", str(tmp_path), "--printer", "a=fake", "--bind", "nowhere"], "HOST:PORT"),
     ):
-        result = run(*args)
+        result = run_server_cli(*args, timeout=30)
         assert result.returncode == 2, result.stderr
         assert message in result.stderr and "Traceback" not in result.stderr
     config = tmp_path / "server.toml"
     config.write_text('data_dir = "x"\nmax_upload_mb = "lots"\n[printers]\na = "fake"\n')
-    result = run("--config", str(config))
+    result = run_server_cli("--config", str(config), timeout=30)
     assert result.returncode == 2 and f"{config}: max_upload_mb:" in result.stderr
 
 

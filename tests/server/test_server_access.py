@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import asyncio
 import subprocess
-import sys
 import threading
 import time
 from collections.abc import Callable
@@ -21,17 +20,14 @@ from pyoctoprintapi import OctoprintClient
 from pyoctoprintapi.api import ApiError, UnauthorizedException
 
 from repetrel_host.fakes.fake_controller import BuiltInFake
-from tests.support.helpers import executed
+from tests.support.helpers import executed, run_server_cli
 from tests.support.server import KEY, Server, gcode, wait_for
 
 pytestmark = pytest.mark.timeout(120)
 
 
 def keys_command(data_dir: Path, *args: str) -> subprocess.CompletedProcess[str]:
-    command = [sys.executable, "-m", "repetrel_host.server.main", "keys", *args]
-    return subprocess.run(
-        [*command, "--data-dir", str(data_dir)], capture_output=True, text=True, timeout=30
-    )
+    return run_server_cli("keys", *args, "--data-dir", str(data_dir), timeout=30)
 
 
 def approve(server: Server, app: str, allow: bool = True) -> None:

@@ -7,8 +7,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import subprocess
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -16,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from repetrel_host.fakes.fake_controller import BuiltInFake
-from tests.support.helpers import CONE
+from tests.support.helpers import CONE, run_server_cli
 from tests.support.page import part_gcode
 from tests.support.server import CAMERA, Server, camera_config, server_config, wait_for
 
@@ -33,20 +31,7 @@ def test_presets_are_the_configurations_else_common_ones(
             "ASA": {"head": 255.0, "bed": 100.0, "chamber": None}
         }
     config.write_text('[printers.a]\nport = "fake"\n[presets.PLA]\nhead = 900\n')
-    result = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "repetrel_host.server.main",
-            "--config",
-            str(config),
-            "--data-dir",
-            str(tmp_path / "other"),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    result = run_server_cli("--config", str(config), "--data-dir", str(tmp_path / "other"))
     assert result.returncode == 2  # a preset a heater could not reach: one sentence
     assert "presets.PLA.head" in result.stderr and "Traceback" not in result.stderr
     with servers({"b": "fake"}, "--data-dir", str(tmp_path / "third")).client() as client:
