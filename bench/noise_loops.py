@@ -17,13 +17,13 @@ import argparse
 import random
 import time
 
-from repetrel_host.fakes.loopback import (
+from repetrel_host.protocol.flow import FlowMode
+from repetrel_host.session.loopback import (
     NOISE_COMMANDS,
     NOISE_FAULTS,
     NOISE_RATES,
     run_noisy_job,
 )
-from repetrel_host.protocol.flow import FlowMode
 
 
 def one_job(case: int) -> str | None:

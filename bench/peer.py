@@ -29,7 +29,7 @@ def cpu_seconds() -> float:
 
 
 def run_ours(port: str, job: str, options: list[str]) -> int:
-    from repetrel_host.cli import app  # imported already: the clock has not started
+    from repetrel_host.cli.app import app  # imported already: the clock has not started
 
     keep = "--history" in options  # bench/run.py --history: the stream is kept
     arguments = [job, "--port", port, *([] if keep else ["--no-history"]), "--no-header", *options]
@@ -63,8 +63,8 @@ def run_ideal(port: str, job: str) -> int:
     import os
     import tty
 
-    from repetrel_host.job import Job
     from repetrel_host.protocol.framing import frame, reset_command
+    from repetrel_host.session.job import Job
 
     commands = [line.command for line in Job(Path(job)).lines()]
     fd = os.open(port, os.O_RDWR | os.O_NOCTTY)
@@ -88,7 +88,7 @@ def run_ideal(port: str, job: str) -> int:
 def main() -> int:
     host, port, job, *options = sys.argv[1:]
     if host == "ours":
-        import repetrel_host.cli  # noqa: F401
+        import repetrel_host.cli.app  # noqa: F401
     else:
         import printrun.printcore  # noqa: F401
     started = cpu_seconds()

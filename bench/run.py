@@ -90,7 +90,7 @@ class Result:
 
 def job_file(lines: int, folder: Path) -> tuple[Path, list[str]]:
     """The first ``lines`` commands of the cone file (comments kept), and those commands."""
-    from repetrel_host.job import Job
+    from repetrel_host.session.job import Job
 
     commands: list[str] = []
     last_line = 0

@@ -38,12 +38,12 @@ from pathlib import Path
 
 from repetrel_host.fakes.fake_controller import BuiltInFake
 from repetrel_host.fakes.hyrel_simulator import HyrelControllerSimulator
-from repetrel_host.fakes.loopback import run_loopback
 from repetrel_host.fakes.simulator import ControllerSettings, Faults
-from repetrel_host.job import Job
-from repetrel_host.planning import DEFAULT_WINDOWS
 from repetrel_host.protocol.dialects.hyrel import HyrelDialect
 from repetrel_host.protocol.flow import FlowControl, FlowMode
+from repetrel_host.session.job import Job
+from repetrel_host.session.loopback import run_loopback
+from repetrel_host.session.planning import DEFAULT_WINDOWS
 
 ROOT = Path(__file__).resolve().parent.parent
 CONE = ROOT / "tests" / "data" / "cone-prusaslicer.gcode"

@@ -47,7 +47,7 @@ SWALLOWED = "N105 "  # the simulated error that makes VirtualPrinter lose a line
 
 def job_file(lines: int, folder: Path) -> tuple[Path, list[str]]:
     """The first ``lines`` lines of the cone file, and its commands as a host sends them."""
-    from repetrel_host.job import Job
+    from repetrel_host.session.job import Job
 
     path = folder / f"cone-{lines}.gcode"
     path.write_text("".join(CONE.read_text().splitlines(keepends=True)[:lines]))

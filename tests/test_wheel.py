@@ -65,7 +65,11 @@ def test_the_wheel_installs_and_runs_in_a_fresh_virtualenv(tmp_path: Path) -> No
         if path.is_file() and "__pycache__" not in path.parts
     }
     assert tree - names == set()
-    assert "repetrel_host/shipped_config/loadouts/wiki-two-heads.toml" in names
+    shipped = {  # the repository's config/, in the wheel inside the package
+        f"repetrel_host/shipped_config/{path.relative_to(ROOT / 'config')}"
+        for path in (ROOT / "config").rglob("*.toml")
+    }
+    assert shipped and shipped - names == set()
 
     env = tmp_path / "env"
     venv.create(env, with_pip=True)
@@ -86,6 +90,8 @@ def test_the_wheel_installs_and_runs_in_a_fresh_virtualenv(tmp_path: Path) -> No
     sent = run(bin_dir / "hyrel-send", job, cwd=tmp_path)
     assert sent.returncode == 0, sent.stderr
     assert "square-tube.gcode: done: 334 lines" in sent.stdout
+    with_loadout = run(bin_dir / "hyrel-send", job, "--loadout", "wiki-two-heads", cwd=tmp_path)
+    assert with_loadout.returncode == 0, with_loadout.stderr
     for program in ("hyrel-server", "hyrel-fake-controller"):
         helped = run(bin_dir / program, "--help", cwd=tmp_path)
         assert helped.returncode == 0 and "usage" in helped.stdout.lower(), helped.stderr

@@ -20,7 +20,10 @@ from repetrel_host.errors import (
     SafeStopError,
     UsageError,
 )
-from repetrel_host.events import (
+from repetrel_host.protocol.events import ProbeKind
+from repetrel_host.protocol.flow import FlowControl, FlowMode
+from repetrel_host.protocol.reports import Firmware, JobReport
+from repetrel_host.session.events import (
     Action,
     Done,
     Failed,
@@ -38,12 +41,9 @@ from repetrel_host.events import (
     StopDelayed,
     Temperatures,
 )
-from repetrel_host.protocol.events import ProbeKind
-from repetrel_host.protocol.flow import FlowControl, FlowMode
-from repetrel_host.protocol.reports import Firmware, JobReport
-from repetrel_host.pump import Outcome, Summary
-from repetrel_host.resume import HomeAxes
-from repetrel_host.session import Printer, PrintJob, Reply, connect
+from repetrel_host.session.printer import Printer, PrintJob, Reply, connect
+from repetrel_host.session.pump import Outcome, Summary
+from repetrel_host.session.resume import HomeAxes
 
 __version__ = "0.2.0"
 

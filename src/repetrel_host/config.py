@@ -1,6 +1,7 @@
 """Configuration: machine profiles, the head library, loadouts and user settings (TOML).
 
-Shipped files live in ``shipped_config/`` (``machines.toml``, ``heads.toml``, ``loadouts/``).
+Shipped files live in the repository's ``config/`` (``machines.toml``, ``heads.toml``,
+``loadouts/``).
 A user's ``config.toml`` (``--config FILE``, else ``$XDG_CONFIG_HOME/repetrel-host/``)
 may add or replace machines and heads under ``[machines.NAME]`` and ``[heads.NAME]``,
 and holds ``[printer]`` and ``[host]`` settings. Every error names the file, the
@@ -10,6 +11,7 @@ field and what is allowed.
 from __future__ import annotations
 
 import os
+import shlex
 import tomllib
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
@@ -26,7 +28,6 @@ from pydantic import (
     ValidationError,
 )
 
-from repetrel_host.camera import check_command
 from repetrel_host.errors import ConfigError
 from repetrel_host.gcode import addressing
 
@@ -39,7 +40,14 @@ M = TypeVar("M", bound=BaseModel)
 
 
 def _camera_command(value: str) -> str:
-    check_command(value)  # a ValueError: pydantic's error, naming the setting
+    """The camera command, when it is a command line: a ValueError (pydantic's error, naming
+    the setting) when it is not."""
+    try:
+        argv = shlex.split(value)
+    except ValueError as exc:
+        raise ValueError(f"the camera command cannot be split into words ({exc})") from None
+    if not argv:
+        raise ValueError("the camera command is empty")
     return value
 
 
@@ -192,8 +200,10 @@ class Library:
 
 
 def shipped_config_dir() -> Path:
-    """The shipped configuration: ``repetrel_host/shipped_config/``."""
-    return Path(__file__).parent / "shipped_config"
+    """The shipped configuration: the repository's ``config/``, which the wheel holds as
+    ``repetrel_host/shipped_config/`` (an editable install reads it where it is)."""
+    installed = Path(__file__).parent / "shipped_config"
+    return installed if installed.is_dir() else Path(__file__).parents[2] / "config"
 
 
 def user_config_path() -> Path:

@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 
 from repetrel_host.fakes.fake_controller import BuiltInFake
-from repetrel_host.job import Job
 from repetrel_host.protocol.dialects.hyrel import SYNC_EVERY_MIN, SYNC_INTERVAL
+from repetrel_host.session.job import Job
 from tests.support.helpers import (
     CONE,
     EXAMPLE,

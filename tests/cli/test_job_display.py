@@ -131,9 +131,8 @@ def test_in_the_background_it_leaves_the_terminal_alone(tmp_path: Path) -> None:
     from a background job would stop it (SIGTTOU), so no keys there, and it streams on."""
     job = tmp_path / "small.gcode"
     job.write_text("G28\nG1 X10\nG1 Y10\n")
-    script = (
-        f"set -m; {shlex.quote(sys.executable)} -m repetrel_host.cli {job} --no-history & wait $!"
-    )
+    python = shlex.quote(sys.executable)
+    script = f"set -m; {python} -m repetrel_host.cli {job} --no-history & wait $!"
     child = pexpect.spawn("bash", ["-c", script], cwd=str(tmp_path), encoding="utf-8")
     try:
         child.expect(pexpect.EOF, timeout=40)

@@ -13,9 +13,10 @@ from serial.tools.list_ports_common import ListPortInfo
 from typer.testing import CliRunner
 
 import repetrel_host as rh
-from repetrel_host import cli, ports
+from repetrel_host.cli import app as cli
 from repetrel_host.errors import LinkError
 from repetrel_host.fakes.fake_controller import BuiltInFake
+from repetrel_host.links import ports
 from tests.support.helpers import EXAMPLE, hyrel_send
 
 pytestmark = pytest.mark.timeout(60)

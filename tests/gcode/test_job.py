@@ -5,7 +5,7 @@ from pathlib import Path
 import pytest
 
 from repetrel_host.errors import JobError
-from repetrel_host.job import ActionKind, HostAction, Job, JobLine, parse_actions
+from repetrel_host.session.job import ActionKind, HostAction, Job, JobLine, parse_actions
 
 
 def items(tmp_path: Path, text: bytes, pause_sync: str = "M400") -> list[object]:

@@ -7,7 +7,7 @@ from pathlib import Path
 from repetrel_host.gcode import analysis
 from repetrel_host.gcode.analysis import scan_marks
 from repetrel_host.gcode.marks import Layer
-from repetrel_host.job import Job
+from repetrel_host.session.job import Job
 from tests.support.paths import DATA
 
 DATA = DATA

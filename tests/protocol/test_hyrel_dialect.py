@@ -11,7 +11,6 @@ from hypothesis import strategies as st
 
 from repetrel_host.errors import ControllerError
 from repetrel_host.fakes.hyrel_simulator import HyrelControllerSimulator
-from repetrel_host.fakes.loopback import LoopbackResult, run_loopback
 from repetrel_host.fakes.simulator import ControllerSettings, ControllerSimulator, Faults
 from repetrel_host.protocol.dialects.hyrel import (
     ANSWER_AT_ONCE,
@@ -33,7 +32,8 @@ from repetrel_host.protocol.events import (
     LineRefused,
 )
 from repetrel_host.protocol.flow import FlowControl
-from repetrel_host.pump import Outcome
+from repetrel_host.session.loopback import LoopbackResult, run_loopback
+from repetrel_host.session.pump import Outcome
 from tests.support.helpers import CONE, job_commands
 
 # The controller's headroom, not its buffer: it ACKs while 2 KB of its 8 KB are free.
@@ -501,8 +501,8 @@ def test_what_ran_of_a_job_is_its_line_not_a_command_confirmed_after_it() -> Non
     # A session's M105 (poll_while_printing) among a job's lines, confirmed by the same
     # answer: the last job line known to have run is still the job's (the resume hint).
     from repetrel_host.fakes.hyrel_simulator import M115_REPLY, PING_REPLY
-    from repetrel_host.job import JobLine
     from repetrel_host.protocol.hyrel import Control
+    from repetrel_host.session.job import JobLine
 
     dialect = HyrelDialect(HYREL_WINDOW)
     dialect.start(0.0)

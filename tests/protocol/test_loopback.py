@@ -4,7 +4,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from repetrel_host.fakes.loopback import (
+from repetrel_host.fakes.simulator import ControllerSettings, Faults
+from repetrel_host.protocol.events import FailureKind, ProbeKind
+from repetrel_host.protocol.flow import FlowControl, FlowMode
+from repetrel_host.session.loopback import (
     NOISE_COMMANDS,
     NOISE_FAULTS,
     NOISE_RATES,
@@ -12,9 +15,6 @@ from repetrel_host.fakes.loopback import (
     run_noisy_job,
     wire_preview,
 )
-from repetrel_host.fakes.simulator import ControllerSettings, Faults
-from repetrel_host.protocol.events import FailureKind, ProbeKind
-from repetrel_host.protocol.flow import FlowControl, FlowMode
 
 UART = ControllerSettings(bandwidth=11_520, latency=0.002, rx_buffer=128)
 NOISE = "corrupt=0.02 garble=0.01 drop_ok=0.01 duplicate_ok=0.01 spurious_resend=0.005"

@@ -7,7 +7,6 @@ from collections.abc import Iterator
 import pytest
 
 from repetrel_host.errors import JobError, SafeStopError
-from repetrel_host.job import ActionKind, HostAction, JobItem, JobLine
 from repetrel_host.protocol.dialects.reprap import RepRapDialect
 from repetrel_host.protocol.events import ProbeKind
 from repetrel_host.protocol.flow import FlowControl, FlowMode
@@ -16,7 +15,8 @@ from repetrel_host.protocol.history import History, Line
 from repetrel_host.protocol.resend import ResendGuard
 from repetrel_host.protocol.rtt import INITIAL_RTO, MAX_RTO, MIN_RTO, RoundTrip
 from repetrel_host.protocol.window import Transmission, Window
-from repetrel_host.pump import Listener, Outcome, Pump, Run
+from repetrel_host.session.job import ActionKind, HostAction, JobItem, JobLine
+from repetrel_host.session.pump import Listener, Outcome, Pump, Run
 
 # --- History ---------------------------------------------------------------------
 

@@ -9,7 +9,13 @@ from pathlib import Path
 
 import pytest
 
-from repetrel_host.camera import MAX_WAITING, Camera, SnapshotFailed, check_command, snapshot
+from repetrel_host.session.camera import (
+    MAX_WAITING,
+    Camera,
+    SnapshotFailed,
+    check_command,
+    snapshot,
+)
 from tests.support.fake_camera import png
 from tests.support.paths import SUPPORT
 

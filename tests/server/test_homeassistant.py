@@ -18,8 +18,8 @@ import httpx
 import jinja2
 import pytest
 
-from repetrel_host.events import State
 from repetrel_host.fakes.fake_controller import BuiltInFake
+from repetrel_host.session.events import State
 from tests.support.helpers import CONE, MARLIN_SAFE_STOP, executed, job_commands
 from tests.support.server import (
     KEY,

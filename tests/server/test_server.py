@@ -574,8 +574,8 @@ def test_a_protocol_defaults_the_window_that_rx_buffer_and_max_lines_do_not_give
 ) -> None:
     import repetrel_host as rh
     from repetrel_host.config import UserConfig
-    from repetrel_host.planning import DEFAULT_WINDOWS
     from repetrel_host.server.printers import PrinterConfig
+    from repetrel_host.session.planning import DEFAULT_WINDOWS
 
     asked: dict[str, Any] = {}
     monkeypatch.setattr(rh, "connect", lambda port, **given: asked.update(given))

@@ -16,10 +16,10 @@ from pathlib import Path
 
 import pytest
 
-from repetrel_host import history
 from repetrel_host.errors import ControllerError, JobError, LinkError
 from repetrel_host.fakes.fake_controller import BuiltInFake
-from repetrel_host.job import Job
+from repetrel_host.session import history
+from repetrel_host.session.job import Job
 from tests.support.helpers import CONE, EXAMPLE, hyrel_send, start_streaming
 
 pytestmark = pytest.mark.timeout(60)

@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from repetrel_host.fakes.fake_controller import BuiltInFake
-from repetrel_host.job import Job
+from repetrel_host.session.job import Job
 from tests.support.helpers import DATA, HYREL_SAFE_STOP, MARLIN_SAFE_STOP, executed, wait_for_log
 from tests.support.helpers import heater_targets as targets
 

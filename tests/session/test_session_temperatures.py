@@ -11,9 +11,9 @@ from pathlib import Path
 import pytest
 
 import repetrel_host as rh
-from repetrel_host import session
 from repetrel_host.fakes.simulator import ControllerSettings, Faults
 from repetrel_host.links import SimLink
+from repetrel_host.session import printer as session
 from tests.support.helpers import MARLIN_SAFE_STOP, job_file, run
 
 pytestmark = pytest.mark.timeout(60)

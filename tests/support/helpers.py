@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from repetrel_host.fakes.fake_controller import BuiltInFake
-from repetrel_host.job import Job
+from repetrel_host.session.job import Job
 from tests.support.paths import DATA, ROOT
 
 CONE = DATA / "cone-prusaslicer.gcode"

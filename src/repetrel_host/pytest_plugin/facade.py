@@ -15,9 +15,9 @@ from repetrel_host.pytest_plugin.jobs import HyrelJob, PrintResult, as_job
 
 if TYPE_CHECKING:
     import repetrel_host as rh
-    from repetrel_host.events import PrinterEvent
     from repetrel_host.fakes.fake_controller import BuiltInFake
     from repetrel_host.pytest_plugin.teardown import PluginSession
+    from repetrel_host.session.events import PrinterEvent
 
 T = TypeVar("T")
 

@@ -59,7 +59,7 @@ class PrintResult:
     @property
     def completed(self) -> bool:
         """Every line was acknowledged and the job was not cancelled."""
-        from repetrel_host.pump import Outcome
+        from repetrel_host.session.pump import Outcome
 
         return self.summary is not None and self.summary.outcome is Outcome.COMPLETED
 

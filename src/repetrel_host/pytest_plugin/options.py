@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 import pytest
 
 if TYPE_CHECKING:
-    from repetrel_host.planning import LinkSettings
+    from repetrel_host.session.planning import LinkSettings
 
 
 FAKE = "fake"
@@ -203,7 +203,7 @@ def wanted_machines(item: pytest.Item) -> list[str]:
 
 def known_machine(options: HyrelOptions) -> str:
     from repetrel_host.config import load_user_config
-    from repetrel_host.planning import JobRequest, controller_profile
+    from repetrel_host.session.planning import JobRequest, controller_profile
 
     loadout = Path(options.loadout) if options.loadout else None
     request = JobRequest(loadout, options.machine)
@@ -213,8 +213,13 @@ def known_machine(options: HyrelOptions) -> str:
 
 def link_for(options: HyrelOptions) -> LinkSettings:
     from repetrel_host.config import load_user_config
-    from repetrel_host.planning import JobRequest, LinkRequest, explicit_machine, link_settings
     from repetrel_host.protocol.flow import FlowMode
+    from repetrel_host.session.planning import (
+        JobRequest,
+        LinkRequest,
+        explicit_machine,
+        link_settings,
+    )
 
     loadout = Path(options.loadout) if options.loadout else None
     machine = explicit_machine(JobRequest(loadout, options.machine), load_user_config(None))

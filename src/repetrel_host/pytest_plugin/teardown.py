@@ -10,8 +10,8 @@ from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     import repetrel_host as rh
-    from repetrel_host.events import PrinterEvent
     from repetrel_host.pytest_plugin.report import WireRecorder
+    from repetrel_host.session.events import PrinterEvent
 
 from repetrel_host.pytest_plugin.jobs import HyrelJob, PrintResult
 from repetrel_host.pytest_plugin.portal import Portal

@@ -36,7 +36,7 @@ import repetrel_host as rh
 from repetrel_host.server import native
 from repetrel_host.server.auth import RequestGuard
 from repetrel_host.server.core import PrintServer, server_of
-from repetrel_host.server.mqtt import MqttBridge, MqttSettings
+from repetrel_host.server.mqtt.bridge import MqttBridge, MqttSettings
 from repetrel_host.server.octoprint import appkeys, rest, socket
 from repetrel_host.server.workers import stop_workers
 

@@ -29,14 +29,14 @@ from repetrel_host.gcode.analysis import Analysis, Summary, analyse, scan_marks
 from repetrel_host.gcode.layer_moves import layer_moves
 from repetrel_host.gcode.thumbnails import ThumbnailError
 from repetrel_host.gcode.thumbnails import read as read_thumbnail
-from repetrel_host.planning import layer_line
-from repetrel_host.resume import resume_command
 from repetrel_host.server.access import Access
 from repetrel_host.server.analyses import Analyses, Stamp, describe, stamp
 from repetrel_host.server.events import EventHub
 from repetrel_host.server.printers import PrinterConfig, PrinterService, Refused
 from repetrel_host.server.store import JobRecord, JobState, Store
 from repetrel_host.server.workers import in_worker
+from repetrel_host.session.planning import layer_line
+from repetrel_host.session.resume import resume_command
 
 if TYPE_CHECKING:
     from repetrel_host.server.farm.node import FarmNode, FarmSettings

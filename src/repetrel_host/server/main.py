@@ -26,8 +26,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from repetrel_host import __version__
 from repetrel_host.config import CameraCommand, read_toml
 from repetrel_host.errors import ConfigError
-from repetrel_host.server.homeassistant import DEFAULT_PREFIX as DEFAULT_DISCOVERY_PREFIX
-from repetrel_host.server.mqtt import MqttSettings
+from repetrel_host.server.mqtt.bridge import MqttSettings
+from repetrel_host.server.mqtt.homeassistant import DEFAULT_PREFIX as DEFAULT_DISCOVERY_PREFIX
 from repetrel_host.server.printers import PrinterConfig
 
 if TYPE_CHECKING:

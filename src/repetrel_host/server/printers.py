@@ -22,15 +22,19 @@ from pathlib import Path
 from typing import Any
 
 import repetrel_host as rh
-from repetrel_host.camera import Camera, SnapshotFailed
 from repetrel_host.config import Loadout, UserConfig, find_loadout, load_library, load_loadout
-from repetrel_host.events import PrinterEvent
 from repetrel_host.gcode.analysis import Summary
 from repetrel_host.gcode.heaters import Heater
 from repetrel_host.gcode.lint import Finding, Severity
 from repetrel_host.gcode.marks import SlicerMarks
-from repetrel_host.job import ActionKind, HostAction
-from repetrel_host.planning import (
+from repetrel_host.server.analyses import Analyses
+from repetrel_host.server.events import Event
+from repetrel_host.server.store import PROGRESS_INTERVAL, JobQueue, JobRecord, JobState, Store
+from repetrel_host.server.workers import in_worker
+from repetrel_host.session.camera import Camera, SnapshotFailed
+from repetrel_host.session.events import PrinterEvent
+from repetrel_host.session.job import ActionKind, HostAction
+from repetrel_host.session.planning import (
     JobPlan,
     JobRequest,
     LinkRequest,
@@ -39,10 +43,6 @@ from repetrel_host.planning import (
     plan_job,
     resumed,
 )
-from repetrel_host.server.analyses import Analyses
-from repetrel_host.server.events import Event
-from repetrel_host.server.store import PROGRESS_INTERVAL, JobQueue, JobRecord, JobState, Store
-from repetrel_host.server.workers import in_worker
 
 log = logging.getLogger("repetrel_host.server")
 

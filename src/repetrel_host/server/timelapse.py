@@ -7,7 +7,7 @@ import shutil
 import tempfile
 from pathlib import Path
 
-from repetrel_host.camera import IMAGE_SUFFIXES
+from repetrel_host.session.camera import IMAGE_SUFFIXES
 
 FRAME_RATE = 10  # images a second
 MAKE_TIMEOUT = 300.0  # s: a video of thousands of layers takes a while on a small PC

@@ -7,10 +7,10 @@ from dataclasses import dataclass
 from enum import Enum, StrEnum
 
 from repetrel_host.errors import HostError
-from repetrel_host.job import ActionKind
 from repetrel_host.protocol.events import Notice
 from repetrel_host.protocol.reports import JobReport
-from repetrel_host.pump import Summary
+from repetrel_host.session.job import ActionKind
+from repetrel_host.session.pump import Summary
 
 __all__ = [
     "Action",

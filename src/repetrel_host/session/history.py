@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from repetrel_host.errors import ControllerError, HostError, LinkError, ProtocolError, SafeStopError
-from repetrel_host.job import JobLine
+from repetrel_host.session.job import JobLine
 
 log = logging.getLogger(__name__)
 

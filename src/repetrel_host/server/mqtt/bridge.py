@@ -11,7 +11,7 @@
   it when the server vanishes).
 
 Retained, so a dashboard that starts later sees how things stand. Home Assistant's
-discovery configs (:mod:`repetrel_host.server.homeassistant`) go to its discovery prefix
+discovery configs (:mod:`repetrel_host.server.mqtt.homeassistant`) go to its discovery prefix
 unless turned off, so that each printer appears there as a device. Commands are taken on
 ``<prefix>/<printer>/command`` only when allowed (MQTT has no per-topic secret unless the
 broker enforces one): ``pause``, ``resume``, ``cancel``, ``release``, or one G-code line,
@@ -31,7 +31,7 @@ from typing import Any, Protocol
 import aiomqtt
 
 from repetrel_host.server.events import Event, EventHub
-from repetrel_host.server.homeassistant import DEFAULT_PREFIX, Discovery
+from repetrel_host.server.mqtt.homeassistant import DEFAULT_PREFIX, Discovery
 from repetrel_host.server.printers import PrinterService, Refused
 from repetrel_host.server.store import Store
 

@@ -26,16 +26,20 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from repetrel_host.config import UserConfig
-from repetrel_host.console import (
+from repetrel_host.cli.actions import (
     Connecting,
     ConsoleActions,
     read_line,
     stop_delayed_text,
     summary_text,
 )
+from repetrel_host.cli.stop_signals import StopSignals, exit_code_of_stop, stopping_text
+from repetrel_host.config import UserConfig
 from repetrel_host.errors import HostError, JobError, SafeStopError, UsageError
-from repetrel_host.events import (
+from repetrel_host.gcode.commands import command_word
+from repetrel_host.links import FAKE_PORT, FakeLink
+from repetrel_host.protocol.reports import format_temperatures
+from repetrel_host.session.events import (
     Message,
     NoAnswerYet,
     Notice,
@@ -48,9 +52,7 @@ from repetrel_host.events import (
     StopDelayed,
     Temperatures,
 )
-from repetrel_host.gcode.commands import command_word
-from repetrel_host.links import FAKE_PORT, FakeLink
-from repetrel_host.planning import (
+from repetrel_host.session.planning import (
     JobRequest,
     LinkRequest,
     default_history_dir,
@@ -59,11 +61,9 @@ from repetrel_host.planning import (
     link_settings,
     resolve_port,
 )
-from repetrel_host.protocol.reports import format_temperatures
-from repetrel_host.pump import Outcome
-from repetrel_host.resume import resume_from, resume_window
-from repetrel_host.session import Printer, PrintJob, connect
-from repetrel_host.stop_signals import StopSignals, exit_code_of_stop, stopping_text
+from repetrel_host.session.printer import Printer, PrintJob, connect
+from repetrel_host.session.pump import Outcome
+from repetrel_host.session.resume import resume_from, resume_window
 
 if TYPE_CHECKING:
     from prompt_toolkit.application import Application

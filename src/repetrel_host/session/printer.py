@@ -8,7 +8,7 @@ another on the same numbering, and a vanished port is reopened (with backoff) an
 greeted again. It never resumes a job by itself.
 
 All I/O is here: bytes go between a link (``repetrel_host.links``) and the one
-pump (``repetrel_host.pump``), which drives the dialect. Models: zigpy-znp's
+pump (``repetrel_host.session.pump``), which drives the dialect. Models: zigpy-znp's
 ``api.py`` (connect, request and wait for the response, reconnect), Klipper's
 ``serialhdl.py`` (connect with retry, ``send_with_response``), h11's
 ``start_next_cycle`` (one connection, many exchanges).
@@ -31,7 +31,6 @@ from itertools import chain
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, BinaryIO, Generic, TypeVar
 
-from repetrel_host import history as print_history
 from repetrel_host.config import UserConfig, load_user_config
 from repetrel_host.errors import (
     ControllerError,
@@ -41,7 +40,20 @@ from repetrel_host.errors import (
     SafeStopError,
     UsageError,
 )
-from repetrel_host.events import (
+from repetrel_host.gcode.commands import command_word
+from repetrel_host.gcode.heaters import Heater, HeaterLog, complete_safe_stop
+from repetrel_host.links import Link, make_link
+from repetrel_host.protocol import replies
+from repetrel_host.protocol.dialect import Statistics
+from repetrel_host.protocol.dialects import create_dialect, release_bytes
+from repetrel_host.protocol.dialects.reprap import DEFAULT_REPLY_TIMEOUT
+from repetrel_host.protocol.events import Failed as DialectFailed
+from repetrel_host.protocol.events import FailureKind, GreetingRetry, ProbeKind
+from repetrel_host.protocol.flow import FlowControl, FlowMode
+from repetrel_host.protocol.framing import clean_line
+from repetrel_host.protocol.reports import Firmware, JobReport, ReportReader, parse_temperatures
+from repetrel_host.session import history as print_history
+from repetrel_host.session.events import (
     Action,
     Done,
     Failed,
@@ -61,11 +73,8 @@ from repetrel_host.events import (
     StopDelayed,
     Temperatures,
 )
-from repetrel_host.gcode.commands import command_word
-from repetrel_host.gcode.heaters import Heater, HeaterLog, complete_safe_stop
-from repetrel_host.job import MAX_COMMAND_LENGTH, ActionKind, HostAction, JobItem, JobLine
-from repetrel_host.links import Link, make_link
-from repetrel_host.planning import (
+from repetrel_host.session.job import MAX_COMMAND_LENGTH, ActionKind, HostAction, JobItem, JobLine
+from repetrel_host.session.planning import (
     JobPlan,
     JobRequest,
     LinkRequest,
@@ -78,17 +87,8 @@ from repetrel_host.planning import (
     resolve_port,
     resumed,
 )
-from repetrel_host.planning import safe_stop as safe_stop_for
-from repetrel_host.protocol import replies
-from repetrel_host.protocol.dialect import Statistics
-from repetrel_host.protocol.dialects import create_dialect, release_bytes
-from repetrel_host.protocol.dialects.reprap import DEFAULT_REPLY_TIMEOUT
-from repetrel_host.protocol.events import Failed as DialectFailed
-from repetrel_host.protocol.events import FailureKind, GreetingRetry, ProbeKind
-from repetrel_host.protocol.flow import FlowControl, FlowMode
-from repetrel_host.protocol.framing import clean_line
-from repetrel_host.protocol.reports import Firmware, JobReport, ReportReader, parse_temperatures
-from repetrel_host.pump import (
+from repetrel_host.session.planning import safe_stop as safe_stop_for
+from repetrel_host.session.pump import (
     CANCEL_DRAIN_TIMEOUT,
     Listener,
     Outcome,
@@ -97,7 +97,7 @@ from repetrel_host.pump import (
     Summary,
     failure_error,
 )
-from repetrel_host.resume import KEEPS_THE_JOB_STATE, HomeAxes, MachineState, back_to_job
+from repetrel_host.session.resume import KEEPS_THE_JOB_STATE, HomeAxes, MachineState, back_to_job
 
 if TYPE_CHECKING:
     from repetrel_host.fakes.simulator import ControllerSettings
@@ -1758,7 +1758,7 @@ def connect(
     ``line_tap``: :meth:`Printer.tap_lines` from the greeting's first line on.
     ``on_event``: called at once with each of the session's events (what
     :meth:`Printer.events` yields) from the port's opening on, for the session's life:
-    before ``connect()`` returns, an :class:`~repetrel_host.events.NoAnswerYet` for each
+    before ``connect()`` returns, an :class:`~repetrel_host.session.events.NoAnswerYet` for each
     greeting that goes again unanswered. It runs on the session's path: it must only take
     note (print a line, set a flag), never block. ``owe_safe_stop``: a safe stop is owed
     from before (a server's restart after its job was cut), for these heaters besides

@@ -39,7 +39,6 @@ from repetrel_host.errors import (
 )
 from repetrel_host.gcode.commands import command_word
 from repetrel_host.gcode.heaters import WAITS, HeaterLog, complete_safe_stop, turns_off
-from repetrel_host.job import ActionKind, HostAction, JobItem, JobLine
 from repetrel_host.protocol import replies
 from repetrel_host.protocol.dialect import Dialect
 from repetrel_host.protocol.events import (
@@ -54,6 +53,7 @@ from repetrel_host.protocol.events import (
     ProbeKind,
     ResendRequested,
 )
+from repetrel_host.session.job import ActionKind, HostAction, JobItem, JobLine
 
 # A stop whose safe stop is not confirmed this long after it began is told as held up
 # (it goes on: the safe stop goes whenever the controller takes it). Closing a session

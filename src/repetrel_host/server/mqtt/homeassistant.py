@@ -2,7 +2,7 @@
 both use the same broker, without a cloud or an integration to install.
 
 Each printer is one Home Assistant device (its identifiers from the printer's stable UUID)
-whose entities read the server's own topics (:mod:`repetrel_host.server.mqtt`): its state,
+whose entities read the server's own topics (:mod:`repetrel_host.server.mqtt.bridge`): its state,
 progress (%), time left, current file, each heater's temperature and target, and, when
 MQTT commands are on, pause/resume/cancel buttons that publish to its command topic. Every
 entity is available while ``<prefix>/server/online`` says ``true``.
@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from repetrel_host import __version__
-from repetrel_host.events import State
+from repetrel_host.session.events import State
 
 DEFAULT_PREFIX = "homeassistant"
 BUTTONS = ("pause", "resume", "cancel")

@@ -28,13 +28,19 @@ from repetrel_host.gcode import addressing
 from repetrel_host.gcode.analysis import scan_marks
 from repetrel_host.gcode.header import header_commands, safe_stop_commands, safe_stop_for_either
 from repetrel_host.gcode.lint import Finding, Linter, Severity
-from repetrel_host.job import Job, JobItem, JobLine
 from repetrel_host.links import FAKE_PORT
-from repetrel_host.ports import AUTO_PORT
+from repetrel_host.links.ports import AUTO_PORT
 from repetrel_host.protocol.flow import HYREL_WINDOW, FlowControl, FlowMode
 from repetrel_host.protocol.framing import clean_line
 from repetrel_host.protocol.reports import Firmware
-from repetrel_host.resume import RESUME_SOURCE, HomeAxes, MachineState, ResumePoint, preamble
+from repetrel_host.session.job import Job, JobItem, JobLine
+from repetrel_host.session.resume import (
+    RESUME_SOURCE,
+    HomeAxes,
+    MachineState,
+    ResumePoint,
+    preamble,
+)
 
 PORT_ENV = "HYREL_PORT"
 # Jobs up to this size are checked whole before the first line goes (a fraction of a
@@ -187,7 +193,7 @@ def plan_job(
 
 def resumed(plan: JobPlan, line: int, home: HomeAxes = HomeAxes.XY) -> JobPlan:
     """``plan`` from source ``line`` on (the first command on it or after it), with the
-    preamble that restores what the skipped lines set up (:mod:`repetrel_host.resume`)."""
+    preamble that restores what the skipped lines set up (:mod:`repetrel_host.session.resume`)."""
     if line < 1:
         raise UsageError(f"lines count from 1: there is no line {line}")
     job = plan.job
@@ -359,7 +365,7 @@ def choose_port(port: str | None, user: UserConfig) -> tuple[str, str | None]:
         name, source = FAKE_PORT, ""
     if name != AUTO_PORT:
         return name, None
-    from repetrel_host.ports import choose_auto, list_ports  # pyserial's port listing
+    from repetrel_host.links.ports import choose_auto, list_ports  # pyserial's port listing
 
     choice = choose_auto(list_ports(), source)
     return choice.device, choice.reason

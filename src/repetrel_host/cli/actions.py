@@ -16,12 +16,12 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Protocol, TextIO
 
-from repetrel_host.camera import Camera
 from repetrel_host.config import HostSettings
-from repetrel_host.events import NoAnswerYet, PrinterEvent, StopDelayed
-from repetrel_host.job import ActionKind, HostAction
 from repetrel_host.links import FAKE_PORT, SIM_PORT
-from repetrel_host.pump import Outcome, Summary
+from repetrel_host.session.camera import Camera
+from repetrel_host.session.events import NoAnswerYet, PrinterEvent, StopDelayed
+from repetrel_host.session.job import ActionKind, HostAction
+from repetrel_host.session.pump import Outcome, Summary
 
 SPEECH_PROGRAMS = ("espeak-ng", "espeak", "spd-say", "say")
 ACTION_TIMEOUT = 60.0  # seconds an action's program may run before it is abandoned

@@ -23,15 +23,21 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 
 from repetrel_host import __version__
-from repetrel_host import history as print_history
-from repetrel_host.config import UserConfig, load_user_config
-from repetrel_host.console import (
+from repetrel_host.cli.actions import (
     Connecting,
     ConsoleActions,
     read_line,
     stop_delayed_text,
     summary_text,
 )
+from repetrel_host.cli.console import CONSOLE_HELP, ConsoleOptions, run_console
+from repetrel_host.cli.stop_signals import (
+    StopSignals,
+    exit_code_of_stop,
+    interrupt_on_stop_signals,
+    stopping_text,
+)
+from repetrel_host.config import UserConfig, load_user_config
 from repetrel_host.errors import (
     ConfigError,
     ControllerError,
@@ -42,12 +48,25 @@ from repetrel_host.errors import (
     SafeStopError,
     UsageError,
 )
-from repetrel_host.events import Message, Notice, Paused, PauseReason, Resend, State, StopDelayed
 from repetrel_host.gcode.analysis import scan_marks, slicer_estimate
 from repetrel_host.gcode.lint import Finding, Severity
-from repetrel_host.job import HostAction
 from repetrel_host.links import FAKE_PORT, FakeLink
-from repetrel_host.planning import (
+from repetrel_host.protocol.dialects import create_dialect
+from repetrel_host.protocol.dialects.reprap import DEFAULT_REPLY_TIMEOUT
+from repetrel_host.protocol.events import ProbeKind
+from repetrel_host.protocol.flow import FlowMode
+from repetrel_host.session import history as print_history
+from repetrel_host.session.events import (
+    Message,
+    Notice,
+    Paused,
+    PauseReason,
+    Resend,
+    State,
+    StopDelayed,
+)
+from repetrel_host.session.job import HostAction
+from repetrel_host.session.planning import (
     PORT_ENV,
     JobPlan,
     JobRequest,
@@ -61,32 +80,21 @@ from repetrel_host.planning import (
     replan_for_firmware,
     resumed,
 )
-from repetrel_host.protocol.dialects import create_dialect
-from repetrel_host.protocol.dialects.reprap import DEFAULT_REPLY_TIMEOUT
-from repetrel_host.protocol.events import ProbeKind
-from repetrel_host.protocol.flow import FlowMode
-from repetrel_host.pump import Outcome, Summary
-from repetrel_host.resume import (
+from repetrel_host.session.printer import RECONNECT_WAIT, Printer, PrintJob, connect
+from repetrel_host.session.pump import Outcome, Summary
+from repetrel_host.session.resume import (
     RESUME_SOURCE,
     HomeAxes,
     resume_command,
     resume_from,
     resume_window,
 )
-from repetrel_host.session import RECONNECT_WAIT, Printer, PrintJob, connect
-from repetrel_host.stop_signals import (
-    StopSignals,
-    exit_code_of_stop,
-    interrupt_on_stop_signals,
-    stopping_text,
-)
-from repetrel_host.terminal import CONSOLE_HELP, ConsoleOptions, run_console
 
 if TYPE_CHECKING:
     from rich.console import Console
     from rich.progress import TaskID
 
-    from repetrel_host.display import JobProgress, JobStatus
+    from repetrel_host.cli.display import JobProgress, JobStatus
 
 # Exit codes: distinct per kind of failure so scripts can tell them apart.
 EXIT_OK = 0
@@ -662,7 +670,7 @@ def _dry_run(plan: JobPlan, framed: bool, protocol: str) -> None:
                 yield item.command
 
     if framed:
-        from repetrel_host.fakes.loopback import wire_preview  # only a preview needs it
+        from repetrel_host.session.loopback import wire_preview  # only a preview needs it
 
         for data in wire_preview(commands(), protocol=protocol):
             # Hyrel's control bytes (the ping, 0x07, would ring the terminal's bell) shown.
@@ -676,7 +684,7 @@ def _dry_run(plan: JobPlan, framed: bool, protocol: str) -> None:
 
 def _list_ports(console: Out) -> None:
     """hyrel-send --list-ports: one line a port, candidates marked."""
-    from repetrel_host.ports import describe, list_ports
+    from repetrel_host.links.ports import describe, list_ports
 
     found = list_ports()
     for port in found:
@@ -853,7 +861,7 @@ async def _stream(
     from rich.markup import escape
     from rich.progress import BarColumn, TaskProgressColumn, TextColumn
 
-    from repetrel_host.display import JobProgress, JobStatus, Keys, TimeLeftColumn
+    from repetrel_host.cli.display import JobProgress, JobStatus, Keys, TimeLeftColumn
 
     progress = JobProgress(
         TextColumn("[bold]{task.description}"),
@@ -1029,7 +1037,7 @@ def _print_summary(
 ) -> None:
     text = summary_text(plan.job.name, summary, f"interrupted; {last}")
     if estimate is not None and summary.outcome is Outcome.COMPLETED:
-        from repetrel_host.display import clock  # loaded with the bar already
+        from repetrel_host.cli.display import clock  # loaded with the bar already
 
         text += f" (the slicer estimated {clock(estimate)})"
     console.print(f"{text}; machine profile {plan.profile.name}.", markup=False)

@@ -21,7 +21,7 @@ import signal
 from collections.abc import Callable
 from pathlib import Path
 
-log = logging.getLogger("repetrel_host.camera")
+log = logging.getLogger("repetrel_host.session.camera")
 
 SNAPSHOT_TIMEOUT = 20.0
 MAX_WAITING = 4  # snapshots asked for (M791) waiting behind the one being taken
@@ -35,16 +35,6 @@ _MAGIC = (
 
 class SnapshotFailed(Exception):
     """The camera command did not give an image; the message says why, in one sentence."""
-
-
-def check_command(command: str) -> None:
-    """Raise ValueError when ``command`` is not a command line (for the settings' check)."""
-    try:
-        argv = shlex.split(command)
-    except ValueError as exc:
-        raise ValueError(f"the camera command cannot be split into words ({exc})") from None
-    if not argv:
-        raise ValueError("the camera command is empty")
 
 
 def image_suffix(data: bytes) -> str | None:

@@ -12,13 +12,13 @@ from dataclasses import dataclass, field
 
 from repetrel_host.fakes.hyrel_simulator import HyrelControllerSimulator
 from repetrel_host.fakes.simulator import ControllerSettings, ControllerSimulator, Faults
-from repetrel_host.job import JobLine
 from repetrel_host.protocol.dialect import Dialect
 from repetrel_host.protocol.dialects import create_dialect
 from repetrel_host.protocol.dialects.reprap import RepRapDialect
 from repetrel_host.protocol.events import Failed, ProbeKind
 from repetrel_host.protocol.flow import FlowControl, FlowMode
-from repetrel_host.pump import Listener, Pump, Run
+from repetrel_host.session.job import JobLine
+from repetrel_host.session.pump import Listener, Pump, Run
 
 # The smallest step of simulated time when nothing is scheduled.
 _TICK = 0.0005
