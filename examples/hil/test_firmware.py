@@ -1,7 +1,7 @@
 """The controller says who it is."""
 
 import repetrel_host as rh
-from repetrel_host.planning import is_hyrel_firmware
+from repetrel_host.session.planning import is_hyrel_firmware
 
 # The built-in fake's name on each link (--hyrel-protocol).
 FAKE_NAMES = {
