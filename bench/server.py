@@ -39,7 +39,7 @@ sys.path.insert(0, str(Path(__file__).parent.parent))
 
 from bench.run import PROFILES, Profile, job_file, start_fake, stop_fake
 
-from repetrel_host.server.client import ServerClient
+from repetrel_host.cli.server_client import ServerClient
 
 KEY = "bench"
 

@@ -17,7 +17,14 @@ from repetrel_host.gcode.analysis import scan_marks
 from repetrel_host.protocol.dialects.hyrel import SYNC_EVERY
 from repetrel_host.session.job import Job, JobLine
 from repetrel_host.session.planning import JobRequest, plan_job, resumed
-from repetrel_host.session.resume import HomeAxes, MachineState, back_to_job, preamble, track
+from repetrel_host.session.resume import (
+    HomeAxes,
+    MachineState,
+    back_to_job,
+    preamble,
+    resume_command,
+    track,
+)
 from tests.support.helpers import (
     CONE,
     MARLIN_SAFE_STOP,
@@ -392,8 +399,6 @@ def test_no_hint_when_nothing_of_the_job_was_acknowledged(tmp_path: Path) -> Non
 
 
 def test_the_hint_replaces_an_earlier_resume_point() -> None:
-    from repetrel_host.cli.app import resume_command
-
     arguments = ("my part.gcode", "--from-layer", "3", "--port", "/dev/ttyUSB0", "--from-line=9")
     assert resume_command(arguments, 1234) == (
         "hyrel-send 'my part.gcode' --port /dev/ttyUSB0 --from-line 1234"

@@ -33,7 +33,7 @@ class Terminal(Protocol):
     def bell(self) -> None: ...
 
 
-class ConsoleActions:
+class TerminalActions:
     """Carries out a job's host actions at a terminal, and keeps the report log."""
 
     def __init__(

@@ -28,11 +28,12 @@ from typing import TYPE_CHECKING, Any
 
 from repetrel_host.cli.actions import (
     Connecting,
-    ConsoleActions,
+    TerminalActions,
     read_line,
     stop_delayed_text,
     summary_text,
 )
+from repetrel_host.cli.exit_codes import EXIT_NOT_SAFE, EXIT_OK
 from repetrel_host.cli.stop_signals import StopSignals, exit_code_of_stop, stopping_text
 from repetrel_host.config import UserConfig
 from repetrel_host.errors import HostError, JobError, SafeStopError, UsageError
@@ -69,8 +70,6 @@ if TYPE_CHECKING:
     from prompt_toolkit.application import Application
     from prompt_toolkit.history import History
 
-EXIT_OK = 0
-EXIT_NOT_SAFE = 5  # as hyrel-send's: the last job's safe stop was not confirmed
 PROMPT = "> "
 # Temperatures are polled this often (a job printing or not): the status line stays current.
 POLL_INTERVAL = 2.0
@@ -431,7 +430,7 @@ class PrinterConsole:
         stream_file = history_file(self.options.history, self.user, plan.job)
         reports = stream_file.with_name(f"{stream_file.stem}-reports.log")
         snapshots = stream_file.with_name(f"{stream_file.stem}-snapshots")
-        actions = ConsoleActions(self.screen, self.user.host, reports, snapshots)
+        actions = TerminalActions(self.screen, self.user.host, reports, snapshots)
         job = await printer.print(
             plan,
             force=force,
@@ -528,7 +527,7 @@ class PrinterConsole:
         else:
             self.say(f"warning: {event.text}")
 
-    async def _watch_job(self, job: PrintJob, actions: ConsoleActions) -> None:
+    async def _watch_job(self, job: PrintJob, actions: TerminalActions) -> None:
         try:
             async for event in job.events():
                 if isinstance(event, Message):

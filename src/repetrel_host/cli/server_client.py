@@ -1,6 +1,7 @@
 """``hyrel-send --server URL``: the print server from the command line (the standard
 library's HTTP client: nothing more to install). Submits a job and follows it through
-the server's event stream, lists a printer's queue, cancels a job."""
+the server's event stream, lists a printer's queue, cancels a job; the same for a farm's
+queue (``--farm``). A job's end is told in hyrel-send's exit codes."""
 
 from __future__ import annotations
 
@@ -15,13 +16,23 @@ from urllib.error import HTTPError, URLError
 from urllib.parse import quote, urlencode
 from urllib.request import Request, urlopen
 
+from repetrel_host.cli.exit_codes import (
+    EXIT_CONTROLLER_ERROR,
+    EXIT_INTERRUPTED,
+    EXIT_NOT_SAFE,
+    EXIT_OK,
+)
 from repetrel_host.errors import JobError, LinkError, UsageError
 
 API_KEY_ENV = "HYREL_API_KEY"
 TIMEOUT = 30.0
 # How a job's end maps to hyrel-send's exit codes.
-ENDED = {"completed": 0, "cancelled": 130, "failed": 4, "interrupted": 4}
-NOT_SAFE = 5  # hyrel-send's exit code when a safe stop was not confirmed
+ENDED = {
+    "completed": EXIT_OK,
+    "cancelled": EXIT_INTERRUPTED,
+    "failed": EXIT_CONTROLLER_ERROR,
+    "interrupted": EXIT_CONTROLLER_ERROR,
+}
 
 
 class ServerClient:
@@ -174,7 +185,7 @@ def follow(
             f"no longer following job {job_id}: it goes on on the server "
             f"(hyrel-send --server {client.url} --cancel {job_id} stops it)"
         )
-        return 130
+        return EXIT_INTERRUPTED
 
 
 def _follow(
@@ -203,7 +214,7 @@ def _follow(
                         f"not safe: job {job_id}'s safe stop was not confirmed; the server "
                         "sends it as soon as the printer answers"
                     )
-                    return NOT_SAFE
+                    return EXIT_NOT_SAFE
                 return ENDED[state]
             if state != "queued":  # said already
                 show(f"{path.name}: {state}")
@@ -322,8 +333,8 @@ def farm_follow(
             "no longer following: the jobs go on in the farm "
             f"(hyrel-send --server {client.url} --farm --cancel ID stops one)"
         )
-        return 130
-    return max(codes.values(), default=0)
+        return EXIT_INTERRUPTED
+    return max(codes.values(), default=EXIT_OK)
 
 
 def _waiting_hint(client: ServerClient, job_id: int) -> str:

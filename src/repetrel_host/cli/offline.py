@@ -1,0 +1,143 @@
+"""What hyrel-send answers without a printer: ``--check`` (the job's findings and the
+verdict), ``--dry-run`` (the commands, or with ``--framed`` the wire, that would be sent),
+``--list-ports`` and ``--history-list``."""
+
+from __future__ import annotations
+
+import os
+import re
+import shlex
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+from repetrel_host.cli.exit_codes import EXIT_BAD_INPUT, EXIT_OK
+from repetrel_host.cli.out import Out
+from repetrel_host.config import load_user_config
+from repetrel_host.gcode.lint import Finding, Severity
+from repetrel_host.protocol.dialects import create_dialect
+from repetrel_host.session import history as print_history
+from repetrel_host.session.job import HostAction
+from repetrel_host.session.planning import JobPlan, LinkRequest, default_history_dir, link_settings
+from repetrel_host.session.resume import RESUME_SOURCE, resume_command
+
+_CONTROL = re.compile(r"[\x00-\x09\x0b-\x1f]")
+
+
+def check_job(plan: JobPlan, errors: Out) -> list[Finding]:
+    """Check the whole file and print the findings."""
+    findings = plan.check()
+    for finding in findings:
+        errors.print(finding.format(plan.job.name), markup=False)
+    return findings
+
+
+def check_verdict(console: Out, plan: JobPlan, findings: list[Finding]) -> int:
+    """hyrel-send --check: the verdict on the findings, and the exit code that says it."""
+    refused = [f for f in findings if f.severity is Severity.ERROR]
+    verdict = "refused" if refused else "ok"
+    console.print(
+        f"{plan.job.name}: {verdict} ({len(findings)} findings) with machine "
+        f"profile {plan.profile.describe()}",
+        markup=False,
+    )
+    return EXIT_BAD_INPUT if refused else EXIT_OK
+
+
+def dry_run(errors: Out, plan: JobPlan, framed: bool, protocol: str | None) -> None:
+    """hyrel-send --dry-run: a preview, shown even when the findings would refuse the job."""
+    link = link_settings(LinkRequest(protocol=protocol), plan.machine)
+    # On stderr: stdout holds the commands alone, for a script to read.
+    errors.print(
+        f"{plan.job.name}: a dry run, nothing sent; machine profile "
+        f"{plan.profile.describe()}, {link.protocol} protocol",
+        markup=False,
+    )
+    _print_commands(plan, framed, link.protocol)
+
+
+def _print_commands(plan: JobPlan, framed: bool, protocol: str) -> None:
+    """The commands on stdout, exactly as they would go; host actions noted on stderr."""
+    pause_sync = create_dialect(protocol).pause_command  # M0 where the controller waits
+    # A resumed job's preamble is shown with why each line is there (not on the wire).
+    notes = iter(plan.resume.preamble if plan.resume is not None and not framed else [])
+
+    def commands() -> Iterator[str]:
+        for item in plan.items(pause_sync=pause_sync):
+            if isinstance(item, HostAction):
+                sys.stderr.write(f"{item.position}: host {item.kind}: {item.message}\n")
+            elif item.source == RESUME_SOURCE and (note := next(notes, None)) is not None:
+                yield f"{item.command} ; {note.why}"
+            else:
+                yield item.command
+
+    if framed:
+        from repetrel_host.session.loopback import wire_preview  # only a preview needs it
+
+        for data in wire_preview(commands(), protocol=protocol):
+            # Hyrel's control bytes (the ping, 0x07, would ring the terminal's bell) shown.
+            text = data.decode("ascii", errors="replace")
+            sys.stdout.write(_CONTROL.sub(lambda m: f"<0x{ord(m.group()):02x}>", text))
+    else:
+        for command in commands():
+            sys.stdout.write(command + "\n")
+    sys.stdout.flush()
+
+
+def list_serial_ports(console: Out) -> None:
+    """hyrel-send --list-ports: one line a port, candidates marked."""
+    from repetrel_host.links.ports import describe, list_ports
+
+    found = list_ports()
+    for port in found:
+        console.print(describe(port), markup=False)
+    if not found:
+        console.print("no serial ports found", markup=False)
+
+
+def history_list(console: Out, folder: Path | None, config: Path | None) -> None:
+    """hyrel-send --history-list: the newest runs, how each ended."""
+    user = load_user_config(config)
+    folder = folder or user.host.history_dir or default_history_dir()
+    entries = print_history.entries(folder)
+    if not entries:
+        console.print(f"no prints in {folder} yet", markup=False)
+        return
+    console.print(f"Print history in {folder} (newest first):", markup=False)
+    for entry in entries:
+        line = print_history.describe(entry.run, entry.record, entry.progress, entry.alive)
+        console.print(line, markup=False)
+        if entry.killed and entry.progress is not None:
+            console.print(f"  {_killed_resume(entry.progress, entry.run.stream)}", markup=False)
+
+
+def _killed_resume(progress: print_history.Progress, stream: Path) -> str:
+    """How a killed run resumes: from its progress record's line, uncertainly (what was
+    sent after the last acknowledged line may have run, and the record may be a moment
+    behind the stream)."""
+    line = progress.resume_line
+    if line is None and progress.all_sent:
+        ran = "known to have run" if progress.known_to_run else "acknowledged"
+        return f"nothing to resume: every line of the job was {ran}"
+    after = print_history.lines_after(stream, progress.stream_bytes)
+    later = (
+        ""
+        if after == 0
+        else f"; the stream has {after if after is not None else 'more'} lines after that, "
+        "sent later"
+    )
+    if progress.sent:
+        uncertain = f"uncertain: lines up to {progress.sent} were sent and may have run{later}"
+    else:
+        uncertain = f"uncertain: no line of the job was sent when last recorded{later}"
+    what = "to resume" if line is not None else "no line is known to have run: to start again"
+    if not progress.command:  # a library user's run: the line only
+        where = f"print({progress.path!r}, from_line={line})" if line is not None else "again"
+        return f"{what} ({uncertain}): {where}"
+    if line is not None:
+        command = resume_command(progress.command, line)
+    else:
+        command = shlex.join(["hyrel-send", *progress.command])
+    if progress.cwd and progress.cwd != os.getcwd():  # a job's relative path is from there
+        command = f"cd {shlex.quote(progress.cwd)} && {command}"
+    return f"{what} ({uncertain}): {command}"
