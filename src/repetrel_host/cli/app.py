@@ -56,6 +56,7 @@ from repetrel_host.protocol.dialects.reprap import DEFAULT_REPLY_TIMEOUT
 from repetrel_host.protocol.events import ProbeKind
 from repetrel_host.protocol.flow import FlowMode
 from repetrel_host.session import history as print_history
+from repetrel_host.session.connect import connect
 from repetrel_host.session.events import (
     Message,
     Notice,
@@ -80,7 +81,8 @@ from repetrel_host.session.planning import (
     replan_for_firmware,
     resumed,
 )
-from repetrel_host.session.printer import RECONNECT_WAIT, Printer, PrintJob, connect
+from repetrel_host.session.print_job import PrintJob
+from repetrel_host.session.printer import Printer
 from repetrel_host.session.pump import Outcome, Summary
 from repetrel_host.session.resume import (
     RESUME_SOURCE,
@@ -89,6 +91,7 @@ from repetrel_host.session.resume import (
     resume_from,
     resume_window,
 )
+from repetrel_host.session.settings import RECONNECT_WAIT
 
 if TYPE_CHECKING:
     from rich.console import Console
