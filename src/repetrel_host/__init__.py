@@ -23,6 +23,8 @@ from repetrel_host.errors import (
 from repetrel_host.protocol.events import ProbeKind
 from repetrel_host.protocol.flow import FlowControl, FlowMode
 from repetrel_host.protocol.reports import Firmware, JobReport
+from repetrel_host.session.commands import Reply
+from repetrel_host.session.connect import connect
 from repetrel_host.session.events import (
     Action,
     Done,
@@ -41,7 +43,8 @@ from repetrel_host.session.events import (
     StopDelayed,
     Temperatures,
 )
-from repetrel_host.session.printer import Printer, PrintJob, Reply, connect
+from repetrel_host.session.print_job import PrintJob
+from repetrel_host.session.printer import Printer
 from repetrel_host.session.pump import Outcome, Summary
 from repetrel_host.session.resume import HomeAxes
 

@@ -216,8 +216,9 @@ def test_a_controller_that_never_says_who_it_is_gets_a_safe_stop_for_either_firm
 
     import repetrel_host as rh
     from repetrel_host.fakes.simulator import ControllerSettings
+    from repetrel_host.session import identify
 
-    monkeypatch.setattr(rh.session, "FIRMWARE_PATIENCE", 0.2)
+    monkeypatch.setattr(identify, "FIRMWARE_PATIENCE", 0.2)
     settings = ControllerSettings(latency=0.25)  # M115's answer comes after 0.5 s
 
     async def scenario() -> None:

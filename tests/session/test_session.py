@@ -14,6 +14,7 @@ import pytest
 import repetrel_host as rh
 from repetrel_host.fakes.simulator import ControllerSettings, ControllerSimulator, Faults
 from repetrel_host.links import SimLink
+from repetrel_host.session import identify
 from tests.support.helpers import (
     EXAMPLE,
     HYREL_SAFE_STOP,
@@ -680,7 +681,7 @@ def test_a_controller_slow_to_say_who_it_is_is_used_without_its_name(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     # A round trip of half a second, and the session waits only 0.3 s for M115's answer.
-    monkeypatch.setattr(rh.session, "FIRMWARE_PATIENCE", 0.3)
+    monkeypatch.setattr(identify, "FIRMWARE_PATIENCE", 0.3)
     settings = ControllerSettings(latency=0.25)
 
     async def scenario() -> None:
@@ -698,7 +699,7 @@ def test_a_controller_slow_to_say_who_it_is_is_used_without_its_name(
 def test_a_hyrel_controller_slow_to_answer_m115_is_known_by_its_pings_answer(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    monkeypatch.setattr(rh.session, "FIRMWARE_PATIENCE", 0.3)
+    monkeypatch.setattr(identify, "FIRMWARE_PATIENCE", 0.3)
     settings = ControllerSettings(latency=0.25, rx_buffer=8192, banner=False)
 
     async def scenario() -> None:

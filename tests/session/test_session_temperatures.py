@@ -13,7 +13,7 @@ import pytest
 import repetrel_host as rh
 from repetrel_host.fakes.simulator import ControllerSettings, Faults
 from repetrel_host.links import SimLink
-from repetrel_host.session import printer as session
+from repetrel_host.session import identify
 from tests.support.helpers import MARLIN_SAFE_STOP, job_file, run
 
 pytestmark = pytest.mark.timeout(60)
@@ -58,7 +58,7 @@ def test_a_controller_slow_to_say_who_it_is_gets_its_m155_once_mid_job(
 ) -> None:
     # Its M115 runs 1.5 s, past the session's patience: the session is READY without
     # knowing the firmware, the job starts behind that M115, and the answer comes mid-job.
-    monkeypatch.setattr(session, "FIRMWARE_PATIENCE", 0.5)
+    monkeypatch.setattr(identify, "FIRMWARE_PATIENCE", 0.5)
     settings = ControllerSettings(latency=0.0005, move_time=0.004, identify_time=1.5)
     path = job_file(tmp_path, HEAT + MOVES)
 

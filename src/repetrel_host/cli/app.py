@@ -55,8 +55,8 @@ from repetrel_host.session.planning import (
     plan_job,
     resumed,
 )
-from repetrel_host.session.printer import RECONNECT_WAIT
 from repetrel_host.session.resume import HomeAxes
+from repetrel_host.session.settings import RECONNECT_WAIT
 
 
 class Protocol(StrEnum):

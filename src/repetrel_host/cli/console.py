@@ -40,6 +40,7 @@ from repetrel_host.errors import HostError, JobError, SafeStopError, UsageError
 from repetrel_host.gcode.commands import command_word
 from repetrel_host.links import FAKE_PORT, FakeLink
 from repetrel_host.protocol.reports import format_temperatures
+from repetrel_host.session.connect import connect
 from repetrel_host.session.events import (
     Message,
     NoAnswerYet,
@@ -62,7 +63,8 @@ from repetrel_host.session.planning import (
     link_settings,
     resolve_port,
 )
-from repetrel_host.session.printer import Printer, PrintJob, connect
+from repetrel_host.session.print_job import PrintJob
+from repetrel_host.session.printer import Printer
 from repetrel_host.session.pump import Outcome
 from repetrel_host.session.resume import resume_from, resume_window
 

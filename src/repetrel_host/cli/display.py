@@ -27,7 +27,8 @@ from repetrel_host.gcode.marks import Position, SlicerMarks
 from repetrel_host.protocol.reports import format_temperatures
 
 if TYPE_CHECKING:
-    from repetrel_host.session.printer import Printer, PrintJob
+    from repetrel_host.session.print_job import PrintJob
+    from repetrel_host.session.printer import Printer
 
 
 class JobProgress(Progress):

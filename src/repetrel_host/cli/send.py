@@ -41,6 +41,7 @@ from repetrel_host.errors import (
 from repetrel_host.gcode.analysis import scan_marks, slicer_estimate
 from repetrel_host.links import FAKE_PORT, FakeLink
 from repetrel_host.protocol.events import ProbeKind
+from repetrel_host.session.connect import connect
 from repetrel_host.session.events import (
     Message,
     Notice,
@@ -58,7 +59,8 @@ from repetrel_host.session.planning import (
     link_settings,
     replan_for_firmware,
 )
-from repetrel_host.session.printer import Printer, PrintJob, connect
+from repetrel_host.session.print_job import PrintJob
+from repetrel_host.session.printer import Printer
 from repetrel_host.session.pump import Outcome, Summary
 from repetrel_host.session.resume import resume_command, resume_from, resume_window
 

@@ -1,4 +1,8 @@
-"""The printer session: one long-lived connection to one controller (:mod:`.printer`), the
-jobs it streams (:mod:`.job`, :mod:`.planning`, :mod:`.resume`), the sans-IO pump between
-them and the dialect (:mod:`.pump`), the events it tells (:mod:`.events`) and its record
-(:mod:`.history`). The public API is re-exported from ``repetrel_host``."""
+"""The printer session: one long-lived connection to one controller (:mod:`.printer`),
+opened by :mod:`.connect` over a link's connection (:mod:`.connection`, with
+:mod:`.settings`), knowing what the controller is (:mod:`.identify`) and what safe stop it
+still owes (:mod:`.owed`); the commands it sends (:mod:`.commands`), the jobs it streams
+(:mod:`.print_job`, :mod:`.job`, :mod:`.planning`, :mod:`.resume`), the sans-IO pump between
+them and the dialect (:mod:`.pump`) and what the pump tells it (:mod:`.listener`), the
+events it tells (:mod:`.events`, handed out by :mod:`.hub`) and its record (:mod:`.history`).
+The public API is re-exported from ``repetrel_host``."""

@@ -1,14 +1,15 @@
 """The printer session: one long-lived connection to one controller.
 
-``connect`` opens the port, greets the controller (M110 and a probe on the RepRap
-link, a ping on Hyrel's), asks M115 who it is, and hands back a READY
-:class:`Printer`. The session then keeps reading: controller messages and
-temperatures become events, commands get their replies, jobs stream one after
-another on the same numbering, and a vanished port is reopened (with backoff) and
+``connect`` (``repetrel_host.session.connect``) opens the port and hands back a READY
+:class:`Printer`, once :func:`open_printer` greeted the controller (M110 and a probe on the
+RepRap link, a ping on Hyrel's) and asked M115 who it is. The session then keeps reading:
+controller messages and temperatures become events, commands get their replies, jobs stream
+one after another on the same numbering, and a vanished port is reopened (with backoff) and
 greeted again. It never resumes a job by itself.
 
 All I/O is here: bytes go between a link (``repetrel_host.links``) and the one
-pump (``repetrel_host.session.pump``), which drives the dialect. Models: zigpy-znp's
+pump (``repetrel_host.session.pump``), which drives the dialect; what the pump sees comes
+back through its listener (``repetrel_host.session.listener``). Models: zigpy-znp's
 ``api.py`` (connect, request and wait for the response, reconnect), Klipper's
 ``serialhdl.py`` (connect with retry, ``send_with_response``), h11's
 ``start_next_cycle`` (one connection, many exchanges).
@@ -21,125 +22,83 @@ import contextlib
 import functools
 import logging
 import math
-import re
 import weakref
 from collections import deque
-from collections.abc import AsyncIterator, Awaitable, Callable, Coroutine, Generator, Iterable
-from dataclasses import dataclass, field
-from datetime import datetime
+from collections.abc import AsyncIterator, Callable, Coroutine, Iterable
 from itertools import chain
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, BinaryIO, Generic, TypeVar
+from typing import Any, BinaryIO
 
-from repetrel_host.config import UserConfig, load_user_config
 from repetrel_host.errors import (
     ControllerError,
     HostError,
     JobError,
     LinkError,
-    SafeStopError,
     UsageError,
 )
 from repetrel_host.gcode.commands import command_word
 from repetrel_host.gcode.heaters import Heater, HeaterLog, complete_safe_stop
-from repetrel_host.links import Link, make_link
-from repetrel_host.protocol import replies
+from repetrel_host.links import Link
 from repetrel_host.protocol.dialect import Statistics
 from repetrel_host.protocol.dialects import create_dialect, release_bytes
-from repetrel_host.protocol.dialects.reprap import DEFAULT_REPLY_TIMEOUT
 from repetrel_host.protocol.events import Failed as DialectFailed
-from repetrel_host.protocol.events import FailureKind, GreetingRetry, ProbeKind
-from repetrel_host.protocol.flow import FlowControl, FlowMode
-from repetrel_host.protocol.framing import clean_line
-from repetrel_host.protocol.reports import Firmware, JobReport, ReportReader, parse_temperatures
+from repetrel_host.protocol.events import FailureKind, ProbeKind
+from repetrel_host.protocol.reports import Firmware, parse_temperatures
 from repetrel_host.session import history as print_history
+from repetrel_host.session.commands import PendingCommand, Reply, clean_command
+from repetrel_host.session.connection import (
+    LINK_LOST,
+    QUIET,
+    QUIET_MAX,
+    RECONNECT_FIRST,
+    RECONNECT_MAX,
+    LinkConnection,
+)
 from repetrel_host.session.events import (
-    Action,
-    Done,
-    Failed,
-    JobEvent,
     Message,
-    NoAnswerYet,
     Notice,
-    Paused,
-    PauseReason,
     PrinterEvent,
-    Progress,
-    Report,
-    Resend,
     Resumed,
     State,
     StateChanged,
-    StopDelayed,
     Temperatures,
 )
-from repetrel_host.session.job import MAX_COMMAND_LENGTH, ActionKind, HostAction, JobItem, JobLine
+from repetrel_host.session.hub import EventHub
+from repetrel_host.session.identify import FIRMWARE_TIMEOUT, Identity, hotend_count
+from repetrel_host.session.job import JobItem, JobLine
+from repetrel_host.session.listener import PumpListener
+from repetrel_host.session.owed import OwedSafeStop, delivered, unsafe_stop_error
 from repetrel_host.session.planning import (
     JobPlan,
     JobRequest,
-    LinkRequest,
     Profile,
     controller_profile,
-    explicit_machine,
     history_file,
-    link_settings,
     plan_job,
-    resolve_port,
     resumed,
 )
 from repetrel_host.session.planning import safe_stop as safe_stop_for
+from repetrel_host.session.print_job import ActionHandler, PrintJob
 from repetrel_host.session.pump import (
     CANCEL_DRAIN_TIMEOUT,
-    Listener,
-    Outcome,
     Pump,
     Run,
     Summary,
     failure_error,
 )
 from repetrel_host.session.resume import KEEPS_THE_JOB_STATE, HomeAxes, MachineState, back_to_job
+from repetrel_host.session.settings import SessionSettings
 
-if TYPE_CHECKING:
-    from repetrel_host.fakes.simulator import ControllerSettings
+# The session's log, as before its parts had modules of their own.
+log = logging.getLogger("repetrel_host.session.printer")
 
-log = logging.getLogger(__name__)
-
-# M115 is asked again when its answer names no firmware (garbled), and waited for this
-# long in all: a slow controller's answer decides the profile (and so its safe stop), not
-# a short timeout. An answer that comes later still does.
-FIRMWARE_TIMEOUT = 2.0  # for the M155 that follows it
-FIRMWARE_PATIENCE = 12.0
-FIRMWARE_ATTEMPTS = 3
-# Temperatures are asked for this often while idle (M105), unless the firmware reports them.
-POLL_INTERVAL = 5.0
-# After an unplug, the port is tried again after this long, doubling up to the maximum.
-RECONNECT_FIRST = 0.25
-RECONNECT_MAX = 5.0
-# After a failure, the line must be this quiet (or this long, at most) before a new
-# greeting: answers to the old lines still on their way must not be taken for its own.
-QUIET = 0.3
-QUIET_MAX = 5.0
 # How long each line of an owed safe stop may take to be answered after a reconnect.
 SAFE_STOP_TIMEOUT = 30.0
-# A job whose link failed before its safe stop was confirmed ends once the safe stop went
-# after a reconnect, or after this long without one (connect's reconnect_wait).
-RECONNECT_WAIT = 30.0
 # Closing waits this long for the snapshots a job's markers asked for (M790, M791).
 MARKER_TIMEOUT = 30.0
-# A job's progress goes to its event subscribers at most this often.
-PROGRESS_INTERVAL = 0.1
-# Events a late subscriber to a job still gets.
-JOB_EVENT_BACKLOG = 1000
-LINK_LOST = "the serial link was lost (printer unplugged, or its port closed)"
 # Sent before a job when its report is asked for: reset the metrics, and have M30 send
 # the M773 report (Hyrel's diagnostic codes, M772: bit 0 of S).
 REPORT_COMMAND = "M772 S1"
-_FRAMED = re.compile(r"^\s*N-?\d|\*", re.IGNORECASE)
-
-E = TypeVar("E")
-_END = object()
-
-
 BACK_TO_JOB_TIMEOUT = 60.0  # s: each command that brings a paused job's machine back
 
 
@@ -153,352 +112,6 @@ def _state_at(plan: JobPlan, line: int) -> MachineState:
     return state
 
 
-@dataclass(frozen=True, slots=True)
-class Reply:
-    """The controller's answer to one command: its lines, then its ok."""
-
-    command: str
-    lines: list[str]  # the controller's lines for it, before its ok
-    ok_line: str  # the ok line itself ("ok T:200.0 /200.0 B:60.0 /60.0"); "" when none came
-
-    @property
-    def ok(self) -> bool:
-        """The controller acknowledged the command. False for M112 and M108, which go out
-        at once (the firmware's emergency parser reads them) and get no ok."""
-        return bool(self.ok_line)
-
-
-@dataclass(frozen=True, slots=True)
-class SessionSettings:
-    """What a session was opened with."""
-
-    port: str
-    baud: int
-    flow: FlowControl
-    reply_timeout: float = DEFAULT_REPLY_TIMEOUT
-    reconnect: bool = True
-    poll_interval: float | None = POLL_INTERVAL
-    protocol: str = "reprap"
-    user: UserConfig = field(default_factory=UserConfig)
-    request: JobRequest = field(default_factory=JobRequest)
-    checksum: bool = False  # Hyrel's link: the additive checksum on every line
-    poll_while_printing: bool = False  # M105 between a job's lines, as OctoPrint does
-    reconnect_wait: float = RECONNECT_WAIT
-
-
-class _Hub(Generic[E]):
-    """Hands every event to every subscriber, each at its own pace."""
-
-    def __init__(self, backlog: int = 0) -> None:
-        self._queues: list[asyncio.Queue[object]] = []
-        self._backlog: deque[E] | None = deque(maxlen=backlog) if backlog else None
-        self._closed = False
-        # Called at once with each event, on the session's path (connect()'s on_event).
-        self.callbacks: list[Callable[[E], None]] = []
-
-    def publish(self, event: E) -> None:
-        if self._backlog is not None:
-            self._backlog.append(event)
-        for queue in self._queues:
-            queue.put_nowait(event)
-        for callback in self.callbacks:
-            try:
-                callback(event)
-            except Exception:  # a listener's bug must not break the session
-                log.exception("an on_event callback failed on %r", event)
-
-    def close(self) -> None:
-        self._closed = True
-        for queue in self._queues:
-            queue.put_nowait(_END)
-
-    def stream(self, first: Iterable[E] = ()) -> AsyncIterator[E]:
-        """A subscription from now on (not from the first ``anext``), after ``first``."""
-        queue: asyncio.Queue[object] = asyncio.Queue()
-        for event in (*first, *(self._backlog or ())):
-            queue.put_nowait(event)
-        if self._closed:
-            queue.put_nowait(_END)
-        self._queues.append(queue)
-        return self._drain(queue)
-
-    async def _drain(self, queue: asyncio.Queue[object]) -> AsyncIterator[E]:
-        try:
-            while (event := await queue.get()) is not _END:
-                yield event  # type: ignore[misc]
-        finally:
-            self._queues.remove(queue)
-
-
-class _Command:
-    """A command on its way: the lines that come for it, and the reply it awaits."""
-
-    __slots__ = ("command", "future", "lines", "own")
-
-    def __init__(self, command: str, future: asyncio.Future[Reply], own: bool = False) -> None:
-        self.command = command
-        self.lines: list[str] = []
-        self.future = future
-        self.own = own  # the session's own (the greeting's M115, a poll), not the caller's
-
-
-class _Connection(asyncio.Protocol):
-    """The asyncio side of one opened link; a stale one (after an unplug) is ignored."""
-
-    def __init__(self, printer: Printer) -> None:
-        self.printer = printer
-        self.transport: asyncio.Transport | None = None
-
-    def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        assert isinstance(transport, asyncio.Transport)
-        self.transport = transport
-        self.printer._made(self)
-
-    def data_received(self, data: bytes) -> None:
-        self.printer._received(self, data)
-
-    def connection_lost(self, exc: Exception | None) -> None:
-        self.printer._lost(self, exc)
-
-
-ActionHandler = Callable[[HostAction], Awaitable[bool]]
-
-
-class PrintJob:
-    """One job streaming on a session: its progress, events and end."""
-
-    def __init__(
-        self,
-        printer: Printer,
-        plan: JobPlan,
-        run: Run,
-        on_action: ActionHandler | None,
-        history: Path | None,
-    ) -> None:
-        self.printer = printer
-        self.plan = plan
-        self.name = plan.job.name
-        self.size = plan.job.size
-        self.history = history  # the stream as transmitted, or None
-        self.on_action = on_action
-        self._run = run
-        self._done: asyncio.Future[Summary] = asyncio.get_running_loop().create_future()
-        self._hub: _Hub[JobEvent] = _Hub(JOB_EVENT_BACKLOG)
-        self._ticking = False  # progress goes out while someone listens
-        self._reported = -1
-        self._m0: asyncio.Future[None] | None = None  # an M0 waiting for resume()
-        self._reports = ReportReader()
-        self.started = datetime.now()
-        self._keeper: print_history.ProgressKeeper | None = None  # the progress record
-
-    @property
-    def report(self) -> JobReport | None:
-        """The M773 report the controller sent (at M30, after M772 S1), or None."""
-        return self._reports.report
-
-    # --- progress -------------------------------------------------------------
-
-    @property
-    def lines(self) -> int:
-        """Job lines the controller acknowledged (the header's and safe stop's not counted)."""
-        return self._run.lines
-
-    @property
-    def offset(self) -> int:
-        """Bytes of the file up to the last acknowledged line."""
-        return self._run.offset
-
-    @property
-    def last(self) -> JobLine | None:
-        """The last job line the controller acknowledged."""
-        return self._run.last
-
-    @property
-    def header_lines(self) -> int:
-        """Lines of the header (the plan's) the controller acknowledged."""
-        return self._run.header_acknowledged
-
-    @property
-    def done(self) -> bool:
-        return self._done.done()
-
-    @property
-    def report_path(self) -> Path | None:
-        """Where the M773 report is kept: beside the history, ``<run>-report.txt``."""
-        history = self.history
-        return history.with_name(f"{history.stem}-report.txt") if history else None
-
-    def where(self) -> str:
-        """The last line the controller acknowledged, as error messages name it."""
-        return self._run.where()
-
-    @property
-    def resume_line(self) -> int | None:
-        """The source line a resumed run would start from (``print(path, from_line=...)``):
-        the one after the last job line known to have run. On Hyrel's link, where an ACK
-        says only *received*, that is what the controller's answers confirmed (what it held
-        when a stop aborted counts as not run); elsewhere the last acknowledged. None when
-        no job line ran, or every one did."""
-        return self._run.resume_line
-
-    @property
-    def sent_through(self) -> int | None:
-        """The source line of the last job line on the wire when the job ended (None while
-        it runs, or when none went): from :attr:`resume_line` to it, lines were sent and
-        not confirmed, and some may have run (a lost link takes their oks with it)."""
-        sent = self._run.last_sent
-        return sent.source_line if sent is not None else None
-
-    @property
-    def resume_known_to_run(self) -> bool:
-        """:attr:`resume_line` follows a line known to have run (Hyrel's link), not one
-        acknowledged (an ok: taken to run, as its firmware took it)."""
-        return self._run.acks_say_received
-
-    @property
-    def all_sent(self) -> bool:
-        """The job was read to its end: what is left is the controller's to run."""
-        run = self._run
-        return run.exhausted and not run.stopping and not run.pause_requested
-
-    @property
-    def stopping(self) -> bool:
-        """A stop was asked for (the safe stop is going, or went)."""
-        return self._run.stop_requests > 0
-
-    @property
-    def reconnecting_for_safe_stop(self) -> bool:
-        """The link failed before the safe stop went: the job ends once it went after a
-        reconnect (or after ``reconnect_wait``); :meth:`stop` gives up waiting."""
-        owing = self.printer._owing
-        return owing is not None and owing[0] is self
-
-    @property
-    def safe_stop_missing(self) -> list[str]:
-        """Safe-stop commands the controller did not confirm (after an abandoned stop)."""
-        return self._run.safe_stop_missing
-
-    def events(self) -> AsyncIterator[JobEvent]:
-        """Progress, messages, resends, pauses, then Done or Failed (the last event)."""
-        if not self._ticking and not self.done:
-            self._ticking = True
-            asyncio.get_running_loop().call_later(PROGRESS_INTERVAL, self._tick)
-        return self._hub.stream()
-
-    async def wait(self) -> Summary:
-        """The summary once the job ended; raises what ended it (the errors hyrel-send shows)."""
-        return await asyncio.shield(self._done)
-
-    # --- control ----------------------------------------------------------------
-
-    async def pause(self, at_layer_end: bool = False) -> None:
-        await self.printer.pause(at_layer_end)
-
-    async def resume(self) -> None:
-        await self.printer.resume()
-
-    async def cancel(self) -> None:
-        await self.printer.cancel()
-
-    def stop(self, error: HostError | None = None) -> bool:
-        """Stop without waiting: the safe-stop sequence goes ahead of anything not sent,
-        and :meth:`wait` raises ``error`` once it went (a cancel, without one).
-
-        A second call abandons the safe stop and ends the job at once; it returns True
-        then (:attr:`safe_stop_missing` says what was not confirmed)."""
-        return self.printer._stop_job(self, error)
-
-    # --- from the session ---------------------------------------------------------
-
-    def _publish(self, event: JobEvent) -> None:
-        self._hub.publish(event)
-
-    def _drop_m0(self) -> None:
-        """An M0's wait ends without a resume (the job stops, or ended)."""
-        if self._m0 is not None:
-            self._m0.cancel()
-            self._m0 = None
-
-    def _tick(self) -> None:
-        # Polled, not pushed per line: a line's acknowledgement costs nothing here.
-        if self.done:
-            return
-        if self.lines != self._reported:
-            self._reported = self.lines
-            self._publish(self._progress())
-        asyncio.get_running_loop().call_later(PROGRESS_INTERVAL, self._tick)
-
-    def _progress(self) -> Progress:
-        last = self._run.last
-        return Progress(self.lines, self.offset, self.size, last.position if last else "")
-
-    def _keep_progress(self) -> None:
-        """The progress in the run's record as the job streams, every PROGRESS_INTERVAL
-        (written when it moved): a killed run resumes from it (``--history-list``)."""
-        keeper = self._keeper
-        if keeper is None or self.done:
-            return
-        last = self._run.last
-        acknowledged = last.source_line if last else 0
-        keeper.update(
-            self.lines,
-            self.where(),
-            acknowledged,
-            self.resume_line,
-            self.resume_known_to_run,
-            self.all_sent,
-            self.printer._pump.dialect.last_sent if self.printer._pump else None,
-        )
-        asyncio.get_running_loop().call_later(print_history.PROGRESS_INTERVAL, self._keep_progress)
-
-    def _finish(self, run: Run, error: HostError | None, summary: Summary | None) -> None:
-        if self._done.done():
-            return
-        self._publish(self._progress())
-        report, path = self.report, self.report_path
-        if report is not None:
-            self._publish(Report(report))
-            if path is not None:  # beside the stream, under the same run's name
-                with contextlib.suppress(OSError):
-                    path.write_text(report.text + "\n")
-        history = self.history
-        if history is not None and print_history.parse_run(history) is not None:
-            # How it ended, beside a stream in a history folder (--history-list); not
-            # beside a file of the caller's own naming (history=Path("/dev/null")...).
-            print_history.write_record(history, self._record(error, summary))
-        if error is not None:
-            self._publish(Failed(error))
-            self._done.set_exception(error)
-            self._done.exception()  # retrieved: a job nobody waits for is no error
-        else:
-            assert summary is not None
-            self._publish(Done(summary))
-            self._done.set_result(summary)
-        self._hub.close()
-
-    def _record(self, error: HostError | None, summary: Summary | None) -> print_history.Record:
-        if error is not None:
-            outcome = print_history.FAILED
-        elif summary is not None and summary.outcome is Outcome.CANCELLED:
-            outcome = print_history.CANCELLED
-        else:
-            outcome = print_history.COMPLETED
-        ended = datetime.now()
-        seconds = summary.seconds if summary else (ended - self.started).total_seconds()
-        return print_history.Record(
-            job=self.name,
-            outcome=outcome,
-            lines=self.lines,
-            seconds=round(seconds, 3),
-            where=self.where(),
-            port=self.printer.port,
-            started=self.started.isoformat(timespec="seconds"),
-            ended=ended.isoformat(timespec="seconds"),
-            error=str(error) if error is not None else "",
-            error_kind=print_history.error_kind(error) if error is not None else "",
-        )
-
-
 class Printer:
     """One long-lived connection to one controller (see the module's docstring)."""
 
@@ -508,16 +121,17 @@ class Printer:
         self.settings = settings
         self.state = State.CONNECTING
         self.state_reason = ""  # why it came to its state, where the session said (a lost port)
-        self.firmware: Firmware | None = None
+        self._identity = Identity()  # who the controller said it is (its firmware)
         self.probe: ProbeKind | None = None
         self.temperatures: dict[str, tuple[float, float | None]] = {}
-        self._connection: _Connection | None = None
+        self._connection: LinkConnection | None = None
         self._pump: Pump | None = None
-        self._listener = _PumpListener(self)
+        self._side = _SessionSide(self)
+        self._listener = PumpListener(self._side)
         self._timer: asyncio.TimerHandle | None = None
         self._timer_at: float | None = None
         self._ready: asyncio.Future[ProbeKind] | None = None
-        self._commands: deque[_Command] = deque()
+        self._commands: deque[PendingCommand] = deque()
         self._lock = asyncio.Lock()
         self._job: PrintJob | None = None
         self._last_job: PrintJob | None = None
@@ -525,7 +139,7 @@ class Printer:
         # machine or changed a mode (jog, home, extrude, T...): resume() comes back first.
         self._paused_words: set[str] = set()
         self._wire_log: BinaryIO | None = None
-        self._hub: _Hub[PrinterEvent] = _Hub()
+        self._hub: EventHub[PrinterEvent] = EventHub()
         self._state_waiters: list[tuple[Callable[[], bool], asyncio.Future[None]]] = []
         self._tasks: set[asyncio.Task[Any]] = set()
         self._markers: weakref.WeakSet[asyncio.Task[None]] = weakref.WeakSet()  # snapshots
@@ -533,19 +147,11 @@ class Printer:
         self._polling: asyncio.Task[None] | None = None
         self._autoreport = False  # the controller reports temperatures itself (M155 took)
         self._autoreport_asked: asyncio.Future[Reply] | None = None  # this connection's M155
-        self._greeting = ""  # what the controller said of itself as it was greeted
-        self._signs: list[str] = []  # its M115 lines, whatever command they came with
-        self._signed = asyncio.Event()
         self._closing = False
         self._last_data_at = 0.0
-        # The safe stop a job that failed (the link, the controller) could not send, and
-        # the job that waits for it to go (after a reconnect) before it ends.
-        self._owed_safe_stop: list[str] = []
-        # A safe stop owed from before this session (a server's restart): the whole of it,
-        # made once the controller said who it is, for the heaters kept from before.
-        self._owe_whole_safe_stop = False
-        self._owing: tuple[PrintJob, Run] | None = None
-        self._owing_timer: asyncio.TimerHandle | None = None
+        # The safe stop still owed (a failed job's, or from before this session), and the
+        # job that waits for it to go (after a reconnect) before it ends.
+        self._owed = OwedSafeStop()
         self._heaters = HeaterLog()  # every heater the session's commands set
         self._wire_taps: list[Callable[[bool, bytes], None]] = []
         self._line_taps: list[Callable[[str, bool], None]] = []
@@ -554,6 +160,11 @@ class Printer:
         # all while it is None. Bounded: a reader that falls behind loses the oldest.
         self.wire_tail: deque[tuple[bool, bytes]] | None = None
         self._watchers: list[Callable[[], None]] = []
+
+    @property
+    def firmware(self) -> Firmware | None:
+        """What the controller's M115 said it is (or its greeting), None when unknown."""
+        return self._identity.firmware
 
     @property
     def port(self) -> str:
@@ -582,7 +193,7 @@ class Printer:
         heated several (and a chamber it heated)."""
         profile = self.profile
         commands = safe_stop_for(profile.machine, self.settings.user, both=profile.fallback)
-        return complete_safe_stop(commands, self._heaters, self._hotends())
+        return complete_safe_stop(commands, self._heaters, hotend_count(self.firmware))
 
     @property
     def owed_safe_stop(self) -> list[str]:
@@ -590,7 +201,7 @@ class Printer:
         the session (``connect(owe_safe_stop=...)``), still to go: they go first once the
         controller answers again, after what it still holds or waits for is dropped or
         ended where the link can (Hyrel's abort and end-wait, Marlin's M108)."""
-        return self.safe_stop if self._owe_whole_safe_stop else list(self._owed_safe_stop)
+        return self.safe_stop if self._owed.whole else list(self._owed.commands)
 
     @property
     def heater_log(self) -> HeaterLog:
@@ -614,10 +225,6 @@ class Printer:
             named.setdefault(name, f"{name} (reported {current:g} °C, target {target:g} °C)")
         return list(named.values())
 
-    def _hotends(self) -> int:
-        count = self.firmware.fields.get("EXTRUDER_COUNT", "1") if self.firmware else "1"
-        return int(count) if count.isdigit() and int(count) > 0 else 1
-
     def events(self) -> AsyncIterator[PrinterEvent]:
         """State changes (the current state first), temperatures, controller messages."""
         return self._hub.stream([StateChanged(self.state, None)])
@@ -637,7 +244,7 @@ class Printer:
         return lambda: self._line_taps.remove(callback)
 
     def _first_send(self, command: str, tag: object, own: bool) -> None:
-        own = own or (isinstance(tag, _Command) and tag.own)
+        own = own or (isinstance(tag, PendingCommand) and tag.own)
         for tap in self._line_taps:
             tap(command, own)
 
@@ -671,7 +278,7 @@ class Printer:
         """Send one command through the numbered, checksummed, resend-safe path and
         return the controller's reply. M112 goes out at once, unnumbered, and stops a job;
         M108 goes out at once too (Marlin's emergency parser ends a heat wait with it)."""
-        command = _clean_command(line)
+        command = clean_command(line)
         word = command_word(command)
         if word == "M112":
             self.emergency_stop()
@@ -695,33 +302,25 @@ class Printer:
         # Shielded: a timeout leaves it pending, so that its late lines are still its own.
         return await asyncio.wait_for(asyncio.shield(pending.future), timeout)
 
-    def _send_command(self, command: str, own: bool = False) -> _Command:
+    def _send_command(self, command: str, own: bool = False) -> PendingCommand:
         pump = self._pump
         if pump is None:
             raise LinkError(f"{self.port} is not connected")
-        pending = _Command(command, self._loop.create_future(), own)
+        pending = PendingCommand(command, self._loop.create_future(), own)
         self._commands.append(pending)
         pump.command(command, pending)
-        self._poke()
+        self._drive_pump()
         return pending
 
-    def _sign(self, text: str) -> None:
+    def _take_identity_line(self, text: str) -> None:
         """A line that says which firmware this is (M115's ``FIRMWARE_NAME:`` and ``Cap:``
         lines), whichever command it came with or after: a slow controller's answer still
         decides, once it comes."""
-        self._signs.append(text)
-        found = Firmware.parse(self._signs)
         known = self.firmware
-        if found is None or (
-            known is not None
-            and (known.fields, known.capabilities) == (found.fields, found.capabilities)
-        ):
+        found = self._identity.heard(text)
+        if found is None:
             return
-        late = self.state is not State.CONNECTING and (
-            self.firmware is None or self.firmware.name != found.name
-        )
-        self.firmware = found
-        self._signed.set()
+        late = self.state is not State.CONNECTING and (known is None or known.name != found.name)
         self._use_firmware()
         # Its M155, if it has one, also when it said who it is only once a job was under
         # way: after this dispatch (not inside it), on this connection only.
@@ -733,7 +332,7 @@ class Printer:
         """What the pump takes from the firmware: its hotends, whether M108 ends a wait."""
         pump, firmware = self._pump, self.firmware
         if pump is not None:
-            pump.hotends = self._hotends()
+            pump.hotends = hotend_count(firmware)
             pump.breaks_waits = (
                 firmware is not None
                 and firmware.can("EMERGENCY_PARSER")
@@ -799,21 +398,20 @@ class Printer:
         if pump is None:
             raise LinkError(f"{self.port} is not connected")
         pump.dialect.send_urgent(command_word(command))  # as emergency parsers read it
-        self._poke()
+        self._drive_pump()
 
     def emergency_stop(self) -> None:
         """M112 at once, unnumbered: the controller halts (its heaters off) until reset; a
         job ends with a ControllerError, and no safe stop is owed."""
         self._urgent("M112")
-        self._owed_safe_stop = []  # the controller halted: its heaters are off
-        self._owe_whole_safe_stop = False
+        self._owed.forgive()  # the controller halted: its heaters are off
         if self._pump is not None:
             error = ControllerError(
                 "stopped by an emergency stop (M112): the controller halted (heaters off) "
                 "and needs a reset"
             )
             self._pump.emergency_stop(self._loop.time(), error)
-            self._poke()
+            self._drive_pump()
 
     # --- jobs -------------------------------------------------------------------
 
@@ -893,23 +491,24 @@ class Printer:
             run = Run(items, plan.safe_stop, started_at=self._loop.time())
             if plan.resume is not None:  # progress by bytes goes on from the skipped part
                 run.offset = plan.resume.start_offset
-            print_job = PrintJob(self, plan, run, on_action, path)
+            print_job = PrintJob(self, self._side, plan, run, on_action, path)
             if path is not None and print_history.parse_run(path) is not None:
                 # Its progress in the run's record, written before the first line goes.
-                print_job._keeper = print_history.ProgressKeeper(
-                    path,
-                    plan.job.path,
-                    command_line,
-                    self.port,
-                    print_job.started,
-                    pump.dialect.last_sent,
+                print_job.record_progress(
+                    print_history.ProgressKeeper(
+                        path,
+                        plan.job.path,
+                        command_line,
+                        self.port,
+                        print_job.started,
+                        pump.dialect.last_sent,
+                    )
                 )
-                print_job._keep_progress()
             self._job = self._last_job = print_job
             self._paused_words.clear()  # an earlier job's pause is not this one's
             pump.begin(run)
             self._set_state(State.PRINTING, plan.job.name)
-            self._poke()
+            self._drive_pump()
         if path is not None and print_history.parse_run(path) is not None:
             self._prune_history(path)  # a history folder's: never a folder of other files
         return print_job
@@ -921,7 +520,7 @@ class Printer:
         """To the session's subscribers and the running job's."""
         self._hub.publish(event)
         if self._job is not None:
-            self._job._publish(event)
+            self._job.publish(event)
 
     def _prune_history(self, started: Path) -> None:
         """The oldest runs beside ``started`` go, down to ``history_max_mb``: in a thread,
@@ -958,7 +557,7 @@ class Printer:
             return
         if self._pump is not None:
             self._pump.pause(at_layer_end)
-            self._poke()
+            self._drive_pump()
         await self._until(lambda: self.state is not State.PRINTING or job.done)
         if self.state not in (State.PAUSED,):  # (a tuple: the await changed it)
             raise UsageError(f"{job.name} ended before the pause could hold it")
@@ -973,13 +572,13 @@ class Printer:
             if self._job is not job or self.state is not State.PAUSED:
                 raise UsageError(f"{job.name} ended before it could resume")
         self._set_state(State.PRINTING, "resumed")
-        job._publish(Resumed())
-        if job._m0 is not None:
-            m0, job._m0 = job._m0, None
+        job.publish(Resumed())
+        if job.m0 is not None:
+            m0, job.m0 = job.m0, None
             m0.set_result(None)
         elif self._pump is not None:
             self._pump.resume()
-            self._poke()
+            self._drive_pump()
 
     async def _back_to_job(self, job: PrintJob) -> None:
         """Commands moved the machine during the pause (or changed its modes): back to where
@@ -1006,17 +605,17 @@ class Printer:
             await job.wait()
 
     def _stop_job(self, job: PrintJob, error: HostError | None) -> bool:
-        if self._owing is not None and self._owing[0] is job:
+        if self._owed.waits_for(job):
             self._give_up_owed("given up before the controller answered again")
             return True
         if job is not self._job or self._pump is None:
             return False
-        job._drop_m0()
+        job.drop_m0()
         if self.state is State.PAUSED:
             self._set_state(State.PRINTING, "stopping")
         abandoned = self._pump.stop(self._loop.time(), error)
         self._changed()  # stopping
-        self._poke()
+        self._drive_pump()
         return abandoned
 
     # --- opening, greeting, reconnecting -------------------------------------
@@ -1025,7 +624,9 @@ class Printer:
         """Open the link and greet the controller: READY, or a HostError."""
         self._set_state(State.CONNECTING, f"opening {self.port}")
         self._ready = self._loop.create_future()
-        await self.link.open(lambda: _Connection(self))
+        await self.link.open(
+            lambda: LinkConnection(self._connection_opened, self._received, self._lost)
+        )
         await self._greet()
 
     async def _greet(self) -> None:
@@ -1050,10 +651,9 @@ class Printer:
     async def _send_owed_safe_stop(self) -> None:
         """What a failed job could not send: heaters off before anything else. Each line
         is owed until the controller confirms it; the job that waits for them ends then."""
-        if self._owe_whole_safe_stop:  # the profile is known now: made whole once
-            self._owed_safe_stop = self.safe_stop
-            self._owe_whole_safe_stop = False
-        owed = list(self._owed_safe_stop)
+        if self._owed.whole:  # the profile is known now: made whole once
+            self._owed.make_whole(self.safe_stop)
+        owed = list(self._owed.commands)
         if not owed:
             return
         self._tell_owing(Notice(f"sending the safe stop the interrupted job missed: {owed}"))
@@ -1062,27 +662,26 @@ class Printer:
                 await self._command(command, SAFE_STOP_TIMEOUT)
             except (HostError, TimeoutError):
                 return  # the rest goes at the next greeting
-            with contextlib.suppress(ValueError):
-                self._owed_safe_stop.remove(command)
-        if self._owing is not None:
-            job, run = self._owing
+            self._owed.confirmed(command)
+        if self._owed.waiting is not None:
+            job, run = self._owed.waiting
             ended = self._delivered(run)
-            self._stop_owing()
-            job._finish(run, *ended)
+            self._owed.stop_waiting()
+            job.finish(run, *ended)
 
     def _tell_owing(self, event: Notice) -> None:
         self._hub.publish(event)
-        if self._owing is not None:
-            self._owing[0]._publish(event)
+        if self._owed.waiting is not None:
+            self._owed.waiting[0].publish(event)
 
-    def _owe(self, job: PrintJob, run: Run) -> None:
+    def _wait_for_owed_safe_stop(self, job: PrintJob, run: Run) -> None:
         """The job's link failed before its safe stop was confirmed: it ends once the safe
         stop went after a reconnect, or after ``reconnect_wait`` seconds without one."""
         wait = self.settings.reconnect_wait
-        self._owing = (job, run)
-        self._owing_timer = self._loop.call_later(
+        timer = self._loop.call_later(
             wait, self._give_up_owed, f"the controller did not answer again within {wait:g} s"
         )
+        self._owed.wait(job, run, timer)
         self._tell_owing(
             Notice(
                 f"{run.error}. The safe stop did not go: trying to reach the controller again "
@@ -1090,81 +689,28 @@ class Printer:
             )
         )
 
-    def _stop_owing(self) -> None:
-        self._owing = None
-        if self._owing_timer is not None:
-            self._owing_timer.cancel()
-            self._owing_timer = None
-
     def _give_up_owed(self, why: str) -> None:
         """The job waiting for its safe stop ends without it (it stays owed: it goes at
         the session's next greeting, should there be one)."""
-        if self._owing is None:
+        if self._owed.waiting is None:
             return
-        job, run = self._owing
-        self._stop_owing()
-        job._finish(
-            run, self._unsafe(f"{run.error}; the safe stop could not be sent ({why})"), None
-        )
+        job, run = self._owed.waiting
+        self._owed.stop_waiting()
+        cause = f"{run.error}; the safe stop could not be sent ({why})"
+        job.finish(run, unsafe_stop_error(cause, self.heaters_on()), None)
 
     def _delivered(self, run: Run) -> tuple[HostError | None, Summary | None]:
-        """How a job whose safe stop went after a reconnect ended: cancelled, if that is
-        how it was stopping; else its failure, saying the safe stop went."""
+        """How a job whose safe stop went after a reconnect ended (:func:`delivered`), told."""
         if run.cancelled_stop:
             self._tell_owing(Notice("the safe stop completed once the controller answered again"))
-            stats = run.resends_before, run.retransmissions_before
-            seconds = self._loop.time() - run.started_at
-            return None, Summary(Outcome.CANCELLED, run.lines, seconds, *stats)
-        assert run.error is not None
-        went = "the safe stop went once the controller answered again"
-        return type(run.error)(f"{run.error}; {went}"), None
-
-    def _unsafe(self, cause: str) -> SafeStopError:
-        """The sentence for a stop not confirmed: what may be on, and what to do."""
-        heaters = self.heaters_on()
-        on = f"; heaters that may be on: {', '.join(heaters)}" if heaters else ""
-        return SafeStopError(f"{cause}{on}; check the machine (its power switch stops it)")
-
-    def _ended(self, run: Run, connection_ends: bool) -> tuple[HostError | None, Summary | None]:
-        """How a run that just ended is reported (a reconnect aside)."""
-        error = run.error
-        if error is None or run.emergency:
-            return error, run.summary
-        if isinstance(error, SafeStopError):  # abandoned by the caller
-            going = "; they still go as the controller takes them, while the session is open"
-            going = "" if connection_ends else going
-            return self._unsafe(f"{error}{going}"), None
-        if self._owed_safe_stop and connection_ends:
-            return self._unsafe(f"{error}; the safe stop was not sent"), None
-        return error, None
+        return delivered(run, self._loop.time())
 
     async def _identify(self) -> None:
-        self.firmware = None
         self._autoreport = False
         self._autoreport_asked = None
-        self._signs = []
-        self._signed.clear()
-        # Without an answer to M115, the greeting's own (Hyrel's ping: ">Hy: ...").
-        greeting = Firmware.parse([f"FIRMWARE_NAME:{self._greeting}"] if self._greeting else [])
-        deadline = self._loop.time() + FIRMWARE_PATIENCE
-        for _ in range(FIRMWARE_ATTEMPTS):
-            pending = self._send_command("M115", own=True)
-            with contextlib.suppress(TimeoutError):
-                reply = await asyncio.wait_for(
-                    asyncio.shield(pending.future), max(0.0, deadline - self._loop.time())
-                )
-                self.firmware = Firmware.parse([*reply.lines, reply.ok_line]) or self.firmware
-                if self.firmware is not None:
-                    break
-                # Confirmed, its answer perhaps still to come (a probe found the line taken
-                # before it ran), or garbled: a while for it, then ask again.
-                left = min(FIRMWARE_TIMEOUT, deadline - self._loop.time())
-                await asyncio.wait_for(self._signed.wait(), max(0.0, left))
-            if self.firmware is not None or self._loop.time() >= deadline:
-                break
-        if self.firmware is None:
-            # Not yet: an answer that comes later still decides (see _sign).
-            self.firmware = greeting  # or none: it does not say who it is
+        await self._identity.ask(
+            lambda command: self._send_command(command, own=True).future, self._loop
+        )
         self._use_firmware()
         asked = self._ask_autoreport()
         if asked is not None:
@@ -1182,7 +728,7 @@ class Printer:
             )
         return f"{self.port} at {self.settings.baud} baud: {reason}; likely {causes}"
 
-    def _made(self, connection: _Connection) -> None:
+    def _connection_opened(self, connection: LinkConnection) -> None:
         if self._closing:
             if connection.transport is not None:
                 connection.transport.close()
@@ -1197,7 +743,7 @@ class Printer:
         """With a safe stop owed, before the greeting: what the controller still holds or
         waits for must not hold the safe stop (nor the greeting) up (:func:`release_bytes`).
         True when it wrote."""
-        if not (self._owed_safe_stop or self._owe_whole_safe_stop):
+        if not self._owed.any:
             return False
         self._tell_owing(Notice("a safe stop is owed: ending what the controller holds first"))
         self._write(release_bytes(self.settings.protocol))
@@ -1284,7 +830,7 @@ class Printer:
             if self._autoreport or pump is None or not self._polls_now():
                 continue
             if pump.dialect.request_status():
-                self._poke()
+                self._drive_pump()
                 continue
             if self._lock.locked() or self._commands or pump.controller_holds:
                 continue
@@ -1305,7 +851,7 @@ class Printer:
 
     # --- I/O ------------------------------------------------------------------
 
-    def _received(self, connection: _Connection, data: bytes) -> None:
+    def _received(self, connection: LinkConnection, data: bytes) -> None:
         if connection is not self._connection:
             return
         log.debug("received %r", data)
@@ -1318,9 +864,9 @@ class Printer:
         pump = self._pump
         if pump is not None:  # none between a failure and the next greeting: let it drain
             pump.receive(data, now)
-            self._poke()
+            self._drive_pump()
 
-    def _lost(self, connection: _Connection, exc: Exception | None) -> None:
+    def _lost(self, connection: LinkConnection, exc: Exception | None) -> None:
         if connection is not self._connection:
             return
         log.debug("connection lost: %s", exc)
@@ -1355,7 +901,7 @@ class Printer:
         if connection is not None and connection.transport is not None:
             connection.transport.close()
 
-    def _fail_commands(self, commands: Iterable[_Command], error: HostError) -> None:
+    def _fail_commands(self, commands: Iterable[PendingCommand], error: HostError) -> None:
         for pending in list(commands):
             if not pending.future.done():
                 pending.future.set_exception(error)
@@ -1380,7 +926,8 @@ class Printer:
                 written += wire_log.write(data[written:]) or len(data) - written
         connection.transport.write(data)
 
-    def _poke(self) -> None:
+    def _drive_pump(self) -> None:
+        """Let the pump write what it can now (lines, an urgent byte), and re-arm its timer."""
         pump = self._pump
         if pump is None:
             return
@@ -1406,7 +953,52 @@ class Printer:
         pump = self._pump
         if pump is not None:
             pump.timeout(self._loop.time())
-            self._poke()
+            self._drive_pump()
+
+    # --- what the pump tells ----------------------------------------------------
+
+    def _job_ended(self, run: Run) -> None:
+        """The running job's run ended: how it is reported, and what is owed after it."""
+        job, self._job = self._job, None
+        if self._wire_log is not None:
+            self._wire_log.close()
+            self._wire_log = None
+        pump = self._pump
+        connection_ends = pump is None or pump.dialect.failure is not None
+        if run.error is not None:
+            # What of the safe stop was not confirmed is owed: it goes first at the next
+            # greeting (or, on a link that goes on, as the controller takes it).
+            self._owed.commands = run.owed_safe_stop
+        if job is not None:
+            job.drop_m0()
+            owes = bool(self._owed.commands) and connection_ends and not run.emergency
+            if owes and self.settings.reconnect and not self._closing:
+                self._wait_for_owed_safe_stop(job, run)
+            else:
+                job.finish(run, *self._owed.run_ended(run, connection_ends, self.heaters_on))
+        healthy = pump is not None and pump.dialect.failure is None
+        if healthy and (self.state is State.PRINTING or self.state is State.PAUSED):
+            self._set_state(State.READY, "the job ended")
+
+    def _link_failed(self, failure: DialectFailed) -> None:
+        """The dialect stopped: the greeting fails, or the connection ends (and is greeted
+        again, where the session reconnects)."""
+        error = failure_error(failure)
+        if failure.kind is FailureKind.NO_ANSWER:
+            error = LinkError(self._no_answer(failure.reason))
+        if self.state is State.CONNECTING:
+            # The greeting (or its M115) failed: whoever greets says why.
+            self._fail_waiters(error)
+            return
+        if failure.kind is FailureKind.RESET:
+            self._hub.publish(Notice("the controller reset; greeting it again"))
+        self._end_connection(error)
+        if self.settings.reconnect and not self._closing:
+            self._spawn(self._regreet(failure.reason))
+        else:
+            # Once what the pump has yet to write (an abort) went: it writes after this.
+            self._loop.call_soon(self._drop_connection)
+            self._set_state(State.DISCONNECTED, failure.reason)
 
     # --- state and events ----------------------------------------------------
 
@@ -1473,344 +1065,133 @@ class Printer:
         await self.close()
 
 
-class _PumpListener(Listener):
-    """What the pump tells the session, kept off the public Printer."""
+class _SessionSide:
+    """What the session's own parts may do to it: the pump's listener
+    (:class:`~repetrel_host.session.listener.ListenerSession`) and its jobs
+    (:class:`~repetrel_host.session.print_job.JobSession`); kept off the public Printer."""
 
     def __init__(self, printer: Printer) -> None:
-        self.printer = printer
+        self._printer = printer
 
-    def greeting_retry(self, retry: GreetingRetry) -> None:
-        printer = self.printer
-        baud = printer.settings.baud
-        event = NoAnswerYet(printer.port, baud, retry.attempt, retry.attempts, retry.waited)
-        log.debug("%s at %d baud: %s", printer.port, baud, event.text)
-        printer._hub.publish(event)
+    # --- for the pump's listener
 
-    def ready(self, probe: ProbeKind, identity: str) -> None:
-        self.printer._greeting = identity
-        ready = self.printer._ready
+    @property
+    def port(self) -> str:
+        return self._printer.port
+
+    @property
+    def settings(self) -> SessionSettings:
+        return self._printer.settings
+
+    @property
+    def pump(self) -> Pump | None:
+        return self._printer._pump
+
+    @property
+    def job(self) -> PrintJob | None:
+        return self._printer._job
+
+    @property
+    def pending_commands(self) -> deque[PendingCommand]:
+        return self._printer._commands
+
+    @property
+    def autoreporting(self) -> bool:
+        return self._printer._autoreport
+
+    @property
+    def owed(self) -> OwedSafeStop:
+        return self._printer._owed
+
+    def publish(self, event: PrinterEvent) -> None:
+        self._printer._hub.publish(event)
+
+    def broadcast(self, event: Notice | Message) -> None:
+        self._printer._broadcast(event)
+
+    def greeted(self, probe: ProbeKind, identity: str) -> None:
+        printer = self._printer
+        printer._identity.greeting = identity
+        ready = printer._ready
         if ready is not None and not ready.done():
             ready.set_result(probe)
 
-    def command_done(self, tag: object, data: str) -> None:
-        if not isinstance(tag, _Command):
-            return
-        printer = self.printer
-        with contextlib.suppress(ValueError):
-            printer._commands.remove(tag)
-        if data:
-            self._temperatures(data, f"ok {data}")
-        if not tag.future.done():
-            tag.future.set_result(Reply(tag.command, tag.lines, f"ok {data}" if data else "ok"))
+    def identity_heard(self, text: str) -> None:
+        self._printer._take_identity_line(text)
 
-    def commands_dropped(self, tags: list[object]) -> None:
-        error = UsageError("the command was not sent: the job it waited behind was stopped")
-        self.printer._fail_commands((t for t in tags if isinstance(t, _Command)), error)
+    def temperatures_heard(
+        self, readings: dict[str, tuple[float, float | None]], line: str
+    ) -> None:
+        self._printer.temperatures = readings
+        self._printer._hub.publish(Temperatures(readings, line))
 
-    def command_refused(self, tag: object, reason: str) -> None:
-        if isinstance(tag, _Command):
-            self.printer._fail_commands([tag], ControllerError(reason))
+    def fail_commands(self, commands: Iterable[PendingCommand], error: HostError) -> None:
+        self._printer._fail_commands(commands, error)
 
-    def read_to_end(self) -> None:
-        self.printer._changed()  # what is left is the controller's to run: finishing
+    def changed(self) -> None:
+        self._printer._changed()
 
-    def resend(self, line: JobLine) -> None:
-        job = self.printer._job
-        if job is not None:
-            job._publish(Resend(line.position))
+    def set_state(self, state: State, reason: str) -> None:
+        self._printer._set_state(state, reason)
 
-    def message(self, text: str, reply: replies.Reply) -> None:
-        printer = self.printer
-        if isinstance(reply, replies.Busy | replies.Wait):
-            return  # keepalives
-        job = printer._job
-        if job is not None and isinstance(reply, replies.HyrelReport):
-            for line in job._reports.feed(text):  # the M773 report is the job's
-                self._message(line, replies.classify(line))
-            return
-        self._message(text, reply)
+    def heaters_on(self) -> list[str]:
+        return self._printer.heaters_on()
 
-    def _message(self, text: str, reply: replies.Reply) -> None:
-        printer = self.printer
-        if text.startswith("Cap:") or "FIRMWARE_NAME:" in text:
-            printer._sign(text)
-        reported = self._temperatures(text, text)
-        if printer._commands and not (reported and self._unasked(reply, printer._commands[0])):
-            printer._commands[0].lines.append(text)
-            return
-        # A Hyrel notice (an M-code ran) tells what ran; it is no message for the user.
-        notice = isinstance(reply, replies.HyrelReport) and reply.tag == "MC"
-        if not reported and not notice:
-            printer._broadcast(Message(text))
+    def spawn(self, coroutine: Coroutine[Any, Any, None]) -> asyncio.Task[None]:
+        return self._printer._spawn(coroutine)
 
-    def _unasked(self, reply: replies.Reply, command: _Command) -> bool:
-        """Whether a temperature report is no part of ``command``'s reply: the firmware's
-        own reports, or Hyrel's status report (0x05, which the host asks for between its
-        syncs' answers and for the temperatures) while a command other than M105 runs."""
-        if self.printer._autoreport:
-            return True
-        status = isinstance(reply, replies.HyrelReport) and reply.tag == "ST"
-        return status and command_word(command.command) != "M105"
+    def spawn_marker(self, coroutine: Coroutine[Any, Any, None]) -> None:
+        printer = self._printer
+        printer._markers.add(printer._spawn(coroutine))
 
-    def _temperatures(self, text: str, line: str) -> bool:
-        readings = parse_temperatures(text)
-        if not readings:
-            return False
-        self.printer.temperatures = readings
-        self.printer._hub.publish(Temperatures(readings, line))
-        return True
+    def drive_pump(self) -> None:
+        self._printer._drive_pump()
 
-    def notice(self, text: str) -> None:
-        self.printer._broadcast(Notice(text))
+    def job_ended(self, run: Run) -> None:
+        self._printer._job_ended(run)
 
-    def action_due(self, action: HostAction) -> None:
-        printer = self.printer
-        job = printer._job
-        if job is not None:
-            printer._spawn(_perform(printer, job, action))
+    def link_failed(self, failure: DialectFailed) -> None:
+        self._printer._link_failed(failure)
 
-    def marker_reached(self, action: HostAction) -> None:
-        printer = self.printer
-        job = printer._job
-        if job is not None:
-            # Told at once: a marker reached in the job's last exchange comes before Done.
-            job._publish(Action(action.kind, action.message, action.actions, action.position))
-            if job.on_action is not None:
-                printer._markers.add(printer._spawn(_mark(job, job.on_action, action)))
+    # --- for its jobs
 
-    def paused(self) -> None:
-        printer = self.printer
-        job = printer._job
-        if job is not None:
-            last = job.last
-            job._publish(Paused(PauseReason.REQUEST, "", last.position if last else ""))
-            printer._set_state(State.PAUSED, "paused")
+    def stop_job(self, job: PrintJob, error: HostError | None) -> bool:
+        return self._printer._stop_job(job, error)
 
-    def stop_delayed(self, run: Run, reason: str) -> None:
-        printer = self.printer
-        job = printer._job
-        if job is not None:
-            pump = printer._pump
-            urgent = pump is not None and (pump.breaks_waits or pump.dialect.acks_say_received)
-            job._publish(StopDelayed(reason, tuple(printer.heaters_on()), urgent))
+    def waits_for_safe_stop(self, job: PrintJob) -> bool:
+        return self._printer._owed.waits_for(job)
 
-    def safe_stop_confirmed(self, command: str) -> None:
-        with contextlib.suppress(ValueError):
-            self.printer._owed_safe_stop.remove(command)
-
-    def finished(self, run: Run) -> None:
-        printer = self.printer
-        job, printer._job = printer._job, None
-        if printer._wire_log is not None:
-            printer._wire_log.close()
-            printer._wire_log = None
-        pump = printer._pump
-        connection_ends = pump is None or pump.dialect.failure is not None
-        if run.error is not None:
-            # What of the safe stop was not confirmed is owed: it goes first at the next
-            # greeting (or, on a link that goes on, as the controller takes it).
-            printer._owed_safe_stop = run.owed_safe_stop
-        if job is not None:
-            job._drop_m0()
-            owes = bool(printer._owed_safe_stop) and connection_ends and not run.emergency
-            if owes and printer.settings.reconnect and not printer._closing:
-                printer._owe(job, run)
-            else:
-                job._finish(run, *printer._ended(run, connection_ends))
-        healthy = pump is not None and pump.dialect.failure is None
-        if healthy and (printer.state is State.PRINTING or printer.state is State.PAUSED):
-            printer._set_state(State.READY, "the job ended")
-
-    def failed(self, failure: DialectFailed) -> None:
-        printer = self.printer
-        error = failure_error(failure)
-        if failure.kind is FailureKind.NO_ANSWER:
-            error = LinkError(printer._no_answer(failure.reason))
-        if printer.state is State.CONNECTING:
-            # The greeting (or its M115) failed: whoever greets says why.
-            printer._fail_waiters(error)
-            return
-        if failure.kind is FailureKind.RESET:
-            printer._hub.publish(Notice("the controller reset; greeting it again"))
-        printer._end_connection(error)
-        if printer.settings.reconnect and not printer._closing:
-            printer._spawn(printer._regreet(failure.reason))
-        else:
-            # Once what the pump has yet to write (an abort) went: it writes after this.
-            printer._loop.call_soon(printer._drop_connection)
-            printer._set_state(State.DISCONNECTED, failure.reason)
-
-
-async def _perform(printer: Printer, job: PrintJob, action: HostAction) -> None:
-    """Carry out a host action once everything before it is confirmed."""
-    job._publish(Action(action.kind, action.message, action.actions, action.position))
-    result: bool | HostError
-    try:
-        proceed = await job.on_action(action) if job.on_action is not None else True
-        if proceed and action.kind is ActionKind.PAUSE:
-            job._m0 = printer._loop.create_future()
-            job._publish(Paused(PauseReason.M0, action.message, action.position))
-            printer._set_state(State.PAUSED, f"M0 at {action.position}")
-            await job._m0
-        result = proceed
-    except HostError as exc:
-        result = exc
-    except asyncio.CancelledError:
-        return  # the job was stopped meanwhile
-    except Exception as exc:  # a handler's own failure stops the job, safely
-        result = JobError(f"{action.position}: the host action failed ({exc!r})")
-    pump = printer._pump
-    if pump is not None and printer._job is job:
-        pump.action_done(result)
-        printer._poke()
-
-
-async def _mark(job: PrintJob, on_action: ActionHandler, action: HostAction) -> None:
-    """Carry out a marker (a snapshot) beside the stream: its failure stops nothing."""
-    try:
-        await on_action(action)
-    except asyncio.CancelledError:
-        return
-    except Exception as exc:
-        job._publish(Notice(f"{action.position}: the host action failed ({exc!r})"))
+    @property
+    def last_sent(self) -> object | None:
+        pump = self._printer._pump
+        return pump.dialect.last_sent if pump else None
 
 
 def _heater_name(kind: str, index: int | None) -> str:
     return kind if index is None else f"{kind} T{index}"
 
 
-def _clean_command(line: str) -> str:
-    if _FRAMED.search(line.split(";", 1)[0]):
-        raise UsageError(
-            "line numbers and checksums are the host's: send the command alone, "
-            "without N<number> and *<checksum>"
-        )
-    command = clean_line(line, "command")
-    if not command:
-        raise UsageError("the command is empty")
-    if len(command) > MAX_COMMAND_LENGTH:  # Marlin drops the rest: its checksum fails
-        raise UsageError(
-            f"the command is {len(command)} characters long; "
-            f"controllers take at most {MAX_COMMAND_LENGTH}"
-        )
-    if command_word(command) == "M110":
-        raise UsageError("M110 sets line numbers, which the host owns; it cannot be sent")
-    return command
-
-
-class _Connect:
-    """``connect(...)``: awaited, a READY printer; with ``async with``, closed at the end."""
-
-    def __init__(self, opening: Callable[[], Coroutine[Any, Any, Printer]]) -> None:
-        self._opening = opening
-        self._printer: Printer | None = None
-
-    def __await__(self) -> Generator[Any, None, Printer]:
-        return self._opening().__await__()
-
-    async def __aenter__(self) -> Printer:
-        self._printer = await self._opening()
-        return self._printer
-
-    async def __aexit__(self, *exc: object) -> None:
-        if self._printer is not None:
-            await self._printer.close()
-
-
-def connect(
-    port: str | None = None,
-    machine: str | None = None,
-    loadout: Path | str | None = None,
-    flow: FlowControl | FlowMode | str | None = None,
-    config: Path | UserConfig | None = None,
+async def open_printer(
+    link: Link,
+    settings: SessionSettings,
     *,
-    baud: int | None = None,
-    reply_timeout: float = DEFAULT_REPLY_TIMEOUT,
-    reconnect: bool = True,
-    reconnect_wait: float = RECONNECT_WAIT,
-    poll_interval: float | None = POLL_INTERVAL,
-    poll_while_printing: bool = False,
-    protocol: str | None = None,
-    checksum: bool | None = None,
-    fake_log: Path | None = None,
-    fake_args: Iterable[str] = (),
-    sim: ControllerSettings | None = None,
     line_tap: Callable[[str, bool], None] | None = None,
     on_event: Callable[[PrinterEvent], None] | None = None,
     owe_safe_stop: Iterable[Heater] | None = None,
-) -> _Connect:
-    """Open a printer session on ``port`` and greet the controller.
-
-    ``port``: a device path, a pyserial URL (``socket://``, ``rfc2217://``), ``auto``
-    (the only serial port that looks like a printer board, else a LinkError naming
-    them), ``fake`` (the built-in fake on a fresh pty, started and stopped with the
-    session) or ``sim`` (the simulator in this process); None: ``$HYREL_PORT``, then the
-    configuration's ``[printer] port``, else the fake. ``machine`` and ``loadout``
-    choose the profile (else the firmware's M115 answer does), ``flow`` the flow
-    control (else the profile's), ``protocol`` the line protocol: ``reprap`` or
-    ``hyrel`` (Hyrel's own link; else the profile's, else ``reprap``; the fake and the
-    simulator speak it too); ``checksum``: Hyrel's link sends the additive checksum on
-    every line (else as the profile says; without it). ``poll_interval``: seconds between
-    temperature polls while idle (``poll_while_printing``: while a job prints too), None
-    for silence. ``reconnect=False``: a lost port stays
-    lost. ``reconnect_wait``: a job whose link failed before its safe stop was confirmed
-    ends once the safe stop went after a reconnect, or after this many seconds.
-    ``line_tap``: :meth:`Printer.tap_lines` from the greeting's first line on.
-    ``on_event``: called at once with each of the session's events (what
-    :meth:`Printer.events` yields) from the port's opening on, for the session's life:
-    before ``connect()`` returns, an :class:`~repetrel_host.session.events.NoAnswerYet` for each
-    greeting that goes again unanswered. It runs on the session's path: it must only take
-    note (print a line, set a flag), never block. ``owe_safe_stop``: a safe stop is owed
-    from before (a server's restart after its job was cut), for these heaters besides
-    those the profile names: it goes first, made whole, once the controller answers
-    (:attr:`Printer.owed_safe_stop`).
-    """
-
-    async def opening() -> Printer:
-        user = config if isinstance(config, UserConfig) else load_user_config(config)
-        request = JobRequest(Path(loadout) if loadout is not None else None, machine)
-        mode = FlowMode(flow) if isinstance(flow, str) else flow
-        link = LinkRequest(
-            baud=baud, flow=mode if isinstance(mode, FlowMode) else None, protocol=protocol
-        )
-        chosen = link_settings(link, explicit_machine(request, user))
-        flow_control = flow if isinstance(flow, FlowControl) else chosen.flow
-        name = resolve_port(port, user)
-        opened = make_link(
-            name,
-            chosen.baud,
-            fake_log=fake_log,
-            fake_args=tuple(fake_args),
-            sim=sim,
-            protocol=chosen.protocol,
-        )
-        settings = SessionSettings(
-            name,
-            chosen.baud,
-            flow_control,
-            reply_timeout,
-            reconnect,
-            poll_interval,
-            chosen.protocol,
-            user,
-            request,
-            chosen.checksum if checksum is None else checksum,
-            poll_while_printing,
-            reconnect_wait,
-        )
-        printer = Printer(opened, settings)
-        if line_tap is not None:
-            printer.tap_lines(line_tap)
-        if on_event is not None:
-            printer._hub.callbacks.append(on_event)
-        if owe_safe_stop is not None:
-            printer._heaters.restore(owe_safe_stop)
-            printer._owe_whole_safe_stop = True
-        try:
-            await printer._open()
-        except BaseException:
-            await printer.close()
-            raise
-        return printer
-
-    return _Connect(opening)
+) -> Printer:
+    """A session on ``link`` (not yet opened), opened and greeted: READY, or closed again
+    and the HostError raised (``connect``'s work once it chose the link and settings)."""
+    printer = Printer(link, settings)
+    if line_tap is not None:
+        printer.tap_lines(line_tap)
+    if on_event is not None:
+        printer._hub.callbacks.append(on_event)
+    if owe_safe_stop is not None:
+        printer._heaters.restore(owe_safe_stop)
+        printer._owed.whole = True
+    try:
+        await printer._open()
+    except BaseException:
+        await printer.close()
+        raise
+    return printer

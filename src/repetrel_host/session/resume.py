@@ -358,7 +358,7 @@ def _n(value: float) -> str:
 
 class EndedJob(Protocol):
     """What a job that did not complete says of where it stopped (the session's
-    :class:`~repetrel_host.session.printer.PrintJob`)."""
+    :class:`~repetrel_host.session.print_job.PrintJob`)."""
 
     @property
     def resume_line(self) -> int | None: ...

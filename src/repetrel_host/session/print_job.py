@@ -1,0 +1,309 @@
+"""The handle of one job streaming on a session: its progress (read from the pump's run),
+its events, its end (what :meth:`PrintJob.wait` returns or raises), and the record of it
+beside the print history.
+
+The session (``repetrel_host.session.printer``) starts it and tells it how it went; the job
+reaches the session only through :class:`JobPrinter` and :class:`JobSession`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections.abc import AsyncIterator, Awaitable, Callable
+from datetime import datetime
+from pathlib import Path
+from typing import Protocol
+
+from repetrel_host.errors import HostError
+from repetrel_host.protocol.reports import JobReport, ReportReader
+from repetrel_host.session import history as print_history
+from repetrel_host.session.events import Done, Failed, JobEvent, Progress, Report, State
+from repetrel_host.session.hub import EventHub
+from repetrel_host.session.job import HostAction, JobLine
+from repetrel_host.session.planning import JobPlan
+from repetrel_host.session.pump import Outcome, Run, Summary
+
+# A job's progress goes to its event subscribers at most this often.
+PROGRESS_INTERVAL = 0.1
+# Events a late subscriber to a job still gets.
+JOB_EVENT_BACKLOG = 1000
+
+
+class JobPrinter(Protocol):
+    """The printer a job streams on, as the job (and whoever holds it) sees it."""
+
+    @property
+    def state(self) -> State: ...
+
+    @property
+    def port(self) -> str: ...
+
+    async def pause(self, at_layer_end: bool = False) -> None: ...
+
+    async def resume(self) -> None: ...
+
+    async def cancel(self) -> None: ...
+
+
+class JobSession(Protocol):
+    """What a job asks of the session that runs it."""
+
+    def stop_job(self, job: PrintJob, error: HostError | None) -> bool:
+        """Stop ``job`` (see :meth:`PrintJob.stop`)."""
+        ...
+
+    def waits_for_safe_stop(self, job: PrintJob) -> bool:
+        """``job`` waits for its safe stop to go after a reconnect."""
+        ...
+
+    @property
+    def last_sent(self) -> object | None:
+        """The link's last line sent (None while unlinked)."""
+        ...
+
+
+ActionHandler = Callable[[HostAction], Awaitable[bool]]
+
+
+class PrintJob:
+    """One job streaming on a session: its progress, events and end."""
+
+    def __init__(
+        self,
+        printer: JobPrinter,
+        session: JobSession,
+        plan: JobPlan,
+        run: Run,
+        on_action: ActionHandler | None,
+        history: Path | None,
+    ) -> None:
+        self.printer = printer
+        self._session = session
+        self.plan = plan
+        self.name = plan.job.name
+        self.size = plan.job.size
+        self.history = history  # the stream as transmitted, or None
+        self.on_action = on_action
+        self._run = run
+        self._done: asyncio.Future[Summary] = asyncio.get_running_loop().create_future()
+        self._hub: EventHub[JobEvent] = EventHub(JOB_EVENT_BACKLOG)
+        self._ticking = False  # progress goes out while someone listens
+        self._reported = -1
+        self.m0: asyncio.Future[None] | None = None  # an M0 waiting for resume()
+        self.reports = ReportReader()  # the M773 report, read from the messages
+        self.started = datetime.now()
+        self._keeper: print_history.ProgressKeeper | None = None  # the progress record
+
+    @property
+    def report(self) -> JobReport | None:
+        """The M773 report the controller sent (at M30, after M772 S1), or None."""
+        return self.reports.report
+
+    # --- progress -------------------------------------------------------------
+
+    @property
+    def lines(self) -> int:
+        """Job lines the controller acknowledged (the header's and safe stop's not counted)."""
+        return self._run.lines
+
+    @property
+    def offset(self) -> int:
+        """Bytes of the file up to the last acknowledged line."""
+        return self._run.offset
+
+    @property
+    def last(self) -> JobLine | None:
+        """The last job line the controller acknowledged."""
+        return self._run.last
+
+    @property
+    def header_lines(self) -> int:
+        """Lines of the header (the plan's) the controller acknowledged."""
+        return self._run.header_acknowledged
+
+    @property
+    def done(self) -> bool:
+        return self._done.done()
+
+    @property
+    def report_path(self) -> Path | None:
+        """Where the M773 report is kept: beside the history, ``<run>-report.txt``."""
+        history = self.history
+        return history.with_name(f"{history.stem}-report.txt") if history else None
+
+    def where(self) -> str:
+        """The last line the controller acknowledged, as error messages name it."""
+        return self._run.where()
+
+    @property
+    def resume_line(self) -> int | None:
+        """The source line a resumed run would start from (``print(path, from_line=...)``):
+        the one after the last job line known to have run. On Hyrel's link, where an ACK
+        says only *received*, that is what the controller's answers confirmed (what it held
+        when a stop aborted counts as not run); elsewhere the last acknowledged. None when
+        no job line ran, or every one did."""
+        return self._run.resume_line
+
+    @property
+    def sent_through(self) -> int | None:
+        """The source line of the last job line on the wire when the job ended (None while
+        it runs, or when none went): from :attr:`resume_line` to it, lines were sent and
+        not confirmed, and some may have run (a lost link takes their oks with it)."""
+        sent = self._run.last_sent
+        return sent.source_line if sent is not None else None
+
+    @property
+    def resume_known_to_run(self) -> bool:
+        """:attr:`resume_line` follows a line known to have run (Hyrel's link), not one
+        acknowledged (an ok: taken to run, as its firmware took it)."""
+        return self._run.acks_say_received
+
+    @property
+    def all_sent(self) -> bool:
+        """The job was read to its end: what is left is the controller's to run."""
+        run = self._run
+        return run.exhausted and not run.stopping and not run.pause_requested
+
+    @property
+    def stopping(self) -> bool:
+        """A stop was asked for (the safe stop is going, or went)."""
+        return self._run.stop_requests > 0
+
+    @property
+    def reconnecting_for_safe_stop(self) -> bool:
+        """The link failed before the safe stop went: the job ends once it went after a
+        reconnect (or after ``reconnect_wait``); :meth:`stop` gives up waiting."""
+        return self._session.waits_for_safe_stop(self)
+
+    @property
+    def safe_stop_missing(self) -> list[str]:
+        """Safe-stop commands the controller did not confirm (after an abandoned stop)."""
+        return self._run.safe_stop_missing
+
+    def events(self) -> AsyncIterator[JobEvent]:
+        """Progress, messages, resends, pauses, then Done or Failed (the last event)."""
+        if not self._ticking and not self.done:
+            self._ticking = True
+            asyncio.get_running_loop().call_later(PROGRESS_INTERVAL, self._tick)
+        return self._hub.stream()
+
+    async def wait(self) -> Summary:
+        """The summary once the job ended; raises what ended it (the errors hyrel-send shows)."""
+        return await asyncio.shield(self._done)
+
+    # --- control ----------------------------------------------------------------
+
+    async def pause(self, at_layer_end: bool = False) -> None:
+        await self.printer.pause(at_layer_end)
+
+    async def resume(self) -> None:
+        await self.printer.resume()
+
+    async def cancel(self) -> None:
+        await self.printer.cancel()
+
+    def stop(self, error: HostError | None = None) -> bool:
+        """Stop without waiting: the safe-stop sequence goes ahead of anything not sent,
+        and :meth:`wait` raises ``error`` once it went (a cancel, without one).
+
+        A second call abandons the safe stop and ends the job at once; it returns True
+        then (:attr:`safe_stop_missing` says what was not confirmed)."""
+        return self._session.stop_job(self, error)
+
+    # --- from the session ---------------------------------------------------------
+
+    def publish(self, event: JobEvent) -> None:
+        """To the job's event subscribers."""
+        self._hub.publish(event)
+
+    def record_progress(self, keeper: print_history.ProgressKeeper) -> None:
+        """Keep the progress in the run's record (``keeper``) as the job streams, from now."""
+        self._keeper = keeper
+        self._keep_progress()
+
+    def drop_m0(self) -> None:
+        """An M0's wait ends without a resume (the job stops, or ended)."""
+        if self.m0 is not None:
+            self.m0.cancel()
+            self.m0 = None
+
+    def _tick(self) -> None:
+        # Polled, not pushed per line: a line's acknowledgement costs nothing here.
+        if self.done:
+            return
+        if self.lines != self._reported:
+            self._reported = self.lines
+            self.publish(self._progress())
+        asyncio.get_running_loop().call_later(PROGRESS_INTERVAL, self._tick)
+
+    def _progress(self) -> Progress:
+        last = self._run.last
+        return Progress(self.lines, self.offset, self.size, last.position if last else "")
+
+    def _keep_progress(self) -> None:
+        """The progress in the run's record as the job streams, every PROGRESS_INTERVAL
+        (written when it moved): a killed run resumes from it (``--history-list``)."""
+        keeper = self._keeper
+        if keeper is None or self.done:
+            return
+        last = self._run.last
+        acknowledged = last.source_line if last else 0
+        keeper.update(
+            self.lines,
+            self.where(),
+            acknowledged,
+            self.resume_line,
+            self.resume_known_to_run,
+            self.all_sent,
+            self._session.last_sent,
+        )
+        asyncio.get_running_loop().call_later(print_history.PROGRESS_INTERVAL, self._keep_progress)
+
+    def finish(self, run: Run, error: HostError | None, summary: Summary | None) -> None:
+        """The job ended: its last events, its report and record, then :meth:`wait`'s end."""
+        if self._done.done():
+            return
+        self.publish(self._progress())
+        report, path = self.report, self.report_path
+        if report is not None:
+            self.publish(Report(report))
+            if path is not None:  # beside the stream, under the same run's name
+                with contextlib.suppress(OSError):
+                    path.write_text(report.text + "\n")
+        history = self.history
+        if history is not None and print_history.parse_run(history) is not None:
+            # How it ended, beside a stream in a history folder (--history-list); not
+            # beside a file of the caller's own naming (history=Path("/dev/null")...).
+            print_history.write_record(history, self._record(error, summary))
+        if error is not None:
+            self.publish(Failed(error))
+            self._done.set_exception(error)
+            self._done.exception()  # retrieved: a job nobody waits for is no error
+        else:
+            assert summary is not None
+            self.publish(Done(summary))
+            self._done.set_result(summary)
+        self._hub.close()
+
+    def _record(self, error: HostError | None, summary: Summary | None) -> print_history.Record:
+        if error is not None:
+            outcome = print_history.FAILED
+        elif summary is not None and summary.outcome is Outcome.CANCELLED:
+            outcome = print_history.CANCELLED
+        else:
+            outcome = print_history.COMPLETED
+        ended = datetime.now()
+        seconds = summary.seconds if summary else (ended - self.started).total_seconds()
+        return print_history.Record(
+            job=self.name,
+            outcome=outcome,
+            lines=self.lines,
+            seconds=round(seconds, 3),
+            where=self.where(),
+            port=self.printer.port,
+            started=self.started.isoformat(timespec="seconds"),
+            ended=ended.isoformat(timespec="seconds"),
+            error=str(error) if error is not None else "",
+            error_kind=print_history.error_kind(error) if error is not None else "",
+        )
