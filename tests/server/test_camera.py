@@ -8,12 +8,13 @@ import time
 from pathlib import Path
 
 import pytest
+from pydantic import ValidationError
 
+from repetrel_host.config import HostSettings
 from repetrel_host.session.camera import (
     MAX_WAITING,
     Camera,
     SnapshotFailed,
-    check_command,
     snapshot,
 )
 from tests.support.fake_camera import png
@@ -56,10 +57,9 @@ def test_a_camera_that_fails_says_why_in_one_sentence_and_leaves_nothing(
 def test_a_missing_program_or_a_bad_command_line_is_said(tmp_path: Path) -> None:
     with pytest.raises(SnapshotFailed, match="no-such-camera cannot run"):
         asyncio.run(snapshot("no-such-camera {path}", tmp_path / "x"))
-    with pytest.raises(ValueError, match="cannot be split"):
-        check_command('fswebcam "unclosed')
-    with pytest.raises(ValueError, match="empty"):
-        check_command("  ")
+    for command, said in (('fswebcam "unclosed', "cannot be split"), ("  ", "empty")):
+        with pytest.raises(ValidationError, match=said):
+            HostSettings(camera=command)
 
 
 def test_the_camera_takes_one_at_a_time_in_the_background_and_keeps_the_newest(

@@ -132,6 +132,7 @@ class _Module:
     tree: ast.Module
     constants: dict[str, ast.expr]
     functions: dict[str, list[ast.FunctionDef | ast.AsyncFunctionDef]]
+    imported: dict[str, str]  # a name imported from another of the package's modules: its name
 
 
 def _modules(root: Path) -> list[_Module]:
@@ -154,8 +155,15 @@ def _modules(root: Path) -> list[_Module]:
         for node in ast.walk(tree):
             if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
                 functions.setdefault(node.name, []).append(node)
+        imported = {
+            alias.asname or alias.name: node.module.removeprefix("repetrel_host.").replace(".", "/")
+            + ".py"
+            for node in tree.body
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("repetrel_host.")
+            for alias in node.names
+        }
         name = path.relative_to(root).as_posix()
-        modules.append(_Module(path, name, tree, constants, functions))
+        modules.append(_Module(path, name, tree, constants, functions, imported))
     return modules
 
 
@@ -436,7 +444,8 @@ def _message_args(
         return _body([*call.args, *keywords.values()]), False
     for sink in sinks:
         sink_module, function, index = sink
-        if sink_module == module.name and name == function:
+        here = sink_module == module.name or module.imported.get(name) == sink_module
+        if here and name == function:
             return call.args[index : index + 1], sink not in SINK_FUNCTIONS
     if name in SINK_CALLS:
         index = SINK_CALLS[name]

@@ -2,4 +2,5 @@
 
 from repetrel_host.cli.app import main
 
-main()
+if __name__ == "__main__":  # run, not imported (the wheel's test imports every module)
+    main()

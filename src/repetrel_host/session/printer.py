@@ -696,8 +696,10 @@ class Printer:
             return
         job, run = self._owed.waiting
         self._owed.stop_waiting()
-        cause = f"{run.error}; the safe stop could not be sent ({why})"
-        job.finish(run, unsafe_stop_error(cause, self.heaters_on()), None)
+        error = unsafe_stop_error(
+            f"{run.error}; the safe stop could not be sent ({why})", self.heaters_on()
+        )
+        job.finish(run, error, None)
 
     def _delivered(self, run: Run) -> tuple[HostError | None, Summary | None]:
         """How a job whose safe stop went after a reconnect ended (:func:`delivered`), told."""
