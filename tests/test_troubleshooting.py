@@ -114,7 +114,7 @@ def test_each_exclusion_still_excludes_something() -> None:
 def test_a_new_error_is_caught(tmp_path: Path, quotes: list[str]) -> None:
     """A raise added to the code, and not to the page, fails the check."""
     root = tmp_path / "repetrel_host"
-    shutil.copytree(SRC, root, ignore=shutil.ignore_patterns("static", "__pycache__"))
+    shutil.copytree(SRC, root, ignore=shutil.ignore_patterns("page", "__pycache__"))
     with (root / "planning.py").open("a") as handle:
         handle.write(
             "\n\ndef _new(port: str) -> None:\n"

@@ -14,9 +14,9 @@ from fastapi.routing import APIRoute
 from starlette.routing import WebSocketRoute
 
 from repetrel_host.server.app import create_app
-from repetrel_host.server.core import PrintServer
 from repetrel_host.server.octoprint import socket
-from repetrel_host.server.printers import PrinterConfig
+from repetrel_host.server.print_server import PrintServer
+from repetrel_host.server.printers.config import PrinterConfig
 from tests.support.paths import DATA, ROOT
 from tests.support.server import Server
 

@@ -574,7 +574,7 @@ def test_a_protocol_defaults_the_window_that_rx_buffer_and_max_lines_do_not_give
 ) -> None:
     import repetrel_host as rh
     from repetrel_host.config import UserConfig
-    from repetrel_host.server.printers import PrinterConfig
+    from repetrel_host.server.printers.config import PrinterConfig
     from repetrel_host.session.planning import DEFAULT_WINDOWS
 
     asked: dict[str, Any] = {}
@@ -715,7 +715,7 @@ def test_bad_server_settings_get_one_sentence(tmp_path: Path) -> None:
 
 def test_the_contrib_settings_and_unit_fit_the_server() -> None:
     from repetrel_host.config import read_toml
-    from repetrel_host.server.main import ServerSettings
+    from repetrel_host.server.settings import ServerSettings
 
     contrib = ROOT / "contrib"
     settings = ServerSettings.model_validate(read_toml(contrib / "hyrel-server.toml"))

@@ -10,7 +10,7 @@ What counts (a *sink* is a call whose text reaches a user):
   ``EXCLUDED`` below, which no user sees;
 - the calls that carry a failure's or a warning's sentence to the user: a dialect's
   ``_fail(kind, reason)``, the ``Failed``/``LineRefused``/``Notice`` events (the CLI prints
-  a notice as ``warning:``), the lint's ``Finding``, ``hyrel-server``'s ``_fail``,
+  a notice as ``warning:``), the lint's ``Finding``, ``hyrel-server``'s ``fail``,
   ``pytest.fail``/``pytest.skip``/``pytest.exit``, an HTTP error's JSON body;
 - a line printed with an ``error:``, ``not safe:`` or ``warning:`` prefix of its own, or
   starting with a refusal's words (``no snapshot``, ``refused``), or printed in an
@@ -55,7 +55,8 @@ SINK_CALLS: dict[str, int | None] = {
 }
 # Functions of one module whose argument is a user's sentence (module, name, index).
 SINK_FUNCTIONS = {
-    ("server/main.py", "_fail", 0),  # "hyrel-server: ..." on stderr, exit 2
+    ("server/settings.py", "fail", 0),  # "hyrel-server: ..." on stderr, exit 2
+    ("server/main.py", "fail", 0),  # the same, imported
 }
 # Third-party exception classes whose message a user reads.
 FOREIGN_ERRORS = {"HTTPException": 1, "UsageError": 0, "BadParameter": 0}

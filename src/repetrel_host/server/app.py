@@ -35,9 +35,9 @@ from starlette.exceptions import HTTPException
 import repetrel_host as rh
 from repetrel_host.server import native
 from repetrel_host.server.auth import RequestGuard
-from repetrel_host.server.core import PrintServer, server_of
 from repetrel_host.server.mqtt.bridge import MqttBridge, MqttSettings
 from repetrel_host.server.octoprint import appkeys, rest, socket
+from repetrel_host.server.print_server import PrintServer, server_of
 from repetrel_host.server.workers import stop_workers
 
 __all__ = ["PrintServer", "create_app"]
@@ -101,8 +101,8 @@ def create_app(server: PrintServer, mqtt: MqttSettings | None = None) -> FastAPI
         said = f"bad request: {problems}"
         return JSONResponse(status_code=400, content={"error": said, "detail": said})
 
-    static = resources.files("repetrel_host.server").joinpath("static")
-    page = static.joinpath("index.html").read_text()
+    files = resources.files("repetrel_host.server").joinpath("page")
+    page = files.joinpath("index.html").read_text()
 
     @app.get("/", include_in_schema=False)
     async def farm_page() -> HTMLResponse:
@@ -116,7 +116,7 @@ def create_app(server: PrintServer, mqtt: MqttSettings | None = None) -> FastAPI
         return HTMLResponse(page, headers={"Cache-Control": "no-cache"})
 
     # The page's scripts, styles and libraries: plain files, no build step.
-    app.mount("/static", StaticFiles(directory=str(static)), name="static")
+    app.mount("/static", StaticFiles(directory=str(files)), name="static")
 
     app.include_router(native.router())
     if server.farm is not None:

@@ -14,7 +14,7 @@ from fastapi.responses import (
     JSONResponse,
 )
 
-from repetrel_host.server.core import PrintServer
+from repetrel_host.server.print_server import PrintServer
 
 SESSION_COOKIE = "hyrel_session"
 CSRF_COOKIE = "hyrel_csrf"

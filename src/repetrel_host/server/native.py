@@ -28,12 +28,13 @@ from fastapi.responses import (
 )
 from pydantic import BaseModel, Field
 
-from repetrel_host.server import core, store, timelapse
+from repetrel_host.server import jobs, store, timelapse, uploads
 from repetrel_host.server.access import OWNER
 from repetrel_host.server.auth import user_of
-from repetrel_host.server.core import answered, server_of
 from repetrel_host.server.octoprint import appkeys, files
-from repetrel_host.server.printers import PrinterService
+from repetrel_host.server.print_server import answered, server_of
+from repetrel_host.server.printers.heaters import heaters
+from repetrel_host.server.printers.service import PrinterService
 from repetrel_host.server.store import ACTIVE
 
 MAX_ID = 2**63 - 1  # SQLite's largest integer: a job id beyond it is no job
@@ -57,7 +58,7 @@ def _printer_json(service: PrinterService) -> dict[str, Any]:
         "firmware": printer.firmware.name if printer and printer.firmware else None,
         "protocol": printer.settings.protocol if printer else None,  # the link's: reprap, hyrel
         "temperatures": _readings(printer.temperatures if printer else {}),
-        "heaters": core.heaters(service),
+        "heaters": heaters(service),
         "job": _running_json(service) if running is not None else None,
         "camera": service.camera is not None,
         "snapshot": _latest_snapshot(service),
@@ -183,8 +184,8 @@ def router() -> APIRouter:
     ) -> dict[str, Any]:
         server = server_of(request)
         service = server.service(name)
-        upload = await core.save_upload(server, service.name, file)
-        record = core.queue(server, service.name, upload.path, upload.commands, user_of(request))
+        upload = await uploads.save_upload(server, service.name, file)
+        record = jobs.queue(server, service.name, upload.path, upload.commands, user_of(request))
         return {**record.as_json(), "findings": upload.findings, "note": upload.note or None}
 
     @router.post("/printers/{name}/queue", status_code=201)
@@ -193,16 +194,16 @@ def router() -> APIRouter:
         server's ``hyrel-send FILE --from-layer N``. Checked for this printer first."""
         server = server_of(request)
         service = server.service(name)
-        path = core.uploaded(server, queued.file)
+        path = uploads.uploaded(server, queued.file)
         from_line = await asyncio.to_thread(
-            core.resume_line, path, queued.from_layer, queued.from_line
+            jobs.resume_line, path, queued.from_layer, queued.from_line
         )
-        findings, commands = await asyncio.to_thread(core.check, server, service.name, path)
+        findings, commands = await asyncio.to_thread(uploads.check, server, service.name, path)
         errors = [f for f in findings if f.startswith("error")]
         if errors:
             refused = f"{path.name}: refused ({len(errors)} errors)"
             raise HTTPException(400, {"error": refused, "findings": findings})
-        record = core.queue(server, service.name, path, commands, user_of(request), from_line)
+        record = jobs.queue(server, service.name, path, commands, user_of(request), from_line)
         return {**record.as_json(), "findings": findings}
 
     @router.get("/presets")
@@ -214,7 +215,7 @@ def router() -> APIRouter:
     @router.get("/files")
     async def files_listed(request: Request) -> list[dict[str, Any]]:
         server = server_of(request)
-        return await asyncio.to_thread(core.uploads_json, server)
+        return await asyncio.to_thread(uploads.uploads_json, server)
 
     @router.post("/files", status_code=201)
     async def upload(
@@ -228,8 +229,8 @@ def router() -> APIRouter:
         with the findings."""
         server = server_of(request)
         service = server.service(printer)
-        upload = await core.save_upload(server, service.name, file, folder)
-        entry = await asyncio.to_thread(core.file_json, server, upload.path)
+        upload = await uploads.save_upload(server, service.name, file, folder)
+        entry = await asyncio.to_thread(uploads.file_json, server, upload.path)
         return {**entry, "findings": upload.findings, "note": upload.note or None}
 
     @router.get("/folders")
@@ -243,18 +244,18 @@ def router() -> APIRouter:
         server = server_of(request)
         parent, _, name = folder.path.strip("/").rpartition("/")
         made = files.make_folder(server, parent, name)
-        core.file_changed(server, made, "added", "add", folder=True)
+        uploads.file_changed(server, made, "added", "add", folder=True)
         return {"path": made.relative_to(server.files).as_posix()}
 
     @router.delete("/folders/{location:path}", status_code=204)
     async def delete_folder(request: Request, location: str) -> Response:
         """Remove a folder and what is in it; 409 while a job uses a file in it."""
         server = server_of(request)
-        path = server.files / core.safe_folder(location)
+        path = server.files / uploads.safe_folder(location)
         if not path.is_dir() or path == server.files:
             raise HTTPException(404, f"no folder '{location}'")
         files.delete_folder(server, location)
-        core.file_changed(server, path, "removed", "remove", folder=True)
+        uploads.file_changed(server, path, "removed", "remove", folder=True)
         return Response(status_code=204)
 
     @router.get("/files/{location:path}/check")
@@ -263,8 +264,8 @@ def router() -> APIRouter:
         print would meet them, and the lines it sends."""
         server = server_of(request)
         service = server.service(printer)
-        path = core.uploaded(server, location)
-        findings, lines = await asyncio.to_thread(core.check, server, service.name, path)
+        path = uploads.uploaded(server, location)
+        findings, lines = await asyncio.to_thread(uploads.check, server, service.name, path)
         errors = sum(1 for f in findings if f.startswith("error"))
         return {"printer": service.name, "findings": findings, "errors": errors, "lines": lines}
 
@@ -274,18 +275,18 @@ def router() -> APIRouter:
     ) -> dict[str, Any]:
         """Layer ``number``'s moves, for a layer view: ``[line, x0, y0, x1, y1, extrudes]``
         each (arcs as straight lines), its Z, and the file's layer count."""
-        return await asyncio.to_thread(core.layer_json, server_of(request), location, number)
+        return await asyncio.to_thread(uploads.layer_json, server_of(request), location, number)
 
     @router.get("/files/{location:path}/thumbnail")
     async def file_thumbnail(request: Request, location: str) -> Response:
         """The largest preview image the slicer embedded in the file (PrusaSlicer's,
         OrcaSlicer's, Cura's): PNG or JPEG as it was, QOI made PNG. 404 when it has none."""
-        image, media_type = await asyncio.to_thread(core.thumbnail, server_of(request), location)
+        image, media_type = await asyncio.to_thread(uploads.thumbnail, server_of(request), location)
         return Response(image, media_type=media_type, headers={"Cache-Control": "no-cache"})
 
     @router.delete("/files/{location:path}", status_code=204)
     async def delete_file(request: Request, location: str) -> Response:
-        core.delete_upload(server_of(request), location)
+        uploads.delete_upload(server_of(request), location)
         return Response(status_code=204)
 
     @router.get("/events")
@@ -372,7 +373,7 @@ def router() -> APIRouter:
         record = server.store.job(job_id)
         if record is None:
             raise HTTPException(404, f"no job {job_id}")
-        return await asyncio.to_thread(core.resume_json, server, record)
+        return await asyncio.to_thread(jobs.resume_json, server, record)
 
     @router.post("/jobs/{job_id}/move")
     async def move(request: Request, job_id: JobId, move: Move) -> list[dict[str, Any]]:

@@ -25,9 +25,10 @@ import repetrel_host as rh
 from repetrel_host.config import UserConfig
 from repetrel_host.gcode.lint import Severity
 from repetrel_host.server.auth import user_of
-from repetrel_host.server.core import PrintServer, receive, safe_file_name, server_of
 from repetrel_host.server.farm import needs
 from repetrel_host.server.farm.node import FILE_TIMEOUT, TIMEOUT, FarmNode
+from repetrel_host.server.print_server import PrintServer, server_of
+from repetrel_host.server.uploads import receive, safe_file_name
 from repetrel_host.server.workers import in_worker
 from repetrel_host.session.planning import JobRequest, layer_line, plan_job
 

@@ -35,7 +35,7 @@ from repetrel_host.server.farm.db import FarmDB, LeaseLost
 from repetrel_host.server.store import JobRecord, JobState, Store
 
 if TYPE_CHECKING:
-    from repetrel_host.server.printers import PrinterService
+    from repetrel_host.server.printers.service import PrinterService
 
 log = logging.getLogger("repetrel_host.server.farm")
 # The pool's own retries are told in our one sentence (the database does not answer).

@@ -32,7 +32,7 @@ import aiomqtt
 
 from repetrel_host.server.events import Event, EventHub
 from repetrel_host.server.mqtt.homeassistant import DEFAULT_PREFIX, Discovery
-from repetrel_host.server.printers import PrinterService, Refused
+from repetrel_host.server.printers.service import PrinterService, Refused
 from repetrel_host.server.store import Store
 
 log = logging.getLogger("repetrel_host.server")
@@ -64,7 +64,7 @@ class MqttSettings:
 
 class Served(Protocol):
     """What the bridge reads of the print server (the app's
-    :class:`~repetrel_host.server.core.PrintServer`, whose lifespan starts the bridge)."""
+    :class:`~repetrel_host.server.print_server.PrintServer`, whose lifespan starts the bridge)."""
 
     events: EventHub
     services: dict[str, PrinterService]

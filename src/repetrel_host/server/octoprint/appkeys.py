@@ -15,7 +15,7 @@ from fastapi.responses import JSONResponse, RedirectResponse, Response
 
 from repetrel_host.server.access import OWNER, AppKey
 from repetrel_host.server.auth import user_of
-from repetrel_host.server.core import PrintServer, server_of
+from repetrel_host.server.print_server import PrintServer, server_of
 
 
 async def _body(request: Request) -> dict[str, Any]:

@@ -11,9 +11,10 @@ from urllib.parse import quote
 
 from fastapi import HTTPException
 
-from repetrel_host.server import core
+from repetrel_host.server import uploads
 from repetrel_host.server.analyses import stamp
-from repetrel_host.server.core import G_CODE_SUFFIXES, PrintServer
+from repetrel_host.server.print_server import PrintServer
+from repetrel_host.server.uploads import G_CODE_SUFFIXES
 
 
 def resource_url(base: str, location: str) -> str:
@@ -36,12 +37,12 @@ def file_entry(server: PrintServer, path: Path, base: str) -> dict[str, Any]:
         "typePath": ["machinecode", "gcode"],
         "size": stat.st_size,
         "date": int(stat.st_mtime),
-        "hash": core.file_hash(path),
+        "hash": uploads.file_hash(path),
         "refs": {
             "resource": resource_url(base, location),
             "download": f"{base}/downloads/files/local/{quote(location)}",
         },
-        "prints": server.store.prints(core.relative(server, path)),
+        "prints": server.store.prints(uploads.relative(server, path)),
         "statistics": {"averagePrintTime": {}, "lastPrintTime": {}},
     }
     # Made at its upload; until then (a file put there otherwise) none, as OctoPrint
@@ -91,8 +92,8 @@ def entries(
 
 def make_folder(server: PrintServer, parent: str, name: str) -> Path:
     """A new folder below the uploads; 409 when the name is taken or looks like a file."""
-    cleaned = core.safe_folder(name)
-    target = server.files / core.safe_folder(parent) / cleaned
+    cleaned = uploads.safe_folder(name)
+    target = server.files / uploads.safe_folder(parent) / cleaned
     if not cleaned.parts:
         raise HTTPException(400, "the folder name is empty")
     if target.name.lower().endswith(G_CODE_SUFFIXES):
@@ -106,21 +107,21 @@ def make_folder(server: PrintServer, parent: str, name: str) -> Path:
 def in_use(server: PrintServer, path: Path) -> list[int]:
     """Jobs queued, printing or paused on ``path`` or (a folder) on a file below it."""
     if path.is_file():
-        return server.store.jobs_using(core.relative(server, path))
+        return server.store.jobs_using(uploads.relative(server, path))
     users: list[int] = []
     for child in path.rglob("*"):
         if child.is_file():
-            users += server.store.jobs_using(core.relative(server, child))
+            users += server.store.jobs_using(uploads.relative(server, child))
     return users
 
 
 def copy_or_move(server: PrintServer, location: str, destination: str, move: bool) -> Path:
     """OctoPrint's copy and move: ``destination`` is a new path, or an existing folder
     to put it in under its own name. 409 when the target exists or (a move) it is in use."""
-    source = server.files / core.safe_folder(location)
+    source = server.files / uploads.safe_folder(location)
     if not source.exists() or source == server.files:
         raise HTTPException(404, f"no file or folder '{location}'")
-    target = server.files / core.safe_folder(destination)
+    target = server.files / uploads.safe_folder(destination)
     if target.is_dir() and target != source:
         target = target / source.name
     if target.exists():
@@ -155,7 +156,7 @@ def copy_or_move(server: PrintServer, location: str, destination: str, move: boo
 
 def delete_folder(server: PrintServer, location: str) -> None:
     """Remove a folder and what is in it; 409 while a job uses a file in it."""
-    path = server.files / core.safe_folder(location)
+    path = server.files / uploads.safe_folder(location)
     users = in_use(server, path)
     if users:
         jobs = ", ".join(map(str, users))

@@ -12,7 +12,8 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from repetrel_host.server.printers import PrinterService, Running
+from repetrel_host.server.printers.running import Running
+from repetrel_host.server.printers.service import PrinterService
 from repetrel_host.server.store import JobRecord, JobState
 
 # OctoPrint's states whose "printing" flag is set: a job is under way.

@@ -25,12 +25,12 @@ from fastapi.responses import FileResponse, JSONResponse, Response
 from pydantic import BaseModel
 
 import repetrel_host as rh
-from repetrel_host.server import core
+from repetrel_host.server import jobs, uploads
 from repetrel_host.server.access import GROUPS, PERMISSIONS
 from repetrel_host.server.auth import CSRF_COOKIE, SESSION_COOKIE, session_of, user_of
-from repetrel_host.server.core import PrintServer, answered, server_of
 from repetrel_host.server.octoprint import files, model
-from repetrel_host.server.printers import PrinterService
+from repetrel_host.server.print_server import PrintServer, answered, server_of
+from repetrel_host.server.printers.service import PrinterService
 
 # What /api/version says: PrusaSlicer checks that "text" starts with "OctoPrint".
 OCTOPRINT_VERSION = "1.11.8"
@@ -302,7 +302,7 @@ def router() -> APIRouter:
             if foldername is None:
                 raise HTTPException(400, "No file to upload and no folder to create")
             folder = files.make_folder(server, path, foldername)
-            core.file_changed(server, folder, "added", "add", folder=True)
+            uploads.file_changed(server, folder, "added", "add", folder=True)
             location = folder.relative_to(server.files).as_posix()
             answer: dict[str, Any] = {
                 "folder": {
@@ -316,7 +316,7 @@ def router() -> APIRouter:
             headers = {"Location": answer["folder"]["refs"]["resource"]}
             return JSONResponse(answer, 201, headers=headers)
         to_print, to_select = _true(print), _true(select)
-        stored = await core.save_upload(server, service.name, file, path)
+        stored = await uploads.save_upload(server, service.name, file, path)
         if to_print and service.held:
             # Stored (nothing accepted is lost), but not printed: a slicer shows the reason.
             raise HTTPException(
@@ -329,7 +329,7 @@ def router() -> APIRouter:
             # Queued: it runs when the printer is free (OctoPrint answers 409 when it is
             # busy; a queue is what this server is for).
             user = user_of(request)
-            record = core.queue(server, service.name, stored.path, stored.commands, user)
+            record = jobs.queue(server, service.name, stored.path, stored.commands, user)
             extra["job"] = record.as_json()
             service.select(None)
         elif to_select and service.running is None:
@@ -372,13 +372,13 @@ def router() -> APIRouter:
         request: Request, location: str, recursive: bool = False
     ) -> dict[str, Any]:
         server = server_of(request)
-        path = server.files / core.safe_folder(location)
+        path = server.files / uploads.safe_folder(location)
         base = _base(request)
         if path.is_dir() and path != server.files:
             depth = None if recursive else 1
             return await asyncio.to_thread(files.folder_entry, server, path, base, depth)
         return await asyncio.to_thread(
-            files.file_entry, server, core.uploaded(server, location), base
+            files.file_entry, server, uploads.uploaded(server, location), base
         )
 
     @router.post("/files/local/{location:path}")
@@ -396,9 +396,9 @@ def router() -> APIRouter:
             )
             folder = target.is_dir()
             if moving:
-                source = server.files / core.safe_folder(location)
-                core.file_changed(server, source, "removed", "move", folder)
-            core.file_changed(server, target, "added", body.command, folder)
+                source = server.files / uploads.safe_folder(location)
+                uploads.file_changed(server, source, "removed", "move", folder)
+            uploads.file_changed(server, target, "added", body.command, folder)
             where = target.relative_to(server.files).as_posix()
             resource = files.resource_url(_base(request), where)
             refs = {"resource": resource}
@@ -407,15 +407,15 @@ def router() -> APIRouter:
             answer = {"name": target.name, "path": where, "origin": "local", "refs": refs}
             return JSONResponse(answer, 201, headers={"Location": resource})
         if body.command == "select":
-            path = core.uploaded(server, location)
+            path = uploads.uploaded(server, location)
             if service.running is not None:
                 raise HTTPException(409, "Printer is already printing, cannot select a new file")
             if _true(body.get("print", False)):
                 _operational(service)
                 if service.held:
                     raise HTTPException(409, model.HELD_REASON)
-                _, commands = await asyncio.to_thread(core.check, server, service.name, path)
-                core.queue(server, service.name, path, commands, user_of(request))
+                _, commands = await asyncio.to_thread(uploads.check, server, service.name, path)
+                jobs.queue(server, service.name, path, commands, user_of(request))
                 service.select(None)
             else:
                 # Its analysis in memory, for /api/job (read from the data folder, or made).
@@ -442,12 +442,12 @@ def router() -> APIRouter:
     @router.delete("/files/local/{location:path}", status_code=204)
     async def delete_file(request: Request, location: str) -> Response:
         server = server_of(request)
-        path = server.files / core.safe_folder(location)
+        path = server.files / uploads.safe_folder(location)
         if path.is_dir() and path != server.files:
             await asyncio.to_thread(files.delete_folder, server, location)
-            core.file_changed(server, path, "removed", "remove", folder=True)
+            uploads.file_changed(server, path, "removed", "remove", folder=True)
         else:
-            core.delete_upload(server, location)
+            uploads.delete_upload(server, location)
         return Response(status_code=204)
 
     # --- the job ---------------------------------------------------------------------
@@ -658,7 +658,7 @@ def downloads() -> APIRouter:
 
     @router.get("/downloads/files/local/{location:path}")
     async def download(request: Request, location: str) -> FileResponse:
-        path = core.uploaded(server_of(request), location)
+        path = uploads.uploaded(server_of(request), location)
         return FileResponse(path, media_type="text/plain", filename=path.name)
 
     return router
@@ -685,8 +685,8 @@ async def _start(server: PrintServer, service: PrinterService, user: str | None)
         path = service.data_dir / service.finished.record.file
     if path is None or not path.is_file():
         raise HTTPException(409, f"printer {service.name}: no file is selected")
-    _, commands = await asyncio.to_thread(core.check, server, service.name, path)
-    core.queue(server, service.name, path, commands, user)
+    _, commands = await asyncio.to_thread(uploads.check, server, service.name, path)
+    jobs.queue(server, service.name, path, commands, user)
     service.select(None)
 
 
@@ -697,8 +697,8 @@ async def _restart(server: PrintServer, service: PrinterService, user: str | Non
     assert running is not None
     path = service.data_dir / running.record.file
     await answered(service.control("cancel"))
-    _, commands = await asyncio.to_thread(core.check, server, service.name, path)
-    record = core.queue(server, service.name, path, commands, user)
+    _, commands = await asyncio.to_thread(uploads.check, server, service.name, path)
+    record = jobs.queue(server, service.name, path, commands, user)
     first = server.store.next_queued(service.name)
     if first is not None and first.id != record.id:
         server.store.move(record.id, first.id)

@@ -43,10 +43,10 @@ from starlette.types import Receive, Scope, Send
 
 import repetrel_host as rh
 from repetrel_host.server.access import PERMISSIONS
-from repetrel_host.server.core import PrintServer
 from repetrel_host.server.octoprint import model
 from repetrel_host.server.octoprint.rest import OCTOPRINT_VERSION
-from repetrel_host.server.printers import PrinterService
+from repetrel_host.server.print_server import PrintServer
+from repetrel_host.server.printers.service import PrinterService
 from repetrel_host.server.store import ENDED
 
 log = logging.getLogger("repetrel_host.server")

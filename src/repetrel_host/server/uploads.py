@@ -1,45 +1,29 @@
-"""The print server's state: its printers, their store, the uploads folder, and what
-every face of its API (native, OctoPrint's) does with them."""
+"""The uploads folder: an upload's safe name and place, written to disk as it comes and
+checked for a printer; a file's hash, its entry in a listing, its thumbnail and its layers;
+a file deleted. What every face of the API (native, OctoPrint's, a farm's) does with files."""
 
 from __future__ import annotations
 
 import asyncio
 import hashlib
-import json
 import logging
 import os
-import re
 import secrets
-import uuid
-from collections.abc import Awaitable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import Any
 from urllib.parse import quote
 
-from fastapi import (
-    HTTPException,
-    Request,
-    UploadFile,
-)
+from fastapi import HTTPException, UploadFile
 
 import repetrel_host as rh
-from repetrel_host.config import UserConfig
-from repetrel_host.gcode.analysis import Analysis, Summary, analyse, scan_marks
+from repetrel_host.gcode.analysis import Analysis, Summary, analyse
 from repetrel_host.gcode.layer_moves import layer_moves
 from repetrel_host.gcode.thumbnails import ThumbnailError
 from repetrel_host.gcode.thumbnails import read as read_thumbnail
-from repetrel_host.server.access import Access
-from repetrel_host.server.analyses import Analyses, Stamp, describe, stamp
-from repetrel_host.server.events import EventHub
-from repetrel_host.server.printers import PrinterConfig, PrinterService, Refused
-from repetrel_host.server.store import JobRecord, JobState, Store
+from repetrel_host.server.analyses import Stamp, describe, stamp
+from repetrel_host.server.print_server import PrintServer
 from repetrel_host.server.workers import in_worker
-from repetrel_host.session.planning import layer_line
-from repetrel_host.session.resume import resume_command
-
-if TYPE_CHECKING:
-    from repetrel_host.server.farm.node import FarmNode, FarmSettings
 
 log = logging.getLogger("repetrel_host.server")
 
@@ -55,123 +39,7 @@ MAX_PATH = 1024
 # event loop among them (measured: a SQLite commit waited 110-180 ms behind a 1 GB fsync,
 # under 10 ms behind flushes of 16 MB).
 FLUSH_EVERY = 16 << 20
-T = TypeVar("T")
 _HASHES: dict[tuple[Path, int, int], str] = {}
-
-
-class PrintServer:
-    """The printers, their store and the data folder; started and stopped with the app."""
-
-    def __init__(
-        self,
-        data_dir: Path,
-        printers: dict[str, PrinterConfig],
-        api_key: str,
-        max_upload: int,
-        user: UserConfig | None = None,
-        automatic_transition: bool = False,
-        public_read: bool = False,
-        presets: dict[str, dict[str, float | None]] | None = None,
-        farm: FarmSettings | None = None,
-    ) -> None:
-        self.data_dir = data_dir
-        self.files = data_dir / "files"
-        self.files.mkdir(parents=True, exist_ok=True)
-        self.access = Access(data_dir, api_key, public_read)
-        self.max_upload = max_upload
-        self.presets = presets or {}  # material: {"head", "bed", "chamber"} temperatures
-        self.user = user or UserConfig()
-        self.store = Store(data_dir / "jobs.sqlite")
-        self.events = EventHub()
-        self._uuids: dict[str, str] | None = None  # printer_uuid's, once read
-        # Each file's analysis, kept in the data folder (made at its upload).
-        self.analyses = Analyses(data_dir / "analysis", data_dir)
-        self.services = {
-            name: PrinterService(
-                name, config, self.store, data_dir, self.user, self.events.publish, self.analyses
-            )
-            for name, config in printers.items()
-        }
-        for service in self.services.values():
-            service.automatic_transition = automatic_transition
-        self.default = next(iter(self.services))
-        # In a farm, the printers' jobs come from its shared queue too (farm/node.py).
-        self.farm: FarmNode | None = None
-        if farm is not None:
-            from repetrel_host.server.farm.node import FarmNode
-
-            self.farm = FarmNode(farm, data_dir, self.store, self.services)
-        for record in self.store.interrupt_active():
-            log.warning(
-                "job %d (%s) on printer %s was interrupted: acknowledged through at least "
-                "line %d; its safe stop goes first",
-                record.id,
-                record.name,
-                record.printer,
-                record.last_line,
-            )
-        for service in self.services.values():
-            owing = self.store.owing(service.name)
-            if owing:  # interrupted, or ended without its safe stop confirmed (connect sends it)
-                log.warning(
-                    "printer %s: the safe stop of job %s is owed: it goes as soon as the "
-                    "printer answers",
-                    service.name,
-                    ", ".join(map(str, owing)),
-                )
-        # After an interrupted job nothing starts by itself: a part may be on the bed.
-        for service in self.services.values():
-            last = self.store.last_started(service.name)
-            if last is not None and last.state is JobState.INTERRUPTED:
-                service.held = True
-                log.warning(
-                    "printer %s: the queue is held after interrupted job %d "
-                    "(POST /v1/printers/%s/release, or OctoPrint's job start, releases it)",
-                    service.name,
-                    last.id,
-                    service.name,
-                )
-
-    async def start(self) -> None:
-        for service in self.services.values():
-            service.start()
-        if self.farm is not None:
-            await self.farm.start()
-
-    async def stop(self) -> None:
-        """Every printer stopped (a running job with its safe stop), then the farm's part;
-        the store stays open for what reports their ends (:meth:`close` after)."""
-        await asyncio.gather(*(service.stop() for service in self.services.values()))
-        if self.farm is not None:  # after the printers: their jobs' ends are reported
-            await self.farm.stop()
-
-    def close(self) -> None:
-        self.store.close()
-
-    def printer_uuid(self, name: str) -> str:
-        """A printer's UUID, the same across restarts (OctoPrint's discovery ``upnpUuid``,
-        which Home Assistant takes for the printer's identity)."""
-        path = self.data_dir / "uuids.json"
-        if self._uuids is None:  # read once: clients ask for the settings often
-            self._uuids = json.loads(path.read_text()) if path.exists() else {}
-        known = self._uuids
-        if name not in known:
-            known[name] = str(uuid.uuid4())
-            partial = path.with_suffix(".part")
-            partial.write_text(json.dumps(known, indent=1))
-            partial.replace(path)
-        return known[name]
-
-    def service(self, name: str | None) -> PrinterService:
-        service = self.services.get(name or self.default)
-        if service is None:
-            raise HTTPException(404, f"no printer '{name}' (printers: {', '.join(self.services)})")
-        return service
-
-
-def server_of(request: Request) -> PrintServer:
-    server: PrintServer = request.app.state.server
-    return server
 
 
 def upload_name(name: str) -> str:
@@ -354,24 +222,6 @@ def _free_name(server: PrintServer, target: Path) -> tuple[Path, str]:
     return chosen, f"{target.name} is used by job {jobs}: stored as {chosen.name}"
 
 
-def queue(
-    server: PrintServer,
-    printer: str,
-    path: Path,
-    commands: int,
-    user: str | None = None,
-    from_line: int | None = None,
-) -> JobRecord:
-    record = server.store.submit(
-        printer, path.name, relative(server, path), commands, user, from_line
-    )
-    log.info("job %d (%s) queued on printer %s", record.id, path.name, printer)
-    service = server.services[printer]
-    service.job_changed(record.id)
-    service.wake()
-    return record
-
-
 def relative(server: PrintServer, path: Path) -> str:
     return path.relative_to(server.data_dir).as_posix()
 
@@ -427,14 +277,6 @@ def check(server: PrintServer, printer: str, path: Path) -> tuple[list[str], int
     return [f"{f.severity}: {path.name}:{f.line}: {f.message}" for f in findings], commands
 
 
-async def answered(call: Awaitable[T]) -> T:
-    """What the printer's ``call`` gives; its :class:`Refused` as an HTTP error."""
-    try:
-        return await call
-    except Refused as exc:
-        raise HTTPException(exc.status, str(exc)) from None
-
-
 def file_json(server: PrintServer, path: Path) -> dict[str, Any]:
     """A file of the native listing, with its analysis (None until it is made: a file
     that was not uploaded is analysed in the background)."""
@@ -474,96 +316,6 @@ def thumbnail(server: PrintServer, location: str) -> tuple[bytes, str]:
 def uploads_json(server: PrintServer) -> list[dict[str, Any]]:
     """The native listing (call in a thread: it reads the analyses kept on disk)."""
     return [file_json(server, p) for p in sorted(server.files.rglob("*")) if p.is_file()]
-
-
-def heaters(service: PrinterService) -> list[dict[str, Any]]:
-    """What the page charts and sets: each heater's sensor (as reports name it), a label
-    (a Hyrel head by its slot and type), its kind, and the command that sets its target
-    (``{target}`` in it). The loadout's heads first, then what the reports show."""
-    printer = service.printer
-    readings = dict(printer.temperatures) if printer is not None else {}
-    hyrel = printer is not None and printer.settings.protocol == "hyrel"
-    found: list[dict[str, Any]] = []
-    loadout = service.plan_loadout()
-    for head in loadout.heads if loadout is not None else ():
-        sensor = f"T{head.tool}"
-        if sensor not in readings and head.tool == 0 and "T" in readings:
-            sensor = "T"  # a single hotend reported as T
-        address = head.variable if hyrel else head.tool
-        found.append(
-            {
-                "sensor": sensor,
-                "label": f"T{head.tool} · slot {head.slot} · {head.name}",
-                "kind": "head",
-                "tool": head.tool,
-                "command": f"M104 T{address} S{{target}}",
-            }
-        )
-    known = {heater["sensor"] for heater in found}
-    several = any(re.fullmatch(r"T\d+", sensor) for sensor in readings)
-    # Heads by number, then the bed, then the chamber.
-    for sensor in sorted(readings, key=lambda s: (s[0] != "T", s != "T", len(s), s)):
-        if sensor in known or (sensor == "T" and several):
-            continue  # "T" beside T0, T1...: the active one, shown by its number
-        if sensor.startswith("T"):
-            tool = int(sensor[1:] or 0)
-            command = f"M104 T{tool} S{{target}}" if sensor != "T" else "M104 S{target}"
-            found.append(
-                {
-                    "sensor": sensor,
-                    "label": sensor,
-                    "kind": "head",
-                    "tool": tool,
-                    "command": command,
-                }
-            )
-        elif sensor in ("B", "C"):
-            kind, command = ("bed", "M140") if sensor == "B" else ("chamber", "M141")
-            found.append(
-                {"sensor": sensor, "label": kind, "kind": kind, "command": f"{command} S{{target}}"}
-            )
-    return found
-
-
-def resume_line(path: Path, from_layer: int | None, from_line: int | None) -> int | None:
-    """The source line a job resumed at ``from_layer`` (or ``from_line``) starts from
-    (in a thread: it reads the file); 400 when the file has no such layer."""
-    if from_layer is not None and from_line is not None:
-        raise HTTPException(400, "from_layer and from_line both say where to resume: give one")
-    if from_layer is None:
-        return from_line
-    try:
-        return layer_line(path, from_layer)
-    except rh.UsageError as exc:
-        raise HTTPException(400, str(exc)) from None
-
-
-def resume_json(server: PrintServer, record: JobRecord) -> dict[str, Any]:
-    """Where ``record``'s job would resume (in a thread): its first line not acknowledged,
-    the layer holding it, and the commands that resume it (409 when it completed, or when
-    none of it ran: print it again)."""
-    if record.state not in (JobState.FAILED, JobState.CANCELLED, JobState.INTERRUPTED):
-        raise HTTPException(409, f"job {record.id} is {record.state.value}: nothing to resume")
-    if record.last_line < 1:
-        raise HTTPException(409, f"job {record.id}: none of it ran, print it again")
-    path = server.data_dir / record.file
-    if not path.is_file():
-        raise HTTPException(409, f"job {record.id}'s file {record.name} is gone")
-    line = record.last_line + 1
-    layer = scan_marks(path, until_line=line).at(line).layer
-    file = path.relative_to(server.files).as_posix()
-    port = server.services[record.printer].port if record.printer in server.services else "PORT"
-    arguments = (file, "--port", port)
-    return {
-        "job": record.id,
-        "file": file,
-        "from_line": line,
-        "from_layer": layer.number if layer is not None else None,
-        "command": resume_command(arguments, line),
-        "layer_command": resume_command(arguments, layer.number, "--from-layer")
-        if layer is not None
-        else None,
-    }
 
 
 _LAYERS: dict[Path, tuple[Stamp, Analysis]] = {}  # a file's layers, while it is unchanged

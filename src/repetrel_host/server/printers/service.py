@@ -10,37 +10,30 @@ releases it, and the interrupted job's safe stop is sent as soon as the printer 
 from __future__ import annotations
 
 import asyncio
-import bisect
 import contextlib
 import logging
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from datetime import datetime
 from pathlib import Path
 from typing import Any
 
 import repetrel_host as rh
-from repetrel_host.config import Loadout, UserConfig, find_loadout, load_library, load_loadout
-from repetrel_host.gcode.analysis import Summary
-from repetrel_host.gcode.heaters import Heater
-from repetrel_host.gcode.lint import Finding, Severity
-from repetrel_host.gcode.marks import SlicerMarks
+from repetrel_host.config import Loadout, UserConfig
+from repetrel_host.gcode.lint import Finding
 from repetrel_host.server.analyses import Analyses
 from repetrel_host.server.events import Event
+from repetrel_host.server.printers.checks import JobChecks
+from repetrel_host.server.printers.config import PrinterConfig
+from repetrel_host.server.printers.host_actions import HostActions, snapshot_name
+from repetrel_host.server.printers.running import Running, filament_used, progress_event
 from repetrel_host.server.store import PROGRESS_INTERVAL, JobQueue, JobRecord, JobState, Store
-from repetrel_host.server.workers import in_worker
-from repetrel_host.session.camera import Camera, SnapshotFailed
+from repetrel_host.session.camera import SnapshotFailed
 from repetrel_host.session.events import PrinterEvent
-from repetrel_host.session.job import ActionKind, HostAction
+from repetrel_host.session.job import HostAction
 from repetrel_host.session.planning import (
     JobPlan,
     JobRequest,
-    LinkRequest,
-    explicit_machine,
-    link_settings,
-    plan_job,
     resumed,
 )
 
@@ -48,7 +41,6 @@ log = logging.getLogger("repetrel_host.server")
 
 RECONNECT_FIRST = 0.5
 RECONNECT_MAX = 10.0
-POLL_INTERVAL = 2.0  # temperatures, for the API and the page
 _OFFLINE = ("disconnected", "connecting")
 TEMPERATURE_SAMPLES = 1800  # reports kept: 30 min at a report a second
 SAFE_STOP_TIMEOUT = 30.0
@@ -67,134 +59,6 @@ class Refused(Exception):
     def __init__(self, message: str, status: int = 409) -> None:
         super().__init__(message)
         self.status = status
-
-
-@dataclass(frozen=True)
-class PrinterConfig:
-    """One printer of the server: its port, and what ``hyrel-send`` would take for it."""
-
-    port: str
-    machine: str | None = None
-    loadout: str | None = None
-    flow: str | None = None  # buffered, unbuffered
-    rx_buffer: int | None = None
-    max_lines: int | None = None
-    baud: int | None = None
-    protocol: str | None = None  # reprap, hyrel (None: the machine's, else reprap)
-    report: bool = False  # every job asks for the controller's M773 report (M772 S1)
-    camera: str | None = None  # a command line for M791/M790 snapshots ({path}: the image)
-    layer_snapshots: bool = True  # with a camera: a snapshot at every M790
-    snapshots_kept: int = 500
-    tags: tuple[str, ...] = ()  # in a farm: what jobs may ask of it (tag=abs)
-
-    def connect(
-        self,
-        user: UserConfig,
-        on_event: Callable[[PrinterEvent], None] | None = None,
-        owe_safe_stop: list[Heater] | None = None,
-    ) -> Any:
-        """``rh.connect(...)`` for this printer (``on_event``: its events as they come;
-        ``owe_safe_stop``: the heaters of a safe stop owed from before a restart)."""
-        flow: rh.FlowControl | str | None = self.flow
-        if self.rx_buffer is not None or self.max_lines is not None:
-            # What is not given is the machine's, else the protocol's window (as hyrel-send).
-            loadout = Path(self.loadout) if self.loadout is not None else None
-            machine = explicit_machine(JobRequest(loadout, self.machine), user)
-            link = LinkRequest(
-                flow=rh.FlowMode(self.flow) if self.flow is not None else None,
-                rx_buffer=self.rx_buffer,
-                max_lines=self.max_lines,
-                protocol=self.protocol,
-            )
-            flow = link_settings(link, machine).flow
-        return rh.connect(
-            self.port,
-            machine=self.machine,
-            loadout=self.loadout,
-            flow=flow,
-            config=user,
-            baud=self.baud,
-            poll_interval=POLL_INTERVAL,
-            # During a job too: the API, the socket and the page show the heat-up as it goes
-            # (where the firmware does not report temperatures itself).
-            poll_while_printing=True,
-            protocol=self.protocol,
-            on_event=on_event,
-            owe_safe_stop=owe_safe_stop,
-        )
-
-
-@dataclass
-class Running:
-    """The job streaming now."""
-
-    record: JobRecord
-    job: rh.PrintJob
-    layers: list[int] = field(default_factory=list)  # byte offsets where marks.layers begin
-    new_layers: int = 0  # the M790s reached
-    marks: SlicerMarks | None = None  # the slicer's (layers, Z, estimates), once read
-    summary: Summary | None = None  # the file's analysis (filament, boxes), once read
-
-    @property
-    def layer(self) -> int:
-        """The layer the acknowledged lines have reached (0: before the first marker)."""
-        return bisect.bisect_right(self.layers, self.job.offset)
-
-    @property
-    def z(self) -> float | None:
-        """Z of the last acknowledged line, as the slicer marked it."""
-        last = self.job.last
-        if self.marks is None or last is None:
-            return None
-        return self.marks.at(last.source_line).z
-
-    @property
-    def fraction(self) -> float:
-        """The share of the file's bytes the controller acknowledged (0 to 1)."""
-        return min(self.job.offset / max(self.job.size, 1), 1.0)
-
-    def time_left(self, elapsed: float) -> tuple[float | None, str | None]:
-        """Seconds left of the job after ``elapsed`` seconds of it, and how they were found:
-        the slicer's estimate where the file has one (``analysis``), else the rate so far
-        (``linear``, once 0.5 % and 5 s went); (None, None) before either can tell. One
-        figure for every face: OctoPrint's printTimeLeft, MQTT's progress."""
-        fraction = self.fraction
-        last = self.job.last
-        if self.marks is not None and last is not None:
-            left = self.marks.at(last.source_line, fraction).seconds_left
-            if left is not None:
-                return left, "analysis"
-        if fraction > 0.005 and elapsed > 5:
-            return elapsed * (1 - fraction) / fraction, "linear"
-        return None, None
-
-
-def _fingerprint(plan: JobPlan) -> tuple[object, ...]:
-    """The job's file as it is on disk (an edit changes its time, a new file its inode),
-    and what its check depends on."""
-    try:
-        stat = plan.job.path.stat()
-    except OSError:
-        return ()  # gone: never the fingerprint of a check
-    return stat.st_size, stat.st_mtime_ns, stat.st_ino, plan.lint_settings
-
-
-def snapshot_name(tail: str) -> str:
-    """A snapshot's name without its suffix: the time first, so that names sort by it."""
-    return f"{datetime.now():%Y%m%d-%H%M%S-%f}{tail}"
-
-
-def _filament_used(running: Running, completed: bool) -> dict[str, dict[str, float]] | None:
-    """The file's filament by tool, times the share of it the controller acknowledged (all
-    of it for a completed job); None when the file's analysis is not known."""
-    summary = running.summary
-    if summary is None:
-        return None
-    share = 1.0 if completed else running.fraction
-    return {
-        tool: {"length": used.length * share, "volume": used.volume * share}
-        for tool, used in summary.filament.items()
-    }
 
 
 class PrinterService:
@@ -263,20 +127,11 @@ class PrinterService:
         # change); else the queue is held until released (Moonraker's automatic_transition).
         self.automatic_transition = False
         loadout = Path(config.loadout) if config.loadout is not None else None
-        self.request = JobRequest(loadout, config.machine)  # as the session's
-        # Files checked for this printer (as they were on disk, and the check's settings):
-        # a job is checked once, at its upload, not again (on the event loop) as it starts.
-        self._checked: dict[Path, tuple[object, ...]] = {}
-        self._loadout: tuple[Path, Loadout] | None = None
-        self.camera: Camera | None = None
-        if config.camera is not None:
-            self.camera = Camera(
-                config.camera,
-                data_dir / "snapshots" / name,
-                config.snapshots_kept,
-                on_taken=self._snapshot_taken,
-                on_failed=lambda why: self._tell(f"no snapshot: {why}"),
-            )
+        # What it checks before a job starts, and the files that passed (checks.py).
+        self.checks = JobChecks(JobRequest(loadout, config.machine), user, self._firmware)
+        # Its camera, and what its jobs' host codes do (host_actions.py).
+        self.host_actions = HostActions(name, config, data_dir, publish)
+        self.camera = self.host_actions.camera
 
     # --- lifecycle ---------------------------------------------------------------
 
@@ -428,7 +283,7 @@ class PrinterService:
         self._starting, self._cancel_starting = record.id, False
         try:
             plan = self.plan(path)
-            checked = self._checked.get(path) == _fingerprint(plan)
+            checked = self.checks.passed(path, plan)
             job_or_path: JobPlan | Path = path
             if checked and record.from_line is not None:
                 # Where a resumed job starts is found by reading the file up to there:
@@ -505,7 +360,7 @@ class PrinterService:
             self.changed()
             watching.cancel()
         report = job.report  # the controller's M773 report, kept with the job
-        used = _filament_used(running, completed)
+        used = filament_used(running, completed)
         self.store.set_state(record.id, state, error, report.text if report else None, used)
         if printer.owed_safe_stop or isinstance(ending.exception(), rh.SafeStopError):
             # Owed to the printer's next contact, whatever the job is recorded as (and
@@ -536,42 +391,15 @@ class PrinterService:
                 on = f"; heaters that may be on: {', '.join(event.heaters)}" * bool(event.heaters)
                 self.stop_held = f"the safe stop is held up: {event.reason}{on}"
                 log.warning("printer %s: %s", self.name, self.stop_held)
-                self._tell(self.stop_held)
+                self.host_actions.tell(self.stop_held)
                 self._held.set()
 
     def _record_progress(
         self, record: JobRecord, job: rh.PrintJob, completed: bool = False
     ) -> None:
         last = job.last
-        last_line = last.source_line if last else 0
-        self.store.progress(record.id, job.lines, last_line)
-        running = self.running
-        completion: float | None = None
-        left: float | None = None
-        how: str | None = None
-        if completed:
-            completion, left = 100.0, 0.0
-        elif running is not None:
-            completion = 100.0 * running.fraction
-            if not job.done:
-                left, how = running.time_left(time.time() - (record.started or time.time()))
-        self.publish(
-            {
-                "type": "progress",
-                "printer": self.name,
-                "job": record.id,
-                "lines": job.lines,
-                "last_line": last_line,
-                "bytes": job.offset,
-                "size": job.size,
-                "layer": running.layer if running else 0,
-                "layers": len(running.layers) if running else 0,
-                "completion": round(completion, 2) if completion is not None else None,
-                "time_left": round(left) if left is not None else None,  # seconds
-                # "analysis": the slicer's estimate; "linear": the rate so far
-                "time_left_from": how,
-            }
-        )
+        self.store.progress(record.id, job.lines, last.source_line if last else 0)
+        self.publish(progress_event(self.name, record, job, self.running, completed))
         z = self.running.z if self.running is not None else None
         if z is not None and z != self._z:  # a new height, as the slicer marked it
             self.publish({"type": "z", "printer": self.name, "new": z, "old": self._z})
@@ -585,84 +413,43 @@ class PrinterService:
             self.store.set_state(record.id, JobState.PAUSED if paused else JobState.PRINTING)
             self.job_changed(record.id)
 
-    # --- checks ------------------------------------------------------------------------
+    # --- checks (checks.py) ------------------------------------------------------------
+
+    def _firmware(self) -> rh.Firmware | None:
+        printer = self.printer
+        return printer.firmware if printer else None
 
     def plan(self, path: Path) -> JobPlan:
         """What this printer would stream for ``path``: its machine, loadout and firmware."""
-        printer = self.printer
-        return plan_job(path, self.request, self.user, printer.firmware if printer else None)
+        return self.checks.plan(path)
 
     def check(self, path: Path) -> tuple[JobPlan, list[Finding], int]:
         """The job lint for this printer, and the lines the job sends (any thread but the
         event loop's: a worker process reads the file). A file with no errors is remembered
         as checked, so that its job starts without a second pass."""
-        plan = self.plan(path)
-        before = _fingerprint(plan)
-        findings, lines = in_worker(plan.check_and_count)
-        if not any(f.severity is Severity.ERROR for f in findings):
-            self._checked[path] = before
-        return plan, findings, lines
+        return self.checks.check(path)
 
     def was_checked(self, path: Path) -> bool:
         """``path``, as it is now, passed this printer's check already (any thread)."""
-        return self._checked.get(path) == _fingerprint(self.plan(path))
+        return self.checks.was_checked(path)
 
     def plan_loadout(self) -> Loadout | None:
         """The printer's loadout (its heads), as a job's plan reads it; None without one or
         when it cannot be read (a job then says why)."""
-        path = self.request.loadout or self.user.printer.loadout
-        if path is None:
-            return None
-        if self._loadout is None or self._loadout[0] != path:
-            try:
-                loadout = load_loadout(find_loadout(path), load_library(self.user))
-            except rh.HostError:
-                return None
-            self._loadout = (path, loadout)
-        return self._loadout[1]
+        return self.checks.plan_loadout()
 
     def renamed(self, old: Path, new: Path) -> None:
         """``old`` is now ``new`` (the same file): its check goes with it."""
-        checked = self._checked.pop(old, None)
-        if checked is not None:
-            self._checked[new] = checked
+        self.checks.renamed(old, new)
 
     def forget(self, path: Path) -> None:
         """``path`` is gone: its check with it."""
-        self._checked.pop(path, None)
+        self.checks.forget(path)
 
-    # --- host actions ------------------------------------------------------------------
+    # --- host actions (host_actions.py) ------------------------------------------------
 
     async def _perform(self, action: HostAction) -> bool:
-        """A job's host codes on the server: snapshots; M792's actions are told, not done
-        (the server speaks, shows and runs nothing: SHELL stays refused)."""
-        if action.kind is ActionKind.LAYER and self.running is not None:
-            self.running.new_layers += 1
-        if action.kind is ActionKind.SNAPSHOT or (
-            action.kind is ActionKind.LAYER and self.config.layer_snapshots
-        ):
-            self._snap(action)
-        elif action.kind in (ActionKind.ACTIONS, ActionKind.PAUSE):
-            for verb, argument in action.actions:
-                why = "the server runs no programs" if verb == "SHELL" else "not done on the server"
-                self._tell(f"{action.position}: {verb} {argument} ({why})")
-        return True
-
-    def _snap(self, action: HostAction) -> None:
-        running = self.running
-        if self.camera is None:
-            if action.kind is ActionKind.SNAPSHOT:
-                self._tell(f"{action.position}: M791, but printer {self.name} has no camera set")
-            return
-        tail = ""
-        if running is not None:
-            layer = action.kind is ActionKind.LAYER
-            where = f"layer{running.new_layers}" if layer else f"line{action.source_line}"
-            tail = f"-job{running.record.id}-{where}"
-        if not self.camera.take(snapshot_name(tail), wait_turn=action.kind is ActionKind.SNAPSHOT):
-            log.info(
-                "printer %s: %s: the last snapshot is still being taken", self.name, action.position
-            )
+        return await self.host_actions.perform(action, self.running)
 
     async def snapshot(self) -> Path:
         """A snapshot now, awaited; :class:`Refused` without a camera or when it fails."""
@@ -673,18 +460,9 @@ class PrinterService:
         except SnapshotFailed as exc:
             raise Refused(f"printer {self.name}: {exc}", 502) from None
 
-    def _snapshot_taken(self, path: Path) -> None:
-        log.info("printer %s: snapshot %s", self.name, path.name)
-        self.publish(
-            {"type": "snapshot", "printer": self.name, "file": path.name, "url": self.url(path)}
-        )
-
     def url(self, snapshot: Path) -> str:
-        return f"/v1/printers/{self.name}/snapshots/{snapshot.name}"
-
-    def _tell(self, text: str) -> None:
-        log.info("printer %s: %s", self.name, text)
-        self.publish({"type": "message", "printer": self.name, "text": text})
+        """Where the API serves ``snapshot``."""
+        return self.host_actions.url(snapshot)
 
     # --- events -----------------------------------------------------------------------
 

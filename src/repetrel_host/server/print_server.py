@@ -1,0 +1,154 @@
+"""The print server itself: its printers, their store, the data folder and who may use it,
+put together, and started and stopped with the app; every face of its API (native,
+OctoPrint's, a farm's) finds it in a request with :func:`server_of`."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import uuid
+from collections.abc import Awaitable
+from pathlib import Path
+from typing import TYPE_CHECKING, TypeVar
+
+from fastapi import HTTPException, Request
+
+from repetrel_host.config import UserConfig
+from repetrel_host.server.access import Access
+from repetrel_host.server.analyses import Analyses
+from repetrel_host.server.events import EventHub
+from repetrel_host.server.printers.config import PrinterConfig
+from repetrel_host.server.printers.service import PrinterService, Refused
+from repetrel_host.server.store import JobState, Store
+
+if TYPE_CHECKING:
+    from repetrel_host.server.farm.node import FarmNode, FarmSettings
+
+
+log = logging.getLogger("repetrel_host.server")
+
+T = TypeVar("T")
+
+
+class PrintServer:
+    """The printers, their store and the data folder; started and stopped with the app."""
+
+    def __init__(
+        self,
+        data_dir: Path,
+        printers: dict[str, PrinterConfig],
+        api_key: str,
+        max_upload: int,
+        user: UserConfig | None = None,
+        automatic_transition: bool = False,
+        public_read: bool = False,
+        presets: dict[str, dict[str, float | None]] | None = None,
+        farm: FarmSettings | None = None,
+    ) -> None:
+        self.data_dir = data_dir
+        self.files = data_dir / "files"
+        self.files.mkdir(parents=True, exist_ok=True)
+        self.access = Access(data_dir, api_key, public_read)
+        self.max_upload = max_upload
+        self.presets = presets or {}  # material: {"head", "bed", "chamber"} temperatures
+        self.user = user or UserConfig()
+        self.store = Store(data_dir / "jobs.sqlite")
+        self.events = EventHub()
+        self._uuids: dict[str, str] | None = None  # printer_uuid's, once read
+        # Each file's analysis, kept in the data folder (made at its upload).
+        self.analyses = Analyses(data_dir / "analysis", data_dir)
+        self.services = {
+            name: PrinterService(
+                name, config, self.store, data_dir, self.user, self.events.publish, self.analyses
+            )
+            for name, config in printers.items()
+        }
+        for service in self.services.values():
+            service.automatic_transition = automatic_transition
+        self.default = next(iter(self.services))
+        # In a farm, the printers' jobs come from its shared queue too (farm/node.py).
+        self.farm: FarmNode | None = None
+        if farm is not None:
+            from repetrel_host.server.farm.node import FarmNode
+
+            self.farm = FarmNode(farm, data_dir, self.store, self.services)
+        for record in self.store.interrupt_active():
+            log.warning(
+                "job %d (%s) on printer %s was interrupted: acknowledged through at least "
+                "line %d; its safe stop goes first",
+                record.id,
+                record.name,
+                record.printer,
+                record.last_line,
+            )
+        for service in self.services.values():
+            owing = self.store.owing(service.name)
+            if owing:  # interrupted, or ended without its safe stop confirmed (connect sends it)
+                log.warning(
+                    "printer %s: the safe stop of job %s is owed: it goes as soon as the "
+                    "printer answers",
+                    service.name,
+                    ", ".join(map(str, owing)),
+                )
+        # After an interrupted job nothing starts by itself: a part may be on the bed.
+        for service in self.services.values():
+            last = self.store.last_started(service.name)
+            if last is not None and last.state is JobState.INTERRUPTED:
+                service.held = True
+                log.warning(
+                    "printer %s: the queue is held after interrupted job %d "
+                    "(POST /v1/printers/%s/release, or OctoPrint's job start, releases it)",
+                    service.name,
+                    last.id,
+                    service.name,
+                )
+
+    async def start(self) -> None:
+        for service in self.services.values():
+            service.start()
+        if self.farm is not None:
+            await self.farm.start()
+
+    async def stop(self) -> None:
+        """Every printer stopped (a running job with its safe stop), then the farm's part;
+        the store stays open for what reports their ends (:meth:`close` after)."""
+        await asyncio.gather(*(service.stop() for service in self.services.values()))
+        if self.farm is not None:  # after the printers: their jobs' ends are reported
+            await self.farm.stop()
+
+    def close(self) -> None:
+        self.store.close()
+
+    def printer_uuid(self, name: str) -> str:
+        """A printer's UUID, the same across restarts (OctoPrint's discovery ``upnpUuid``,
+        which Home Assistant takes for the printer's identity)."""
+        path = self.data_dir / "uuids.json"
+        if self._uuids is None:  # read once: clients ask for the settings often
+            self._uuids = json.loads(path.read_text()) if path.exists() else {}
+        known = self._uuids
+        if name not in known:
+            known[name] = str(uuid.uuid4())
+            partial = path.with_suffix(".part")
+            partial.write_text(json.dumps(known, indent=1))
+            partial.replace(path)
+        return known[name]
+
+    def service(self, name: str | None) -> PrinterService:
+        service = self.services.get(name or self.default)
+        if service is None:
+            raise HTTPException(404, f"no printer '{name}' (printers: {', '.join(self.services)})")
+        return service
+
+
+def server_of(request: Request) -> PrintServer:
+    server: PrintServer = request.app.state.server
+    return server
+
+
+async def answered(call: Awaitable[T]) -> T:
+    """What the printer's ``call`` gives; its :class:`Refused` as an HTTP error."""
+    try:
+        return await call
+    except Refused as exc:
+        raise HTTPException(exc.status, str(exc)) from None

@@ -1,0 +1,106 @@
+"""The job a printer of the server streams now: where it is (its layer, its height, the
+share of the file acknowledged), how long it has left, and the filament it used."""
+
+from __future__ import annotations
+
+import bisect
+import time
+from dataclasses import dataclass, field
+
+import repetrel_host as rh
+from repetrel_host.gcode.analysis import Summary
+from repetrel_host.gcode.marks import SlicerMarks
+from repetrel_host.server.events import Event
+from repetrel_host.server.store import JobRecord
+
+
+@dataclass
+class Running:
+    """The job streaming now."""
+
+    record: JobRecord
+    job: rh.PrintJob
+    layers: list[int] = field(default_factory=list)  # byte offsets where marks.layers begin
+    new_layers: int = 0  # the M790s reached
+    marks: SlicerMarks | None = None  # the slicer's (layers, Z, estimates), once read
+    summary: Summary | None = None  # the file's analysis (filament, boxes), once read
+
+    @property
+    def layer(self) -> int:
+        """The layer the acknowledged lines have reached (0: before the first marker)."""
+        return bisect.bisect_right(self.layers, self.job.offset)
+
+    @property
+    def z(self) -> float | None:
+        """Z of the last acknowledged line, as the slicer marked it."""
+        last = self.job.last
+        if self.marks is None or last is None:
+            return None
+        return self.marks.at(last.source_line).z
+
+    @property
+    def fraction(self) -> float:
+        """The share of the file's bytes the controller acknowledged (0 to 1)."""
+        return min(self.job.offset / max(self.job.size, 1), 1.0)
+
+    def time_left(self, elapsed: float) -> tuple[float | None, str | None]:
+        """Seconds left of the job after ``elapsed`` seconds of it, and how they were found:
+        the slicer's estimate where the file has one (``analysis``), else the rate so far
+        (``linear``, once 0.5 % and 5 s went); (None, None) before either can tell. One
+        figure for every face: OctoPrint's printTimeLeft, MQTT's progress."""
+        fraction = self.fraction
+        last = self.job.last
+        if self.marks is not None and last is not None:
+            left = self.marks.at(last.source_line, fraction).seconds_left
+            if left is not None:
+                return left, "analysis"
+        if fraction > 0.005 and elapsed > 5:
+            return elapsed * (1 - fraction) / fraction, "linear"
+        return None, None
+
+
+def filament_used(running: Running, completed: bool) -> dict[str, dict[str, float]] | None:
+    """The file's filament by tool, times the share of it the controller acknowledged (all
+    of it for a completed job); None when the file's analysis is not known."""
+    summary = running.summary
+    if summary is None:
+        return None
+    share = 1.0 if completed else running.fraction
+    return {
+        tool: {"length": used.length * share, "volume": used.volume * share}
+        for tool, used in summary.filament.items()
+    }
+
+
+def progress_event(
+    printer: str, record: JobRecord, job: rh.PrintJob, running: Running | None, completed: bool
+) -> Event:
+    """The progress event of ``record``'s ``job`` on ``printer`` (``running``: what is known
+    of it while it streams; ``completed``: it ended complete): its lines and bytes, its
+    layer, its completion and the time it has left."""
+    last = job.last
+    last_line = last.source_line if last else 0
+    completion: float | None = None
+    left: float | None = None
+    how: str | None = None
+    if completed:
+        completion, left = 100.0, 0.0
+    elif running is not None:
+        completion = 100.0 * running.fraction
+        if not job.done:
+            left, how = running.time_left(time.time() - (record.started or time.time()))
+    return {
+        "type": "progress",
+        "printer": printer,
+        "job": record.id,
+        "lines": job.lines,
+        "last_line": last_line,
+        "bytes": job.offset,
+        "size": job.size,
+        "layer": running.layer if running else 0,
+        "layers": len(running.layers) if running else 0,
+        "completion": round(completion, 2) if completion is not None else None,
+        "time_left": round(left) if left is not None else None,  # seconds
+        # "analysis": the slicer's estimate; "linear": the rate so far
+        "time_left_from": how,
+    }
