@@ -21,7 +21,7 @@ from octorest import OctoRest
 
 from repetrel_host.fakes.fake_controller import BuiltInFake
 from repetrel_host.gcode import analysis
-from repetrel_host.gcode.analysis import Box, Filament, Summary, analyse
+from repetrel_host.gcode.analysis import Box, Filament, FileSummary, analyse
 from repetrel_host.gcode.marks import Layer
 from tests.support.paths import DATA
 from tests.support.server import KEY, Server, wait_for
@@ -37,7 +37,7 @@ def write(tmp_path: Path, text: str, newline: str = "\n", name: str = "job.gcode
     return path
 
 
-def lengths(summary: Summary | None) -> dict[str, float]:
+def lengths(summary: FileSummary | None) -> dict[str, float]:
     assert summary is not None
     return {tool: round(used.length, 6) for tool, used in summary.filament.items()}
 
@@ -251,9 +251,9 @@ def test_cura_marks_and_filament_in_metres(tmp_path: Path) -> None:
 def test_a_summary_is_kept_and_read_back_whole() -> None:
     summary = analyse(CONE).summary
     assert summary is not None
-    assert Summary.from_dict(summary.as_dict()) == summary
-    empty = Summary()
-    assert Summary.from_dict(empty.as_dict()) == empty
+    assert FileSummary.from_dict(summary.as_dict()) == summary
+    empty = FileSummary()
+    assert FileSummary.from_dict(empty.as_dict()) == empty
     keys = set(summary.gcode_analysis())
     assert keys == {
         "estimatedPrintTime",

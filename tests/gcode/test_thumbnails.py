@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 from PIL import Image
 
-from repetrel_host.gcode.analysis import Summary, analyse
+from repetrel_host.gcode.analysis import FileSummary, analyse
 from repetrel_host.gcode.thumbnails import Thumbnail, ThumbnailError, read
 from tests.support.helpers import CONE
 from tests.support.images import block, encoded, picture
@@ -61,7 +61,7 @@ def test_the_analysis_finds_each_thumbnail_and_reads_it_back(
     assert shown.size == (300, 200) and shown.tobytes() == images["QOI"][0].tobytes()
     assert summary.largest_thumbnail() == qoi
     # Kept and read back as the server's cache does.
-    assert Summary.from_dict(summary.as_dict()) == summary
+    assert FileSummary.from_dict(summary.as_dict()) == summary
     assert summary.as_json()["thumbnails"][2] == {"format": "QOI", "width": 300, "height": 200}
 
 

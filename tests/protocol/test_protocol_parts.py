@@ -16,7 +16,7 @@ from repetrel_host.protocol.resend import ResendGuard
 from repetrel_host.protocol.rtt import INITIAL_RTO, MAX_RTO, MIN_RTO, RoundTrip
 from repetrel_host.protocol.window import Transmission, Window
 from repetrel_host.session.job import ActionKind, HostAction, JobItem, JobLine
-from repetrel_host.session.pump import Listener, Outcome, Pump, Run
+from repetrel_host.session.pump import JobRun, Listener, Outcome, Pump
 
 # --- History ---------------------------------------------------------------------
 
@@ -137,7 +137,7 @@ class Recorder(Listener):
         self.actions: list[HostAction] = []
         self.markers: list[HostAction] = []
         self.paused_count = 0
-        self.runs: list[Run] = []
+        self.runs: list[JobRun] = []
 
     def action_due(self, action: HostAction) -> None:
         self.actions.append(action)
@@ -148,7 +148,7 @@ class Recorder(Listener):
     def paused(self) -> None:
         self.paused_count += 1
 
-    def finished(self, run: Run) -> None:
+    def finished(self, run: JobRun) -> None:
         self.runs.append(run)
 
 
@@ -158,10 +158,10 @@ def job_line(index: int, command: str = "G1 X1") -> JobLine:
 
 def greeted_pump(
     items: list[JobItem] | Iterator[JobItem], safe_stop: list[str]
-) -> tuple[Pump, Run, Recorder]:
+) -> tuple[Pump, JobRun, Recorder]:
     recorder = Recorder()
     pump = Pump(RepRapDialect(FlowControl(FlowMode.UNBUFFERED), probe=ProbeKind.CHECKSUM), recorder)
-    run = Run(items, safe_stop)
+    run = JobRun(items, safe_stop)
     pump.begin(run)
     pump.start(0.0)
     pump.receive(b"ok\nError:checksum mismatch, Last Line: 0\nResend: 1\nok\n", 0.0)
@@ -199,7 +199,7 @@ def test_a_marker_is_due_as_the_line_before_it_is_acknowledged_and_holds_nothing
     items: list[JobItem] = [first, job_line(2), layer, job_line(4, "G1 X4")]
     recorder = Recorder()
     pump = Pump(RepRapDialect(FlowControl(), probe=ProbeKind.CHECKSUM), recorder)
-    run = Run(items, [])
+    run = JobRun(items, [])
     pump.begin(run)
     pump.start(0.0)
     pump.receive(b"ok\nError:checksum mismatch, Last Line: 0\nResend: 1\nok\n", 0.0)
@@ -222,7 +222,7 @@ def test_a_marker_after_the_header_waits_for_the_header_to_be_acknowledged() -> 
     marker = HostAction(ActionKind.SNAPSHOT, "", (), 1, "job.gcode")
     recorder = Recorder()
     pump = Pump(RepRapDialect(FlowControl(), probe=ProbeKind.CHECKSUM), recorder)
-    run = Run([header, marker, job_line(2)], [])
+    run = JobRun([header, marker, job_line(2)], [])
     pump.begin(run)
     pump.start(0.0)
     pump.receive(b"ok\nError:checksum mismatch, Last Line: 0\nResend: 1\nok\n", 0.0)
@@ -238,7 +238,7 @@ def test_a_pause_after_the_file_was_read_to_its_end_still_sends_every_line() -> 
     # after the resume, not be dropped with the job reported complete.
     recorder = Recorder()
     pump = Pump(RepRapDialect(FlowControl(), probe=ProbeKind.CHECKSUM), recorder)
-    run = Run([job_line(i, f"G1 X{i}") for i in range(1, 11)], ["M104 S0"])
+    run = JobRun([job_line(i, f"G1 X{i}") for i in range(1, 11)], ["M104 S0"])
     pump.begin(run)
     pump.start(0.0)
     pump.receive(b"ok\nError:checksum mismatch, Last Line: 0\nResend: 1\nok\n", 0.0)
@@ -352,7 +352,7 @@ def test_a_pause_keeps_a_host_action_behind_the_lines_before_it() -> None:
     items: list[JobItem] = [job_line(1), job_line(2, "G1 X2"), action, job_line(4, "G1 X4")]
     recorder = Recorder()
     pump = Pump(RepRapDialect(FlowControl(max_lines=1), probe=ProbeKind.CHECKSUM), recorder)
-    run = Run(items, [])
+    run = JobRun(items, [])
     pump.begin(run)
     pump.start(0.0)
     pump.receive(b"ok\nError:checksum mismatch, Last Line: 0\nResend: 1\nok\n", 0.0)

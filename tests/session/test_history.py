@@ -41,7 +41,7 @@ def record(**changes: object) -> history.Record:
     return history.Record(**values)  # type: ignore[arg-type]
 
 
-def progress(**changes: object) -> history.Progress:
+def progress(**changes: object) -> history.RunProgress:
     values: dict[str, object] = {
         "job": "cube.gcode",
         "path": "/jobs/cube.gcode",
@@ -65,7 +65,7 @@ def progress(**changes: object) -> history.Progress:
         "stream_bytes": 0,
     }
     values.update(changes)
-    return history.Progress(**values)  # type: ignore[arg-type]
+    return history.RunProgress(**values)  # type: ignore[arg-type]
 
 
 def a_dead_process() -> int:
@@ -118,7 +118,7 @@ def test_a_progress_reads_back_in_the_records_place_until_the_record_replaces_it
     history.write_record(stream, written)
     assert history.read_state(stream) == written == history.read_record(stream)
     for text in ("{", '{"outcome": "streaming"}', '{"outcome": "streaming", "command": 1}'):
-        assert history.Progress.from_json(text) is None
+        assert history.RunProgress.from_json(text) is None
     # A record that says "streaming" is no record.
     assert history.Record.from_json(dataclasses.replace(written, outcome="streaming").to_json())
     history.write_record(stream, dataclasses.replace(written, outcome="streaming"))

@@ -111,7 +111,7 @@ def history_list(console: Out, folder: Path | None, config: Path | None) -> None
             console.print(f"  {_killed_resume(entry.progress, entry.run.stream)}", markup=False)
 
 
-def _killed_resume(progress: print_history.Progress, stream: Path) -> str:
+def _killed_resume(progress: print_history.RunProgress, stream: Path) -> str:
     """How a killed run resumes: from its progress record's line, uncertainly (what was
     sent after the last acknowledged line may have run, and the record may be a moment
     behind the stream)."""

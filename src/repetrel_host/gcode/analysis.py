@@ -6,7 +6,7 @@ It gives, read once and streaming (pieces of about 1 MB: a 1 GB job is never hel
   time estimates, by source line), which ``hyrel-send`` and the server follow a job by;
 - where each of those layers begins, in bytes (the server's progress counts layers by the
   bytes acknowledged);
-- a :class:`Summary` of the file, OctoPrint's ``gcodeAnalysis`` (``octoprint/util/
+- a :class:`FileSummary` of the file, OctoPrint's ``gcodeAnalysis`` (``octoprint/util/
   gcodeInterpreter.py`` and ``octoprint/filemanager/analysis.py``): the slicer's estimated
   print time, filament per tool, the box of the extruding moves and of every move; with the
   layer count and the slicer's name.
@@ -125,7 +125,7 @@ class Filament:
 
 
 @dataclass(frozen=True)
-class Summary:
+class FileSummary:
     """What a file list shows of a file (OctoPrint's ``gcodeAnalysis``, and more)."""
 
     estimated_seconds: float | None = None  # the slicer's estimate
@@ -174,7 +174,7 @@ class Summary:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> Summary:
+    def from_dict(cls, data: dict[str, Any]) -> FileSummary:
         """What :meth:`as_dict` gave (:class:`KeyError`, :class:`TypeError` or
         :class:`ValueError` when it is not)."""
 
@@ -207,7 +207,7 @@ class Analysis:
 
     marks: SlicerMarks
     layer_offsets: list[int]  # where each of marks.layers begins, in bytes
-    summary: Summary | None  # None when the moves were not read
+    summary: FileSummary | None  # None when the moves were not read
 
 
 def analyse(path: Path, until_line: int | None = None, moves: bool = True) -> Analysis:
@@ -602,7 +602,7 @@ class _Pass:
         ]
         if not self.moves:
             return Analysis(marks, [at for _, at in found], None)
-        summary = Summary(
+        summary = FileSummary(
             estimated_seconds=self.estimate,
             filament=self._filament(),
             printing_area=_box(self.printed),

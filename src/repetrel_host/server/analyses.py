@@ -1,4 +1,4 @@
-"""Each uploaded file's analysis (:class:`~repetrel_host.gcode.analysis.Summary`: OctoPrint's
+"""Each uploaded file's analysis (:class:`~repetrel_host.gcode.analysis.FileSummary`: OctoPrint's
 ``gcodeAnalysis``, layers, slicer), kept in the data folder (``analysis/``, a small JSON file
 per file, valid while the file's size and time are those it was made from) so that a restart
 reads no file again.
@@ -19,7 +19,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from repetrel_host.gcode.analysis import Analysis, Summary, analyse
+from repetrel_host.gcode.analysis import Analysis, FileSummary, analyse
 from repetrel_host.server.workers import in_worker
 
 log = logging.getLogger("repetrel_host.server")
@@ -39,7 +39,7 @@ class Analyses:
     def __init__(self, folder: Path, root: Path) -> None:
         self.folder = folder
         self.root = root
-        self._known: dict[Path, tuple[Stamp, Summary]] = {}
+        self._known: dict[Path, tuple[Stamp, FileSummary]] = {}
         self._waiting: queue.SimpleQueue[Path] = queue.SimpleQueue()
         self._queued: set[Path] = set()
         self._lock = threading.Lock()
@@ -47,7 +47,7 @@ class Analyses:
 
     # --- reading ---------------------------------------------------------------------
 
-    def known(self, path: Path) -> Summary | None:
+    def known(self, path: Path) -> FileSummary | None:
         """The summary of ``path`` as it is now, if it is in memory (for the event loop)."""
         found = self._known.get(path)
         try:
@@ -55,7 +55,7 @@ class Analyses:
         except OSError:
             return None
 
-    def cached(self, path: Path) -> Summary | None:
+    def cached(self, path: Path) -> FileSummary | None:
         """The summary of ``path`` as it is now, from memory or the folder; None when there
         is none (any thread but the event loop's)."""
         try:
@@ -71,13 +71,13 @@ class Analyses:
                 return None
             if (kept["size"], kept["mtime_ns"]) != now:
                 return None
-            summary = Summary.from_dict(kept["analysis"])
+            summary = FileSummary.from_dict(kept["analysis"])
         except (OSError, ValueError, KeyError, TypeError):
             return None  # none yet, or unreadable: made again
         self._known[path] = (now, summary)
         return summary
 
-    def summary(self, path: Path) -> Summary | None:
+    def summary(self, path: Path) -> FileSummary | None:
         """:meth:`cached`, or None and the file analysed in the background."""
         found = self.cached(path)
         if found is None:
@@ -95,7 +95,7 @@ class Analyses:
             self.keep(path, found.summary, before)
         return found
 
-    def keep(self, path: Path, summary: Summary, made_from: Stamp) -> None:
+    def keep(self, path: Path, summary: FileSummary, made_from: Stamp) -> None:
         """``summary`` is that of ``path`` while its size and time are ``made_from``."""
         self._known[path] = (made_from, summary)
         entry = {
@@ -157,6 +157,6 @@ class Analyses:
         return self.folder / f"{digest[:24]}.json"
 
 
-def describe(summary: Summary | None) -> dict[str, Any] | None:
+def describe(summary: FileSummary | None) -> dict[str, Any] | None:
     """The native API's ``analysis`` of a file: OctoPrint's, with layers and slicer."""
     return summary.as_json() if summary is not None else None

@@ -17,7 +17,7 @@ from urllib.parse import quote
 from fastapi import HTTPException, UploadFile
 
 import repetrel_host as rh
-from repetrel_host.gcode.analysis import Analysis, Summary, analyse
+from repetrel_host.gcode.analysis import Analysis, FileSummary, analyse
 from repetrel_host.gcode.layer_moves import layer_moves
 from repetrel_host.gcode.thumbnails import ThumbnailError
 from repetrel_host.gcode.thumbnails import read as read_thumbnail
@@ -164,7 +164,7 @@ async def receive(server: PrintServer, upload: UploadFile, partial: Path, digest
     return size
 
 
-def _analysed(path: Path) -> Summary | None:
+def _analysed(path: Path) -> FileSummary | None:
     """The upload's analysis; None (and logged) when it fails: the upload is kept."""
     try:
         return in_worker(analyse, path).summary

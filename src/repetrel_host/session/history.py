@@ -4,7 +4,7 @@ A *run* is a stream as transmitted, ``<date>-<time>-<job>.gcode`` (see
 ``planning.history_file``), and its siblings under the same stem: ``-reports.log``
 (M719), ``-report.txt`` (the M773 job report), ``-snapshots/`` (M791, M790) and the
 outcome record ``.json`` the session writes when the job ends. While the job streams,
-that file holds its progress instead (:class:`Progress`: the process, the command line,
+that file holds its progress instead (:class:`RunProgress`: the process, the command line,
 the last lines acknowledged and sent), rewritten at most every :data:`PROGRESS_INTERVAL`
 and replaced by the record at the end: a run left with its progress, its process gone,
 was killed (``kill -9``, a power cut) and can be resumed from there, uncertainly. A run
@@ -119,13 +119,13 @@ def read_record(stream: Path) -> Record | None:
     return found if isinstance(found, Record) else None
 
 
-def read_state(stream: Path) -> Record | Progress | None:
+def read_state(stream: Path) -> Record | RunProgress | None:
     """The run's record, or its progress (a job that had not ended), or None."""
     try:
         text = record_path(stream).read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError):
         return None
-    progress = Progress.from_json(text)
+    progress = RunProgress.from_json(text)
     if progress is not None:
         return progress
     record = Record.from_json(text)
@@ -136,7 +136,7 @@ def read_state(stream: Path) -> Record | Progress | None:
 
 
 @dataclass(frozen=True, slots=True)
-class Progress:
+class RunProgress:
     """Where a job stood as it streamed, in ``<run>.json`` until its record replaces it."""
 
     job: str  # the job's file name
@@ -164,7 +164,7 @@ class Progress:
         return json.dumps(asdict(self), indent=1) + "\n"
 
     @classmethod
-    def from_json(cls, text: str) -> Progress | None:
+    def from_json(cls, text: str) -> RunProgress | None:
         """The progress in ``text``; None when it is none (a record, cut short...)."""
         try:
             data = json.loads(text)
@@ -183,7 +183,7 @@ class Progress:
             return None
 
 
-def write_progress(stream: Path, progress: Progress) -> bool:
+def write_progress(stream: Path, progress: RunProgress) -> bool:
     """Write the progress whole or not at all, as :func:`write_record`; False on failure
     (not logged: the caller says so once, not every time)."""
     path = record_path(stream)
@@ -214,7 +214,7 @@ def this_host() -> str:
     return socket.gethostname()
 
 
-def is_alive(progress: Progress) -> bool | None:
+def is_alive(progress: RunProgress) -> bool | None:
     """Whether the process streaming the run is still there; None when that cannot be
     told from here (another machine's)."""
     if progress.host != this_host():
@@ -291,7 +291,7 @@ class ProgressKeeper:
             stream_bytes = self.stream.stat().st_size
         except OSError:
             stream_bytes = 0
-        progress = Progress(
+        progress = RunProgress(
             **self._fixed,
             updated=now.isoformat(timespec="seconds"),
             seconds=round((now - self.started).total_seconds(), 3),
@@ -326,7 +326,7 @@ def lines_after(stream: Path, offset: int) -> int | None:
 
 
 @dataclass(frozen=True, slots=True)
-class Run:
+class RecordedRun:
     """One run in the history folder."""
 
     stream: Path
@@ -342,7 +342,7 @@ class Run:
         return [path for path in candidates if path.exists()]
 
 
-def parse_run(path: Path) -> Run | None:
+def parse_run(path: Path) -> RecordedRun | None:
     """The run a file name stands for; None for any other file."""
     match = RUN_NAME.match(path.name)
     if match is None:
@@ -351,10 +351,10 @@ def parse_run(path: Path) -> Run | None:
         started = datetime.strptime(match["date"] + match["time"], "%Y%m%d%H%M%S")
     except ValueError:
         return None
-    return Run(path, started, match["job"])
+    return RecordedRun(path, started, match["job"])
 
 
-def runs(folder: Path) -> list[Run]:
+def runs(folder: Path) -> list[RecordedRun]:
     """The runs in ``folder``, oldest first (by their names' date and time)."""
     try:
         entries = list(folder.iterdir())
@@ -372,9 +372,9 @@ class Entry:
     """One run as ``--history-list`` shows it: its record, or its progress and whether
     its process is alive (None: on another machine)."""
 
-    run: Run
+    run: RecordedRun
     record: Record | None
-    progress: Progress | None
+    progress: RunProgress | None
     alive: bool | None = None
 
     @property
@@ -383,15 +383,18 @@ class Entry:
         return self.progress is not None and self.alive is False
 
 
-def entry(run: Run) -> Entry:
+def entry(run: RecordedRun) -> Entry:
     found = read_state(run.stream)
-    if isinstance(found, Progress):
+    if isinstance(found, RunProgress):
         return Entry(run, None, found, is_alive(found))
     return Entry(run, found, None)
 
 
 def describe(
-    run: Run, record: Record | None, progress: Progress | None = None, alive: bool | None = None
+    run: RecordedRun,
+    record: Record | None,
+    progress: RunProgress | None = None,
+    alive: bool | None = None,
 ) -> str:
     """One line of ``hyrel-send --history-list``."""
     when = f"{run.started:%Y-%m-%d %H:%M:%S}"
@@ -484,11 +487,11 @@ def prune(folder: Path, limit_mb: float, current: Path, now: float | None = None
     return chosen
 
 
-def _may_be_running(run: Run, now: float) -> bool:
+def _may_be_running(run: RecordedRun, now: float) -> bool:
     found = read_state(run.stream)
     if isinstance(found, Record):
         return False
-    if isinstance(found, Progress) and is_alive(found):
+    if isinstance(found, RunProgress) and is_alive(found):
         return True  # streaming (paused for hours, perhaps); on another machine: its mtime
     try:
         return now - run.stream.stat().st_mtime < STILL_RUNNING

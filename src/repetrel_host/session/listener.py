@@ -38,7 +38,7 @@ from repetrel_host.session.events import (
 from repetrel_host.session.job import ActionKind, HostAction, JobLine
 from repetrel_host.session.owed import OwedSafeStop
 from repetrel_host.session.print_job import ActionHandler, PrintJob
-from repetrel_host.session.pump import Listener, Pump, Run
+from repetrel_host.session.pump import JobRun, Listener, Pump
 from repetrel_host.session.settings import SessionSettings
 
 # The session's log, as before its parts had modules of their own.
@@ -110,16 +110,16 @@ class ListenerSession(Protocol):
         ...
 
     def spawn(self, coroutine: Coroutine[Any, Any, None]) -> asyncio.Task[None]:
-        """Run ``coroutine`` as one of the session's tasks."""
+        """JobRun ``coroutine`` as one of the session's tasks."""
         ...
 
     def spawn_marker(self, coroutine: Coroutine[Any, Any, None]) -> None:
-        """Run ``coroutine`` (a marker's snapshot), which closing waits for."""
+        """JobRun ``coroutine`` (a marker's snapshot), which closing waits for."""
 
     def drive_pump(self) -> None:
         """Let the pump write what it can now."""
 
-    def job_ended(self, run: Run) -> None:
+    def job_ended(self, run: JobRun) -> None:
         """The running job's run ended (see :meth:`Listener.finished`)."""
 
     def link_failed(self, failure: DialectFailed) -> None:
@@ -235,7 +235,7 @@ class PumpListener(Listener):
             job.publish(Paused(PauseReason.REQUEST, "", last.position if last else ""))
             session.set_state(State.PAUSED, "paused")
 
-    def stop_delayed(self, run: Run, reason: str) -> None:
+    def stop_delayed(self, run: JobRun, reason: str) -> None:
         session = self.session
         job = session.job
         if job is not None:
@@ -246,7 +246,7 @@ class PumpListener(Listener):
     def safe_stop_confirmed(self, command: str) -> None:
         self.session.owed.confirmed(command)
 
-    def finished(self, run: Run) -> None:
+    def finished(self, run: JobRun) -> None:
         self.session.job_ended(run)
 
     def failed(self, failure: DialectFailed) -> None:

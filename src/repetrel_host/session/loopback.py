@@ -18,7 +18,7 @@ from repetrel_host.protocol.dialects.reprap import RepRapDialect
 from repetrel_host.protocol.events import Failed, ProbeKind
 from repetrel_host.protocol.flow import FlowControl, FlowMode
 from repetrel_host.session.job import JobLine
-from repetrel_host.session.pump import Listener, Pump, Run
+from repetrel_host.session.pump import JobRun, Listener, Pump
 
 # The smallest step of simulated time when nothing is scheduled.
 _TICK = 0.0005
@@ -33,7 +33,7 @@ class LoopbackResult:
     seconds: float  # simulated time
     host: Dialect = field(repr=False)
     controller: ControllerSimulator = field(repr=False)
-    run: Run = field(repr=False)
+    run: JobRun = field(repr=False)
 
 
 class _Recorder(Listener):
@@ -81,7 +81,7 @@ def run_loopback(
     controller = controller or ControllerSimulator(settings)
     recorder = _Recorder(record)
     pump = Pump(host, recorder)
-    run = Run(job_lines(commands))
+    run = JobRun(job_lines(commands))
     pump.begin(run)
     now = 0.0
     stuck = 0
@@ -162,7 +162,7 @@ def wire_preview(
     else:
         controller = ControllerSimulator(ControllerSettings(banner=False))
     pump = Pump(create_dialect(protocol, flow))
-    run = Run(job_lines(commands))
+    run = JobRun(job_lines(commands))
     pump.begin(run)
     now = 0.0
     sent = pump.start(now)

@@ -14,7 +14,7 @@ from collections.abc import Callable
 
 from repetrel_host.errors import HostError, SafeStopError
 from repetrel_host.session.print_job import PrintJob
-from repetrel_host.session.pump import Outcome, Run, Summary
+from repetrel_host.session.pump import JobRun, Outcome, Summary
 
 
 class OwedSafeStop:
@@ -28,7 +28,7 @@ class OwedSafeStop:
         self.whole = False
         # The job that waits for it to go (after a reconnect) before it ends, and the timer
         # that ends it without.
-        self.waiting: tuple[PrintJob, Run] | None = None
+        self.waiting: tuple[PrintJob, JobRun] | None = None
         self._timer: asyncio.TimerHandle | None = None
 
     @property
@@ -56,7 +56,7 @@ class OwedSafeStop:
         """``job`` is the one waiting for the safe stop to go."""
         return self.waiting is not None and self.waiting[0] is job
 
-    def wait(self, job: PrintJob, run: Run, timer: asyncio.TimerHandle) -> None:
+    def wait(self, job: PrintJob, run: JobRun, timer: asyncio.TimerHandle) -> None:
         """``job`` ends once the safe stop went, or when ``timer`` fires."""
         self.waiting = (job, run)
         self._timer = timer
@@ -69,7 +69,7 @@ class OwedSafeStop:
             self._timer = None
 
     def run_ended(
-        self, run: Run, connection_ends: bool, heaters_on: Callable[[], list[str]]
+        self, run: JobRun, connection_ends: bool, heaters_on: Callable[[], list[str]]
     ) -> tuple[HostError | None, Summary | None]:
         """How a run that just ended is reported (a reconnect aside); ``heaters_on``: the
         heaters that may be on, for a stop not confirmed."""
@@ -91,7 +91,7 @@ def unsafe_stop_error(cause: str, heaters_on: list[str]) -> SafeStopError:
     return SafeStopError(f"{cause}{on}; check the machine (its power switch stops it)")
 
 
-def delivered(run: Run, now: float) -> tuple[HostError | None, Summary | None]:
+def delivered(run: JobRun, now: float) -> tuple[HostError | None, Summary | None]:
     """How a job whose safe stop went after a reconnect ended: cancelled, if that is how it
     was stopping; else its failure, saying the safe stop went."""
     if run.cancelled_stop:

@@ -22,7 +22,7 @@ from repetrel_host.session.events import Done, Failed, JobEvent, Progress, Repor
 from repetrel_host.session.hub import EventHub
 from repetrel_host.session.job import HostAction, JobLine
 from repetrel_host.session.planning import JobPlan
-from repetrel_host.session.pump import Outcome, Run, Summary
+from repetrel_host.session.pump import JobRun, Outcome, Summary
 
 # A job's progress goes to its event subscribers at most this often.
 PROGRESS_INTERVAL = 0.1
@@ -74,7 +74,7 @@ class PrintJob:
         printer: JobPrinter,
         session: JobSession,
         plan: JobPlan,
-        run: Run,
+        run: JobRun,
         on_action: ActionHandler | None,
         history: Path | None,
     ) -> None:
@@ -260,7 +260,7 @@ class PrintJob:
         )
         asyncio.get_running_loop().call_later(print_history.PROGRESS_INTERVAL, self._keep_progress)
 
-    def finish(self, run: Run, error: HostError | None, summary: Summary | None) -> None:
+    def finish(self, run: JobRun, error: HostError | None, summary: Summary | None) -> None:
         """The job ended: its last events, its report and record, then :meth:`wait`'s end."""
         if self._done.done():
             return

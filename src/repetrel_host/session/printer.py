@@ -81,8 +81,8 @@ from repetrel_host.session.planning import safe_stop as safe_stop_for
 from repetrel_host.session.print_job import ActionHandler, PrintJob
 from repetrel_host.session.pump import (
     CANCEL_DRAIN_TIMEOUT,
+    JobRun,
     Pump,
-    Run,
     Summary,
     failure_error,
 )
@@ -488,7 +488,7 @@ class Printer:
             items: Iterable[JobItem] = plan.items(checker, pump.dialect.pause_command)
             if report:
                 items = chain([JobLine(0, 0, REPORT_COMMAND, 0, "report")], items)
-            run = Run(items, plan.safe_stop, started_at=self._loop.time())
+            run = JobRun(items, plan.safe_stop, started_at=self._loop.time())
             if plan.resume is not None:  # progress by bytes goes on from the skipped part
                 run.offset = plan.resume.start_offset
             print_job = PrintJob(self, self._side, plan, run, on_action, path)
@@ -674,7 +674,7 @@ class Printer:
         if self._owed.waiting is not None:
             self._owed.waiting[0].publish(event)
 
-    def _wait_for_owed_safe_stop(self, job: PrintJob, run: Run) -> None:
+    def _wait_for_owed_safe_stop(self, job: PrintJob, run: JobRun) -> None:
         """The job's link failed before its safe stop was confirmed: it ends once the safe
         stop went after a reconnect, or after ``reconnect_wait`` seconds without one."""
         wait = self.settings.reconnect_wait
@@ -701,7 +701,7 @@ class Printer:
         )
         job.finish(run, error, None)
 
-    def _delivered(self, run: Run) -> tuple[HostError | None, Summary | None]:
+    def _delivered(self, run: JobRun) -> tuple[HostError | None, Summary | None]:
         """How a job whose safe stop went after a reconnect ended (:func:`delivered`), told."""
         if run.cancelled_stop:
             self._tell_owing(Notice("the safe stop completed once the controller answered again"))
@@ -959,7 +959,7 @@ class Printer:
 
     # --- what the pump tells ----------------------------------------------------
 
-    def _job_ended(self, run: Run) -> None:
+    def _job_ended(self, run: JobRun) -> None:
         """The running job's run ended: how it is reported, and what is owed after it."""
         job, self._job = self._job, None
         if self._wire_log is not None:
@@ -1149,7 +1149,7 @@ class _SessionSide:
     def drive_pump(self) -> None:
         self._printer._drive_pump()
 
-    def job_ended(self, run: Run) -> None:
+    def job_ended(self, run: JobRun) -> None:
         self._printer._job_ended(run)
 
     def link_failed(self, failure: DialectFailed) -> None:

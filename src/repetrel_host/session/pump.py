@@ -7,7 +7,7 @@ calls :meth:`Pump.poke` after anything happened and writes the bytes it returns,
 and calls :meth:`Pump.timeout` once :attr:`Pump.deadline` has passed. What happens
 is told to a :class:`Listener`.
 
-A job is a :class:`Run`: its lines are read while the controller works, a host
+A job is a :class:`JobRun`: its lines are read while the controller works, a host
 action (M0, M792...) waits until every line before it is confirmed, and a stop
 drops what is queued (what the controller holds too, where the link can) and sends
 the safe-stop sequence ahead of anything else. A pause holds the controller where the
@@ -129,7 +129,7 @@ class Listener:
     def paused(self) -> None:
         """A pause asked for is reached: every line sent so far is confirmed."""
 
-    def stop_delayed(self, run: Run, reason: str) -> None:
+    def stop_delayed(self, run: JobRun, reason: str) -> None:
         """The safe stop of a stopping run is held up (``reason``: by what); it still goes
         as soon as the controller takes it."""
 
@@ -137,14 +137,14 @@ class Listener:
         """A safe-stop line of a run that already ended was confirmed (an abandoned stop's
         lines still go when the controller takes them)."""
 
-    def finished(self, run: Run) -> None:
-        """The run ended: :attr:`Run.outcome` or :attr:`Run.error` says how."""
+    def finished(self, run: JobRun) -> None:
+        """The run ended: :attr:`JobRun.outcome` or :attr:`JobRun.error` says how."""
 
     def failed(self, failure: Failed) -> None:
         """The dialect stopped: the connection needs a new greeting (or a new link)."""
 
 
-class Run:
+class JobRun:
     """One job streaming through the pump: its lines, its progress, how it ends."""
 
     def __init__(
@@ -258,7 +258,7 @@ class Pump:
     ) -> None:
         self.dialect = dialect
         self.listener = listener or Listener()
-        self.run: Run | None = None
+        self.run: JobRun | None = None
         self.heaters = heaters if heaters is not None else HeaterLog()
         self.hotends = 1
         self.breaks_waits = False
@@ -303,7 +303,7 @@ class Pump:
 
     # --- jobs and commands ---------------------------------------------------
 
-    def begin(self, run: Run) -> None:
+    def begin(self, run: JobRun) -> None:
         if self.run is not None:
             raise UsageError("a job is already running on this connection")
         self.run = run
@@ -560,7 +560,7 @@ class Pump:
         if run.markers:
             self._markers_due(run)
 
-    def _note_ran(self, run: Run) -> None:
+    def _note_ran(self, run: JobRun) -> None:
         """Where acknowledgements say only *received*: the last job line known to have run."""
         dialect = self.dialect
         if dialect.acks_say_received:
@@ -573,7 +573,7 @@ class Pump:
             ):
                 run.ran = line
 
-    def _markers_due(self, run: Run) -> None:
+    def _markers_due(self, run: JobRun) -> None:
         """Tell the markers whose lines before them are all acknowledged."""
         markers = run.markers
         while markers and markers[0][0] <= run.lines and markers[0][1] <= run.header_acknowledged:
@@ -600,7 +600,7 @@ class Pump:
             self.listener.paused()
         return False
 
-    def _stop_feeding(self, run: Run) -> None:
+    def _stop_feeding(self, run: JobRun) -> None:
         """No more job lines: drop what is queued and queue the safe stop."""
         if run.stopping:
             return
@@ -623,7 +623,7 @@ class Pump:
             # in order behind them, the controller's queue dropped by the abort.
             self.dialect.send(command, line, urgent=urgent and turns_off(command))
 
-    def _complete_safe_stop(self, run: Run) -> None:
+    def _complete_safe_stop(self, run: JobRun) -> None:
         """The run's safe stop, whole for every heater and fan the session turned on (by
         its index: Marlin's M104 S0 is the active hotend's), as it stands now: computed
         once, as the stop begins or as the run ends without one (then owed)."""
@@ -631,7 +631,7 @@ class Pump:
             run.safe_stop = complete_safe_stop(run.safe_stop, self.heaters, self.hotends)
             run.safe_stop_completed = True
 
-    def _break_waits(self, run: Run, now: float) -> None:
+    def _break_waits(self, run: JobRun, now: float) -> None:
         """While a stop waits behind a heat wait of the job: M108 where the firmware takes
         it (again every :data:`BREAK_REPEAT` s, and for each wait in turn), else say at
         once that the safe stop waits for it."""
@@ -657,7 +657,7 @@ class Pump:
                 "M108): the safe stop goes once that wait ends",
             )
 
-    def _tell_late(self, run: Run) -> None:
+    def _tell_late(self, run: JobRun) -> None:
         awaited = self.dialect.awaiting
         line = awaited[1] if awaited is not None else None
         where = (
@@ -679,13 +679,13 @@ class Pump:
         if commands:
             self.listener.commands_dropped(commands)
 
-    def _finish_stopped(self, run: Run, now: float) -> None:
+    def _finish_stopped(self, run: JobRun, now: float) -> None:
         """A stopped job ends cancelled, or with its error (a bad line, a failed action)."""
         self._finish(
             run, Outcome.CANCELLED if run.error is None else run.naming_where(run.error), now
         )
 
-    def _finish(self, run: Run, result: Outcome | HostError, now: float) -> None:
+    def _finish(self, run: JobRun, result: Outcome | HostError, now: float) -> None:
         if run.finished:
             return
         run.finished = True
@@ -712,7 +712,7 @@ class Pump:
         self.listener.finished(run)
 
 
-def failure_error(event: Failed, run: Run | None = None) -> HostError:
+def failure_error(event: Failed, run: JobRun | None = None) -> HostError:
     """The error a dialect's failure is reported as, naming where the job stood."""
     where = f" (at {event.tag.position})" if isinstance(event.tag, JobLine) else ""
     reason = f"{event.reason}{where}"

@@ -8,7 +8,7 @@ import time
 from dataclasses import dataclass, field
 
 import repetrel_host as rh
-from repetrel_host.gcode.analysis import Summary
+from repetrel_host.gcode.analysis import FileSummary
 from repetrel_host.gcode.marks import SlicerMarks
 from repetrel_host.server.events import Event
 from repetrel_host.server.store import JobRecord
@@ -23,7 +23,7 @@ class Running:
     layers: list[int] = field(default_factory=list)  # byte offsets where marks.layers begin
     new_layers: int = 0  # the M790s reached
     marks: SlicerMarks | None = None  # the slicer's (layers, Z, estimates), once read
-    summary: Summary | None = None  # the file's analysis (filament, boxes), once read
+    summary: FileSummary | None = None  # the file's analysis (filament, boxes), once read
 
     @property
     def layer(self) -> int:
