@@ -14,7 +14,8 @@ from fastapi.routing import APIRoute
 from starlette.routing import WebSocketRoute
 
 from repetrel_host.server.app import create_app
-from repetrel_host.server.octoprint import socket
+from repetrel_host.server.octoprint import sockjs
+from repetrel_host.server.octoprint.push import Push
 from repetrel_host.server.print_server import PrintServer
 from repetrel_host.server.printers.config import PrinterConfig
 from tests.support.paths import DATA, ROOT
@@ -60,7 +61,7 @@ def routes(tmp_path: Path) -> set[tuple[str, str]]:
     found = set()
     for path, operations in create_app(server).openapi()["paths"].items():
         found.update((method.upper(), sample(path)) for method in operations)
-    for route in socket.router(socket.Push(server)).routes:
+    for route in sockjs.router(Push(server)).routes:
         if isinstance(route, WebSocketRoute):
             methods = {"WEBSOCKET"}
         else:

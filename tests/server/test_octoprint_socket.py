@@ -27,7 +27,7 @@ import websocket
 from octorest import OctoRest, WebSocketEventHandler
 
 from repetrel_host.fakes.fake_controller import BuiltInFake
-from repetrel_host.server.octoprint.socket import LOG_LINES, terminal_lines
+from repetrel_host.server.octoprint.terminal import LOG_LINES, terminal_lines
 from tests.support.helpers import DATA, executed
 from tests.support.server import KEY, Server, gcode, wait_for
 

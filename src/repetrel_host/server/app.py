@@ -36,7 +36,8 @@ import repetrel_host as rh
 from repetrel_host.server import native
 from repetrel_host.server.auth import RequestGuard
 from repetrel_host.server.mqtt.bridge import MqttBridge, MqttSettings
-from repetrel_host.server.octoprint import appkeys, rest, socket
+from repetrel_host.server.octoprint import appkeys, rest, sockjs
+from repetrel_host.server.octoprint.push import Push
 from repetrel_host.server.print_server import PrintServer, server_of
 from repetrel_host.server.workers import stop_workers
 
@@ -58,7 +59,7 @@ def _long_part_headers() -> None:
 def create_app(server: PrintServer, mqtt: MqttSettings | None = None) -> FastAPI:
     """The app of ``server``: its APIs and page; with ``mqtt``, its bridge to that broker."""
     _long_part_headers()
-    push = socket.Push(server)
+    push = Push(server)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -127,7 +128,7 @@ def create_app(server: PrintServer, mqtt: MqttSettings | None = None) -> FastAPI
     for router in (appkeys.router(), rest.router(), rest.downloads()):
         app.include_router(router)
         app.include_router(router, prefix="/printers/{printer}", dependencies=[Depends(_printer)])
-    sockets = socket.router(push)  # its own check of the printer: plain ASGI endpoints
+    sockets = sockjs.router(push)  # its own check of the printer: plain ASGI endpoints
     app.include_router(sockets)
     app.include_router(sockets, prefix="/printers/{printer}")
     return app

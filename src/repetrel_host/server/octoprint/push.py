@@ -1,17 +1,12 @@
 """OctoPrint's push socket (``/sockjs``), for farm managers (FDM Monster, OctoFarm) and
 phone apps (OctoApp, Printoid, OctoPod), as OctoPrint 1.11 serves it
-(``octoprint/server/util/sockjs.py``, its vendored SockJS server, ``docs/api/push.rst``).
+(``octoprint/server/util/sockjs.py``, ``docs/api/push.rst``): what is pushed, and when.
+Its transports (SockJS's and the raw websocket) are :mod:`.sockjs`'s.
 
-``/sockjs`` speaks SockJS (``/sockjs/info``; the websocket, xhr-streaming and xhr-polling
-transports at ``/sockjs/SERVER/SESSION/...``); ``/sockjs/websocket`` is the raw
-websocket, one JSON object a message. ``/printers/NAME/sockjs...`` is printer NAME's, and
-the root the default printer's, as the REST face. A client gets ``connected`` at once, and
-nothing more until it sends ``auth`` with a session from OctoPrint's login (unless the
-server opens reads); then ``history``, ``current`` (at every change of state, else every
-0.5 s times its ``throttle``), ``event`` and ``plugin`` messages, as ``subscribe`` chose.
-
-No SockJS server library fits Starlette (those on PyPI serve aiohttp, Tornado, Sanic or
-Django), and SockJS's framing is small: it is written here.
+A client gets ``connected`` at once, and nothing more until it sends ``auth`` with a
+session from OctoPrint's login (unless the server opens reads); then ``history``,
+``current`` (at every change of state, else every 0.5 s times its ``throttle``),
+``event`` and ``plugin`` messages, as ``subscribe`` chose.
 
 A socket never slows a printer. A printer's messages are built once a tick (or at a change
 of state) and serialized once for all its clients; each client has a bounded outbox that
@@ -23,28 +18,19 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import hashlib
 import json
 import logging
-import platform
-import random
 import re
 import time
 from collections import deque
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from dataclasses import dataclass
-from itertools import islice
 from typing import Any
 
-from fastapi import APIRouter, HTTPException, Request
-from fastapi.responses import JSONResponse, PlainTextResponse, Response
-from starlette.routing import WebSocketRoute
-from starlette.types import Receive, Scope, Send
-
 import repetrel_host as rh
-from repetrel_host.server.access import PERMISSIONS
 from repetrel_host.server.octoprint import model
-from repetrel_host.server.octoprint.rest import OCTOPRINT_VERSION
+from repetrel_host.server.octoprint.messages import Frame, Subscriptions, connected_text, dumps
+from repetrel_host.server.octoprint.terminal import LOG_LINES, terminal_lines
 from repetrel_host.server.print_server import PrintServer
 from repetrel_host.server.printers.service import PrinterService
 from repetrel_host.server.store import ENDED
@@ -52,14 +38,10 @@ from repetrel_host.server.store import ENDED
 log = logging.getLogger("repetrel_host.server")
 
 TICK = 0.5  # OctoPrint's base rate of ``current`` messages (times a client's throttle)
-HEARTBEAT = 25.0  # SockJS: an "h" frame after this long without one
-DISCONNECT_DELAY = 5.0  # SockJS: an xhr session no request waits on this long is closed
-RESPONSE_LIMIT = 128 * 1024  # SockJS: an xhr-streaming response ends after this many bytes
 # A client is dropped when its oldest message waiting is this old, or this many wait: it
 # does not read (or cannot keep up); it may connect again (and gets the history).
 STUCK_AFTER = 5.0
 OUTBOX_MOST = 500
-LOG_LINES = 300  # OctoPrint's terminal: the log lines a history (and a tick) carries
 MESSAGES_KEPT = 300
 TICKS_KEPT = 40  # ticks whose logs a throttled client still gets (20 s)
 WIRE_PIECES = 1024  # the session's wire tail between two ticks
@@ -68,86 +50,10 @@ LINGER = 30.0  # a printer's feed (and its wire tail) outlives its last client (
 UNAUTHED_BACKLOG = 100  # OctoPrint's: messages held for a client until its auth
 INCOMING_MOST = 64 * 1024  # bytes of one client's message
 _LINKED = ("ready", "printing", "paused")
-_SESSION_ID = re.compile(r"[^/.]+")
-_PREFIXES = (b"\nRecv: ", b"\nSend: ")  # OctoPrint's terminal, by "sent"
-_PREFIX = len("Send: ")
 _STATE_IDS = {
     model.HELD_TEXT: "OPERATIONAL",
     "Offline after error": "CLOSED_WITH_ERROR",
 }
-
-
-def _dumps(value: Any) -> str:
-    return json.dumps(value, separators=(",", ":"))
-
-
-class Frame:
-    """One message, serialized once for every client that gets it."""
-
-    __slots__ = ("created", "text")
-
-    def __init__(self, text: str) -> None:
-        self.text = text
-        self.created = time.monotonic()
-
-    @classmethod
-    def of(cls, kind: str, payload: Any) -> Frame:
-        return cls(_dumps({kind: payload}))
-
-
-@dataclass
-class Subscriptions:
-    """What a client asked for with ``subscribe`` (OctoPrint 1.8+); by default everything."""
-
-    state: bool = True
-    logs: bool | re.Pattern[str] = True
-    messages: bool | re.Pattern[str] = True
-    plugins: list[str] | None = None  # None: all
-    events: list[str] | None = None
-
-    @property
-    def state_wanted(self) -> tuple[object, ...]:
-        return self.state, self.logs, self.messages
-
-    @classmethod
-    def parse(cls, value: Any) -> Subscriptions:
-        """OctoPrint's ``subscribe`` payload; ValueError when it is not one."""
-        if not isinstance(value, dict):
-            raise ValueError("subscribe takes an object")
-        state = value.get("state", False)
-        if isinstance(state, bool):
-            logs: bool | re.Pattern[str] = state
-            messages: bool | re.Pattern[str] = False
-        elif isinstance(state, dict):
-            logs, messages = (
-                _filter(state.get("logs", False)),
-                _filter(state.get("messages", False)),
-            )
-            state = True
-        else:
-            raise ValueError("state must be a boolean or an object")
-        return cls(
-            state, logs, messages, _names(value.get("plugins", [])), _names(value.get("events", []))
-        )
-
-
-def _filter(value: Any) -> bool | re.Pattern[str]:
-    if isinstance(value, bool):
-        return value
-    if isinstance(value, str):
-        try:
-            return re.compile(value)
-        except re.error:
-            raise ValueError("value must be a valid regex") from None
-    raise ValueError("value must be a string or boolean")
-
-
-def _names(value: Any) -> list[str] | None:
-    if isinstance(value, bool):
-        return None if value else []
-    if isinstance(value, list):
-        return [str(name) for name in value]
-    raise ValueError("value must be a list or boolean")
 
 
 def _kept(lines: list[str], wanted: bool | re.Pattern[str]) -> list[str]:
@@ -315,58 +221,7 @@ class Tick:
 
 
 def _items(values: list[Any]) -> str:
-    return _dumps(values)[1:-1]
-
-
-def terminal_lines(pieces: deque[tuple[bool, bytes]], partial: list[bytes]) -> list[str]:
-    """The wire's ``pieces`` (sent or not, data) as OctoPrint's terminal shows them ("Send:
-    ...", "Recv: ..."), their last :data:`LOG_LINES` lines; ``partial`` holds the lines not
-    complete yet (received, sent), from the last call and for the next. Only the newest
-    pieces are read, a piece at a time with C's string operations: a line at a time in
-    Python would cost more than the rest of a tick."""
-    # The newest pieces that hold the lines shown (a piece holds a line, or hundreds).
-    before: list[bytes | None] = [partial[False], partial[True]]
-    kept = found = 0
-    for _, data in reversed(pieces):
-        kept += 1
-        found += data.count(b"\n")
-        if found > LOG_LINES:
-            break
-    if kept < len(pieces):
-        # Where older pieces are left out, a line begun in them is too (None: unknown).
-        unknown = {False, True}
-        for sent, data in islice(reversed(pieces), kept, None):
-            if sent in unknown:
-                unknown.discard(sent)
-                before[sent] = b"" if data[-1] == 10 else None
-                if not unknown:
-                    break
-        pieces = deque(islice(pieces, len(pieces) - kept, None))
-    chunks: list[bytes] = []
-    add = chunks.append
-    for sent, data in pieces:
-        begun = before[sent]
-        if begun:
-            data = begun + data
-            before[sent] = b""
-        elif begun is None:
-            cut = data.find(b"\n")
-            if cut < 0:
-                continue
-            data, before[sent] = data[cut + 1 :], b""
-            if not data:
-                continue
-        if data[-1] != 10:  # a line not complete yet (mostly a piece ends with one)
-            data, newline, before[sent] = data.rpartition(b"\n")
-            if not newline:
-                continue
-        # "\nSend: " before each line (and after the last: an empty line, left out)
-        prefix = _PREFIXES[sent]
-        add(prefix + data.replace(b"\n", prefix))
-    partial[:] = [before[False] or b"", before[True] or b""]
-    text = b"".join(chunks).replace(b"\r", b"").decode("utf-8", "replace")
-    lines = text.split("\n")[-LOG_LINES * 2 :]
-    return [line for line in lines if len(line) > _PREFIX][-LOG_LINES:]
+    return dumps(values)[1:-1]
 
 
 class Feed:
@@ -471,7 +326,7 @@ class Feed:
         base = model.current(service, self._job_now())
         server_time = base.pop("serverTime")
         state = base["state"]
-        base_json = _dumps(base)
+        base_json = dumps(base)
         if base_json == self.last_base and not (logs or temps or messages):
             return
         if state != self.last_state and self.last_state is not None:
@@ -484,7 +339,7 @@ class Feed:
         self.tick_number += 1
         now = Tick(self.tick_number, _items(temps), logs, _items(logs), messages, _items(messages))
         self.ticks.append(now)
-        head = f'{{"current":{base_json[:-1]},"serverTime":{_dumps(server_time)},'
+        head = f'{{"current":{base_json[:-1]},"serverTime":{dumps(server_time)},'
         made: dict[tuple[object, ...], Frame] = {}
         for client in list(self.clients):
             if not (client.registered and client.subscriptions.state and client.may_read):
@@ -668,39 +523,22 @@ class Feed:
 
 
 class Push:
-    """The push socket of one server: a feed per printer with clients, the SockJS
-    sessions of the xhr transports, and the server's events routed to the feeds."""
+    """The push socket of one server: a feed per printer with clients, and the server's
+    events routed to the feeds. Its transports end what is theirs when it stops."""
 
     def __init__(self, server: PrintServer) -> None:
         self.server = server
         self.feeds: dict[str, Feed] = {}
-        self.sessions: dict[tuple[str, str], XhrSession] = {}
+        # What the transports end first when it stops (SockJS's xhr sessions).
+        self.on_stop: list[Callable[[], None]] = []
         self._events: asyncio.Task[None] | None = None
         self._connected = ""
 
     @property
     def connected(self) -> Frame:
-        """OctoPrint's ``connected`` message (1.11's fields; ``apikey`` as older versions
-        had it, null: a socket that has not logged in is given no key)."""
+        """OctoPrint's ``connected`` message, made once."""
         if not self._connected:
-            printers = ",".join(f"{s.name}={s.port}" for s in self.server.services.values())
-            self._connected = _dumps(
-                {
-                    "connected": {
-                        "apikey": None,
-                        "version": OCTOPRINT_VERSION,
-                        "display_version": OCTOPRINT_VERSION,
-                        "branch": None,
-                        "python_version": platform.python_version(),
-                        "plugin_hash": _md5("appkeys"),
-                        "config_hash": _md5(printers),
-                        "debug": False,
-                        "safe_mode": None,
-                        "online": True,
-                        "permissions": [_permission(key) for key in PERMISSIONS],
-                    }
-                }
-            )
+            self._connected = connected_text(self.server)
         return Frame(self._connected)
 
     def feed(self, printer: str | None) -> Feed:
@@ -733,331 +571,10 @@ class Push:
                             log.exception("printer %s: push socket event %s", feed.name, event)
 
     async def stop(self) -> None:
-        for session in list(self.sessions.values()):
-            session.end()
+        for end in self.on_stop:
+            end()
         for feed in list(self.feeds.values()):
             self.retire(feed)
         if self._events is not None:
             self._events.cancel()
             await asyncio.gather(self._events, return_exceptions=True)
-
-
-def _md5(text: str) -> str:
-    return hashlib.md5(text.encode(), usedforsecurity=False).hexdigest()
-
-
-def _permission(key: str) -> dict[str, Any]:
-    """A permission as OctoPrint's ``connected`` lists it."""
-    entry: dict[str, Any] = {
-        "key": key,
-        "name": key.replace("_", " ").title(),
-        "dangerous": key in ("ADMIN", "SYSTEM", "SETTINGS"),
-        "default_groups": ["admins"] if key in ("ADMIN", "SYSTEM", "SETTINGS") else ["users"],
-        "description": "",
-        "needs": {"role": [key.lower()]},
-    }
-    if key.startswith("PLUGIN_APPKEYS_"):
-        entry["plugin"] = "appkeys"
-    return entry
-
-
-# --- SockJS ------------------------------------------------------------------------------
-
-
-def _sockjs_messages(text: str) -> Iterable[Any]:
-    """The messages of one SockJS frame from a client: a JSON list of strings, or one
-    string; octorest's ``send`` writes a bare object, taken as one message."""
-    try:
-        data = json.loads(text)
-    except ValueError:
-        return ()
-    return data if isinstance(data, list) else (data,)
-
-
-def _array(frames: list[Frame]) -> str:
-    """A SockJS message frame. OctoPrint's holds the messages themselves, JSON objects
-    (its session wrapper skips SockJS's quoting them as strings): clients expect that."""
-    return "a[" + ",".join(frame.text for frame in frames) + "]"
-
-
-def _close_frame(code: int, reason: str) -> str:
-    return f"c[{code},{json.dumps(reason)}]"
-
-
-GO_AWAY = _close_frame(3000, "Go away!")
-ANOTHER = _close_frame(2010, "Another connection still open")
-
-
-def _cors(request: Request, methods: str | None = None) -> dict[str, str]:
-    """SockJS's CORS headers: the origin that asked, with credentials (as sockjs-tornado)."""
-    headers = {
-        "Access-Control-Allow-Origin": request.headers.get("origin", "*"),
-        "Access-Control-Allow-Credentials": "true",
-    }
-    asked = request.headers.get("access-control-request-headers")
-    if asked:
-        headers["Access-Control-Allow-Headers"] = asked
-    if methods is not None:
-        headers["Access-Control-Allow-Methods"] = methods
-        headers["Allow"] = methods
-        headers["Cache-Control"] = "max-age=31536000, public"
-        headers["Access-Control-Max-Age"] = "31536000"
-    return headers
-
-
-NO_CACHE = {"Cache-Control": "no-store, no-cache, must-revalidate, max-age=0"}
-
-
-class XhrSession:
-    """A SockJS session of the xhr transports: its client outlives each request, and is
-    closed once no request waited on it for :data:`DISCONNECT_DELAY` seconds."""
-
-    def __init__(self, push: Push, key: tuple[str, str], client: Client) -> None:
-        self.push = push
-        self.key = key
-        self.client = client
-        self.attached = False
-        self.opened = False  # its "o" frame went
-        self._expiry: asyncio.TimerHandle | None = None
-        self._detached()
-
-    def attach(self) -> None:
-        self.attached = True
-        if self._expiry is not None:
-            self._expiry.cancel()
-            self._expiry = None
-
-    def detach(self) -> None:
-        self.attached = False
-        self._detached()
-
-    def _detached(self) -> None:
-        loop = asyncio.get_running_loop()
-        self._expiry = loop.call_later(DISCONNECT_DELAY, self.end)
-
-    def end(self) -> None:
-        if self._expiry is not None:
-            self._expiry.cancel()
-            self._expiry = None
-        self.client.close("the SockJS session ended")
-        if self.push.sessions.get(self.key) is self:
-            del self.push.sessions[self.key]
-
-
-class XhrResponse(Response):
-    """An xhr-streaming (``streaming``) or xhr-polling response of a SockJS session."""
-
-    media_type = "application/javascript; charset=UTF-8"
-
-    def __init__(self, session: XhrSession, streaming: bool, headers: dict[str, str]) -> None:
-        super().__init__(headers=headers)
-        self.session = session
-        self.streaming = streaming
-
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        session, client = self.session, self.session.client
-        headers = [(k, v) for k, v in self.raw_headers if k != b"content-length"]
-        await send({"type": "http.response.start", "status": 200, "headers": headers})
-
-        async def body(text: str, more: bool = True) -> None:
-            await send({"type": "http.response.body", "body": text.encode(), "more_body": more})
-
-        if self.streaming:
-            await body("h" * 2048 + "\n")
-        if client.closed:
-            await body(GO_AWAY + "\n", False)
-            return
-        if session.attached:
-            await body(ANOTHER + "\n", False)
-            return
-        session.attach()
-        writer = asyncio.ensure_future(self._write(body))
-        client.writer = writer
-        gone = asyncio.ensure_future(_disconnected(receive))
-        try:
-            await asyncio.wait({writer, gone}, return_when=asyncio.FIRST_COMPLETED)
-        finally:
-            writer.cancel()
-            gone.cancel()
-            client.writer = None
-            if (gone.done() and not gone.cancelled()) or client.closed:
-                session.end()  # the client went (or was dropped): as sockjs-tornado
-            else:
-                session.detach()
-        if writer.done() and not writer.cancelled() and writer.exception() is None:
-            await body("", False)
-
-    async def _write(self, body: Callable[[str, bool], Any]) -> None:
-        session, client = self.session, self.session.client
-        if not session.opened:
-            session.opened = True
-            await body("o\n", True)
-            if not self.streaming:
-                return
-        sent = 0
-        while sent < RESPONSE_LIMIT:
-            frames = await client.take(HEARTBEAT)
-            if client.closed:
-                await body(GO_AWAY + "\n", True)
-                return
-            chunk = (_array(frames) if frames else "h") + "\n"
-            await body(chunk, True)
-            if not self.streaming:
-                return
-            sent += len(chunk)
-
-
-async def _disconnected(receive: Receive) -> None:
-    while (await receive())["type"] != "http.disconnect":
-        pass
-
-
-class SocketEndpoint:
-    """A websocket: SockJS framed (``o``, ``h``, ``a[...]``, ``c[...]``) or raw (one JSON
-    object a message). A plain ASGI app: each message goes out in one ASGI send."""
-
-    def __init__(self, push: Push, sockjs: bool) -> None:
-        self.push = push
-        self.sockjs = sockjs
-
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if (await receive())["type"] != "websocket.connect":
-            return
-        try:
-            feed = self.push.feed(scope.get("path_params", {}).get("printer"))
-        except HTTPException:
-            await send({"type": "websocket.close", "code": 1008})  # no such printer
-            return
-        await send({"type": "websocket.accept"})
-        sockjs = self.sockjs
-        address = scope["client"][0] if scope.get("client") else ""
-        client = Client(feed, f"{address} ({'SockJS' if sockjs else 'raw'} websocket)")
-
-        async def text(message: str) -> None:
-            await send({"type": "websocket.send", "text": message})
-
-        async def write() -> None:
-            if sockjs:
-                await text("o")
-            while True:
-                frames = await client.take(HEARTBEAT if sockjs else None)
-                if client.closed:
-                    if sockjs:
-                        await text(GO_AWAY)
-                    await send({"type": "websocket.close", "code": 3000, "reason": "Go away!"})
-                    return
-                if sockjs:
-                    await text(_array(frames) if frames else "h")
-                else:
-                    for frame in frames:
-                        await text(frame.text)
-
-        async def read() -> None:
-            while True:
-                message = await receive()
-                if message["type"] == "websocket.disconnect":
-                    client.close(f"the client went (code {message.get('code')})")
-                    return
-                data = message.get("text")
-                if data is None:
-                    data = (message.get("bytes") or b"").decode("utf-8", "replace")
-                if not data or len(data) > INCOMING_MOST:
-                    continue  # SockJS: an empty message is ignored
-                for each in _sockjs_messages(data) if sockjs else (data,):
-                    client.receive(each)
-
-        writer = asyncio.ensure_future(write())
-        reader = asyncio.ensure_future(read())
-        client.writer = writer
-        feed.add(client)
-        try:
-            await asyncio.wait({writer, reader}, return_when=asyncio.FIRST_COMPLETED)
-        finally:
-            client.close("the connection ended")
-            for task in (writer, reader):
-                task.cancel()
-            await asyncio.gather(writer, reader, return_exceptions=True)
-
-
-def router(push: Push) -> APIRouter:
-    """The push socket's routes: include at the root and under ``/printers/{printer}``."""
-    router = APIRouter(include_in_schema=False)
-
-    @router.get("/sockjs")
-    @router.get("/sockjs/")
-    async def greeting() -> PlainTextResponse:
-        return PlainTextResponse("Welcome to SockJS!\n")
-
-    @router.get("/sockjs/info")
-    async def info(request: Request) -> JSONResponse:
-        push.server.service(request.path_params.get("printer"))  # 404: no such printer
-        return JSONResponse(
-            {
-                "websocket": True,
-                "cookie_needed": False,
-                "origins": ["*:*"],
-                "entropy": random.randint(0, 2**31 - 1),
-            },
-            headers={**_cors(request), **NO_CACHE},
-        )
-
-    @router.options("/sockjs/info")
-    async def info_options(request: Request) -> Response:
-        return Response(status_code=204, headers=_cors(request, "OPTIONS, GET"))
-
-    router.routes.append(WebSocketRoute("/sockjs/websocket", SocketEndpoint(push, False)))
-    sockjs = SocketEndpoint(push, True)
-    router.routes.append(WebSocketRoute("/sockjs/{server_id}/{session_id}/websocket", sockjs))
-
-    def session_of(request: Request, session_id: str, create: bool) -> XhrSession | None:
-        if _SESSION_ID.fullmatch(session_id) is None:
-            raise HTTPException(404, "not a SockJS session id")
-        feed = push.feed(request.path_params.get("printer"))
-        key = (feed.name, session_id)
-        session = push.sessions.get(key)
-        if session is None and create:
-            address = request.client.host if request.client is not None else ""
-            client = Client(feed, f"{address} (SockJS xhr)")
-            session = push.sessions[key] = XhrSession(push, key, client)
-            feed.add(client)
-        return session
-
-    async def xhr(request: Request, session_id: str, streaming: bool) -> XhrResponse:
-        session = session_of(request, session_id, create=True)
-        assert session is not None
-        return XhrResponse(session, streaming, {**_cors(request), **NO_CACHE})
-
-    @router.post("/sockjs/{server_id}/{session_id}/xhr_streaming")
-    async def xhr_streaming(request: Request, server_id: str, session_id: str) -> XhrResponse:
-        return await xhr(request, session_id, streaming=True)
-
-    @router.post("/sockjs/{server_id}/{session_id}/xhr")
-    async def xhr_polling(request: Request, server_id: str, session_id: str) -> XhrResponse:
-        return await xhr(request, session_id, streaming=False)
-
-    @router.post("/sockjs/{server_id}/{session_id}/xhr_send")
-    async def xhr_send(request: Request, server_id: str, session_id: str) -> Response:
-        session = session_of(request, session_id, create=False)
-        headers = {**_cors(request), **NO_CACHE}
-        if session is None or session.client.closed:
-            return PlainTextResponse("no such SockJS session", 404, headers=headers)
-        body = await request.body()
-        if not body:
-            return PlainTextResponse("Payload expected.", 400, headers=headers)
-        if len(body) > INCOMING_MOST:
-            return PlainTextResponse("the message is too long", 413, headers=headers)
-        try:
-            messages = json.loads(body)
-        except ValueError:
-            return PlainTextResponse("Broken JSON encoding.", 400, headers=headers)
-        for message in messages if isinstance(messages, list) else (messages,):
-            session.client.receive(message)
-        return Response(status_code=204, headers={**headers, "Content-Type": "text/plain"})
-
-    for transport in ("xhr", "xhr_streaming", "xhr_send"):
-
-        @router.options(f"/sockjs/{{server_id}}/{{session_id}}/{transport}")
-        async def xhr_options(request: Request, server_id: str, session_id: str) -> Response:
-            return Response(status_code=204, headers=_cors(request, "OPTIONS, POST"))
-
-    return router
