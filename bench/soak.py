@@ -139,11 +139,11 @@ def pty_run(
         finally:
             fake.stop()
         seconds = time.monotonic() - wall
-        done = [c for c in log.read_text().splitlines() if not c.startswith("M110")]
-        if protocol == "hyrel":
-            done = [c for c in done if c != "M115"]  # the host's syncs, and who are you?
-        elif done[:1] == ["M115"]:
-            done = done[1:]  # the session asks who the controller is before the job
+        # The host's own commands, not the job's (the cone has none of them): its line-number
+        # syncs, who are you, and the status line's temperatures (an M155 or M105 polls).
+        own = ("M110", "M115", "M155", "M105")
+        assert not any(c.startswith(own) for c in commands), "the job sends the host's commands"
+        done = [c for c in log.read_text().splitlines() if not c.startswith(own)]
     summary = re.search(r"(\d+) resend requests", result.stdout)
     return {
         "seconds": seconds,
