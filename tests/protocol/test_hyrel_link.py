@@ -9,7 +9,7 @@ from repetrel_host.protocol.hyrel import (
     Control,
     ControllerReceiver,
     HostReceiver,
-    Notice,
+    HyrelNotice,
     ReceivedControl,
     ReceivedLine,
     additive_checksum,
@@ -67,14 +67,14 @@ def test_the_host_counts_acks_wherever_they_come_and_keeps_the_text() -> None:
 @pytest.mark.parametrize(
     ("text", "notice"),
     [
-        ("M109: T11: S200:", Notice("M109", {"T": "11", "S": "200"})),
-        ("M30:", Notice("M30", {})),
-        ("m06: T12: Z-0.25:", Notice("M6", {"T": "12", "Z": "-0.25"})),
+        ("M109: T11: S200:", HyrelNotice("M109", {"T": "11", "S": "200"})),
+        ("M30:", HyrelNotice("M30", {})),
+        ("m06: T12: Z-0.25:", HyrelNotice("M6", {"T": "12", "Z": "-0.25"})),
         ("G28 done", None),
         ("", None),
     ],
 )
-def test_m_code_notices_are_read(text: str, notice: Notice | None) -> None:
+def test_m_code_notices_are_read(text: str, notice: HyrelNotice | None) -> None:
     assert parse_notice(text) == notice
 
 

@@ -138,7 +138,7 @@ def _text(raw: bytes | bytearray) -> bytes:
 
 
 @dataclass(frozen=True, slots=True)
-class Notice:
+class HyrelNotice:
     """``>MC:M109: T11: S200:``: the controller processed an M-code (so every line before
     it ran). ``fields`` holds its letters and values: ``{"T": "11", "S": "200"}``."""
 
@@ -146,8 +146,8 @@ class Notice:
     fields: dict[str, str]
 
 
-def parse_notice(text: str) -> Notice | None:
-    """The text after ``>MC:`` as a :class:`Notice`; None when it names no M-code, or a
+def parse_notice(text: str) -> HyrelNotice | None:
+    """The text after ``>MC:`` as a :class:`HyrelNotice`; None when it names no M-code, or a
     part of it is no field (a byte garbled: what it says cannot be told)."""
     parts = [part.strip() for part in text.split(":")]
     code = parts[0].upper() if parts else ""
@@ -159,7 +159,7 @@ def parse_notice(text: str) -> Notice | None:
         if match is None:
             return None
         fields[match.group(1).upper()] = match.group(2)
-    return Notice(f"M{int(code[1:])}", fields)
+    return HyrelNotice(f"M{int(code[1:])}", fields)
 
 
 @dataclass(frozen=True, slots=True)

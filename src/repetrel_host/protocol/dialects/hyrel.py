@@ -82,7 +82,7 @@ from repetrel_host.protocol.hyrel import (
     NOTICED,
     Control,
     HostReceiver,
-    Notice,
+    HyrelNotice,
     frame,
     mark_urgent,
     parse_notice,
@@ -686,7 +686,7 @@ class HyrelDialect:
             self._sync_every = max(SYNC_EVERY_MIN, min(SYNC_EVERY, 2 * self._sync_every, ran))
             self._told_at, self._told_seq = now, seq
 
-    def _noticed(self, notice: Notice) -> None:
+    def _noticed(self, notice: HyrelNotice) -> None:
         """``>MC:`` for an M-code: a line of its code and values ran, and every line before
         it. It is taken for the oldest such line not known to have run that the controller
         received (its ACK came: a line is ACKed before it runs), or for nothing (a notice
@@ -824,7 +824,7 @@ class HyrelDialect:
         self._events.append(self._failure)
 
 
-def _agrees(notice: Notice, command: str) -> bool:
+def _agrees(notice: HyrelNotice, command: str) -> bool:
     """The notice gives the command's values: every value it gives is the command's, and it
     gives the command's T and S (``T11: S200:`` and ``M104 T11 S200.0``). A notice cut
     short by a garbled byte (``>MC:M104:``), or another code's garbled, is no line's with
