@@ -25,7 +25,7 @@ from repetrel_host.protocol.dialects.hyrel import (
 from repetrel_host.protocol.events import (
     ControllerMessage,
     ControllerReady,
-    Failed,
+    DialectFailed,
     FailureKind,
     GreetingRetry,
     LineAcknowledged,
@@ -398,7 +398,7 @@ def test_an_error_naming_a_line_names_its_source_and_a_reboot_fails_the_stream()
     assert isinstance(events[-1], ControllerMessage) and events[-1].tag == "second"
     dialect.receive_data(b">Hy: Hydra_5.1 booted\n", 10.0)  # unasked: it restarted
     failed = dialect.next_event()
-    assert isinstance(failed, Failed) and failed.kind is FailureKind.RESET
+    assert isinstance(failed, DialectFailed) and failed.kind is FailureKind.RESET
     assert failed.reason == "the controller reset (it says: >Hy: Hydra_5.1 booted)"
 
 
@@ -494,7 +494,7 @@ def test_an_answer_cut_by_a_garbled_colon_is_no_reset() -> None:
     assert dialect.data_to_send(0.0) == b"N1 G1 X1\nN2 M115\n"
     dialect.receive_data(b"\x06\x06FIRMWARE_NAME\n>Hy: Hydra_5 PROTOCOL_VERSION:1.0\n", 0.1)
     events = list(iter(dialect.next_event, None))
-    assert not any(isinstance(e, Failed) for e in events) and dialect.is_done
+    assert not any(isinstance(e, DialectFailed) for e in events) and dialect.is_done
 
 
 def test_what_ran_of_a_job_is_its_line_not_a_command_confirmed_after_it() -> None:

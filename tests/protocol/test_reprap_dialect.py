@@ -17,8 +17,8 @@ from repetrel_host.protocol.dialects.reprap import (
 from repetrel_host.protocol.events import (
     ControllerMessage,
     ControllerReady,
+    DialectFailed,
     Event,
-    Failed,
     FailureKind,
     GreetingRetry,
     LineAcknowledged,
@@ -306,7 +306,7 @@ def test_reset_mid_job_stops_at_once_and_never_resends() -> None:
     host.data_to_send(0.0)
     host.receive_data(b"ok\nstart\nok\n", 0.0)
     got = events(host)
-    assert [type(e) for e in got] == [LineAcknowledged, Failed]
+    assert [type(e) for e in got] == [LineAcknowledged, DialectFailed]
     failure = host.failure
     assert failure is not None and failure.kind is FailureKind.RESET
     assert "reset" in failure.reason

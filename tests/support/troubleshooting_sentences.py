@@ -46,7 +46,7 @@ SRC = ROOT / "src" / "repetrel_host"
 # (None: every string-like argument).
 SINK_CALLS: dict[str, int | None] = {
     "Finding": 2,  # the lint's finding: Finding(line, severity, message)
-    "Failed": 1,  # a dialect's failure event: Failed(kind, reason, tag)
+    "DialectFailed": 1,  # a dialect's failure event: DialectFailed(kind, reason, tag)
     "LineRefused": 0,  # a line the controller refused: LineRefused(reason, tag)
     "Notice": 0,  # printed as "warning: ..."
     "fail": None,  # pytest.fail

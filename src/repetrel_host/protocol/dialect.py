@@ -16,7 +16,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
-from repetrel_host.protocol.events import Event, Failed, ProbeKind
+from repetrel_host.protocol.events import DialectFailed, Event, ProbeKind
 
 
 @dataclass(slots=True)
@@ -115,7 +115,7 @@ class Dialect(Protocol):
         """How this connection asks the controller which lines it holds."""
 
     @property
-    def failure(self) -> Failed | None:
+    def failure(self) -> DialectFailed | None:
         """Why the stream stopped, once it did."""
 
     def data_to_send(self, now: float) -> bytes:

@@ -108,7 +108,7 @@ class LineRefused:
 
 
 @dataclass(frozen=True, slots=True)
-class Failed:
+class DialectFailed:
     """The stream cannot go on. Nothing more is sent; ``reason`` is one sentence."""
 
     kind: FailureKind
@@ -124,5 +124,5 @@ Event = (
     | ControllerMessage
     | Notice
     | LineRefused
-    | Failed
+    | DialectFailed
 )

@@ -19,8 +19,7 @@ from typing import Any, Protocol
 from repetrel_host.errors import ControllerError, HostError, JobError, UsageError
 from repetrel_host.gcode.commands import command_word
 from repetrel_host.protocol import replies
-from repetrel_host.protocol.events import Failed as DialectFailed
-from repetrel_host.protocol.events import GreetingRetry, ProbeKind
+from repetrel_host.protocol.events import DialectFailed, GreetingRetry, ProbeKind
 from repetrel_host.protocol.reports import parse_temperatures
 from repetrel_host.session.commands import PendingCommand, Reply
 from repetrel_host.session.events import (

@@ -15,7 +15,7 @@ from repetrel_host.fakes.simulator import ControllerSettings, ControllerSimulato
 from repetrel_host.protocol.dialect import Dialect
 from repetrel_host.protocol.dialects import create_dialect
 from repetrel_host.protocol.dialects.reprap import RepRapDialect
-from repetrel_host.protocol.events import Failed, ProbeKind
+from repetrel_host.protocol.events import DialectFailed, ProbeKind
 from repetrel_host.protocol.flow import FlowControl, FlowMode
 from repetrel_host.session.job import JobLine
 from repetrel_host.session.pump import JobRun, Listener, Pump
@@ -29,7 +29,7 @@ _STUCK_LIMIT = 10_000  # steps of simulated time that get nowhere
 class LoopbackResult:
     executed: list[str]  # what the controller executed, host M110 lines left out
     acknowledged: list[int]  # indexes (from 0) of acknowledged commands, in order
-    failure: Failed | None
+    failure: DialectFailed | None
     seconds: float  # simulated time
     host: Dialect = field(repr=False)
     controller: ControllerSimulator = field(repr=False)
@@ -40,13 +40,13 @@ class _Recorder(Listener):
     def __init__(self, record: bool) -> None:
         self.record = record
         self.indexes: list[int] = []
-        self.failure: Failed | None = None
+        self.failure: DialectFailed | None = None
 
     def acknowledged(self, line: JobLine) -> None:
         if self.record:
             self.indexes.append(line.index - 1)
 
-    def failed(self, failure: Failed) -> None:
+    def failed(self, failure: DialectFailed) -> None:
         self.failure = failure
 
 

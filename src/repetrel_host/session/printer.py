@@ -41,8 +41,7 @@ from repetrel_host.gcode.heaters import Heater, HeaterLog, complete_safe_stop
 from repetrel_host.links import Link
 from repetrel_host.protocol.dialect import Statistics
 from repetrel_host.protocol.dialects import create_dialect, release_bytes
-from repetrel_host.protocol.events import Failed as DialectFailed
-from repetrel_host.protocol.events import FailureKind, ProbeKind
+from repetrel_host.protocol.events import DialectFailed, FailureKind, ProbeKind
 from repetrel_host.protocol.reports import Firmware, parse_temperatures
 from repetrel_host.session import history as print_history
 from repetrel_host.session.commands import PendingCommand, Reply, clean_command

@@ -44,7 +44,7 @@ from repetrel_host.protocol.dialect import Dialect
 from repetrel_host.protocol.events import (
     ControllerMessage,
     ControllerReady,
-    Failed,
+    DialectFailed,
     FailureKind,
     GreetingRetry,
     LineAcknowledged,
@@ -140,7 +140,7 @@ class Listener:
     def finished(self, run: JobRun) -> None:
         """The run ended: :attr:`JobRun.outcome` or :attr:`JobRun.error` says how."""
 
-    def failed(self, failure: Failed) -> None:
+    def failed(self, failure: DialectFailed) -> None:
         """The dialect stopped: the connection needs a new greeting (or a new link)."""
 
 
@@ -514,7 +514,7 @@ class Pump:
                 listener.notice(event.text)
             elif isinstance(event, LineRefused):
                 self._refused(event, now)
-            elif isinstance(event, Failed):
+            elif isinstance(event, DialectFailed):
                 run = self.run
                 self._drop_pending()  # first: what never went is known before the run ends
                 if run is not None:
@@ -712,7 +712,7 @@ class Pump:
         self.listener.finished(run)
 
 
-def failure_error(event: Failed, run: JobRun | None = None) -> HostError:
+def failure_error(event: DialectFailed, run: JobRun | None = None) -> HostError:
     """The error a dialect's failure is reported as, naming where the job stood."""
     where = f" (at {event.tag.position})" if isinstance(event.tag, JobLine) else ""
     reason = f"{event.reason}{where}"

@@ -69,8 +69,8 @@ from repetrel_host.protocol.dialect import Statistics
 from repetrel_host.protocol.events import (
     ControllerMessage,
     ControllerReady,
+    DialectFailed,
     Event,
-    Failed,
     FailureKind,
     GreetingRetry,
     LineAcknowledged,
@@ -243,7 +243,7 @@ class HyrelDialect:
         self._receiver = HostReceiver()
         self._outgoing = bytearray()
         self._events: deque[Event] = deque()
-        self._failure: Failed | None = None
+        self._failure: DialectFailed | None = None
         self._hello_attempts = 0
         self._hello_deadline = 0.0
         self._started_at = 0.0
@@ -362,7 +362,7 @@ class HyrelDialect:
         return ProbeKind.ANSWER
 
     @property
-    def failure(self) -> Failed | None:
+    def failure(self) -> DialectFailed | None:
         return self._failure
 
     # --- output -----------------------------------------------------------------
@@ -819,7 +819,7 @@ class HyrelDialect:
         if oldest is None and self._awaiting:
             oldest = self._awaiting[0]
         tag = oldest.tag if oldest is not None else None
-        self._failure = Failed(kind, reason, tag)
+        self._failure = DialectFailed(kind, reason, tag)
         self._phase = Phase.FAILED
         self._events.append(self._failure)
 

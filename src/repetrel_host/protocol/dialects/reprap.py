@@ -48,8 +48,8 @@ from repetrel_host.protocol.dialect import Statistics
 from repetrel_host.protocol.events import (
     ControllerMessage,
     ControllerReady,
+    DialectFailed,
     Event,
-    Failed,
     FailureKind,
     GreetingRetry,
     LineAcknowledged,
@@ -215,7 +215,7 @@ class RepRapDialect:
         self._receive_buffer = bytearray()
         self._outgoing = bytearray()
         self._events: deque[Event] = deque()
-        self._failure: Failed | None = None
+        self._failure: DialectFailed | None = None
 
     # --- feeding ------------------------------------------------------------
 
@@ -326,7 +326,7 @@ class RepRapDialect:
         return self._phase
 
     @property
-    def failure(self) -> Failed | None:
+    def failure(self) -> DialectFailed | None:
         return self._failure
 
     @property
@@ -1005,7 +1005,7 @@ class RepRapDialect:
     def _fail(self, kind: FailureKind, reason: str) -> None:
         self._phase = Phase.FAILED
         oldest = self._history.get(self._acked_through + 1)
-        self._failure = Failed(kind, reason, oldest.tag if oldest is not None else None)
+        self._failure = DialectFailed(kind, reason, oldest.tag if oldest is not None else None)
         self._events.append(self._failure)
 
 
