@@ -21,7 +21,7 @@ class Ok:
 
 
 @dataclass(frozen=True, slots=True)
-class Resend:
+class ResendRequest:
     """The controller asks for every line from ``line_number`` on again."""
 
     line_number: int
@@ -61,7 +61,7 @@ class HyrelReport:
 
 
 @dataclass(frozen=True, slots=True)
-class Message:
+class OtherReply:
     """Anything else: ``echo:`` lines, ``//`` comments, unknown text."""
 
     text: str
@@ -69,13 +69,13 @@ class Message:
 
 PLAIN_OK = Ok()  # the reply nearly every line draws: one shared instance
 
-Reply = Ok | Resend | Error | Busy | Wait | Start | HyrelReport | Message
+Reply = Ok | ResendRequest | Error | Busy | Wait | Start | HyrelReport | OtherReply
 
 # The whole line must match: a garbled number ("Resend: 16?9") must not pass for another.
 _RESEND = re.compile(r"^(?:resend|rs)\s*:?\s*N?\s*(\d+)\s*$", re.IGNORECASE)
 _ADVANCED_OK = re.compile(r"^N(\d+)\s+P(\d+)\s+B(\d+)")
 _HYREL = re.compile(r"^>([A-Za-z]{2}):\s?(.*)$")
-# Marlin's errors about a line's framing: answered by a Resend, not fatal.
+# Marlin's errors about a line's framing: answered by a resend request, not fatal.
 # OctoPrint's virtual printer says "expected line <n> got <m>".
 _LINE_ERRORS = ("checksum", "line number", "last line", "format error", "expected line")
 
@@ -95,7 +95,7 @@ def classify(line: str) -> Reply:
         return Ok(data)
     resend = _RESEND.match(text)
     if resend is not None:
-        return Resend(int(resend.group(1)))
+        return ResendRequest(int(resend.group(1)))
     if lower.startswith("error") or text.startswith("!!"):
         body = text[6:].strip() if lower.startswith("error") else text[2:].strip()
         return Error(body, line_error=any(key in body.lower() for key in _LINE_ERRORS))
@@ -108,4 +108,4 @@ def classify(line: str) -> Reply:
     hyrel = _HYREL.match(text)
     if hyrel is not None:
         return HyrelReport(hyrel.group(1).upper(), hyrel.group(2))
-    return Message(text)
+    return OtherReply(text)

@@ -26,10 +26,10 @@ if TYPE_CHECKING:
 DEFAULT_BIND = "127.0.0.1:8765"
 API_KEY_FILE = "api-key"
 _NAME = re.compile(r"^[A-Za-z0-9_-]+$")
-_BRANCHES = ("str", "PrinterSettings")  # how pydantic names the sides of a printer's union
+_BRANCHES = ("str", "PrinterEntry")  # how pydantic names the sides of a printer's union
 
 
-class PrinterSettings(BaseModel):
+class PrinterEntry(BaseModel):
     """A printer in the TOML file, when it needs more than its port."""
 
     model_config = ConfigDict(extra="forbid")
@@ -74,7 +74,7 @@ class ServerSettings(BaseModel):
 
     data_dir: Path
     bind: str = DEFAULT_BIND
-    printers: dict[str, str | PrinterSettings] = Field(min_length=1)
+    printers: dict[str, str | PrinterEntry] = Field(min_length=1)
     api_key: str | None = None
     max_upload_mb: int = Field(default=1024, gt=0)
     automatic_transition: bool = False  # start the next job by itself after one ends

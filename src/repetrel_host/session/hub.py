@@ -16,7 +16,7 @@ E = TypeVar("E")
 _END = object()
 
 
-class EventHub(Generic[E]):
+class EventFanout(Generic[E]):
     """Hands every event to every subscriber, each at its own pace."""
 
     def __init__(self, backlog: int = 0) -> None:

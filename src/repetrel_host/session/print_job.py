@@ -19,7 +19,7 @@ from repetrel_host.errors import HostError
 from repetrel_host.protocol.reports import JobReport, ReportReader
 from repetrel_host.session import history as print_history
 from repetrel_host.session.events import Done, Failed, JobEvent, Progress, Report, State
-from repetrel_host.session.hub import EventHub
+from repetrel_host.session.hub import EventFanout
 from repetrel_host.session.job import HostAction, JobLine
 from repetrel_host.session.planning import JobPlan
 from repetrel_host.session.pump import JobRun, Outcome, Summary
@@ -87,7 +87,7 @@ class PrintJob:
         self.on_action = on_action
         self._run = run
         self._done: asyncio.Future[Summary] = asyncio.get_running_loop().create_future()
-        self._hub: EventHub[JobEvent] = EventHub(JOB_EVENT_BACKLOG)
+        self._hub: EventFanout[JobEvent] = EventFanout(JOB_EVENT_BACKLOG)
         self._ticking = False  # progress goes out while someone listens
         self._reported = -1
         self.m0: asyncio.Future[None] | None = None  # an M0 waiting for resume()

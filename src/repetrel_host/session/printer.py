@@ -62,7 +62,7 @@ from repetrel_host.session.events import (
     StateChanged,
     Temperatures,
 )
-from repetrel_host.session.hub import EventHub
+from repetrel_host.session.hub import EventFanout
 from repetrel_host.session.identify import FIRMWARE_TIMEOUT, Identity, hotend_count
 from repetrel_host.session.job import JobItem, JobLine
 from repetrel_host.session.listener import PumpListener
@@ -138,7 +138,7 @@ class Printer:
         # machine or changed a mode (jog, home, extrude, T...): resume() comes back first.
         self._paused_words: set[str] = set()
         self._wire_log: BinaryIO | None = None
-        self._hub: EventHub[PrinterEvent] = EventHub()
+        self._hub: EventFanout[PrinterEvent] = EventFanout()
         self._state_waiters: list[tuple[Callable[[], bool], asyncio.Future[None]]] = []
         self._tasks: set[asyncio.Task[Any]] = set()
         self._markers: weakref.WeakSet[asyncio.Task[None]] = weakref.WeakSet()  # snapshots

@@ -79,7 +79,7 @@ class HomeAxes(StrEnum):
 
 
 @dataclass(frozen=True, slots=True)
-class Heater:
+class HeaterTarget:
     """A heater's target as the skipped part left it."""
 
     kind: str  # hotend, bed, chamber
@@ -93,7 +93,7 @@ class Heater:
 class MachineState:
     """What the commands of the skipped part leave the machine in (None: not known)."""
 
-    heaters: dict[tuple[str, int | None], Heater] = field(default_factory=dict)
+    heaters: dict[tuple[str, int | None], HeaterTarget] = field(default_factory=dict)
     # Fans that are on: Marlin's by P (the fan's index), Hyrel's by T and duty (S: always,
     # P: during extrusion moves); the command that turned each on, and its line.
     fans: dict[tuple[str, int | None, str], tuple[str, int]] = field(default_factory=dict)
@@ -170,10 +170,12 @@ class MachineState:
         previous = self.heaters.get(key)
         if target is None:  # a wait for the target set before (Hyrel's M109 T# without S)
             if previous is not None and waits:
-                self.heaters[key] = Heater(kind, address, previous.target, True, previous.line)
+                self.heaters[key] = HeaterTarget(
+                    kind, address, previous.target, True, previous.line
+                )
             return
         waited = waits or (previous is not None and previous.waited)
-        self.heaters[key] = Heater(kind, address, target, waited, number)
+        self.heaters[key] = HeaterTarget(kind, address, target, waited, number)
 
     def _fan(self, number: int, command: str, words: dict[str, float]) -> None:
         if "C" in words and "S" not in words and "P" not in words:
@@ -322,12 +324,12 @@ def back_to_job(
     return lines + _where_it_stood(state)
 
 
-def _heat(word: str, heater: Heater) -> str:
+def _heat(word: str, heater: HeaterTarget) -> str:
     address = f" T{heater.address}" if heater.address is not None else ""
     return f"{word}{address} S{_n(heater.target)}"
 
 
-def _name(heater: Heater) -> str:
+def _name(heater: HeaterTarget) -> str:
     which = f" T{heater.address}" if heater.address is not None else ""
     return f"the {heater.kind}{which}"
 

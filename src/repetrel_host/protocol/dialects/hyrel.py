@@ -144,7 +144,7 @@ _FIELD = re.compile(r"([A-Za-z])\s*(-?\d+(?:\.\d*)?)")
 _NOTICE_VALUES = "TS"  # the values a notice gives of its line (">MC:M<n>: T<t>: S<s>:")
 
 
-class Phase(Enum):
+class HyrelPhase(Enum):
     IDLE = "idle"
     GREETING = "greeting"
     RUNNING = "running"
@@ -198,7 +198,7 @@ class HyrelDialect:
         self._line_limit = flow.line_limit
         self._host_byte_limit = flow.byte_limit
         self._byte_limit = max(1, flow.byte_limit - min(HOST_RESERVE, flow.byte_limit // 4))
-        self._phase = Phase.IDLE
+        self._phase = HyrelPhase.IDLE
         # Queued: command, word, tag, confirm, urgent.
         self._pending: deque[tuple[str, str, object, bool, bool]] = deque()
         self._in_flight: deque[_Sent] = deque()  # waiting for their ACK
@@ -256,7 +256,7 @@ class HyrelDialect:
 
     def start(self, now: float) -> None:
         """Ping the controller; its ``>Hy:`` answer opens the stream."""
-        if self._phase is not Phase.IDLE:
+        if self._phase is not HyrelPhase.IDLE:
             raise UsageError("the dialect was already started")
         self._last_sent_at = self._last_progress_at = self._started_at = now
         self._ping(now)
@@ -284,7 +284,7 @@ class HyrelDialect:
     def abort(self) -> bool:
         """Abort (0x08): the controller drops what it holds. What it would have said of
         those lines (ACKs, M115 answers) may still come, and is not taken for what follows."""
-        if self._phase is not Phase.RUNNING:
+        if self._phase is not HyrelPhase.RUNNING:
             return False
         self._outgoing.append(Control.ABORT)
         self._stale_acks += len(self._in_flight)
@@ -301,7 +301,7 @@ class HyrelDialect:
         return True
 
     def hold(self, at_layer_end: bool = False) -> bool:
-        if self._phase is not Phase.RUNNING:
+        if self._phase is not HyrelPhase.RUNNING:
             return False
         self._outgoing.append(
             Control.PAUSE_AT_LAYER_END if at_layer_end else Control.PAUSE_AT_MOVE_END
@@ -309,13 +309,13 @@ class HyrelDialect:
         return True
 
     def end_wait(self) -> None:
-        if self._phase is Phase.RUNNING:
+        if self._phase is HyrelPhase.RUNNING:
             self._outgoing.append(Control.END_WAIT)
 
     def request_status(self) -> bool:
         """0x05: the controller answers ``>ST: T:... B:...`` as the byte arrives. (An M105
         would wait its turn behind up to 8 KB of a job: minutes of stale temperatures.)"""
-        if self._phase is not Phase.RUNNING:
+        if self._phase is not HyrelPhase.RUNNING:
             return False
         self._ask_status()
         return True
@@ -341,21 +341,21 @@ class HyrelDialect:
 
     @property
     def wants_lines(self) -> bool:
-        return self._phase is not Phase.FAILED and len(self._pending) < self._line_limit
+        return self._phase is not HyrelPhase.FAILED and len(self._pending) < self._line_limit
 
     @property
     def is_done(self) -> bool:
         """Every line queued so far ran: an M115's answer says so (written after all the
         controller wrote as it ran them, an M773 report among it)."""
         return (
-            self._phase is Phase.RUNNING
+            self._phase is HyrelPhase.RUNNING
             and not self._pending
             and self._synced_seq >= self._last_caller_seq
         )
 
     @property
     def is_ready(self) -> bool:
-        return self._phase is Phase.RUNNING
+        return self._phase is HyrelPhase.RUNNING
 
     @property
     def probe(self) -> ProbeKind:
@@ -368,7 +368,7 @@ class HyrelDialect:
     # --- output -----------------------------------------------------------------
 
     def data_to_send(self, now: float) -> bytes:
-        if self._phase is Phase.RUNNING:
+        if self._phase is HyrelPhase.RUNNING:
             pending = self._pending
             if not self._separated and self._fence_asked_at is None and self._m115s:
                 # Something between the last answer and the next (an M115's own ACK may be
@@ -504,7 +504,7 @@ class HyrelDialect:
         return sent
 
     def _ping(self, now: float) -> None:
-        self._phase = Phase.GREETING
+        self._phase = HyrelPhase.GREETING
         self._hello_attempts += 1
         self._hello_deadline = now + HELLO_TIMEOUT
         self._outgoing.append(Control.PING)
@@ -513,7 +513,7 @@ class HyrelDialect:
     # --- input ------------------------------------------------------------------
 
     def receive_data(self, data: bytes, now: float) -> None:
-        if not data or self._phase is Phase.FAILED:
+        if not data or self._phase is HyrelPhase.FAILED:
             return
         receiver = self._receiver
         lines = receiver.feed(data)
@@ -618,8 +618,8 @@ class HyrelDialect:
 
     def _identity(self, text: str, now: float) -> None:
         """``>Hy: ...``: the answer to a ping, or, unasked, a controller that restarted."""
-        if self._phase is Phase.GREETING:
-            self._phase = Phase.RUNNING
+        if self._phase is HyrelPhase.GREETING:
+            self._phase = HyrelPhase.RUNNING
             self._late_pings = self._hello_attempts - 1  # pings that may be answered yet
             self._events.append(ControllerReady(ProbeKind.ANSWER, text))
         elif self._late_pings and now <= self._hello_deadline:
@@ -739,9 +739,9 @@ class HyrelDialect:
 
     def next_deadline(self) -> float | None:
         phase = self._phase
-        if phase is Phase.GREETING:
+        if phase is HyrelPhase.GREETING:
             return self._hello_deadline
-        if phase is not Phase.RUNNING:
+        if phase is not HyrelPhase.RUNNING:
             return None
         deadline = self._last_sent_at + KEEPALIVE
         if self._in_flight:
@@ -759,7 +759,7 @@ class HyrelDialect:
 
     def handle_timeout(self, now: float) -> None:
         phase = self._phase
-        if phase is Phase.GREETING:
+        if phase is HyrelPhase.GREETING:
             if now < self._hello_deadline:
                 return
             waited = now - self._started_at
@@ -773,7 +773,7 @@ class HyrelDialect:
             self._ping(now)
             self._events.append(GreetingRetry(self._hello_attempts, HELLO_ATTEMPTS, waited))
             return
-        if phase is not Phase.RUNNING:
+        if phase is not HyrelPhase.RUNNING:
             return
         if self._in_flight and not self._stalled and now >= self._acked_at + SYNC_AFTER:
             self._stalled = True
@@ -811,7 +811,7 @@ class HyrelDialect:
             self._outgoing.append(Control.WATCHDOG)
 
     def _fail(self, kind: FailureKind, reason: str) -> None:
-        if self._phase is Phase.RUNNING:
+        if self._phase is HyrelPhase.RUNNING:
             # Whatever it holds must not run on (should it be there, and not have reset):
             # the safe stop goes at the next greeting.
             self._outgoing.append(Control.ABORT)
@@ -820,7 +820,7 @@ class HyrelDialect:
             oldest = self._awaiting[0]
         tag = oldest.tag if oldest is not None else None
         self._failure = DialectFailed(kind, reason, tag)
-        self._phase = Phase.FAILED
+        self._phase = HyrelPhase.FAILED
         self._events.append(self._failure)
 
 

@@ -31,7 +31,7 @@ holds every line before it, and answers with ``ok T:...``.
 The state lives in small parts, each with one job: :class:`History` (numbering
 and the lines that may be asked for again), :class:`Window` (what is in flight),
 :class:`RoundTrip` (timeouts), :class:`ResendGuard` (which requests to obey) and
-:class:`_Probing`; the phase is explicit (:class:`Phase`).
+:class:`_Probing`; the phase is explicit (:class:`RepRapPhase`).
 """
 
 from __future__ import annotations
@@ -121,7 +121,7 @@ _LAST_LINE = re.compile(r"last\s*line:?\s*(-?\d+)", re.IGNORECASE)
 PROBE_COMMAND = "M105"  # harmless everywhere; its ok carries the temperatures
 
 
-class Phase(Enum):
+class RepRapPhase(Enum):
     IDLE = "idle"  # start() not called yet
     GREETING = "greeting"  # M110 and a probe in flight: numbering being (re)set
     GAP_CHECK = "gap check"  # a line with a gap in the numbering, to be refused
@@ -130,7 +130,7 @@ class Phase(Enum):
     FAILED = "failed"
 
 
-_CHECK_PHASES = frozenset({Phase.GAP_CHECK, Phase.PROBE_CHECK})
+_CHECK_PHASES = frozenset({RepRapPhase.GAP_CHECK, RepRapPhase.PROBE_CHECK})
 
 
 class _Probing:
@@ -181,7 +181,7 @@ class RepRapDialect:
         self.line_number_limit = line_number_limit
         self.reply_timeout = reply_timeout
         self.stats = Statistics()
-        self._phase = Phase.IDLE
+        self._phase = RepRapPhase.IDLE
         self._history = History(max(history_margin, 4 * self.flow.line_limit))
         self._window = Window(self.flow)
         self._line_limit = self._window.line_limit  # read for every line: kept at hand
@@ -221,7 +221,7 @@ class RepRapDialect:
 
     def start(self, now: float) -> None:
         """Begin: the first line on the wire will be ``N0 M110 N0``."""
-        if self._phase is not Phase.IDLE:
+        if self._phase is not RepRapPhase.IDLE:
             raise UsageError("the dialect was already started")
         self._last_received_at = self._last_sent_at = self._last_progress_at = now
         self._started_at = now
@@ -255,7 +255,7 @@ class RepRapDialect:
         data = command.encode("ascii") + b"\n"
         if self.on_first_send is not None:
             self.on_first_send(command, None, False)
-        if command_word(command) == "M112" or self._phase is not Phase.RUNNING:
+        if command_word(command) == "M112" or self._phase is not RepRapPhase.RUNNING:
             self.stats.bytes_sent += len(data)
             self._outgoing += data
             return
@@ -299,14 +299,14 @@ class RepRapDialect:
     @property
     def wants_lines(self) -> bool:
         """True when the queue is short enough that a new line could go out soon."""
-        return self._phase is not Phase.FAILED and len(self._pending) < self._line_limit
+        return self._phase is not RepRapPhase.FAILED and len(self._pending) < self._line_limit
 
     @property
     def is_done(self) -> bool:
         """Every line queued so far is confirmed accepted by the controller itself."""
         history = self._history
         return (
-            self._phase is Phase.RUNNING
+            self._phase is RepRapPhase.RUNNING
             and not self._pending
             and history.cursor == history.next_number
             and self._confirmed_through == history.next_number - 1
@@ -315,14 +315,14 @@ class RepRapDialect:
 
     @property
     def is_ready(self) -> bool:
-        return self._phase is Phase.RUNNING
+        return self._phase is RepRapPhase.RUNNING
 
     @property
     def probe(self) -> ProbeKind:
         return self._probing.kind
 
     @property
-    def phase(self) -> Phase:
+    def phase(self) -> RepRapPhase:
         return self._phase
 
     @property
@@ -341,10 +341,10 @@ class RepRapDialect:
         # wait: their oks (or the timeout's probe) call again. Bytes already queued (a
         # probe, an urgent line) still go; after a resend request nothing live is in
         # flight, so the lines asked for go at once.
-        refill = self._phase is not Phase.RUNNING or self._window.wants_refill(now)
+        refill = self._phase is not RepRapPhase.RUNNING or self._window.wants_refill(now)
         while (
             refill
-            and (self._phase is Phase.RUNNING or self._phase is Phase.GREETING)
+            and (self._phase is RepRapPhase.RUNNING or self._phase is RepRapPhase.GREETING)
             and self._probing.current is None
         ):
             line = self._next_line_to_transmit()
@@ -352,7 +352,9 @@ class RepRapDialect:
                 if self._wants_probe():
                     self._send_probe(now)
                 break
-            if self._phase is Phase.RUNNING and not self._window.has_room(len(line.wire), now):
+            if self._phase is RepRapPhase.RUNNING and not self._window.has_room(
+                len(line.wire), now
+            ):
                 break
             self._transmit(line, now)
         if not self._outgoing:
@@ -368,12 +370,12 @@ class RepRapDialect:
     def next_deadline(self) -> float | None:
         """When :meth:`handle_timeout` wants to be called, or None."""
         phase = self._phase
-        if phase is Phase.FAILED or phase is Phase.IDLE:
+        if phase is RepRapPhase.FAILED or phase is RepRapPhase.IDLE:
             return None
         if self._suspect_error is not None:
             return self._suspect_error[1]
         window = self._window
-        if phase is not Phase.RUNNING:
+        if phase is not RepRapPhase.RUNNING:
             return max(self._last_received_at, self._last_sent_at) + HELLO_TIMEOUT
         probing = self._probing
         wait = self._rtt.backed_off(probing.unanswered)
@@ -412,7 +414,7 @@ class RepRapDialect:
             self._fail_suspect()
             return
         window = self._window
-        if self._phase is not Phase.RUNNING:
+        if self._phase is not RepRapPhase.RUNNING:
             self._unanswered_greetings += 1
             unanswered = self._unanswered_greetings
             attempts = NOISY_HELLO_ATTEMPTS if self._greeted or self._heard else HELLO_ATTEMPTS
@@ -487,7 +489,7 @@ class RepRapDialect:
                 and buffer.startswith(b"ok", line_start)
                 and self._trailing_ok_until is None
                 and self._suspect_error is None
-                and self._phase is Phase.RUNNING
+                and self._phase is RepRapPhase.RUNNING
             ):
                 # A plain ok in a plain state, the bulk of all replies: the same as
                 # the general path below, without decoding and classifying it.
@@ -507,21 +509,21 @@ class RepRapDialect:
     # --- replies ------------------------------------------------------------
 
     def _handle_reply(self, reply: replies.Reply, text: str, now: float) -> None:
-        if self._phase is Phase.FAILED:
+        if self._phase is RepRapPhase.FAILED:
             return
         if self._suspect_error is not None:
-            if isinstance(reply, replies.Resend):
+            if isinstance(reply, replies.ResendRequest):
                 self._suspect_error = None
             else:
                 self._suspect_lines += 1
                 if self._suspect_lines > SUSPECT_ERROR_LINES:
                     self._fail_suspect()
                     return
-        if not isinstance(reply, replies.Message):
+        if not isinstance(reply, replies.OtherReply):
             self._heard = True
         if isinstance(reply, replies.Ok):
             self._handle_ok(reply, now)
-        elif isinstance(reply, replies.Resend):
+        elif isinstance(reply, replies.ResendRequest):
             self._handle_resend(reply.line_number, now)
         elif isinstance(reply, replies.Start):
             self._handle_start(text)
@@ -550,7 +552,7 @@ class RepRapDialect:
         if not in_flight:
             self.stats.unexpected_oks += 1  # nothing owed one
             return
-        if self._phase is not Phase.RUNNING and self._phase in _CHECK_PHASES:
+        if self._phase is not RepRapPhase.RUNNING and self._phase in _CHECK_PHASES:
             # Only resend requests answer the check's lines; an ok is the M110's (a first
             # round trip to measure), or one too many.
             first = in_flight[0]
@@ -629,10 +631,10 @@ class RepRapDialect:
             self.stats.ignored_resend_requests += 1
             return
         phase = self._phase
-        if phase is Phase.GAP_CHECK:
+        if phase is RepRapPhase.GAP_CHECK:
             self._gap_refused(number, previous, now)
             return
-        if phase is Phase.PROBE_CHECK:
+        if phase is RepRapPhase.PROBE_CHECK:
             self._check_answered(number, previous)
             return
         window = self._window
@@ -661,14 +663,14 @@ class RepRapDialect:
             window.in_flight[0] is not probe or probe.line is not None or _is_number_error(previous)
         ):
             window.pop_oldest()
-        if stated_last is not None and phase is Phase.RUNNING:
+        if stated_last is not None and phase is RepRapPhase.RUNNING:
             self._confirm_through(stated_last)  # true whatever line drew it
         if self._guard.is_echo(number):
             # An echo of the request being served, from a line that was in transit
             # when the first came (the resend storm).
             self.stats.ignored_resend_requests += 1
             return
-        if phase is Phase.GREETING:
+        if phase is RepRapPhase.GREETING:
             # An earlier greeting's answer, or this M110 did not take (corrupted, or
             # the board still booting): the hello timeout greets again, with new numbers.
             self.stats.ignored_resend_requests += 1
@@ -710,7 +712,7 @@ class RepRapDialect:
         self._guard.echoes = 0
         self._confirm_through(accepted_through)
         self._history.cursor = accepted_through + 1
-        if self._phase is Phase.GREETING:
+        if self._phase is RepRapPhase.GREETING:
             self._finish_greeting(accepted_through)
         if copies:
             # A command probe sent more than once ran once (its first copy, taken as the
@@ -722,7 +724,7 @@ class RepRapDialect:
             self._owed_refusals = (probe.number + 1, copies)
 
     def _finish_greeting(self, accepted_through: int) -> None:
-        self._phase = Phase.RUNNING
+        self._phase = RepRapPhase.RUNNING
         self._acked_through = accepted_through
         if not self._greeted:
             self._greeted = True
@@ -776,7 +778,7 @@ class RepRapDialect:
 
     def _send_gap_line(self, now: float) -> None:
         """``N<k+2> M105``, valid but for the number: a consistent controller asks for k+1."""
-        self._phase = Phase.GAP_CHECK
+        self._phase = RepRapPhase.GAP_CHECK
         number = self._history.next_number + 1
         self._push(Transmission(None, frame(number, PROBE_COMMAND), now, number))
 
@@ -799,7 +801,7 @@ class RepRapDialect:
                 self._finish_greeting(expected - 1)
             return
         self._check_at_greeting = False  # once per connection
-        self._phase = Phase.PROBE_CHECK
+        self._phase = RepRapPhase.PROBE_CHECK
         self._push(Transmission(None, _ping_wire(number), now, number))
         self.stats.pings += 1
 
@@ -867,7 +869,7 @@ class RepRapDialect:
         self._restart_greeting()
 
     def _restart_greeting(self) -> None:
-        self._phase = Phase.GREETING
+        self._phase = RepRapPhase.GREETING
         self._candidate = None
         self._acked_through = self._confirmed_through = self._window.read_through = -1
         self._queue_greeting()
@@ -893,7 +895,7 @@ class RepRapDialect:
         history = self._history
         if history.cursor < history.next_number:
             return history.lines[history.cursor]
-        if self._phase is Phase.GREETING or not self._pending:
+        if self._phase is RepRapPhase.GREETING or not self._pending:
             return None
         if history.next_number > self.line_number_limit:
             # Renumber only once the controller confirmed every line: no resend
@@ -915,7 +917,7 @@ class RepRapDialect:
 
     def _wants_probe(self) -> bool:
         history = self._history
-        if self._phase is Phase.GREETING:
+        if self._phase is RepRapPhase.GREETING:
             return history.cursor == history.next_number  # the reset line went out
         if self._confirmed_through == history.next_number - 1:
             return False
@@ -943,7 +945,7 @@ class RepRapDialect:
         self._push(Transmission(line, line.wire, now, line.number, retransmitted=retransmitted))
 
     def _send_probe(self, now: float) -> None:
-        if self._phase is Phase.GREETING and self._check_at_greeting:
+        if self._phase is RepRapPhase.GREETING and self._check_at_greeting:
             self._send_gap_line(now)  # its refusal confirms the M110, and starts the check
             return
         probing = self._probing
@@ -970,7 +972,7 @@ class RepRapDialect:
             # whose ok was not counted (right when that ok was lost). Never the first
             # line not confirmed: the last confirmation may be as old as the greeting,
             # whose own probe must not go out again mid-job.
-            if self._phase is Phase.GREETING or probing.attempt % 2 == 0:
+            if self._phase is RepRapPhase.GREETING or probing.attempt % 2 == 0:
                 number = history.next_number
             else:
                 number = self._acked_through + 1
@@ -1003,7 +1005,7 @@ class RepRapDialect:
         )
 
     def _fail(self, kind: FailureKind, reason: str) -> None:
-        self._phase = Phase.FAILED
+        self._phase = RepRapPhase.FAILED
         oldest = self._history.get(self._acked_through + 1)
         self._failure = DialectFailed(kind, reason, oldest.tag if oldest is not None else None)
         self._events.append(self._failure)
