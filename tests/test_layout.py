@@ -84,3 +84,57 @@ def test_no_module_imports_one_that_imports_it_back() -> None:
         graphlib.TopologicalSorter(graph).prepare()
     except graphlib.CycleError as exc:
         raise AssertionError(f"an import circle: {' -> '.join(exc.args[1])}") from None
+
+
+def _private(name: str) -> bool:
+    return name.startswith("_") and not name.startswith("__")
+
+
+# The standard library's own private names the package calls on purpose.
+LIBRARY_PRIVATES = {"os._exit"}  # a worker that must die at once, as a killed one would
+# A pytest fixture that users are not to ask for (its name says so), which the plugin's
+# module must hold for pytest to find it.
+PRIVATE_IMPORTS = {"pytest_plugin/__init__.py": {"_hyrel_session"}}
+
+
+def test_no_module_uses_another_modules_private_names() -> None:
+    """A ``_name`` belongs to its module: another module neither imports it nor reaches it
+    through an object (``job._hub``); it asks for a public name or a Protocol instead. A
+    subclass's own ``self._name`` is its base's too (the fakes' Hyrel controller, the
+    serial transport over pyserial-asyncio's)."""
+    reaches = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        tree = ast.parse(path.read_text())
+        own = (
+            {
+                node.attr
+                for node in ast.walk(tree)
+                if isinstance(node, ast.Attribute) and isinstance(node.ctx, ast.Store)
+            }
+            | {
+                node.name
+                for node in ast.walk(tree)
+                if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef | ast.ClassDef)
+            }
+            | {
+                node.id
+                for node in ast.walk(tree)
+                if isinstance(node, ast.Name) and isinstance(node.ctx, ast.Store)
+            }
+        )
+        where = path.relative_to(PACKAGE)
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("repetrel_host"):
+                allowed = PRIVATE_IMPORTS.get(str(where), set())
+                reaches += [
+                    f"{where}: imports {alias.name}"
+                    for alias in node.names
+                    if _private(alias.name) and alias.name not in allowed
+                ]
+            elif isinstance(node, ast.Attribute) and _private(node.attr):
+                if ast.unparse(node.value) in ("self", "cls", "super()"):
+                    continue
+                named = ast.unparse(node)
+                if node.attr not in own and named not in LIBRARY_PRIVATES:
+                    reaches.append(f"{where}:{node.lineno}: {named}")
+    assert reaches == [], "\n".join(reaches)

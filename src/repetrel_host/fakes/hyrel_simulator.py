@@ -41,11 +41,11 @@ from collections.abc import Callable
 from dataclasses import dataclass, fields
 
 from repetrel_host.fakes.simulator import (
-    _T_WORD,
+    T_WORD,
     ControllerSettings,
     ControllerSimulator,
     Faults,
-    _Command,
+    QueuedCommand,
 )
 from repetrel_host.gcode.commands import command_word
 from repetrel_host.protocol.hyrel import NOTICED, Control, read_line
@@ -248,7 +248,7 @@ class HyrelControllerSimulator(ControllerSimulator):
             return
         word = command_word(line.command)
         self._count_command(word, now)
-        command = _Command(line.command, word, line.number, urgent=line.urgent)
+        command = QueuedCommand(line.command, word, line.number, urgent=line.urgent)
         queue = self._queue
         if not line.urgent:
             queue.append(command)
@@ -291,7 +291,7 @@ class HyrelControllerSimulator(ControllerSimulator):
     def _holding(self) -> bool:
         return self._held
 
-    def _heater_for(self, kind: str, command: _Command, now: float) -> str | None:
+    def _heater_for(self, kind: str, command: QueuedCommand, now: float) -> str | None:
         """Hyrel's T words address heads and beds: with one head (``extruders``), every
         head address is it; with several, ``T<n>`` is head n (v5 addressing) and no T the
         active tool's. A group (T40 all devices, T41 yoke 1, T47 every head) is its first
@@ -300,14 +300,14 @@ class HyrelControllerSimulator(ControllerSimulator):
             return "C" if "C" in self.heaters else None
         if kind == "B" or self.settings.extruders == 1:
             return kind
-        match = _T_WORD.search(command.text[len(command.word) :])
+        match = T_WORD.search(command.text[len(command.word) :])
         index = int(match.group(1)) if match else self.tool
         return "T" if index == 0 or index >= self.settings.extruders else f"T{index}"
 
-    def _set_heater(self, command: _Command, now: float) -> None:
+    def _set_heater(self, command: QueuedCommand, now: float) -> None:
         """As the base does; a group address sets every head."""
         super()._set_heater(command, now)
-        match = _T_WORD.search(command.text[len(command.word) :])
+        match = T_WORD.search(command.text[len(command.word) :])
         if command.word == "M104" and match and int(match.group(1)) in ALL_HEADS:
             for index in range(1, self.settings.extruders):
                 self._set_target(f"T{index}", command.text, now)
@@ -320,7 +320,7 @@ class HyrelControllerSimulator(ControllerSimulator):
     def _ok(self, line: bytes, now: float) -> None:
         """No oks on this link."""
 
-    def _answer(self, command: _Command, now: float) -> None:
+    def _answer(self, command: QueuedCommand, now: float) -> None:
         word = command.word
         metrics = self.metrics
         if word in _MOVES:

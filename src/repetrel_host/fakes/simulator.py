@@ -36,7 +36,8 @@ _HEATERS = {
     "M140": ("B", False), "M190": ("B", True),
     "M141": ("C", False), "M191": ("C", True),
 }  # fmt: skip
-_T_WORD = re.compile(r"\bT\s*(\d+)", re.IGNORECASE)
+# A tool (T) word in a command: which head or heater it addresses.
+T_WORD = re.compile(r"\bT\s*(\d+)", re.IGNORECASE)
 AMBIENT = 21.0
 # Marlin's M115: the identity line (its EXTRUDER_COUNT filled in), then its capabilities.
 M115_REPLY = (
@@ -173,7 +174,9 @@ class LinkCounters:
 
 
 @dataclass(slots=True)
-class _Command:
+class QueuedCommand:
+    """A command the controller took, waiting for or in execution."""
+
     text: str
     word: str
     number: int | None
@@ -205,7 +208,7 @@ class ControllerSimulator:
         self._in_wire_free = now
         self._rx = bytearray()
         self._line = bytearray()  # the line being read out of the receive buffer
-        self._queue: deque[_Command] = deque()
+        self._queue: deque[QueuedCommand] = deque()
         self._planner: deque[float] = deque()  # finish time of each planned move
         self._planner_end = now
         self._busy_until = now
@@ -419,7 +422,7 @@ class ControllerSimulator:
             command = outcome.command
             word = command_word(command)
             self._count_command(word, now)
-            self._queue.append(_Command(command, word, outcome.number))
+            self._queue.append(QueuedCommand(command, word, outcome.number))
         elif isinstance(outcome, Rejected):
             self._reply(outcome.reply.removesuffix(b"ok\n"), now)
             if outcome.reply.endswith(b"ok\n") and not self.faults.resend_without_ok:
@@ -493,7 +496,7 @@ class ControllerSimulator:
         self._answer(command, now)
         return True
 
-    def _duration(self, command: _Command) -> float:
+    def _duration(self, command: QueuedCommand) -> float:
         heater = _HEATERS.get(command.word)
         if heater is not None and heater[1]:
             name = self._heater_for(heater[0], command, self._last_step)
@@ -506,7 +509,7 @@ class ControllerSimulator:
             return 0.0
         return self.settings.command_time
 
-    def _set_heater(self, command: _Command, now: float) -> None:
+    def _set_heater(self, command: QueuedCommand, now: float) -> None:
         """M104, M140 and M141 set their heater's target as they run (M109, M190 and M191
         did as they began to wait)."""
         heater = _HEATERS.get(command.word)
@@ -515,7 +518,7 @@ class ControllerSimulator:
             if name is not None:
                 self._set_target(name, command.text, now)
 
-    def _heater_for(self, kind: str, command: _Command, now: float) -> str | None:
+    def _heater_for(self, kind: str, command: QueuedCommand, now: float) -> str | None:
         """The heater a temperature command sets, as Marlin reads it: a hotend by its T word
         (else the active tool's; one it does not have is refused), the bed whatever T says,
         the chamber if there is one."""
@@ -523,14 +526,14 @@ class ControllerSimulator:
             return "C" if "C" in self.heaters else None
         if kind == "B":
             return "B"
-        match = _T_WORD.search(command.text[len(command.word) :])
+        match = T_WORD.search(command.text[len(command.word) :])
         index = int(match.group(1)) if match else self.tool
         if index >= self.settings.extruders:
             self._reply(f"echo:{command.word} Invalid extruder {index}\n".encode(), now)
             return None
         return "T" if index == 0 else f"T{index}"
 
-    def _answer(self, command: _Command, now: float) -> None:
+    def _answer(self, command: QueuedCommand, now: float) -> None:
         word = command.word
         self._set_heater(command, now)
         if word == "M105":
