@@ -43,10 +43,10 @@ from repetrel_host.session.events import (
     StopDelayed,
     Temperatures,
 )
+from repetrel_host.session.machine_state import HomeAxes
 from repetrel_host.session.print_job import PrintJob
 from repetrel_host.session.printer import Printer
 from repetrel_host.session.pump import Outcome, Summary
-from repetrel_host.session.resume import HomeAxes
 
 __version__ = "0.2.0"
 

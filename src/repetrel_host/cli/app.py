@@ -31,7 +31,7 @@ from repetrel_host.cli.exit_codes import (
 )
 from repetrel_host.cli.out import Out
 from repetrel_host.cli.remote import FarmRequest, ServerRequest, run_with_farm, run_with_server
-from repetrel_host.cli.send import SendOptions, announce_resume, send_job
+from repetrel_host.cli.send import SendOptions, announce_recovery, send_job
 from repetrel_host.cli.stop_signals import exit_code_of_stop, interrupt_on_stop_signals
 from repetrel_host.config import load_user_config
 from repetrel_host.errors import (
@@ -47,15 +47,15 @@ from repetrel_host.errors import (
 from repetrel_host.protocol.dialects.reprap import DEFAULT_REPLY_TIMEOUT
 from repetrel_host.protocol.flow import FlowMode
 from repetrel_host.session import history as print_history
+from repetrel_host.session.machine_state import HomeAxes
 from repetrel_host.session.planning import (
     PORT_ENV,
     JobRequest,
     LinkRequest,
     layer_line,
     plan_job,
-    resumed,
+    recovery_plan,
 )
-from repetrel_host.session.resume import HomeAxes
 from repetrel_host.session.settings import RECONNECT_WAIT
 
 
@@ -198,9 +198,10 @@ def send(
             metavar="L",
         ),
     ] = None,
-    resume_home: Annotated[
+    recovery_home: Annotated[
         HomeAxes,
         typer.Option(
+            "--resume-home",
             help="With --from-line/--from-layer: xy (default) homes X and Y before going "
             "back to the resume point (the safe stop turned their motors off); none: the "
             "controller still knows where they are. Z is never homed: the part is on the bed.",
@@ -288,9 +289,10 @@ def send(
     copies: Annotated[
         int, typer.Option(help="With --farm: print this many (default 1).", min=1)
     ] = 1,
-    resume: Annotated[
+    recover: Annotated[
         int | None,
         typer.Option(
+            "--resume",
             metavar="ID",
             help="With --farm: go on with farm job ID on the printer that printed it, from "
             "its first line not acknowledged (or --from-line, --from-layer).",
@@ -347,16 +349,16 @@ def send(
         if server is not None and farm:
             if printer or release:
                 raise UsageError("--printer and --release name one printer: not with --farm")
-            if resume is None and (from_line is not None or from_layer is not None):
+            if recover is None and (from_line is not None or from_layer is not None):
                 raise UsageError("with --farm, --from-line and --from-layer go with --resume ID")
             request = ServerRequest(printer, api_key, job, list_jobs, cancel, release)
             farm_request = FarmRequest(
-                require or [], priority, copies, resume, from_line, from_layer
+                require or [], priority, copies, recover, from_line, from_layer
             )
             raise typer.Exit(run_with_farm(console, server, request, farm_request))
         if server is not None and (from_line is not None or from_layer is not None):
             raise UsageError("--from-line and --from-layer resume on a port, not with --server")
-        if require or farm or priority or copies != 1 or resume is not None:
+        if require or farm or priority or copies != 1 or recover is not None:
             raise UsageError(
                 "--farm, --require, --priority, --copies and --resume go with --server URL"
             )
@@ -377,8 +379,8 @@ def send(
         if from_layer is not None:
             from_line = layer_line(job, from_layer)
         if from_line is not None:
-            plan = resumed(plan, from_line, resume_home)
-            announce_resume(errors if dry_run or check else console, plan, from_layer)
+            plan = recovery_plan(plan, from_line, recovery_home)
+            announce_recovery(errors if dry_run or check else console, plan, from_layer)
         if check or dry_run or not plan.checked_as_it_streams:
             findings = offline.check_job(plan, errors)
             if check:

@@ -66,7 +66,7 @@ from repetrel_host.session.planning import (
 from repetrel_host.session.print_job import PrintJob
 from repetrel_host.session.printer import Printer
 from repetrel_host.session.pump import Outcome
-from repetrel_host.session.resume import resume_from, resume_window
+from repetrel_host.session.recovery import recovery_from, recovery_window
 
 if TYPE_CHECKING:
     from prompt_toolkit.application import Application
@@ -559,28 +559,28 @@ class PrinterConsole:
             except SafeStopError as exc:
                 self._last_unsafe = True
                 self.say(f"{job.name}: not safe: {exc}")
-                self._resume_hint(job)
+                self._recovery_hint(job)
             except HostError as exc:
                 self.say(f"{job.name}: failed: {exc}")
-                self._resume_hint(job)
+                self._recovery_hint(job)
             else:
                 self.say(summary_text(job.name, summary, job.where()))
                 if summary.outcome is not Outcome.COMPLETED:
-                    self._resume_hint(job)
+                    self._recovery_hint(job)
         finally:
             await actions.close()
 
-    def _resume_hint(self, job: PrintJob) -> None:
+    def _recovery_hint(self, job: PrintJob) -> None:
         """The command that goes on with a job that did not complete, as hyrel-send says."""
         arguments = [str(job.plan.job.path.resolve()), "--port", self.printer.port]
         if self.options.machine:
             arguments += ["--machine", self.options.machine]
         if self.options.loadout:
             arguments += ["--loadout", str(self.options.loadout)]
-        found = resume_from(job, tuple(arguments))
+        found = recovery_from(job, tuple(arguments))
         if found is not None:
             self.say(f"to resume from the first line {found[0]}: {found[1]}")
-        window = resume_window(job, tuple(arguments))
+        window = recovery_window(job, tuple(arguments))
         if window is not None:
             self.say(window)
 

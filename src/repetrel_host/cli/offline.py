@@ -19,7 +19,7 @@ from repetrel_host.protocol.dialects import create_dialect
 from repetrel_host.session import history as print_history
 from repetrel_host.session.job import HostAction
 from repetrel_host.session.planning import JobPlan, LinkRequest, default_history_dir, link_settings
-from repetrel_host.session.resume import RESUME_SOURCE, resume_command
+from repetrel_host.session.recovery import RECOVERY_SOURCE, recovery_command
 
 _CONTROL = re.compile(r"[\x00-\x09\x0b-\x1f]")
 
@@ -59,14 +59,14 @@ def dry_run(errors: Out, plan: JobPlan, framed: bool, protocol: str | None) -> N
 def _print_commands(plan: JobPlan, framed: bool, protocol: str) -> None:
     """The commands on stdout, exactly as they would go; host actions noted on stderr."""
     pause_sync = create_dialect(protocol).pause_command  # M0 where the controller waits
-    # A resumed job's preamble is shown with why each line is there (not on the wire).
-    notes = iter(plan.resume.preamble if plan.resume is not None and not framed else [])
+    # A recovered job's preamble is shown with why each line is there (not on the wire).
+    notes = iter(plan.recovery.preamble if plan.recovery is not None and not framed else [])
 
     def commands() -> Iterator[str]:
         for item in plan.items(pause_sync=pause_sync):
             if isinstance(item, HostAction):
                 sys.stderr.write(f"{item.position}: host {item.kind}: {item.message}\n")
-            elif item.source == RESUME_SOURCE and (note := next(notes, None)) is not None:
+            elif item.source == RECOVERY_SOURCE and (note := next(notes, None)) is not None:
                 yield f"{item.command} ; {note.why}"
             else:
                 yield item.command
@@ -108,11 +108,11 @@ def history_list(console: Out, folder: Path | None, config: Path | None) -> None
         line = print_history.describe(entry.run, entry.record, entry.progress, entry.alive)
         console.print(line, markup=False)
         if entry.killed and entry.progress is not None:
-            console.print(f"  {_killed_resume(entry.progress, entry.run.stream)}", markup=False)
+            console.print(f"  {_killed_recovery(entry.progress, entry.run.stream)}", markup=False)
 
 
-def _killed_resume(progress: print_history.RunProgress, stream: Path) -> str:
-    """How a killed run resumes: from its progress record's line, uncertainly (what was
+def _killed_recovery(progress: print_history.RunProgress, stream: Path) -> str:
+    """How a killed run is recovered: from its progress record's line, uncertainly (what was
     sent after the last acknowledged line may have run, and the record may be a moment
     behind the stream)."""
     line = progress.resume_line
@@ -135,7 +135,7 @@ def _killed_resume(progress: print_history.RunProgress, stream: Path) -> str:
         where = f"print({progress.path!r}, from_line={line})" if line is not None else "again"
         return f"{what} ({uncertain}): {where}"
     if line is not None:
-        command = resume_command(progress.command, line)
+        command = recovery_command(progress.command, line)
     else:
         command = shlex.join(["hyrel-send", *progress.command])
     if progress.cwd and progress.cwd != os.getcwd():  # a job's relative path is from there

@@ -32,7 +32,7 @@ class FarmRequest:
     requires: list[str]
     priority: int
     copies: int
-    resume: int | None = None  # a farm job to go on with, on the printer that printed it
+    recover: int | None = None  # a farm job to go on with, on the printer that printed it
     from_line: int | None = None
     from_layer: int | None = None
 
@@ -57,14 +57,14 @@ def run_with_farm(console: Out, url: str, request: ServerRequest, farm: FarmRequ
         if request.job is None:
             return EXIT_OK
     events = server.events(None, "/v1/farm/events")
-    if farm.resume is not None:
+    if farm.recover is not None:
         if request.job is not None:
             raise UsageError("--resume ID goes on with the farm's own file: give no JOB")
         next(events)  # subscribed before the job exists: nothing is missed
-        answer = client.farm_resume(server, farm.resume, farm.from_line, farm.from_layer)
+        answer = client.farm_recover(server, farm.recover, farm.from_line, farm.from_layer)
         (made,) = answer["jobs"]
         show(
-            f"farm job {farm.resume}: the rest, from line {answer['from_line']}, queued as "
+            f"farm job {farm.recover}: the rest, from line {answer['from_line']}, queued as "
             f"farm job {made} for the printer that printed it"
         )
         return client.farm_follow(server, [made], events, show)

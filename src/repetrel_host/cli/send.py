@@ -2,7 +2,7 @@
 
 Opens the session, draws the progress bar and the status line, tells what the job
 tells, answers M0 pauses at the keyboard (p pauses and resumes), turns Ctrl-C into the
-safe stop, and ends with the summary, the resume hint of a job that did not complete and
+safe stop, and ends with the summary, the recovery hint of a job that did not complete and
 the controller's job report.
 """
 
@@ -62,7 +62,7 @@ from repetrel_host.session.planning import (
 from repetrel_host.session.print_job import PrintJob
 from repetrel_host.session.printer import Printer
 from repetrel_host.session.pump import Outcome, Summary
-from repetrel_host.session.resume import resume_command, resume_from, resume_window
+from repetrel_host.session.recovery import recovery_command, recovery_from, recovery_window
 
 if TYPE_CHECKING:
     from rich.progress import TaskID
@@ -89,7 +89,7 @@ class SendOptions:
     fake_log: Path | None
     force: bool
     report: bool = False
-    command_line: tuple[str, ...] = ()  # hyrel-send's arguments, for the resume hint
+    command_line: tuple[str, ...] = ()  # hyrel-send's arguments, for the recovery hint
 
 
 async def send_job(
@@ -125,14 +125,14 @@ async def send_job(
         job, estimate = await _stream(console, errors, printer, plan, user, options)
     except (LinkError, ControllerError, ProtocolError, SafeStopError):
         if printer.last_job is not None:  # the job failed: then the failure's sentence
-            _print_resume_hint(console, printer.last_job, options)
+            _print_recovery_hint(console, printer.last_job, options)
         raise
     finally:
         await printer.close()
     summary = await job.wait()
     _print_summary(console, summary, plan, job.where(), estimate)
     if summary.outcome is not Outcome.COMPLETED:
-        _print_resume_hint(console, job, options)
+        _print_recovery_hint(console, job, options)
     _print_report(console, job, options.report)
     if job.history is not None:
         console.print(f"Print history (the stream as transmitted): {job.history}", markup=False)
@@ -395,33 +395,34 @@ def _print_summary(
     console.print(f"{text}; machine profile {plan.profile.name}.", markup=False)
 
 
-def announce_resume(out: Out, plan: JobPlan, layer: int | None) -> None:
-    """Where a resumed job starts, and how many commands restore what led up to it."""
-    resume = plan.resume
-    assert resume is not None
+def announce_recovery(out: Out, plan: JobPlan, layer: int | None) -> None:
+    """Where a recovered job starts, and how many commands restore what led up to it."""
+    recovery = plan.recovery
+    assert recovery is not None
     where = f"layer {layer}, " if layer is not None else ""
     out.print(
-        f"Resuming {plan.job.name} at line {resume.line} ({where}asked: line {resume.requested}): "
-        f"{len(resume.preamble)} commands first restore what the lines before it set up.",
+        f"Resuming {plan.job.name} at line {recovery.line} "
+        f"({where}asked: line {recovery.requested}): "
+        f"{len(recovery.preamble)} commands first restore what the lines before it set up.",
         markup=False,
     )
 
 
-def _print_resume_hint(console: Out, job: PrintJob, options: SendOptions) -> None:
-    """The command that resumes a job that did not complete, where any of it ran."""
-    found = resume_from(job, options.command_line) if options.command_line else None
-    line = job.resume_line
+def _print_recovery_hint(console: Out, job: PrintJob, options: SendOptions) -> None:
+    """The command that recovers a job that did not complete, where any of it ran."""
+    found = recovery_from(job, options.command_line) if options.command_line else None
+    line = job.recovery_line
     if found is None or line is None:
         return
     console.print(f"To resume from the first line {found[0]}: {found[1]}", markup=False)
-    window = resume_window(job, options.command_line)
+    window = recovery_window(job, options.command_line)
     if window is not None:  # neither choice is sure: which repeats, which skips
         console.print(window[0].upper() + window[1:], markup=False)
     layer = scan_marks(job.plan.job.path, until_line=line).at(line).layer
     if layer is not None:
         # A reset or a lost link also loses what the controller had taken but not yet run
         # (its queue: a few moves), which the line above would skip.
-        again = resume_command(options.command_line, layer.number, "--from-layer")
+        again = recovery_command(options.command_line, layer.number, "--from-layer")
         console.print(
             "Or from the start of its layer, which after a reset prints what the controller "
             f"had queued again rather than skip it: {again}",

@@ -262,7 +262,7 @@ def farm_jobs(client: ServerClient) -> list[str]:
     return lines
 
 
-def farm_resume(
+def farm_recover(
     client: ServerClient, job_id: int, from_line: int | None, from_layer: int | None
 ) -> dict[str, Any]:
     """Queue the rest of farm job ``job_id`` for the printer that printed it."""

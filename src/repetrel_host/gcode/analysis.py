@@ -212,7 +212,7 @@ class Analysis:
 
 def analyse(path: Path, until_line: int | None = None, moves: bool = True) -> Analysis:
     """``path`` read once (:class:`OSError` when it cannot be). ``until_line``: read no
-    further than the piece holding that line (what a resume needs of a big file; a summary
+    further than the piece holding that line (what a recovery needs of a big file; a summary
     is then of that part only). ``moves=False``: the marks and offsets alone, no summary
     (about three times faster: moves are read only for their Z, where no comment says Z)."""
     with path.open("rb") as handle:
@@ -663,7 +663,7 @@ def _with_z(layer: Layer, z_changes: list[tuple[int, float]]) -> Layer:
 
 def scan_marks(path: Path, until_line: int | None = None) -> SlicerMarks:
     """The slicer's marks in ``path`` (none for an unreadable file); ``until_line``: read
-    no further than the piece holding that line (what a resume needs of a big file)."""
+    no further than the piece holding that line (what a recovery needs of a big file)."""
     try:
         return analyse(path, until_line, moves=False).marks
     except OSError:

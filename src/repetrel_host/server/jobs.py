@@ -1,5 +1,5 @@
 """A job as the API makes it: an uploaded file queued on a printer, and where a stopped
-job would resume (its line, its layer, and the command that resumes it)."""
+job would be recovered (its line, its layer, and the command that recovers it)."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from repetrel_host.server.print_server import PrintServer
 from repetrel_host.server.store import JobRecord, JobState
 from repetrel_host.server.uploads import relative
 from repetrel_host.session.planning import layer_line
-from repetrel_host.session.resume import resume_command
+from repetrel_host.session.recovery import recovery_command
 
 log = logging.getLogger("repetrel_host.server")
 
@@ -38,8 +38,8 @@ def queue(
     return record
 
 
-def resume_line(path: Path, from_layer: int | None, from_line: int | None) -> int | None:
-    """The source line a job resumed at ``from_layer`` (or ``from_line``) starts from
+def recovery_line(path: Path, from_layer: int | None, from_line: int | None) -> int | None:
+    """The source line a job recovered at ``from_layer`` (or ``from_line``) starts from
     (in a thread: it reads the file); 400 when the file has no such layer."""
     if from_layer is not None and from_line is not None:
         raise HTTPException(400, "from_layer and from_line both say where to resume: give one")
@@ -51,9 +51,9 @@ def resume_line(path: Path, from_layer: int | None, from_line: int | None) -> in
         raise HTTPException(400, str(exc)) from None
 
 
-def resume_json(server: PrintServer, record: JobRecord) -> dict[str, Any]:
-    """Where ``record``'s job would resume (in a thread): its first line not acknowledged,
-    the layer holding it, and the commands that resume it (409 when it completed, or when
+def recovery_json(server: PrintServer, record: JobRecord) -> dict[str, Any]:
+    """Where ``record``'s job would be recovered (in a thread): its first line not acknowledged,
+    the layer holding it, and the commands that recover it (409 when it completed, or when
     none of it ran: print it again)."""
     if record.state not in (JobState.FAILED, JobState.CANCELLED, JobState.INTERRUPTED):
         raise HTTPException(409, f"job {record.id} is {record.state.value}: nothing to resume")
@@ -72,8 +72,8 @@ def resume_json(server: PrintServer, record: JobRecord) -> dict[str, Any]:
         "file": file,
         "from_line": line,
         "from_layer": layer.number if layer is not None else None,
-        "command": resume_command(arguments, line),
-        "layer_command": resume_command(arguments, layer.number, "--from-layer")
+        "command": recovery_command(arguments, line),
+        "layer_command": recovery_command(arguments, layer.number, "--from-layer")
         if layer is not None
         else None,
     }

@@ -122,7 +122,7 @@ class Folder(BaseModel):
 
 
 class Queued(BaseModel):
-    """A stored file to print; resumed from a layer or line (hyrel-send's --from-layer)."""
+    """A stored file to print; recovered from a layer or line (hyrel-send's --from-layer)."""
 
     file: str  # below the uploads, as /v1/files names it
     from_layer: Annotated[int, Field(ge=1)] | None = None
@@ -190,13 +190,13 @@ def router() -> APIRouter:
 
     @router.post("/printers/{name}/queue", status_code=201)
     async def queue_file(request: Request, name: str, queued: Queued) -> dict[str, Any]:
-        """Queue a stored file (print again), or resume it from a layer or a line: the
+        """Queue a stored file (print again), or recover it from a layer or a line: the
         server's ``hyrel-send FILE --from-layer N``. Checked for this printer first."""
         server = server_of(request)
         service = server.service(name)
         path = uploads.uploaded(server, queued.file)
         from_line = await asyncio.to_thread(
-            jobs.resume_line, path, queued.from_layer, queued.from_line
+            jobs.recovery_line, path, queued.from_layer, queued.from_line
         )
         findings, commands = await asyncio.to_thread(uploads.check, server, service.name, path)
         errors = [f for f in findings if f.startswith("error")]
@@ -366,14 +366,14 @@ def router() -> APIRouter:
         return ended.as_json()
 
     @router.get("/jobs/{job_id}/resume")
-    async def resume(request: Request, job_id: JobId) -> dict[str, Any]:
-        """Where a job that did not complete would resume: the first line not acknowledged,
+    async def recovery(request: Request, job_id: JobId) -> dict[str, Any]:
+        """Where a job that did not complete would be recovered: the first line not acknowledged,
         the start of its layer, and the commands (``hyrel-send``'s, and this API's)."""
         server = server_of(request)
         record = server.store.job(job_id)
         if record is None:
             raise HTTPException(404, f"no job {job_id}")
-        return await asyncio.to_thread(jobs.resume_json, server, record)
+        return await asyncio.to_thread(jobs.recovery_json, server, record)
 
     @router.post("/jobs/{job_id}/move")
     async def move(request: Request, job_id: JobId, move: Move) -> list[dict[str, Any]]:

@@ -114,7 +114,7 @@ class JobRecord:
     # The filament it used, by tool: JSON {"tool0": {"length": mm, "volume": cm3}}; the
     # file's figures times the share of it acknowledged (an estimate for a stopped job).
     filament: str | None = None
-    from_line: int | None = None  # a resumed job: the file's line it starts from
+    from_line: int | None = None  # a recovered job: the file's line it starts from
     farm_id: int | None = None  # the farm's job this is (hyrel-server --farm)
     fence: int | None = None  # the farm claim's fencing token
     version: int = 0  # changes made to the record
@@ -273,7 +273,7 @@ class Store:
         from_line: int | None = None,
         farm: tuple[int, int] | None = None,
     ) -> JobRecord:
-        """Queue a job at the end of its printer's queue (``from_line``: resumed there;
+        """Queue a job at the end of its printer's queue (``from_line``: recovered there;
         ``farm``: the farm's job and the claim's fencing token, claimed for this printer)."""
         farm_id, fence = farm if farm is not None else (None, None)
         with self._transaction() as db:

@@ -2,7 +2,8 @@
 opened by :mod:`.connect` over a link's connection (:mod:`.connection`, with
 :mod:`.settings`), knowing what the controller is (:mod:`.identify`) and what safe stop it
 still owes (:mod:`.owed`); the commands it sends (:mod:`.commands`), the jobs it streams
-(:mod:`.print_job`, :mod:`.job`, :mod:`.planning`, :mod:`.resume`), the sans-IO pump between
-them and the dialect (:mod:`.pump`) and what the pump tells it (:mod:`.listener`), the
+(:mod:`.print_job`, :mod:`.job`, :mod:`.planning`), the machine's state along a job
+(:mod:`.machine_state`) and a stopped print's recovery (:mod:`.recovery`), the sans-IO pump
+between them and the dialect (:mod:`.pump`) and what the pump tells it (:mod:`.listener`), the
 events it tells (:mod:`.events`, handed out by :mod:`.hub`) and its record (:mod:`.history`).
 The public API is re-exported from ``repetrel_host``."""

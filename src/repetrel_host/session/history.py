@@ -7,7 +7,7 @@ outcome record ``.json`` the session writes when the job ends. While the job str
 that file holds its progress instead (:class:`RunProgress`: the process, the command line,
 the last lines acknowledged and sent), rewritten at most every :data:`PROGRESS_INTERVAL`
 and replaced by the record at the end: a run left with its progress, its process gone,
-was killed (``kill -9``, a power cut) and can be resumed from there, uncertainly. A run
+was killed (``kill -9``, a power cut) and can be recovered from there, uncertainly. A run
 with neither is one whose host stopped before its first line went.
 """
 
@@ -153,7 +153,8 @@ class RunProgress:
     lines: int  # job lines acknowledged
     where: str  # the last line the controller acknowledged (PrintJob.where())
     acknowledged: int  # the source line of the last job line acknowledged; 0: none
-    resume_line: int | None  # PrintJob.resume_line: where a resume starts
+    # PrintJob.recovery_line: where a recovery starts (the stored key keeps the user's word)
+    resume_line: int | None
     known_to_run: bool  # resume_line follows a line known to have run (Hyrel's link)
     all_sent: bool  # the job was read to its end (PrintJob.all_sent)
     sent: int  # the source line of the last job line transmitted; 0: none
@@ -269,7 +270,7 @@ class ProgressKeeper:
         lines: int,
         where: str,
         acknowledged: int,
-        resume_line: int | None,
+        recovery_line: int | None,
         known_to_run: bool,
         all_sent: bool,
         last_sent: object,
@@ -283,7 +284,7 @@ class ProgressKeeper:
         ):
             self.sent = last_sent
         sent = self.sent
-        key = (lines, acknowledged, resume_line, sent.index if sent else 0, all_sent)
+        key = (lines, acknowledged, recovery_line, sent.index if sent else 0, all_sent)
         if key == self._written:
             return
         now = datetime.now()
@@ -298,7 +299,7 @@ class ProgressKeeper:
             lines=lines,
             where=where,
             acknowledged=acknowledged,
-            resume_line=resume_line,
+            resume_line=recovery_line,
             known_to_run=known_to_run,
             all_sent=all_sent,
             sent=sent.source_line if sent is not None else 0,

@@ -150,7 +150,7 @@ class Job:
 
         ``check(line number, command)`` sees each command as read (it may raise JobError);
         ``pause_sync`` replaces :attr:`pause_sync` (``M0`` where the controller waits itself);
-        ``start``: the first source line (a resumed job: the lines before it are neither
+        ``start``: the first source line (a recovered job: the lines before it are neither
         sent, nor checked, nor their host actions done; ``index`` counts from 1 there).
         """
         index = 0

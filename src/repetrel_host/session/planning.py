@@ -34,13 +34,8 @@ from repetrel_host.protocol.flow import HYREL_WINDOW, FlowControl, FlowMode
 from repetrel_host.protocol.framing import clean_line
 from repetrel_host.protocol.reports import Firmware
 from repetrel_host.session.job import Job, JobItem, JobLine
-from repetrel_host.session.resume import (
-    RESUME_SOURCE,
-    HomeAxes,
-    MachineState,
-    ResumePoint,
-    preamble,
-)
+from repetrel_host.session.machine_state import HomeAxes, MachineState, preamble
+from repetrel_host.session.recovery import RECOVERY_SOURCE, RecoveryPoint
 
 PORT_ENV = "HYREL_PORT"
 # Jobs up to this size are checked whole before the first line goes (a fraction of a
@@ -92,7 +87,7 @@ class JobPlan:
     loadout: Loadout | None
     header: list[JobLine]
     safe_stop: list[str]
-    resume: ResumePoint | None = None  # a resumed job: where it starts, what goes first
+    recovery: RecoveryPoint | None = None  # a recovered job: where it starts, what goes first
 
     @property
     def machine(self) -> Machine | None:
@@ -101,12 +96,12 @@ class JobPlan:
     def items(
         self, check: Callable[[int, str], None] | None = None, pause_sync: str | None = None
     ) -> Iterator[JobItem]:
-        """The header, a resumed job's preamble, then the file's lines (from the resume point)."""
-        resume = self.resume
-        if resume is None:
+        """The header, a recovered job's preamble, then the file's lines (from its first line)."""
+        recovery = self.recovery
+        if recovery is None:
             return chain(self.header, self.job.items(check, pause_sync))
-        restore = [JobLine(0, 0, line.command, 0, RESUME_SOURCE) for line in resume.preamble]
-        return chain(self.header, restore, self.job.items(check, pause_sync, resume.line))
+        restore = [JobLine(0, 0, line.command, 0, RECOVERY_SOURCE) for line in recovery.preamble]
+        return chain(self.header, restore, self.job.items(check, pause_sync, recovery.line))
 
     def linter(self, streaming: bool = False) -> Linter:
         firmware, positions, loaded_tools, code_chart = self.lint_settings
@@ -191,9 +186,9 @@ def plan_job(
     return JobPlan(job, profile, loadout, header, safe_stop(machine, user, both=profile.fallback))
 
 
-def resumed(plan: JobPlan, line: int, home: HomeAxes = HomeAxes.XY) -> JobPlan:
+def recovery_plan(plan: JobPlan, line: int, home: HomeAxes = HomeAxes.XY) -> JobPlan:
     """``plan`` from source ``line`` on (the first command on it or after it), with the
-    preamble that restores what the skipped lines set up (:mod:`repetrel_host.session.resume`)."""
+    preamble that restores what the skipped lines set up (:mod:`repetrel_host.session.recovery`)."""
     if line < 1:
         raise UsageError(f"lines count from 1: there is no line {line}")
     job = plan.job
@@ -201,8 +196,8 @@ def resumed(plan: JobPlan, line: int, home: HomeAxes = HomeAxes.XY) -> JobPlan:
     start_offset = last = 0
     for number, command, _, offset in job.commands():
         if number >= line:
-            point = ResumePoint(number, line, state, preamble(state, home), start_offset)
-            return replace(plan, resume=point)
+            point = RecoveryPoint(number, line, state, preamble(state, home), start_offset)
+            return replace(plan, recovery=point)
         state.apply(number, command)
         start_offset, last = offset, number
     where = f"its last command is on line {last}" if last else "it holds none"
@@ -314,7 +309,7 @@ def replan_for_firmware(plan: JobPlan, firmware: Firmware, user: UserConfig) -> 
     if plan.profile.explicit:
         return plan
     request = JobRequest(header=bool(plan.header))
-    return replace(plan_job(plan.job.path, request, user, firmware), resume=plan.resume)
+    return replace(plan_job(plan.job.path, request, user, firmware), recovery=plan.recovery)
 
 
 def is_hyrel_firmware(identity: str) -> bool:

@@ -137,25 +137,25 @@ class PrintJob:
         return self._run.where()
 
     @property
-    def resume_line(self) -> int | None:
-        """The source line a resumed run would start from (``print(path, from_line=...)``):
+    def recovery_line(self) -> int | None:
+        """The source line a recovered run would start from (``print(path, from_line=...)``):
         the one after the last job line known to have run. On Hyrel's link, where an ACK
         says only *received*, that is what the controller's answers confirmed (what it held
         when a stop aborted counts as not run); elsewhere the last acknowledged. None when
         no job line ran, or every one did."""
-        return self._run.resume_line
+        return self._run.recovery_line
 
     @property
     def sent_through(self) -> int | None:
         """The source line of the last job line on the wire when the job ended (None while
-        it runs, or when none went): from :attr:`resume_line` to it, lines were sent and
+        it runs, or when none went): from :attr:`recovery_line` to it, lines were sent and
         not confirmed, and some may have run (a lost link takes their oks with it)."""
         sent = self._run.last_sent
         return sent.source_line if sent is not None else None
 
     @property
-    def resume_known_to_run(self) -> bool:
-        """:attr:`resume_line` follows a line known to have run (Hyrel's link), not one
+    def recovery_known_to_run(self) -> bool:
+        """:attr:`recovery_line` follows a line known to have run (Hyrel's link), not one
         acknowledged (an ok: taken to run, as its firmware took it)."""
         return self._run.acks_say_received
 
@@ -243,7 +243,7 @@ class PrintJob:
 
     def _keep_progress(self) -> None:
         """The progress in the run's record as the job streams, every PROGRESS_INTERVAL
-        (written when it moved): a killed run resumes from it (``--history-list``)."""
+        (written when it moved): a killed run is recovered from it (``--history-list``)."""
         keeper = self._keeper
         if keeper is None or self.done:
             return
@@ -253,8 +253,8 @@ class PrintJob:
             self.lines,
             self.where(),
             acknowledged,
-            self.resume_line,
-            self.resume_known_to_run,
+            self.recovery_line,
+            self.recovery_known_to_run,
             self.all_sent,
             self._session.last_sent,
         )

@@ -66,6 +66,12 @@ from repetrel_host.session.hub import EventFanout
 from repetrel_host.session.identify import FIRMWARE_TIMEOUT, Identity, hotend_count
 from repetrel_host.session.job import JobItem, JobLine
 from repetrel_host.session.listener import PumpListener
+from repetrel_host.session.machine_state import (
+    KEEPS_THE_JOB_STATE,
+    HomeAxes,
+    MachineState,
+    back_to_job,
+)
 from repetrel_host.session.owed import OwedSafeStop, delivered, unsafe_stop_error
 from repetrel_host.session.planning import (
     JobPlan,
@@ -74,7 +80,7 @@ from repetrel_host.session.planning import (
     controller_profile,
     history_file,
     plan_job,
-    resumed,
+    recovery_plan,
 )
 from repetrel_host.session.planning import safe_stop as safe_stop_for
 from repetrel_host.session.print_job import ActionHandler, PrintJob
@@ -85,7 +91,6 @@ from repetrel_host.session.pump import (
     Summary,
     failure_error,
 )
-from repetrel_host.session.resume import KEEPS_THE_JOB_STATE, HomeAxes, MachineState, back_to_job
 from repetrel_host.session.settings import SessionSettings
 
 # The session's log, as before its parts had modules of their own.
@@ -176,7 +181,7 @@ class Printer:
 
     @property
     def last_job(self) -> PrintJob | None:
-        """The job started last, streaming or ended (after a failure: its resume_line)."""
+        """The job started last, streaming or ended (after a failure: its recovery_line)."""
         return self._last_job
 
     @property
@@ -420,13 +425,13 @@ class Printer:
         *,
         header: bool = True,
         from_line: int | None = None,
-        resume_home: HomeAxes = HomeAxes.XY,
+        recovery_home: HomeAxes = HomeAxes.XY,
     ) -> JobPlan:
         """What :meth:`print` would stream for ``path``: profile, header, safe stop; with
-        ``from_line``, resumed there (the preamble first: :func:`planning.resumed`)."""
+        ``from_line``, recovered there (the preamble first: :func:`planning.recovery_plan`)."""
         request = JobRequest(self.settings.request.loadout, self.settings.request.machine, header)
         plan = plan_job(Path(path), request, self.settings.user, self.firmware)
-        return plan if from_line is None else resumed(plan, from_line, resume_home)
+        return plan if from_line is None else recovery_plan(plan, from_line, recovery_home)
 
     async def print(
         self,
@@ -453,17 +458,19 @@ class Printer:
         until :meth:`resume`. Warnings go to ``on_warning``, else to the events.
         ``report``: send ``M772 S1`` first, so that a Hyrel controller sends its M773 job
         report at M30 (:attr:`PrintJob.report`, kept beside the history).
-        ``from_line``: resume a failed print there (see :meth:`plan`; a failed job's
-        :attr:`PrintJob.resume_line` says where). ``command_line``: hyrel-send's arguments,
-        kept with the progress so that ``--history-list`` offers a killed run's resume.
+        ``from_line``: recover a failed print there (see :meth:`plan`; a failed job's
+        :attr:`PrintJob.recovery_line` says where). ``command_line``: hyrel-send's arguments,
+        kept with the progress so that ``--history-list`` offers a killed run's recovery.
         """
         if self._job is not None or self.state is State.PRINTING or self.state is State.PAUSED:
             raise UsageError("a job is already running on this printer")
         self._check_can_command()
-        # Planning (a resume reads up to its line) and the check before the first line
+        # Planning (a recovery reads up to its line) and the check before the first line
         # read the file: a thread's work, not the event loop's (every printer's stream).
         if isinstance(job, JobPlan):
-            plan = job if from_line is None else await asyncio.to_thread(resumed, job, from_line)
+            plan = (
+                job if from_line is None else await asyncio.to_thread(recovery_plan, job, from_line)
+            )
         else:
             plan = await asyncio.to_thread(
                 functools.partial(self.plan, job, header=header, from_line=from_line)
@@ -488,8 +495,8 @@ class Printer:
             if report:
                 items = chain([JobLine(0, 0, REPORT_COMMAND, 0, "report")], items)
             run = JobRun(items, plan.safe_stop, started_at=self._loop.time())
-            if plan.resume is not None:  # progress by bytes goes on from the skipped part
-                run.offset = plan.resume.start_offset
+            if plan.recovery is not None:  # progress by bytes goes on from the skipped part
+                run.offset = plan.recovery.start_offset
             print_job = PrintJob(self, self._side, plan, run, on_action, path)
             if path is not None and print_history.parse_run(path) is not None:
                 # Its progress in the run's record, written before the first line goes.
@@ -581,7 +588,7 @@ class Printer:
 
     async def _back_to_job(self, job: PrintJob) -> None:
         """Commands moved the machine during the pause (or changed its modes): back to where
-        the job stood, in its modes, before its next line (:func:`resume.back_to_job`). The
+        the job stood, in its modes, before its next line (:func:`machine_state.back_to_job`). The
         state is read from the file's lines up to the last one sent, in a thread."""
         last = job.last
         line = last.source_line if last is not None else 0
@@ -823,7 +830,7 @@ class Printer:
         opened with ``poll_while_printing``. Where the link has a status request that the
         controller answers at once, whatever it holds (Hyrel's 0x05), that; else M105,
         while no command waits: among a job's lines it is numbered as they are, but none of
-        them (the job's count and resume point never include it; a resend sends it again as
+        them (the job's count and recovery point never include it; a resend sends it again as
         itself; a stop drops it unsent)."""
         while True:
             await asyncio.sleep(interval)

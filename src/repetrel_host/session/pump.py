@@ -15,7 +15,7 @@ link can (Hyrel's), else stops feeding and lets the controller run what it has.
 
 A stop is over only once the controller confirmed its safe stop: lines of the job it
 still runs meanwhile are counted as they are acknowledged (so that the record and the
-resume point stay true), a heat wait among them is broken where the firmware can
+recovery point stay true), a heat wait among them is broken where the firmware can
 (Marlin's emergency parser: ``M108``, again for each wait), and a stop held up (by a wait
 nothing can break, or for long) is told at once, never ended as if it had gone.
 """
@@ -220,8 +220,8 @@ class JobRun:
         ]
 
     @property
-    def resume_line(self) -> int | None:
-        """The source line to resume from: the one after the last job line known to have run
+    def recovery_line(self) -> int | None:
+        """The source line to recover from: the one after the last job line known to have run
         (:attr:`ran` on Hyrel's link, else :attr:`last`); None when none did, or all did."""
         line = self.ran if self.acks_say_received else self.last
         if line is None or (self.exhausted and line.index == self.fed):

@@ -38,8 +38,8 @@ KEEPALIVE = 15.0
 MAX_COPIES = 100
 
 
-class Resume(BaseModel):
-    """Where a resumed farm job starts (neither: its first line not acknowledged)."""
+class Recovery(BaseModel):
+    """Where a recovered farm job starts (neither: its first line not acknowledged)."""
 
     from_line: int | None = Field(default=None, ge=1)
     from_layer: int | None = Field(default=None, ge=1)
@@ -66,9 +66,9 @@ async def _asked(call: Any, timeout: float = TIMEOUT) -> Any:
 
 
 def job_json(job: dict[str, Any], nodes: dict[str, dict[str, Any]], here: str) -> dict[str, Any]:
-    """A farm job as the API shows it (``here``: this node's URL, for its resume command)."""
+    """A farm job as the API shows it (``here``: this node's URL, for its recovery command)."""
     node = nodes.get(job["node"] or "")
-    resumable = job["state"] in ("interrupted", "failed", "cancelled") and job["last_line"] > 0
+    recoverable = job["state"] in ("interrupted", "failed", "cancelled") and job["last_line"] > 0
     shown = {key: value for key, value in job.items() if key not in ("fence", "refused")}
     return {
         **shown,
@@ -79,12 +79,12 @@ def job_json(job: dict[str, Any], nodes: dict[str, dict[str, Any]], here: str) -
         "fence": job["fence"],
         # Where it would go on from, on the printer that printed it (the part is on its
         # bed): the farm's command, and the node's own account (/v1/jobs/LOCAL/resume).
-        "resume_from_line": job["last_line"] + 1 if resumable else None,
+        "resume_from_line": job["last_line"] + 1 if recoverable else None,
         "resume_command": f"hyrel-send --server {here} --farm --resume {job['id']}"
-        if resumable
+        if recoverable
         else None,
         "resume_url": f"{node['url']}/v1/jobs/{job['local_id']}/resume"
-        if node and job["local_id"] and resumable
+        if node and job["local_id"] and recoverable
         else None,
     }
 
@@ -284,11 +284,13 @@ def router() -> APIRouter:
         return job_json(found, nodes, farm.settings.node_url)
 
     @router.post("/v1/farm/jobs/{job_id}/resume", status_code=201)
-    async def resume(request: Request, job_id: int, wanted: Resume | None = None) -> dict[str, Any]:
+    async def recover(
+        request: Request, job_id: int, wanted: Recovery | None = None
+    ) -> dict[str, Any]:
         """Queue the rest of a job that did not complete, for the printer that printed it:
         from its first line not acknowledged, or ``from_line``, or ``from_layer``."""
         farm = farm_of(request)
-        wanted = wanted or Resume()
+        wanted = wanted or Recovery()
         found = await _asked(farm.db.job(job_id, TIMEOUT))
         if found is None:
             raise HTTPException(404, f"the farm has no job {job_id}")
@@ -304,12 +306,12 @@ def router() -> APIRouter:
             except rh.UsageError as exc:
                 raise HTTPException(400, str(exc)) from None
         try:
-            made = await _asked(farm.db.resume(job_id, line, TIMEOUT))
+            made = await _asked(farm.db.recover(job_id, line, TIMEOUT))
         except LookupError as exc:
             raise HTTPException(404, str(exc)) from None
         except ValueError as exc:
             raise HTTPException(409, str(exc)) from None
-        log.info("farm: job %d resumed from line %d as job %d", job_id, line, made)
+        log.info("farm: job %d recovered from line %d as job %d", job_id, line, made)
         return {"jobs": [made], "resumes": job_id, "from_line": line}
 
     @router.delete("/v1/farm/jobs/{job_id}")

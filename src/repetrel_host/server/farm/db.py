@@ -377,10 +377,10 @@ class FarmDB:
                 await self._notify(db, {"kind": "job", "job": job, "state": fields["state"]})
             return row is not None
 
-    async def resume(self, job: int, from_line: int, timeout: float) -> int:
+    async def recover(self, job: int, from_line: int, timeout: float) -> int:
         """Queue the rest of an ended job from ``from_line``, for the printer that printed
         it (its part is on that bed); the new job's number. ValueError (a sentence) when
-        the job cannot be resumed."""
+        the job cannot be recovered."""
         async with self._transaction(timeout) as db:
             row = await (
                 await db.execute(

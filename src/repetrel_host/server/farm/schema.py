@@ -78,7 +78,7 @@ MIGRATIONS: list[str] = [
     CREATE INDEX jobs_queued ON jobs (priority DESC, id) WHERE state = 'queued';
     CREATE INDEX jobs_by_node ON jobs (node) WHERE state IN ('claimed', 'printing', 'paused');
     """,
-    # 2: a job resumed on the printer that printed it, from a line of its file.
+    # 2: a job recovered on the printer that printed it, from a line of its file.
     """
     ALTER TABLE jobs ADD COLUMN from_line integer;  -- the file's line it starts from
     ALTER TABLE jobs ADD COLUMN resumes bigint;     -- the job it resumes

@@ -34,7 +34,7 @@ from repetrel_host.session.job import HostAction
 from repetrel_host.session.planning import (
     JobPlan,
     JobRequest,
-    resumed,
+    recovery_plan,
 )
 
 log = logging.getLogger("repetrel_host.server")
@@ -286,9 +286,9 @@ class PrinterService:
             checked = self.checks.passed(path, plan)
             job_or_path: JobPlan | Path = path
             if checked and record.from_line is not None:
-                # Where a resumed job starts is found by reading the file up to there:
+                # Where a recovered job starts is found by reading the file up to there:
                 # a thread's work, not the event loop's (every printer's stream).
-                job_or_path = await asyncio.to_thread(resumed, plan, record.from_line)
+                job_or_path = await asyncio.to_thread(recovery_plan, plan, record.from_line)
             elif checked:
                 job_or_path = plan
             job = await printer.print(

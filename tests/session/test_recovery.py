@@ -16,15 +16,9 @@ from repetrel_host.fakes.hyrel_simulator import RX_BUFFER
 from repetrel_host.gcode.analysis import scan_marks
 from repetrel_host.protocol.dialects.hyrel import SYNC_EVERY
 from repetrel_host.session.job import Job, JobLine
-from repetrel_host.session.planning import JobRequest, plan_job, resumed
-from repetrel_host.session.resume import (
-    HomeAxes,
-    MachineState,
-    back_to_job,
-    preamble,
-    resume_command,
-    track,
-)
+from repetrel_host.session.machine_state import HomeAxes, MachineState, back_to_job, preamble, track
+from repetrel_host.session.planning import JobRequest, plan_job, recovery_plan
+from repetrel_host.session.recovery import recovery_command
 from tests.support.helpers import (
     CONE,
     MARLIN_SAFE_STOP,
@@ -166,8 +160,8 @@ def test_a_resumed_plan_sends_the_preamble_then_the_file_from_the_line(tmp_path:
     job = tmp_path / "job.gcode"
     job.write_text("M104 S200\nG1 Z1 F600\n; a comment\n\nM0 ; a pause skipped\nG1 X1\nG1 X2\n")
     plan = plan_job(job, JobRequest(), load_user_config(None))
-    resumed_plan = resumed(plan, 3)  # a comment: the next command is the start
-    assert resumed_plan.resume is not None and resumed_plan.resume.line == 5
+    resumed_plan = recovery_plan(plan, 3)  # a comment: the next command is the start
+    assert resumed_plan.recovery is not None and resumed_plan.recovery.line == 5
     items = list(resumed_plan.items())
     preamble_lines = [i for i in items if isinstance(i, JobLine) and i.source == "resume"]
     assert [i.command for i in preamble_lines][:2] == ["M104 S200", "M109 S200"]
@@ -180,11 +174,11 @@ def test_a_resumed_plan_sends_the_preamble_then_the_file_from_the_line(tmp_path:
     ]
     first = rest[0]
     assert isinstance(first, JobLine) and first.index == 1
-    assert resumed_plan.resume.start_offset == len("M104 S200\nG1 Z1 F600\n")
+    assert resumed_plan.recovery.start_offset == len("M104 S200\nG1 Z1 F600\n")
     with pytest.raises(UsageError, match="no command on line 8 or after it"):
-        resumed(plan, 8)
+        recovery_plan(plan, 8)
     with pytest.raises(UsageError, match="lines count from 1"):
-        resumed(plan, 0)
+        recovery_plan(plan, 0)
 
 
 # --- hyrel-send ---------------------------------------------------------------------------
@@ -400,7 +394,7 @@ def test_no_hint_when_nothing_of_the_job_was_acknowledged(tmp_path: Path) -> Non
 
 def test_the_hint_replaces_an_earlier_resume_point() -> None:
     arguments = ("my part.gcode", "--from-layer", "3", "--port", "/dev/ttyUSB0", "--from-line=9")
-    assert resume_command(arguments, 1234) == (
+    assert recovery_command(arguments, 1234) == (
         "hyrel-send 'my part.gcode' --port /dev/ttyUSB0 --from-line 1234"
     )
 

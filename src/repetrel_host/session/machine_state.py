@@ -1,13 +1,14 @@
-"""Resuming a failed print from a source line: the machine's state where the job stood,
-and the preamble that restores it before the file goes on.
+"""The machine's state where a job stood, read from its commands, and the lines that restore
+it: the preamble of a print recovered from a source line (:mod:`.recovery`), and the way back
+after commands moved the machine during a pause (:func:`back_to_job`).
 
-The state is read from the commands of the part of the file that is skipped, as OctoPrint's
-resume plug-ins do (OctoPrint-SkipTo keeps the skipped part's temperature and set-up commands
-and drops its moves; OctoPrint-PowerFailure rebuilds the set-up from the lines known to have
-printed). The preamble restores it in the order of Marlin's power-loss recovery
-(``PrintJobRecovery::resume()`` in MarlinFirmware/Marlin, Marlin/src/feature/powerloss.cpp,
-which ``M1000`` runs), which is also what OctoPrint's "before print job is resumed" script and
-Cura's PauseAtHeight do after their pause:
+For a recovery the state is read from the commands of the part of the file that is skipped,
+as OctoPrint's recovery plug-ins do (OctoPrint-SkipTo keeps the skipped part's temperature
+and set-up commands and drops its moves; OctoPrint-PowerFailure rebuilds the set-up from
+the lines known to have printed). The preamble restores it in the order of Marlin's
+power-loss recovery (``PrintJobRecovery::resume()`` in MarlinFirmware/Marlin,
+Marlin/src/feature/powerloss.cpp, which ``M1000`` runs), which is also what OctoPrint's
+"before print job is resumed" script and Cura's PauseAtHeight do after their pause:
 
 1. the heaters: every target set first (they heat together), then the waits (Marlin waits for
    the chamber, the bed, then the hotends before anything moves);
@@ -16,7 +17,7 @@ Cura's PauseAtHeight do after their pause:
    turned the motors off, so X and Y may have been pushed); Z is never homed, the part is on
    the bed, and the controller is trusted to know Z (the lead screws hold it);
 4. the tool (Marlin's ``T<e> S``), the flow and speed factors, the fans that were on;
-5. back over the resume point's X and Y, down to its Z, then ``G92 E`` (Marlin's ``G92.9 E``),
+5. back over the recovery point's X and Y, down to its Z, then ``G92 E`` (Marlin's ``G92.9 E``),
    the file's positioning and extrusion modes, and its feed rate last (Marlin's ``G1 F``).
 
 Not restored: a ``G92`` of X, Y or Z in the skipped part (a shifted coordinate system cannot
@@ -29,15 +30,12 @@ Pure: it reads the commands it is given and builds lines; nothing here touches a
 from __future__ import annotations
 
 import re
-import shlex
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from enum import StrEnum
-from typing import Protocol
 
 from repetrel_host.gcode.commands import command_word
 
-RESUME_SOURCE = "resume"  # JobLine.source of the preamble's lines
 LIFT = 10.0  # mm above the highest Z of the skipped part (the safe stop lifts 10 mm too)
 Z_FEED = 600.0  # mm/min for the Z moves, XY_FEED for the XY one (Marlin's recovery's)
 XY_FEED = 3000.0
@@ -72,7 +70,7 @@ _REPLAYED = {
 
 
 class HomeAxes(StrEnum):
-    """What the preamble homes before it goes back to the resume point."""
+    """What the preamble homes before it goes back to where the job stood."""
 
     XY = "xy"  # X and Y (default): their motors were off, the part stays on the bed
     NONE = "none"  # nothing: the controller still knows where X and Y are
@@ -216,18 +214,6 @@ class PreambleLine:
     why: str
 
 
-@dataclass(frozen=True)
-class ResumePoint:
-    """Where a resumed job starts: its first source line, the preamble that goes first, and
-    the byte offset the file's progress starts from."""
-
-    line: int  # the first command's source line
-    requested: int  # the line asked for (the first command is on it or after it)
-    state: MachineState
-    preamble: list[PreambleLine]
-    start_offset: int  # bytes of the file skipped (up to the end of the last skipped command)
-
-
 def track(commands: Iterable[tuple[int, str]]) -> MachineState:
     """The state the ``(source line, command)`` pairs leave the machine in."""
     state = MachineState()
@@ -310,7 +296,7 @@ def back_to_job(
     extruder position, its positioning and extrusion modes and its feed rate, so that its
     next line means what the file meant (as Marlin comes back from M125's park). With
     ``motors_off`` (M84 or M18 was sent: X and Y may have been pushed by hand), Z is raised
-    clear of the part and X and Y homed first, as a resumed job's preamble does."""
+    clear of the part and X and Y homed first, as a recovered job's preamble does."""
     scale = MM_PER_INCH if state.inches else 1.0
     lines = [PreambleLine("G90", "absolute positioning for the moves back")]
     add = lines.append
@@ -356,58 +342,3 @@ def _n(value: float) -> str:
     """A number as G-code writes it: no exponent, no trailing zeros."""
     text = f"{value:.4f}".rstrip("0").rstrip(".")
     return "0" if text in ("", "-0") else text
-
-
-class EndedJob(Protocol):
-    """What a job that did not complete says of where it stopped (the session's
-    :class:`~repetrel_host.session.print_job.PrintJob`)."""
-
-    @property
-    def resume_line(self) -> int | None: ...
-
-    @property
-    def resume_known_to_run(self) -> bool: ...
-
-    @property
-    def sent_through(self) -> int | None: ...
-
-
-def resume_from(job: EndedJob, arguments: tuple[str, ...]) -> tuple[str, str] | None:
-    """Where a job that did not complete goes on, as hyrel-send and the console say it:
-    which first line (``not acknowledged``, or ``not known to have run``) and the command
-    from it; None where none of it ran."""
-    line = job.resume_line
-    if line is None:
-        return None
-    after = "not known to have run" if job.resume_known_to_run else "not acknowledged"
-    return after, resume_command(arguments, line)
-
-
-def resume_window(job: EndedJob, arguments: tuple[str, ...]) -> str | None:
-    """After :func:`resume_from`'s line, what is not sure: lines sent and not confirmed when
-    the job ended (a lost link takes their oks with it), some of which may have run; the
-    sentence says which command repeats them and which skips them. None when none were."""
-    line, sent = job.resume_line, job.sent_through
-    if line is None or sent is None or sent < line:
-        return None
-    skip = resume_command(arguments, sent + 1)
-    return (
-        f"lines {line} to {sent} were sent and not confirmed: some may have run. Resuming "
-        f"from line {line} runs them again (any that ran, twice); this skips them (any that "
-        f"did not run, never): {skip}"
-    )
-
-
-def resume_command(arguments: tuple[str, ...], line: int, option: str = "--from-line") -> str:
-    """hyrel-send's command line with ``--from-line line`` (or ``option``) in place of any
-    earlier resume."""
-    kept: list[str] = []
-    skip = False
-    for argument in arguments:
-        if skip:
-            skip = False
-        elif argument in ("--from-line", "--from-layer"):
-            skip = True  # and its value
-        elif not argument.startswith(("--from-line=", "--from-layer=")):
-            kept.append(argument)
-    return shlex.join(["hyrel-send", *kept, option, str(line)])
