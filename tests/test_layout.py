@@ -138,3 +138,15 @@ def test_no_module_uses_another_modules_private_names() -> None:
                 if node.attr not in own and named not in LIBRARY_PRIVATES:
                     reaches.append(f"{where}:{node.lineno}: {named}")
     assert reaches == [], "\n".join(reaches)
+
+
+def test_no_two_classes_of_the_package_share_a_name() -> None:
+    """A class name says which thing it is, wherever a reader meets it (in a traceback, a
+    log, an OpenAPI schema): two rooms never use one name for two classes."""
+    where: dict[str, list[str]] = {}
+    for path in sorted(PACKAGE.rglob("*.py")):
+        for node in ast.parse(path.read_text()).body:
+            if isinstance(node, ast.ClassDef):
+                where.setdefault(node.name, []).append(str(path.relative_to(PACKAGE)))
+    shared = {name: paths for name, paths in where.items() if len(paths) > 1}
+    assert shared == {}, shared

@@ -109,7 +109,9 @@ class Move(BaseModel):
     before: Annotated[int, Field(ge=1, le=MAX_ID)] | None = None  # a queued job; None: the end
 
 
-class Command(BaseModel):
+class GcodeCommand(BaseModel):
+    """A line of G-code to send to a printer: ``{"command": "G28"}``."""
+
     command: str
 
 
@@ -438,7 +440,7 @@ def router() -> APIRouter:
         return {"file": path.name, "url": service.url(path)}
 
     @router.post("/printers/{name}/command")
-    async def command(request: Request, name: str, body: Command) -> dict[str, Any]:
+    async def command(request: Request, name: str, body: GcodeCommand) -> dict[str, Any]:
         reply = await answered(server_of(request).service(name).command(body.command))
         return {
             "command": reply.command,

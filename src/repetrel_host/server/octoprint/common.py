@@ -17,7 +17,7 @@ _TRUE = ("true", "1", "yes", "y")
 NOT_OPERATIONAL = "Printer is not operational"
 
 
-class Command(BaseModel):
+class OctoPrintCommand(BaseModel):
     """OctoPrint's command bodies: ``{"command": ..., ...}`` with the command's fields."""
 
     model_config = {"extra": "allow"}

@@ -9,7 +9,7 @@ from fastapi import APIRouter, HTTPException
 from fastapi.responses import Response
 
 from repetrel_host.server.octoprint import model
-from repetrel_host.server.octoprint.common import Command, Printer
+from repetrel_host.server.octoprint.common import OctoPrintCommand, Printer
 from repetrel_host.server.octoprint.printer_profiles import profile_of
 from repetrel_host.server.print_server import answered
 
@@ -42,7 +42,7 @@ def router() -> APIRouter:
         }
 
     @router.post("/connection", status_code=204)
-    async def connection_command(service: Printer, body: Command) -> Response:
+    async def connection_command(service: Printer, body: OctoPrintCommand) -> Response:
         if body.command == "connect":
             service.connect()
         elif body.command == "disconnect":

@@ -18,7 +18,7 @@ from repetrel_host.server import jobs, uploads
 from repetrel_host.server.analyses import stamp
 from repetrel_host.server.auth import user_of
 from repetrel_host.server.octoprint import model
-from repetrel_host.server.octoprint.common import Command, Printer, is_true, operational
+from repetrel_host.server.octoprint.common import OctoPrintCommand, Printer, is_true, operational
 from repetrel_host.server.print_server import PrintServer, server_of
 from repetrel_host.server.uploads import G_CODE_SUFFIXES
 
@@ -269,7 +269,7 @@ def router() -> APIRouter:
 
     @router.post("/files/local/{location:path}")
     async def file_command(
-        request: Request, service: Printer, location: str, body: Command
+        request: Request, service: Printer, location: str, body: OctoPrintCommand
     ) -> Response:
         server = server_of(request)
         if body.command in ("copy", "move"):

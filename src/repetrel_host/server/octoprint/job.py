@@ -12,7 +12,7 @@ from fastapi.responses import Response
 from repetrel_host.server import jobs, uploads
 from repetrel_host.server.auth import user_of
 from repetrel_host.server.octoprint import model
-from repetrel_host.server.octoprint.common import Command, Printer, operational
+from repetrel_host.server.octoprint.common import OctoPrintCommand, Printer, operational
 from repetrel_host.server.print_server import PrintServer, answered, server_of
 from repetrel_host.server.printers.service import PrinterService
 
@@ -34,7 +34,7 @@ def router() -> APIRouter:
         return answer
 
     @router.post("/job", status_code=204)
-    async def job_command(request: Request, service: Printer, body: Command) -> Response:
+    async def job_command(request: Request, service: Printer, body: OctoPrintCommand) -> Response:
         server = server_of(request)
         text = operational(service)
         active = text not in ("Operational", model.HELD_TEXT)

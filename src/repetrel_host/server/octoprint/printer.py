@@ -12,7 +12,7 @@ from fastapi.responses import Response
 from pydantic import BaseModel
 
 from repetrel_host.server.octoprint import model
-from repetrel_host.server.octoprint.common import Command, Printer, is_true, operational
+from repetrel_host.server.octoprint.common import OctoPrintCommand, Printer, is_true, operational
 from repetrel_host.server.octoprint.printer_profiles import AXIS_SPEEDS
 from repetrel_host.server.print_server import answered
 from repetrel_host.server.printers.service import PrinterService
@@ -102,7 +102,7 @@ def router() -> APIRouter:
         return _temperature(service, is_true(history), limit, lambda key: key.startswith("tool"))
 
     @router.post("/printer/tool", status_code=204)
-    async def tool_command(service: Printer, body: Command) -> Response:
+    async def tool_command(service: Printer, body: OctoPrintCommand) -> Response:
         operational(service)
         commands: list[str] = []
         if body.command == "target":
@@ -149,7 +149,7 @@ def router() -> APIRouter:
     _heater_routes(router, "chamber", "M141")
 
     @router.post("/printer/printhead", status_code=204)
-    async def printhead_command(service: Printer, body: Command) -> Response:
+    async def printhead_command(service: Printer, body: OctoPrintCommand) -> Response:
         commands: list[str] = []
         if body.command == "jog":
             jogged = {
@@ -232,11 +232,11 @@ def _heater_routes(router: APIRouter, key: str, code: str) -> None:
         return _temperature(service, is_true(history), limit, lambda name: name == key)
 
     @router.post(f"/printer/{key}", status_code=204)
-    async def heater_command(service: Printer, body: Command) -> Response:
+    async def heater_command(service: Printer, body: OctoPrintCommand) -> Response:
         return await _heater(service, body, key, code)
 
 
-async def _heater(service: PrinterService, body: Command, key: str, code: str) -> Response:
+async def _heater(service: PrinterService, body: OctoPrintCommand, key: str, code: str) -> Response:
     operational(service)
     if body.command == "target":
         degrees = _number(body.get("target"), "target")
