@@ -27,7 +27,7 @@ from collections import deque
 from collections.abc import AsyncIterator, Callable, Coroutine, Iterable
 from itertools import chain
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any
 
 from repetrel_host.errors import (
     ControllerError,
@@ -92,6 +92,7 @@ from repetrel_host.session.pump import (
     failure_error,
 )
 from repetrel_host.session.settings import SessionSettings
+from repetrel_host.session.wire import Wire
 
 # The session's log, as before its parts had modules of their own.
 log = logging.getLogger("repetrel_host.session.printer")
@@ -128,12 +129,9 @@ class Printer:
         self._identity = Identity()  # who the controller said it is (its firmware)
         self.probe: ProbeKind | None = None
         self.temperatures: dict[str, tuple[float, float | None]] = {}
-        self._connection: LinkConnection | None = None
-        self._pump: Pump | None = None
+        self._wire = Wire(self._loop)
         self._side = _SessionSide(self)
         self._listener = PumpListener(self._side)
-        self._timer: asyncio.TimerHandle | None = None
-        self._timer_at: float | None = None
         self._ready: asyncio.Future[ProbeKind] | None = None
         self._commands: deque[PendingCommand] = deque()
         self._lock = asyncio.Lock()
@@ -142,7 +140,6 @@ class Printer:
         # The words of the commands sent during the job's pause that may have moved the
         # machine or changed a mode (jog, home, extrude, T...): resume() comes back first.
         self._paused_words: set[str] = set()
-        self._wire_log: BinaryIO | None = None
         self._hub: EventFanout[PrinterEvent] = EventFanout()
         self._state_waiters: list[tuple[Callable[[], bool], asyncio.Future[None]]] = []
         self._tasks: set[asyncio.Task[Any]] = set()
@@ -152,17 +149,11 @@ class Printer:
         self._autoreport = False  # the controller reports temperatures itself (M155 took)
         self._autoreport_asked: asyncio.Future[Reply] | None = None  # this connection's M155
         self._closing = False
-        self._last_data_at = 0.0
         # The safe stop still owed (a failed job's, or from before this session), and the
         # job that waits for it to go (after a reconnect) before it ends.
         self._owed = OwedSafeStop()
         self._heaters = HeaterLog()  # every heater the session's commands set
-        self._wire_taps: list[Callable[[bool, bytes], None]] = []
         self._line_taps: list[Callable[[str, bool], None]] = []
-        # The wire's latest pieces, (sent, data), while a log reads them now and then (the
-        # push socket's terminal): one append a write or read, nothing more, and nothing at
-        # all while it is None. Bounded: a reader that falls behind loses the oldest.
-        self.wire_tail: deque[tuple[bool, bytes]] | None = None
         self._watchers: list[Callable[[], None]] = []
 
     @property
@@ -243,8 +234,8 @@ class Printer:
         Hyrel's link), not the caller's nor a job's. Returns what removes the tap. For
         tests that read what the controller ran (a fake's log) without the host's lines."""
         self._line_taps.append(callback)
-        if self._pump is not None:
-            self._pump.dialect.on_first_send = self._first_send
+        if self._wire.pump is not None:
+            self._wire.pump.dialect.on_first_send = self._first_send
         return lambda: self._line_taps.remove(callback)
 
     def _first_send(self, command: str, tag: object, own: bool) -> None:
@@ -255,8 +246,18 @@ class Printer:
     def tap_wire(self, callback: Callable[[bool, bytes], None]) -> Callable[[], None]:
         """Call ``callback(sent, data)`` with every piece of data written (``sent``) or
         received, as it goes; returns what removes the tap. For logs and test reports."""
-        self._wire_taps.append(callback)
-        return lambda: self._wire_taps.remove(callback)
+        self._wire.taps.append(callback)
+        return lambda: self._wire.taps.remove(callback)
+
+    @property
+    def wire_tail(self) -> deque[tuple[bool, bytes]] | None:
+        """The wire's latest pieces, ``(sent, data)``, while a reader sets a bounded deque
+        here and takes it now and then (the push socket's terminal); None: none kept."""
+        return self._wire.tail
+
+    @wire_tail.setter
+    def wire_tail(self, tail: deque[tuple[bool, bytes]] | None) -> None:
+        self._wire.tail = tail
 
     def watch(self, callback: Callable[[], None]) -> Callable[[], None]:
         """Call ``callback()`` whenever the state changes or the job's phase does (read to
@@ -273,7 +274,7 @@ class Printer:
     @property
     def link_stats(self) -> Statistics | None:
         """The link's counts (lines sent, resends asked for...), or None while unlinked."""
-        pump = self._pump
+        pump = self._wire.pump
         return pump.dialect.stats if pump is not None else None
 
     # --- commands ---------------------------------------------------------------
@@ -288,7 +289,7 @@ class Printer:
             self.emergency_stop()
             return Reply(command, [], "")
         if word == "M108":
-            if self._pump is not None and self._pump.controller_holds:
+            if self._wire.pump is not None and self._wire.pump.controller_holds:
                 # On Hyrel's link it is end-wait, which would end the hold behind the
                 # session's back (and the later resume() a heat-up's wait).
                 raise UsageError("the job is paused: resume() ends the pause, not M108")
@@ -307,13 +308,13 @@ class Printer:
         return await asyncio.wait_for(asyncio.shield(pending.future), timeout)
 
     def _send_command(self, command: str, own: bool = False) -> PendingCommand:
-        pump = self._pump
+        pump = self._wire.pump
         if pump is None:
             raise LinkError(f"{self.port} is not connected")
         pending = PendingCommand(command, self._loop.create_future(), own)
         self._commands.append(pending)
         pump.command(command, pending)
-        self._drive_pump()
+        self._wire.drive()
         return pending
 
     def _take_identity_line(self, text: str) -> None:
@@ -328,13 +329,13 @@ class Printer:
         self._use_firmware()
         # Its M155, if it has one, also when it said who it is only once a job was under
         # way: after this dispatch (not inside it), on this connection only.
-        self._loop.call_soon(self._late_autoreport, self._pump)
+        self._loop.call_soon(self._late_autoreport, self._wire.pump)
         if late:
             self._hub.publish(Notice(f"the controller said who it is: {found.name}"))
 
     def _use_firmware(self) -> None:
         """What the pump takes from the firmware: its hotends, whether M108 ends a wait."""
-        pump, firmware = self._pump, self.firmware
+        pump, firmware = self._wire.pump, self.firmware
         if pump is not None:
             pump.hotends = hotend_count(firmware)
             pump.breaks_waits = (
@@ -354,7 +355,7 @@ class Printer:
             or not interval
             or firmware is None
             or not firmware.can("AUTOREPORT_TEMP")
-            or self._pump is None
+            or self._wire.pump is None
         ):
             return self._autoreport_asked
         pending = self._send_command(f"M155 S{max(1, math.ceil(interval))}", own=True)
@@ -363,7 +364,7 @@ class Printer:
         return pending.future
 
     def _late_autoreport(self, pump: Pump | None) -> None:
-        if pump is not None and pump is self._pump:
+        if pump is not None and pump is self._wire.pump:
             self._ask_autoreport()
 
     def _autoreporting(self, future: asyncio.Future[Reply]) -> None:
@@ -386,7 +387,8 @@ class Printer:
             )
         if state is not State.READY and state is not State.PAUSED:
             raise LinkError(f"{self.port} is not connected (the session is {state.value})")
-        if state is State.PAUSED and self._pump is not None and self._pump.controller_holds:
+        pump = self._wire.pump
+        if state is State.PAUSED and pump is not None and pump.controller_holds:
             raise UsageError(
                 "the controller holds the paused job's lines (Hyrel's link): a command "
                 "would wait behind them; it can go after resume() or cancel()"
@@ -398,24 +400,24 @@ class Printer:
         return [pending.command for pending in self._commands]
 
     def _urgent(self, command: str) -> None:
-        pump = self._pump
+        pump = self._wire.pump
         if pump is None:
             raise LinkError(f"{self.port} is not connected")
         pump.dialect.send_urgent(command_word(command))  # as emergency parsers read it
-        self._drive_pump()
+        self._wire.drive()
 
     def emergency_stop(self) -> None:
         """M112 at once, unnumbered: the controller halts (its heaters off) until reset; a
         job ends with a ControllerError, and no safe stop is owed."""
         self._urgent("M112")
         self._owed.forgive()  # the controller halted: its heaters are off
-        if self._pump is not None:
+        if self._wire.pump is not None:
             error = ControllerError(
                 "stopped by an emergency stop (M112): the controller halted (heaters off) "
                 "and needs a reset"
             )
-            self._pump.emergency_stop(self._loop.time(), error)
-            self._drive_pump()
+            self._wire.pump.emergency_stop(self._loop.time(), error)
+            self._wire.drive()
 
     # --- jobs -------------------------------------------------------------------
 
@@ -488,7 +490,7 @@ class Printer:
             if self._job is not None:  # another print() got here first
                 raise UsageError("a job is already running on this printer")
             self._check_can_command()
-            pump = self._pump
+            pump = self._wire.pump
             assert pump is not None
             path = self._open_history(plan, history)
             items: Iterable[JobItem] = plan.items(checker, pump.dialect.pause_command)
@@ -514,7 +516,7 @@ class Printer:
             self._paused_words.clear()  # an earlier job's pause is not this one's
             pump.begin(run)
             self._set_state(State.PRINTING, plan.job.name)
-            self._drive_pump()
+            self._wire.drive()
         if path is not None and print_history.parse_run(path) is not None:
             self._prune_history(path)  # a history folder's: never a folder of other files
         return print_job
@@ -545,9 +547,9 @@ class Printer:
             path = Path(history)
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
-            # Unbuffered: what is written reaches the OS at once (_write), so that a killed
+            # Unbuffered: what is written reaches the OS at once (Wire.write), so that a killed
             # host leaves every byte the port got in the stream.
-            self._wire_log = path.open("wb", buffering=0)
+            self._wire.log = path.open("wb", buffering=0)
         except OSError as exc:
             raise JobError(f"cannot write the print history {path}: {exc.strerror}") from None
         return path
@@ -561,9 +563,9 @@ class Printer:
             raise UsageError("no job is printing")
         if self.state is State.PAUSED:
             return
-        if self._pump is not None:
-            self._pump.pause(at_layer_end)
-            self._drive_pump()
+        if self._wire.pump is not None:
+            self._wire.pump.pause(at_layer_end)
+            self._wire.drive()
         await self._until(lambda: self.state is not State.PRINTING or job.done)
         if self.state not in (State.PAUSED,):  # (a tuple: the await changed it)
             raise UsageError(f"{job.name} ended before the pause could hold it")
@@ -582,9 +584,9 @@ class Printer:
         if job.m0 is not None:
             m0, job.m0 = job.m0, None
             m0.set_result(None)
-        elif self._pump is not None:
-            self._pump.resume()
-            self._drive_pump()
+        elif self._wire.pump is not None:
+            self._wire.pump.resume()
+            self._wire.drive()
 
     async def _back_to_job(self, job: PrintJob) -> None:
         """Commands moved the machine during the pause (or changed its modes): back to where
@@ -614,14 +616,14 @@ class Printer:
         if self._owed.waits_for(job):
             self._give_up_owed("given up before the controller answered again")
             return True
-        if job is not self._job or self._pump is None:
+        if job is not self._job or self._wire.pump is None:
             return False
         job.drop_m0()
         if self.state is State.PAUSED:
             self._set_state(State.PRINTING, "stopping")
-        abandoned = self._pump.stop(self._loop.time(), error)
+        abandoned = self._wire.pump.stop(self._loop.time(), error)
         self._changed()  # stopping
-        self._drive_pump()
+        self._wire.drive()
         return abandoned
 
     # --- opening, greeting, reconnecting -------------------------------------
@@ -631,7 +633,7 @@ class Printer:
         self._set_state(State.CONNECTING, f"opening {self.port}")
         self._ready = self._loop.create_future()
         await self.link.open(
-            lambda: LinkConnection(self._connection_opened, self._received, self._lost)
+            lambda: LinkConnection(self._connection_opened, self._wire.received, self._lost)
         )
         await self._greet()
 
@@ -646,7 +648,7 @@ class Printer:
             # next connection's replies must not be taken for theirs).
             error = exc if isinstance(exc, HostError) else LinkError("the greeting stopped")
             self._end_connection(error)
-            self._drop_connection()
+            self._wire.drop_connection()
             raise
         await self._send_owed_safe_stop()
         self._set_state(State.READY, "greeted")
@@ -741,7 +743,7 @@ class Printer:
             if connection.transport is not None:
                 connection.transport.close()
             return
-        self._connection = connection
+        self._wire.connection = connection
         if self._clear_for_safe_stop():
             self._spawn(self._start_pump_when_quiet())
         else:
@@ -754,7 +756,7 @@ class Printer:
         if not self._owed.any:
             return False
         self._tell_owing(Notice("a safe stop is owed: ending what the controller holds first"))
-        self._write(release_bytes(self.settings.protocol))
+        self._wire.write(release_bytes(self.settings.protocol))
         return True
 
     async def _until_quiet(self) -> None:
@@ -762,15 +764,15 @@ class Printer:
         answers to what went before must not be taken for the greeting's."""
         quiet_since = self._loop.time()
         while self._loop.time() - quiet_since < QUIET_MAX:
-            wait = self._last_data_at + QUIET - self._loop.time()
+            wait = self._wire.last_data_at + QUIET - self._loop.time()
             if wait <= 0:
                 break
             await asyncio.sleep(wait)
 
     async def _start_pump_when_quiet(self) -> None:
-        self._last_data_at = self._loop.time()
+        self._wire.last_data_at = self._loop.time()
         await self._until_quiet()
-        if self._connection is not None and not self._closing and self._pump is None:
+        if self._wire.connection is not None and not self._closing and self._wire.pump is None:
             self._start_pump()
 
     def _start_pump(self) -> None:
@@ -783,23 +785,21 @@ class Printer:
         )
         if self._line_taps:
             dialect.on_first_send = self._first_send
-        self._pump = Pump(dialect, self._listener, self._heaters)
-        self._write(self._pump.start(self._loop.time()))
-        self._arm_timer(self._pump.deadline)
+        self._wire.start(Pump(dialect, self._listener, self._heaters))
 
     async def _regreet(self, reason: str) -> None:
         """Greet again on the same port (after a reset, or a failure)."""
-        if self._connection is None or self._closing:
+        if self._wire.connection is None or self._closing:
             return
         self._set_state(State.CONNECTING, reason)
         # Late answers to what went before must not be taken for the new greeting's.
         await self._until_quiet()
-        if self._connection is None or self._closing:
+        if self._wire.connection is None or self._closing:
             return
         if self._clear_for_safe_stop():
-            self._last_data_at = self._loop.time()
+            self._wire.last_data_at = self._loop.time()
             await self._until_quiet()
-            if self._connection is None or self._closing:
+            if self._wire.connection is None or self._closing:
                 return
         self._ready = self._loop.create_future()
         self._start_pump()
@@ -834,11 +834,11 @@ class Printer:
         itself; a stop drops it unsent)."""
         while True:
             await asyncio.sleep(interval)
-            pump = self._pump
+            pump = self._wire.pump
             if self._autoreport or pump is None or not self._polls_now():
                 continue
             if pump.dialect.request_status():
-                self._drive_pump()
+                self._wire.drive()
                 continue
             if self._lock.locked() or self._commands or pump.controller_holds:
                 continue
@@ -859,26 +859,11 @@ class Printer:
 
     # --- I/O ------------------------------------------------------------------
 
-    def _received(self, connection: LinkConnection, data: bytes) -> None:
-        if connection is not self._connection:
-            return
-        log.debug("received %r", data)
-        for tap in self._wire_taps:
-            tap(False, data)
-        tail = self.wire_tail
-        if tail is not None:
-            tail.append((False, data))
-        self._last_data_at = now = self._loop.time()
-        pump = self._pump
-        if pump is not None:  # none between a failure and the next greeting: let it drain
-            pump.receive(data, now)
-            self._drive_pump()
-
     def _lost(self, connection: LinkConnection, exc: Exception | None) -> None:
-        if connection is not self._connection:
+        if connection is not self._wire.connection:
             return
         log.debug("connection lost: %s", exc)
-        self._connection = None
+        self._wire.connection = None
         self._end_connection(LinkError(LINK_LOST))
         if self._closing:
             return
@@ -888,10 +873,7 @@ class Printer:
 
     def _end_connection(self, error: HostError) -> None:
         """The pump is gone: the job fails naming its last line, commands fail."""
-        pump, self._pump = self._pump, None
-        if self._timer is not None:
-            self._timer.cancel()
-            self._timer = self._timer_at = None
+        pump = self._wire.stop()
         if pump is not None and pump.run is not None:
             pump.abort(self._loop.time(), pump.run.naming_where(error))
         self._fail_waiters(error)
@@ -904,11 +886,6 @@ class Printer:
             ready.exception()  # retrieved: nobody may be awaiting it
         self._fail_commands(self._commands, error)
 
-    def _drop_connection(self) -> None:
-        connection, self._connection = self._connection, None
-        if connection is not None and connection.transport is not None:
-            connection.transport.close()
-
     def _fail_commands(self, commands: Iterable[PendingCommand], error: HostError) -> None:
         for pending in list(commands):
             if not pending.future.done():
@@ -917,61 +894,13 @@ class Printer:
             with contextlib.suppress(ValueError):
                 self._commands.remove(pending)
 
-    def _write(self, data: bytes) -> None:
-        connection = self._connection
-        if not data or connection is None or connection.transport is None:
-            return
-        log.debug("sending %r", data)
-        for tap in self._wire_taps:
-            tap(True, data)
-        tail = self.wire_tail
-        if tail is not None:
-            tail.append((True, data))
-        wire_log = self._wire_log
-        if wire_log is not None:  # first: the history is never behind the wire
-            written = wire_log.write(data)  # one write(2) a call (unbuffered)
-            while written < len(data):  # a short one (a signal): the rest, or ENOSPC raised
-                written += wire_log.write(data[written:]) or len(data) - written
-        connection.transport.write(data)
-
-    def _drive_pump(self) -> None:
-        """Let the pump write what it can now (lines, an urgent byte), and re-arm its timer."""
-        pump = self._pump
-        if pump is None:
-            return
-        self._write(pump.poke(self._loop.time()))
-        if self._pump is pump:
-            self._arm_timer(pump.deadline)
-
-    def _arm_timer(self, deadline: float | None) -> None:
-        # A timer already due no later stays: firing early is harmless (the pump checks
-        # its own deadline and is poked again), and most lines only push it back.
-        armed = self._timer_at
-        if armed is not None and (deadline is None or armed <= deadline):
-            return
-        if self._timer is not None:
-            self._timer.cancel()
-            self._timer = None
-        self._timer_at = deadline
-        if deadline is not None:
-            self._timer = self._loop.call_at(deadline, self._on_timer)
-
-    def _on_timer(self) -> None:
-        self._timer = self._timer_at = None
-        pump = self._pump
-        if pump is not None:
-            pump.timeout(self._loop.time())
-            self._drive_pump()
-
     # --- what the pump tells ----------------------------------------------------
 
     def _job_ended(self, run: JobRun) -> None:
         """The running job's run ended: how it is reported, and what is owed after it."""
         job, self._job = self._job, None
-        if self._wire_log is not None:
-            self._wire_log.close()
-            self._wire_log = None
-        pump = self._pump
+        self._wire.close_log()
+        pump = self._wire.pump
         connection_ends = pump is None or pump.dialect.failure is not None
         if run.error is not None:
             # What of the safe stop was not confirmed is owed: it goes first at the next
@@ -1005,7 +934,7 @@ class Printer:
             self._spawn(self._regreet(failure.reason))
         else:
             # Once what the pump has yet to write (an abort) went: it writes after this.
-            self._loop.call_soon(self._drop_connection)
+            self._loop.call_soon(self._wire.drop_connection)
             self._set_state(State.DISCONNECTED, failure.reason)
 
     # --- state and events ----------------------------------------------------
@@ -1048,7 +977,7 @@ class Printer:
         if self.state is State.CLOSED:
             return
         job = self._job
-        if job is not None and self._pump is not None:
+        if job is not None and self._wire.pump is not None:
             if not job.stopping:
                 job.stop()  # a stop under way goes on: a second one would abandon it
             with contextlib.suppress(HostError, TimeoutError):
@@ -1061,7 +990,7 @@ class Printer:
         for task in list(self._tasks):
             task.cancel()
         self._end_connection(LinkError("the session is closed"))
-        self._drop_connection()
+        self._wire.drop_connection()
         await self._loop.run_in_executor(None, self.link.close)
         self._set_state(State.CLOSED, "closed")
         self._hub.close()
@@ -1093,7 +1022,7 @@ class _SessionSide:
 
     @property
     def pump(self) -> Pump | None:
-        return self._printer._pump
+        return self._printer._wire.pump
 
     @property
     def job(self) -> PrintJob | None:
@@ -1153,7 +1082,7 @@ class _SessionSide:
         printer._markers.add(printer._spawn(coroutine))
 
     def drive_pump(self) -> None:
-        self._printer._drive_pump()
+        self._printer._wire.drive()
 
     def job_ended(self, run: JobRun) -> None:
         self._printer._job_ended(run)
@@ -1171,7 +1100,7 @@ class _SessionSide:
 
     @property
     def last_sent(self) -> object | None:
-        pump = self._printer._pump
+        pump = self._printer._wire.pump
         return pump.dialect.last_sent if pump else None
 
 

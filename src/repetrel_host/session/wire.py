@@ -1,0 +1,124 @@
+"""The bytes between a printer's pump and its link: what goes out (to the port, to the running
+job's wire log in the history, to the taps and the tail), what comes in (to the pump), and
+the pump's timer. A :class:`~repetrel_host.session.printer.Printer` holds one; it decides
+when the connection and the pump change (a greeting, a reconnect, a failure), and the wire
+carries bytes between them meanwhile."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections import deque
+from collections.abc import Callable
+from typing import BinaryIO
+
+from repetrel_host.session.connection import LinkConnection
+from repetrel_host.session.pump import Pump
+
+log = logging.getLogger("repetrel_host.session.printer")  # the printer's, as before
+
+
+class Wire:
+    """One printer's connection of the moment, its pump of the moment, and the bytes between."""
+
+    def __init__(self, loop: asyncio.AbstractEventLoop) -> None:
+        self.loop = loop
+        self.connection: LinkConnection | None = None
+        self.pump: Pump | None = None  # none between a failure and the next greeting
+        self.log: BinaryIO | None = None  # the running job's stream in the history
+        self.taps: list[Callable[[bool, bytes], None]] = []
+        # The wire's latest pieces, (sent, data), while a log reads them now and then (the
+        # push socket's terminal): one append a write or read, nothing more, and nothing at
+        # all while it is None. Bounded: a reader that falls behind loses the oldest.
+        self.tail: deque[tuple[bool, bytes]] | None = None
+        self.last_data_at = 0.0  # when the controller last said anything
+        self._timer: asyncio.TimerHandle | None = None
+        self._timer_at: float | None = None
+
+    def start(self, pump: Pump) -> None:
+        """Make ``pump`` the connection's: its greeting goes out, its timer is armed."""
+        self.pump = pump
+        self.write(pump.start(self.loop.time()))
+        self._arm_timer(pump.deadline)
+
+    def stop(self) -> Pump | None:
+        """Take the pump off the wire (its timer with it) and return it."""
+        pump, self.pump = self.pump, None
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = self._timer_at = None
+        return pump
+
+    def drop_connection(self) -> None:
+        """Close the connection of the moment (the link itself stays the printer's)."""
+        connection, self.connection = self.connection, None
+        if connection is not None and connection.transport is not None:
+            connection.transport.close()
+
+    def close_log(self) -> None:
+        if self.log is not None:
+            self.log.close()
+            self.log = None
+
+    def received(self, connection: LinkConnection, data: bytes) -> None:
+        """What ``connection`` read: to the taps, the tail and the pump (an old
+        connection's late bytes are dropped)."""
+        if connection is not self.connection:
+            return
+        log.debug("received %r", data)
+        for tap in self.taps:
+            tap(False, data)
+        tail = self.tail
+        if tail is not None:
+            tail.append((False, data))
+        self.last_data_at = now = self.loop.time()
+        pump = self.pump
+        if pump is not None:  # none between a failure and the next greeting: let it drain
+            pump.receive(data, now)
+            self.drive()
+
+    def write(self, data: bytes) -> None:
+        connection = self.connection
+        if not data or connection is None or connection.transport is None:
+            return
+        log.debug("sending %r", data)
+        for tap in self.taps:
+            tap(True, data)
+        tail = self.tail
+        if tail is not None:
+            tail.append((True, data))
+        wire_log = self.log
+        if wire_log is not None:  # first: the history is never behind the wire
+            written = wire_log.write(data)  # one write(2) a call (unbuffered)
+            while written < len(data):  # a short one (a signal): the rest, or ENOSPC raised
+                written += wire_log.write(data[written:]) or len(data) - written
+        connection.transport.write(data)
+
+    def drive(self) -> None:
+        """Let the pump write what it can now (lines, an urgent byte), and re-arm its timer."""
+        pump = self.pump
+        if pump is None:
+            return
+        self.write(pump.poke(self.loop.time()))
+        if self.pump is pump:  # the write may have ended the connection, and the pump
+            self._arm_timer(pump.deadline)
+
+    def _arm_timer(self, deadline: float | None) -> None:
+        # A timer already due no later stays: firing early is harmless (the pump checks
+        # its own deadline and is poked again), and most lines only push it back.
+        armed = self._timer_at
+        if armed is not None and (deadline is None or armed <= deadline):
+            return
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+        self._timer_at = deadline
+        if deadline is not None:
+            self._timer = self.loop.call_at(deadline, self._on_timer)
+
+    def _on_timer(self) -> None:
+        self._timer = self._timer_at = None
+        pump = self.pump
+        if pump is not None:
+            pump.timeout(self.loop.time())
+            self.drive()
