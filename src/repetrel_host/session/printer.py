@@ -21,7 +21,6 @@ import asyncio
 import contextlib
 import functools
 import logging
-import math
 import weakref
 from collections import deque
 from collections.abc import AsyncIterator, Callable, Coroutine, Iterable
@@ -42,7 +41,7 @@ from repetrel_host.links import Link
 from repetrel_host.protocol.dialect import Statistics
 from repetrel_host.protocol.dialects import create_dialect, release_bytes
 from repetrel_host.protocol.events import DialectFailed, FailureKind, ProbeKind
-from repetrel_host.protocol.reports import Firmware, parse_temperatures
+from repetrel_host.protocol.reports import Firmware
 from repetrel_host.session import history as print_history
 from repetrel_host.session.commands import PendingCommand, Reply, clean_command
 from repetrel_host.session.connection import (
@@ -92,6 +91,7 @@ from repetrel_host.session.pump import (
     failure_error,
 )
 from repetrel_host.session.settings import SessionSettings
+from repetrel_host.session.temperature_watch import TemperatureWatch
 from repetrel_host.session.wire import Wire
 
 # The session's log, as before its parts had modules of their own.
@@ -132,6 +132,7 @@ class Printer:
         self._wire = Wire(self._loop)
         self._side = _SessionSide(self)
         self._listener = PumpListener(self._side)
+        self._temperature_watch = TemperatureWatch(self._side)
         self._ready: asyncio.Future[ProbeKind] | None = None
         self._commands: deque[PendingCommand] = deque()
         self._lock = asyncio.Lock()
@@ -145,9 +146,6 @@ class Printer:
         self._tasks: set[asyncio.Task[Any]] = set()
         self._markers: weakref.WeakSet[asyncio.Task[None]] = weakref.WeakSet()  # snapshots
         self._reconnecting: asyncio.Task[None] | None = None
-        self._polling: asyncio.Task[None] | None = None
-        self._autoreport = False  # the controller reports temperatures itself (M155 took)
-        self._autoreport_asked: asyncio.Future[Reply] | None = None  # this connection's M155
         self._closing = False
         # The safe stop still owed (a failed job's, or from before this session), and the
         # job that waits for it to go (after a reconnect) before it ends.
@@ -329,7 +327,7 @@ class Printer:
         self._use_firmware()
         # Its M155, if it has one, also when it said who it is only once a job was under
         # way: after this dispatch (not inside it), on this connection only.
-        self._loop.call_soon(self._late_autoreport, self._wire.pump)
+        self._loop.call_soon(self._temperature_watch.late_autoreport, self._wire.pump)
         if late:
             self._hub.publish(Notice(f"the controller said who it is: {found.name}"))
 
@@ -343,41 +341,6 @@ class Printer:
                 and firmware.can("EMERGENCY_PARSER")
                 and not pump.dialect.acks_say_received  # Hyrel's link aborts instead
             )
-
-    def _ask_autoreport(self) -> asyncio.Future[Reply] | None:
-        """M155 once a connection, where the firmware reports temperatures itself (and the
-        session polls at all): the polls stop once the controller took it, whenever that
-        is (mid-job too: it goes among the job's lines as a poll does, none of them)."""
-        interval = self.settings.poll_interval
-        firmware = self.firmware
-        if (
-            self._autoreport_asked is not None
-            or not interval
-            or firmware is None
-            or not firmware.can("AUTOREPORT_TEMP")
-            or self._wire.pump is None
-        ):
-            return self._autoreport_asked
-        pending = self._send_command(f"M155 S{max(1, math.ceil(interval))}", own=True)
-        pending.future.add_done_callback(self._autoreporting)
-        self._autoreport_asked = pending.future
-        return pending.future
-
-    def _late_autoreport(self, pump: Pump | None) -> None:
-        if pump is not None and pump is self._wire.pump:
-            self._ask_autoreport()
-
-    def _autoreporting(self, future: asyncio.Future[Reply]) -> None:
-        if future.cancelled() or future.exception() is not None:
-            return  # refused, or the connection ended: polled instead
-        if future is not self._autoreport_asked:
-            return  # an earlier connection's
-        self._autoreport = True
-        if self.state is not State.CONNECTING:
-            # What came while it waited is the job's (messages), not the M155's.
-            for line in future.result().lines:
-                if not parse_temperatures(line):
-                    self._broadcast(Message(line))
 
     def _check_can_command(self) -> None:
         state = self.state
@@ -652,9 +615,7 @@ class Printer:
             raise
         await self._send_owed_safe_stop()
         self._set_state(State.READY, "greeted")
-        interval = self.settings.poll_interval
-        if interval and self._polling is None:
-            self._polling = self._spawn(self._poll(interval))
+        self._temperature_watch.start_polling(self._spawn)
 
     async def _send_owed_safe_stop(self) -> None:
         """What a failed job could not send: heaters off before anything else. Each line
@@ -716,13 +677,12 @@ class Printer:
         return delivered(run, self._loop.time())
 
     async def _identify(self) -> None:
-        self._autoreport = False
-        self._autoreport_asked = None
+        self._temperature_watch.new_connection()
         await self._identity.ask(
             lambda command: self._send_command(command, own=True).future, self._loop
         )
         self._use_firmware()
-        asked = self._ask_autoreport()
+        asked = self._temperature_watch.ask_autoreport()
         if asked is not None:
             with contextlib.suppress(TimeoutError):  # polled until it took (if ever)
                 await asyncio.wait_for(asyncio.shield(asked), FIRMWARE_TIMEOUT)
@@ -823,39 +783,6 @@ class Printer:
                 continue
             break
         self._reconnecting = None
-
-    async def _poll(self, interval: float) -> None:
-        """Temperatures every ``interval`` seconds, unless the controller reports them
-        itself (M155): while idle, and while a job prints or is paused when the session was
-        opened with ``poll_while_printing``. Where the link has a status request that the
-        controller answers at once, whatever it holds (Hyrel's 0x05), that; else M105,
-        while no command waits: among a job's lines it is numbered as they are, but none of
-        them (the job's count and recovery point never include it; a resend sends it again as
-        itself; a stop drops it unsent)."""
-        while True:
-            await asyncio.sleep(interval)
-            pump = self._wire.pump
-            if self._autoreport or pump is None or not self._polls_now():
-                continue
-            if pump.dialect.request_status():
-                self._wire.drive()
-                continue
-            if self._lock.locked() or self._commands or pump.controller_holds:
-                continue
-            with contextlib.suppress(HostError, TimeoutError):
-                async with self._lock:
-                    reply = await self._command("M105", interval * 2, own=True)
-                # What came while it waited is the job's (messages), not the poll's.
-                for line in reply.lines:
-                    if not parse_temperatures(line):
-                        self._broadcast(Message(line))
-
-    def _polls_now(self) -> bool:
-        state = self.state
-        if state is State.READY:
-            return True
-        job = state is State.PRINTING or state is State.PAUSED
-        return job and self.settings.poll_while_printing
 
     # --- I/O ------------------------------------------------------------------
 
@@ -1034,7 +961,25 @@ class _SessionSide:
 
     @property
     def autoreporting(self) -> bool:
-        return self._printer._autoreport
+        return self._printer._temperature_watch.autoreport
+
+    @property
+    def state(self) -> State:
+        return self._printer.state
+
+    @property
+    def firmware(self) -> Firmware | None:
+        return self._printer.firmware
+
+    def send_own_command(self, command: str) -> PendingCommand:
+        return self._printer._send_command(command, own=True)
+
+    async def poll_command(self, command: str, timeout: float) -> Reply | None:
+        printer = self._printer
+        if printer._lock.locked() or printer._commands:
+            return None  # a caller's command goes first: no poll this time
+        async with printer._lock:
+            return await printer._command(command, timeout, own=True)
 
     @property
     def owed(self) -> OwedSafeStop:
