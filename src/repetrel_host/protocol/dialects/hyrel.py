@@ -69,13 +69,13 @@ from repetrel_host.protocol.dialect import Statistics
 from repetrel_host.protocol.dialects.hyrel_answers import (
     ANSWER_NAME,
     ANSWER_PARTS,
+    AnswerCounter,
     answer_name_at,
     answer_run_in,
     answer_starts,
     line_named,
     message_run_on,
     notice_agrees,
-    reads_hy,
 )
 from repetrel_host.protocol.events import (
     ControllerMessage,
@@ -220,7 +220,7 @@ class HyrelDialect:
         # "FIRMWARE_NAME:" answer is the oldest one's.
         self._m115s: deque[_Sent] = deque()
         self._stale_answers = 0  # answers that may still come for M115s an abort dropped
-        self._answer_fragment = False  # the last line was an answer cut in two
+        self._answers = AnswerCounter()
         self._separated = True  # a message came since the last answer
         self._cut_tag = False  # the last line was a bare tag: the next may be its text
         self._doubt = False  # the oldest M115 waiting may have had its answer not taken
@@ -578,7 +578,7 @@ class HyrelDialect:
         self._status_asked = 0
         hyrel = reply if isinstance(reply, replies.HyrelReport) else None
         cut_tag, self._cut_tag = self._cut_tag, hyrel is not None and not hyrel.text
-        answers = self._answers_in(text, hyrel)  # first: one cut in two may read ">Hy: ..."
+        answers = self._answers.count(text, hyrel)  # first: one cut in two may read ">Hy: ..."
         if answers or any(part in text for part in ANSWER_PARTS):
             # Written apart from the line before: an ACK, or bytes of garbled ones, came
             # before its name, whole (not a garbled byte of it, nor that line's newline).
@@ -629,21 +629,6 @@ class HyrelDialect:
             self._late_pings -= 1  # the late answer to an earlier ping
         else:
             self._fail(FailureKind.RESET, f"the controller reset (it says: {text})")
-
-    def _answers_in(self, text: str, hyrel: replies.HyrelReport | None) -> int:
-        """M115 answers in a line, even with a byte garbled: each has its name or its
-        version field (both halves of one that a garbled newline cut in two count once;
-        one whose newline was garbled runs into the next line, another answer maybe).
-        A message is none, even quoting one (only the second half of one cut in two may
-        read ``>Hy: ...``)."""
-        if hyrel is not None and not reads_hy(hyrel.tag):
-            self._answer_fragment = False
-            return 0
-        named = text.count(ANSWER_NAME)
-        versioned = text.count("PROTOCOL_VERSION:")
-        answers = max(named, versioned - self._answer_fragment)
-        self._answer_fragment = named > versioned
-        return answers
 
     def _answered(self, reply: replies.Reply, text: str, now: float) -> None:
         """An M115 ran, so did every line before it (whatever ACKs were lost on the way),

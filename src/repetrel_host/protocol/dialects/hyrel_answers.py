@@ -1,15 +1,17 @@
 """How many M115 answers a piece of a Hyrel controller's text holds, and where they begin.
 
-Rules read off the text alone (the dialect in :mod:`~repetrel_host.protocol.dialects.hyrel`
-keeps the state they feed): an answer's name, one byte of it garbled or not; an answer and a
-message that a garbled newline ran together; whether a ``>MC:`` notice gives a command's
-values; the line number an error report names.
+Rules read off the text (the count remembers only whether the line before was an answer
+cut in two; the dialect in :mod:`~repetrel_host.protocol.dialects.hyrel` keeps the rest):
+an answer's name, one byte of it garbled or not; an answer and a message that a garbled
+newline ran together; whether a ``>MC:`` notice gives a command's values; the line number
+an error report names.
 """
 
 from __future__ import annotations
 
 import re
 
+from repetrel_host.protocol import replies
 from repetrel_host.protocol.hyrel import HyrelNotice
 
 ANSWER_NAME = "FIRMWARE_NAME:"
@@ -86,3 +88,26 @@ def line_named(text: str) -> int | None:
     if match is None:
         return None
     return int(match.group(1) or match.group(2))
+
+
+class AnswerCounter:
+    """Counts the M115 answers in each line the controller writes, in order: the second
+    half of an answer that a garbled newline cut in two counts with its first."""
+
+    def __init__(self) -> None:
+        self._fragment = False  # the last line was an answer cut in two
+
+    def count(self, text: str, hyrel: replies.HyrelReport | None) -> int:
+        """M115 answers in a line, even with a byte garbled: each has its name or its
+        version field (both halves of one that a garbled newline cut in two count once;
+        one whose newline was garbled runs into the next line, another answer maybe).
+        A message is none, even quoting one (only the second half of one cut in two may
+        read ``>Hy: ...``)."""
+        if hyrel is not None and not reads_hy(hyrel.tag):
+            self._fragment = False
+            return 0
+        named = text.count(ANSWER_NAME)
+        versioned = text.count("PROTOCOL_VERSION:")
+        answers = max(named, versioned - self._fragment)
+        self._fragment = named > versioned
+        return answers
