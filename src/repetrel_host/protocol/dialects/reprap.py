@@ -34,7 +34,7 @@ and the lines that may be asked for again), :class:`Window` (what is in flight),
 :class:`~repetrel_host.protocol.dialects.reprap_probes.Probing` (the probe in flight) and
 :class:`~repetrel_host.protocol.dialects.reprap_greeting.Greeting` (the greeting's attempts
 and what it learnt); the phase is explicit (:class:`RepRapPhase`). What a line error says is
-read in :mod:`~repetrel_host.protocol.dialects.reprap_replies`.
+read in :mod:`~repetrel_host.protocol.dialects.reprap_line_errors`.
 """
 
 from __future__ import annotations
@@ -53,12 +53,12 @@ from repetrel_host.protocol.dialects.reprap_greeting import (
     Greeting,
     check_verdict,
 )
-from repetrel_host.protocol.dialects.reprap_probes import PROBE_COMMAND, Probing, ping_wire
-from repetrel_host.protocol.dialects.reprap_replies import (
+from repetrel_host.protocol.dialects.reprap_line_errors import (
     is_checksum_error,
     is_number_error,
     stated_last_line,
 )
+from repetrel_host.protocol.dialects.reprap_probes import PROBE_COMMAND, Probing, ping_wire
 from repetrel_host.protocol.events import (
     ControllerMessage,
     DialectFailed,
@@ -367,15 +367,25 @@ class RepRapDialect:
             return
         window = self._window
         if self._phase is not RepRapPhase.RUNNING:
-            outcome = self._greeting.timed_out(now)
-            if isinstance(outcome, tuple):
-                self._fail(*outcome)
+            greeting = self._greeting
+            if greeting.timed_out():
+                if greeting.greeted:  # renumbering mid-stream: it stopped answering
+                    self._fail(
+                        FailureKind.TIMEOUT,
+                        "the controller did not answer M110 (line numbering reset)",
+                    )
+                else:
+                    self._fail(
+                        FailureKind.NO_ANSWER,
+                        f"no answer to M110 (line numbering reset), sent {greeting.unanswered} "
+                        f"times in {now - greeting.started_at:.0f} s",
+                    )
                 return
             # No answer (the board still booting, a line lost): greet again, with new
             # numbers; a check that got no answer is given up.
             self._regreet()
-            if outcome is not None:
-                self._events.append(outcome)
+            if not greeting.greeted:
+                self._events.append(greeting.retry(now))
             return
         if self._line_error_at is not None:
             # The error answered the oldest line, refused without a resend request: its

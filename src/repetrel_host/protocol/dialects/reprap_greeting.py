@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from enum import Enum
 
-from repetrel_host.protocol.events import ControllerReady, FailureKind, GreetingRetry, ProbeKind
+from repetrel_host.protocol.events import ControllerReady, GreetingRetry, ProbeKind
 from repetrel_host.protocol.framing import frame, reset_command
 from repetrel_host.protocol.history import Line
 
@@ -91,27 +91,23 @@ class Greeting:
         """When an attempt unanswered goes again (after the last byte either way)."""
         return max(last_received_at, last_sent_at) + HELLO_TIMEOUT
 
-    def timed_out(self, now: float) -> tuple[FailureKind, str] | GreetingRetry | None:
-        """An attempt went unanswered: why the greeting fails, else the retry to tell
-        (None when it goes again untold: a renumbering mid-job)."""
+    @property
+    def unanswered(self) -> int:
+        """Attempts of this greeting that went unanswered."""
+        return self._unanswered
+
+    def timed_out(self) -> bool:
+        """An attempt went unanswered: True when it was the last, and the greeting fails."""
         self._unanswered += 1
-        unanswered = self._unanswered
-        attempts = NOISY_HELLO_ATTEMPTS if self.greeted or self.heard else HELLO_ATTEMPTS
-        if unanswered >= attempts:
-            if self.greeted:  # renumbering mid-stream: it stopped answering
-                return (
-                    FailureKind.TIMEOUT,
-                    "the controller did not answer M110 (line numbering reset)",
-                )
-            return (
-                FailureKind.NO_ANSWER,
-                f"no answer to M110 (line numbering reset), sent {unanswered} "
-                f"times in {now - self.started_at:.0f} s",
-            )
-        if self.greeted:
-            return None
+        return self._unanswered >= self._allowed()
+
+    def retry(self, now: float) -> GreetingRetry:
+        """The retry to tell, as the next attempt goes."""
         waited = now - self.started_at
-        return GreetingRetry(unanswered + 1, attempts, waited)
+        return GreetingRetry(self._unanswered + 1, self._allowed(), waited)
+
+    def _allowed(self) -> int:
+        return NOISY_HELLO_ATTEMPTS if self.greeted or self.heard else HELLO_ATTEMPTS
 
     def gap_line_garbled(self) -> bool:
         """The gap line arrived corrupted: True to send it once more, else the check is
