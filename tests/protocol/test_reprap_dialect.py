@@ -7,12 +7,11 @@ import pytest
 from repetrel_host.errors import UsageError
 from repetrel_host.protocol import replies
 from repetrel_host.protocol.controller import Accepted, ControllerProtocol
-from repetrel_host.protocol.dialects.reprap import (
+from repetrel_host.protocol.dialects.reprap import UNBUFFERED_GRACE, RepRapDialect
+from repetrel_host.protocol.dialects.reprap_greeting import (
     HELLO_ATTEMPTS,
     HELLO_TIMEOUT,
     NOISY_HELLO_ATTEMPTS,
-    UNBUFFERED_GRACE,
-    RepRapDialect,
 )
 from repetrel_host.protocol.events import (
     ControllerMessage,

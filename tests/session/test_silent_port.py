@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 import repetrel_host as rh
-from repetrel_host.protocol.dialects import hyrel, reprap
+from repetrel_host.protocol.dialects import hyrel, reprap_greeting
 from tests.support.server import Server
 
 CAUSES = ("the wrong port", "the wrong baud rate", "the board still booting")
@@ -84,7 +84,7 @@ def test_hyrel_send_says_where_it_connects_each_retry_and_why_it_gave_up(
     job = tmp_path / "job.gcode"
     job.write_text("G28\n")
     lines, ended, code, stdout = timed_stderr(str(job), "--port", silent_port)
-    sentence = assert_told_as_it_went(lines, ended, silent_port, reprap.HELLO_TIMEOUT)
+    sentence = assert_told_as_it_went(lines, ended, silent_port, reprap_greeting.HELLO_TIMEOUT)
     assert code == 3 and stdout == ""
     assert sentence == (
         f"link failure: {silent_port} at 115200 baud: no answer to M110 (line numbering "
@@ -110,7 +110,7 @@ def test_on_hyrels_link_too(tmp_path: Path, silent_port: str) -> None:
 @pytest.mark.timeout(60)
 def test_the_console_says_it_as_well(silent_port: str) -> None:
     lines, ended, code, _ = timed_stderr("--console", "--port", silent_port)
-    sentence = assert_told_as_it_went(lines, ended, silent_port, reprap.HELLO_TIMEOUT)
+    sentence = assert_told_as_it_went(lines, ended, silent_port, reprap_greeting.HELLO_TIMEOUT)
     assert code == 3
     assert sentence.startswith(f"link failure: {silent_port} at 115200 baud: no answer")
     assert all(cause in sentence for cause in CAUSES)
@@ -122,7 +122,7 @@ def test_the_python_api_hears_each_retry_before_connect_returns(
     silent_port: str, protocol: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     # The same greeting, on a shorter clock: the test needs the order, not the seconds.
-    module = reprap if protocol == "reprap" else hyrel
+    module = reprap_greeting if protocol == "reprap" else hyrel
     monkeypatch.setattr(module, "HELLO_TIMEOUT", 0.3)
     heard: list[object] = []
 

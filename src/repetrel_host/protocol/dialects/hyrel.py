@@ -66,6 +66,17 @@ from repetrel_host.errors import UsageError
 from repetrel_host.gcode.commands import command_word
 from repetrel_host.protocol import replies
 from repetrel_host.protocol.dialect import Statistics
+from repetrel_host.protocol.dialects.hyrel_answers import (
+    ANSWER_NAME,
+    ANSWER_PARTS,
+    AnswerCounter,
+    answer_name_at,
+    answer_run_in,
+    answer_starts,
+    line_named,
+    message_run_on,
+    notice_agrees,
+)
 from repetrel_host.protocol.events import (
     ControllerMessage,
     ControllerReady,
@@ -103,10 +114,6 @@ STATUS_AFTER = 5.0  # lines waiting this long for an ACK: ask whether the contro
 # long command holds its ACKs back too: then the sync waits its turn, and does no harm.
 SYNC_AFTER = 0.5
 SYNC_COMMAND = "M115"  # answered when run: every line before it ran
-ANSWER_NAME = "FIRMWARE_NAME:"
-# The parts of an answer: a line holding one is a piece of an answer (cut in two by a
-# garbled newline, or quoted), never a message between two answers.
-_ANSWER_PARTS = ("FIRMWARE", "PROTOCOL_VERSION", "HYREL_PROTOCOL", "MACHINE_TYPE")
 # A status report asked after an answer (to come between it and the next) and not come in
 # this long is asked again: it, or its reply, was lost or garbled.
 SEPARATOR_RETRY = 0.5
@@ -136,12 +143,8 @@ RATE_AFTER = 0.1  # seconds since the last answer that told how fast lines run
 # each lets one line too many go; a full buffer has no other byte to spare).
 HOST_RESERVE = 128
 RECENT = 1024  # lines remembered by number (an error names one)
-_LINE_NUMBER = re.compile(r"\bline\s+(\d+)|\bN(\d+)\b", re.IGNORECASE)
-_TAG = re.compile(r">..:")  # a message's
 _TAKE_TIME = frozenset({"G0", "G1", "G2", "G3", "G4", "G28"})  # moves, dwells, homing
 _FATAL = re.compile(r"checksum|watchdog", re.IGNORECASE)
-_FIELD = re.compile(r"([A-Za-z])\s*(-?\d+(?:\.\d*)?)")
-_NOTICE_VALUES = "TS"  # the values a notice gives of its line (">MC:M<n>: T<t>: S<s>:")
 
 
 class HyrelPhase(Enum):
@@ -217,7 +220,7 @@ class HyrelDialect:
         # "FIRMWARE_NAME:" answer is the oldest one's.
         self._m115s: deque[_Sent] = deque()
         self._stale_answers = 0  # answers that may still come for M115s an abort dropped
-        self._answer_fragment = False  # the last line was an answer cut in two
+        self._answers = AnswerCounter()
         self._separated = True  # a message came since the last answer
         self._cut_tag = False  # the last line was a bare tag: the next may be its text
         self._doubt = False  # the oldest M115 waiting may have had its answer not taken
@@ -562,11 +565,11 @@ class HyrelDialect:
     ) -> None:
         """``acked``: an ACK came between the line before and this one; ``acks_inside``:
         where in it ACKs came."""
-        run_in = _run_in(text)
+        run_in = answer_run_in(text)
         if run_in:  # a message whose newline was garbled, and an answer after it
             self._handle_line(text[: run_in - 1], now, acked)
             text, acked, acks_inside = text[run_in:], False, [a - run_in for a in acks_inside]
-        run_on = _run_on(text) if not text.startswith(">") and ANSWER_NAME in text else 0
+        run_on = message_run_on(text) if not text.startswith(">") and ANSWER_NAME in text else 0
         if run_on:  # an answer whose newline was garbled, and a message after it
             self._handle_line(text[:run_on], now, acked, acks_inside)
             text, acked = text[run_on:], False
@@ -575,16 +578,16 @@ class HyrelDialect:
         self._status_asked = 0
         hyrel = reply if isinstance(reply, replies.HyrelReport) else None
         cut_tag, self._cut_tag = self._cut_tag, hyrel is not None and not hyrel.text
-        answers = self._answers_in(text, hyrel)  # first: one cut in two may read ">Hy: ..."
-        if answers or any(part in text for part in _ANSWER_PARTS):
+        answers = self._answers.count(text, hyrel)  # first: one cut in two may read ">Hy: ..."
+        if answers or any(part in text for part in ANSWER_PARTS):
             # Written apart from the line before: an ACK, or bytes of garbled ones, came
             # before its name, whole (not a garbled byte of it, nor that line's newline).
-            name_at = _name_at(text)
+            name_at = answer_name_at(text)
             if answers and (name_at > 0 or (name_at == 0 and acked)):
                 self._separated = True
             if cut_tag:
                 self._separated = False  # ">IN:" and, cut off, the identity it quoted
-            starts = _answer_starts(text, answers)
+            starts = answer_starts(text, answers)
             for index in range(answers):  # run together by a garbled newline
                 # Two ACKs between them: written apart (the newline, garbled, is one byte).
                 if index and sum(starts[index - 1] < at <= starts[index] for at in acks_inside) > 1:
@@ -603,7 +606,7 @@ class HyrelDialect:
         if hyrel is not None and hyrel.tag == "HY":
             self._identity(text, now)
             return
-        number = _named(text) if hyrel is not None else None
+        number = line_named(text) if hyrel is not None else None
         named = self._recent.get(number or -1)
         if hyrel is not None and hyrel.tag == "ER" and _FATAL.search(text):
             # A line refused cannot be sent again in its place; the watchdog stopped the
@@ -626,21 +629,6 @@ class HyrelDialect:
             self._late_pings -= 1  # the late answer to an earlier ping
         else:
             self._fail(FailureKind.RESET, f"the controller reset (it says: {text})")
-
-    def _answers_in(self, text: str, hyrel: replies.HyrelReport | None) -> int:
-        """M115 answers in a line, even with a byte garbled: each has its name or its
-        version field (both halves of one that a garbled newline cut in two count once;
-        one whose newline was garbled runs into the next line, another answer maybe).
-        A message is none, even quoting one (only the second half of one cut in two may
-        read ``>Hy: ...``)."""
-        if hyrel is not None and not _near_hy(hyrel.tag):
-            self._answer_fragment = False
-            return 0
-        named = text.count(ANSWER_NAME)
-        versioned = text.count("PROTOCOL_VERSION:")
-        answers = max(named, versioned - self._answer_fragment)
-        self._answer_fragment = named > versioned
-        return answers
 
     def _answered(self, reply: replies.Reply, text: str, now: float) -> None:
         """An M115 ran, so did every line before it (whatever ACKs were lost on the way),
@@ -698,7 +686,7 @@ class HyrelDialect:
         for sent in self._mcodes:
             if sent.seq >= received:
                 return
-            if sent.word == notice.code and _agrees(notice, sent.command):
+            if sent.word == notice.code and notice_agrees(notice, sent.command):
                 self._confirm_through(sent.seq)
                 self._ran_before(sent.seq)
                 return
@@ -822,69 +810,3 @@ class HyrelDialect:
         self._failure = DialectFailed(kind, reason, tag)
         self._phase = HyrelPhase.FAILED
         self._events.append(self._failure)
-
-
-def _agrees(notice: HyrelNotice, command: str) -> bool:
-    """The notice gives the command's values: every value it gives is the command's, and it
-    gives the command's T and S (``T11: S200:`` and ``M104 T11 S200.0``). A notice cut
-    short by a garbled byte (``>MC:M104:``), or another code's garbled, is no line's with
-    values."""
-    values = {letter.upper(): float(value) for letter, value in _FIELD.findall(command[1:])}
-    given = {letter: float(value) for letter, value in notice.fields.items()}
-    return all(values.get(letter) == value for letter, value in given.items()) and all(
-        given.get(letter) == values[letter] for letter in _NOTICE_VALUES if letter in values
-    )
-
-
-def _answer_starts(text: str, answers: int) -> list[int]:
-    """Where each of the ``answers`` answers in ``text`` begins, as far as can be told (by
-    their names, or their version fields); else 0 for each."""
-    for mark in (ANSWER_NAME, "PROTOCOL_VERSION:"):
-        starts = [match.start() for match in re.finditer(re.escape(mark), text)]
-        if len(starts) == answers:
-            return starts
-    return [0] * answers
-
-
-def _name_at(text: str) -> int:
-    """Where an answer's name begins in ``text``, one byte of it garbled or not; -1 if
-    nowhere (one garbled byte leaves its first seven bytes whole, or its last seven)."""
-    at = text.find(ANSWER_NAME[:7])
-    if at < 0:
-        at = text.find(ANSWER_NAME[7:])
-        at = at - 7 if at >= 7 else -1
-    return at
-
-
-def _near_hy(tag: str) -> bool:
-    """Whether a tag reads ``HY`` but for one garbled byte: the second half of an answer
-    cut in two begins with ``>Hy:``."""
-    return tag[0] == "H" or tag[1] == "Y"
-
-
-def _run_in(text: str) -> int:
-    """Where an answer begins that a garbled newline ran into the message before it
-    (``>ST: T:20.0 ...?FIRMWARE_NAME:...``), or 0: a message of its own text first, then
-    one byte (the newline) that no quote puts before a name (a space, a colon)."""
-    at = text.find(ANSWER_NAME, 5)
-    if at < 0 or not text.startswith(">") or text[at - 1] in " :":
-        return 0
-    said = _TAG.sub("", text[: at - 1], count=1)
-    return at if len(said.strip()) > 1 else 0
-
-
-def _run_on(text: str) -> int:
-    """Where a message begins that a garbled newline ran onto the end of an answer
-    (``FIRMWARE_NAME:... HYREL_PROTOCOL:1?>ST: T:20.0 ...``), or 0."""
-    for match in _TAG.finditer(text, 1):
-        if match.group().upper() != ">HY:":
-            return match.start()
-    return 0
-
-
-def _named(text: str) -> int | None:
-    """The line number an error report names ("line 12", "N12"), if any."""
-    match = _LINE_NUMBER.search(text)
-    if match is None:
-        return None
-    return int(match.group(1) or match.group(2))

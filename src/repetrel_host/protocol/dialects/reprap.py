@@ -30,13 +30,15 @@ holds every line before it, and answers with ``ok T:...``.
 
 The state lives in small parts, each with one job: :class:`History` (numbering
 and the lines that may be asked for again), :class:`Window` (what is in flight),
-:class:`RoundTrip` (timeouts), :class:`ResendGuard` (which requests to obey) and
-:class:`_Probing`; the phase is explicit (:class:`RepRapPhase`).
+:class:`RoundTrip` (timeouts), :class:`ResendGuard` (which requests to obey),
+:class:`~repetrel_host.protocol.dialects.reprap_probes.Probing` (the probe in flight) and
+:class:`~repetrel_host.protocol.dialects.reprap_greeting.Greeting` (the greeting's attempts
+and what it learnt); the phase is explicit (:class:`RepRapPhase`). What a line error says is
+read in :mod:`~repetrel_host.protocol.dialects.reprap_line_errors`.
 """
 
 from __future__ import annotations
 
-import re
 from collections import deque
 from collections.abc import Callable
 from enum import Enum
@@ -45,20 +47,30 @@ from repetrel_host.errors import UsageError
 from repetrel_host.gcode.commands import UNBUFFERED, command_word
 from repetrel_host.protocol import replies
 from repetrel_host.protocol.dialect import Statistics
+from repetrel_host.protocol.dialects.reprap_greeting import (
+    VIRTUAL_PRINTER_RX_BUFFER,
+    CheckVerdict,
+    Greeting,
+    check_verdict,
+)
+from repetrel_host.protocol.dialects.reprap_line_errors import (
+    is_checksum_error,
+    is_number_error,
+    stated_last_line,
+)
+from repetrel_host.protocol.dialects.reprap_probes import PROBE_COMMAND, Probing, ping_wire
 from repetrel_host.protocol.events import (
     ControllerMessage,
-    ControllerReady,
     DialectFailed,
     Event,
     FailureKind,
-    GreetingRetry,
     LineAcknowledged,
     Notice,
     ProbeKind,
     ResendRequested,
 )
 from repetrel_host.protocol.flow import FlowControl, FlowMode
-from repetrel_host.protocol.framing import checksum, frame, reset_command
+from repetrel_host.protocol.framing import frame
 from repetrel_host.protocol.history import History, Line
 from repetrel_host.protocol.resend import RESEND_LOOP_LIMIT, ResendGuard
 from repetrel_host.protocol.rtt import RoundTrip
@@ -84,41 +96,9 @@ SLOW_PING_INTERVAL = 20.0  # then one probe this often: a lost answer must not s
 # replies, without a resend request (Marlin halts and says little more).
 SUSPECT_ERROR_GRACE = 0.2
 SUSPECT_ERROR_LINES = 2
-# A greeting unanswered this long (after the last byte either way) goes again. A live
-# controller answers within milliseconds; the wait is for a board that resets when the
-# port opens (Marlin on an Arduino's USB): its bootloader takes the first second or two and
-# drops what comes meanwhile, then Marlin says "start" (which restarts this wait) and reads
-# the next greeting. OctoPrint waits up to 30 s for an answer, Klipper retries its identify
-# every 5 s: both for daemons that wait for a printer to be switched on.
-HELLO_TIMEOUT = 3.0
-# Greetings that go unanswered before the greeting fails: 9 s of silence. The second and
-# third cover a board still in its bootloader (and a corrupted M110); more would only make
-# the wrong port or baud rate, by far the likeliest causes, a longer wait. Each retry is
-# told (GreetingRetry) as it goes. Greeting again after a garbled answer costs nothing here.
-HELLO_ATTEMPTS = 3
-# A controller heard from (an ok, a resend request, an error, its boot banner) whose answers
-# to the greeting get lost or garbled on a noisy link, and a renumbering mid-job: each lost
-# answer costs a timeout, and giving up stops a job that could go on.
-NOISY_HELLO_ATTEMPTS = 10
-# The gap line of the greeting's check, sent again when it arrived corrupted.
-GAP_CHECK_ATTEMPTS = 3
-# The controller that the greeting's check finds counting lines its own way is OctoPrint's
-# virtual printer (the only one known to). Its receive buffer holds 64 bytes, and a write
-# that does not fit waits for room while holding the lock its error replies need: with more
-# than 64 bytes in flight, each error it reports (its simulated ones, the refusals of lines
-# in flight behind them) stalls it for its 10 s write timeout, or several.
-VIRTUAL_PRINTER_RX_BUFFER = 64
 # Warn once when more than this share of lines needed resending (after enough lines).
 RESEND_WARNING_RATIO = 0.10
 RESEND_WARNING_AFTER = 100
-
-# A checksum probe's checksum field. Valid checksums are 0..255; one changed character
-# turns "9999" into 0, 9, 99 or a number above 255, so the probe's body is chosen with
-# a checksum outside {0, 9, 99} and can never become valid.
-_PING_CHECKSUM = b"9999"
-_PING_UNSAFE = frozenset({0, 9, 99})
-_LAST_LINE = re.compile(r"last\s*line:?\s*(-?\d+)", re.IGNORECASE)
-PROBE_COMMAND = "M105"  # harmless everywhere; its ok carries the temperatures
 
 
 class RepRapPhase(Enum):
@@ -131,28 +111,6 @@ class RepRapPhase(Enum):
 
 
 _CHECK_PHASES = frozenset({RepRapPhase.GAP_CHECK, RepRapPhase.PROBE_CHECK})
-
-
-class _Probing:
-    """The probe in flight, if any, and how many went unanswered."""
-
-    __slots__ = ("attempt", "copies", "current", "kind", "unanswered")
-
-    def __init__(self, kind: ProbeKind) -> None:
-        self.kind = kind
-        self.current: Transmission | None = None
-        self.attempt = 0  # probes sent since one was last answered
-        self.unanswered = 0  # timeouts in a row while a long command runs
-        self.copies = 0  # a command probe's line sent again, since one was last answered
-
-    def answered(self) -> None:
-        self.current = None
-        self.attempt = self.unanswered = self.copies = 0
-
-    def superseded(self) -> None:
-        """A resend request answers a probe too: its line is now just a stale transmission."""
-        if self.current is not None:
-            self.answered()
 
 
 class RepRapDialect:
@@ -187,14 +145,8 @@ class RepRapDialect:
         self._line_limit = self._window.line_limit  # read for every line: kept at hand
         self._rtt = RoundTrip()
         self._guard = ResendGuard()
-        self._probing = _Probing(probe or ProbeKind.CHECKSUM)
-        self._check_at_greeting = probe is None
-        self._gap_attempts = 0
-        self._greeting_attempts = 0
-        self._unanswered_greetings = 0  # timeouts of this greeting (HELLO_ATTEMPTS)
-        self._heard = False  # a reply of the controller's came (not noise): it is there
-        self._started_at = 0.0
-        self._greeted = False
+        self._probing = Probing(probe or ProbeKind.CHECKSUM)
+        self._greeting = Greeting(check_due=probe is None)
         # command, tag, unbuffered, confirm
         self._pending: deque[tuple[str, object, bool, bool]] = deque()
         self._candidate: Line | None = None  # the next new line, framed, not yet numbered
@@ -224,7 +176,7 @@ class RepRapDialect:
         if self._phase is not RepRapPhase.IDLE:
             raise UsageError("the dialect was already started")
         self._last_received_at = self._last_sent_at = self._last_progress_at = now
-        self._started_at = now
+        self._greeting.started_at = now
         self._begin_greeting()
 
     pause_command = None  # the host holds a job at M0 (the controller's ok says it stopped)
@@ -376,7 +328,7 @@ class RepRapDialect:
             return self._suspect_error[1]
         window = self._window
         if phase is not RepRapPhase.RUNNING:
-            return max(self._last_received_at, self._last_sent_at) + HELLO_TIMEOUT
+            return self._greeting.deadline(self._last_received_at, self._last_sent_at)
         probing = self._probing
         wait = self._rtt.backed_off(probing.unanswered)
         probe = probing.current
@@ -415,11 +367,9 @@ class RepRapDialect:
             return
         window = self._window
         if self._phase is not RepRapPhase.RUNNING:
-            self._unanswered_greetings += 1
-            unanswered = self._unanswered_greetings
-            attempts = NOISY_HELLO_ATTEMPTS if self._greeted or self._heard else HELLO_ATTEMPTS
-            if unanswered >= attempts:
-                if self._greeted:  # renumbering mid-stream: it stopped answering
+            greeting = self._greeting
+            if greeting.timed_out():
+                if greeting.greeted:  # renumbering mid-stream: it stopped answering
                     self._fail(
                         FailureKind.TIMEOUT,
                         "the controller did not answer M110 (line numbering reset)",
@@ -427,16 +377,15 @@ class RepRapDialect:
                 else:
                     self._fail(
                         FailureKind.NO_ANSWER,
-                        f"no answer to M110 (line numbering reset), sent {unanswered} "
-                        f"times in {now - self._started_at:.0f} s",
+                        f"no answer to M110 (line numbering reset), sent {greeting.unanswered} "
+                        f"times in {now - greeting.started_at:.0f} s",
                     )
                 return
             # No answer (the board still booting, a line lost): greet again, with new
             # numbers; a check that got no answer is given up.
             self._regreet()
-            if not self._greeted:
-                waited = now - self._started_at
-                self._events.append(GreetingRetry(unanswered + 1, attempts, waited))
+            if not greeting.greeted:
+                self._events.append(greeting.retry(now))
             return
         if self._line_error_at is not None:
             # The error answered the oldest line, refused without a resend request: its
@@ -520,7 +469,7 @@ class RepRapDialect:
                     self._fail_suspect()
                     return
         if not isinstance(reply, replies.OtherReply):
-            self._heard = True
+            self._greeting.heard = True
         if isinstance(reply, replies.Ok):
             self._handle_ok(reply, now)
         elif isinstance(reply, replies.ResendRequest):
@@ -620,7 +569,7 @@ class RepRapDialect:
         self._last_progress_at = now
         self._line_error_at = None
         previous = self._previous_reply
-        stated_last = _stated_last_line(previous)
+        stated_last = stated_last_line(previous)
         if stated_last is not None and stated_last + 1 != number:
             self.stats.ignored_resend_requests += 1  # garbled: the two lines disagree
             return
@@ -643,7 +592,7 @@ class RepRapDialect:
             probe is not None
             and probe.line is None
             and number == probe.number
-            and _is_checksum_error(previous)
+            and is_checksum_error(previous)
         ):
             self._probe_answered(probe, number - 1, now)
             return
@@ -660,7 +609,7 @@ class RepRapDialect:
         # misses lines before it); after a checksum error this is another line's answer
         # (its ok was miscounted), and the probe's own is still to come.
         if window.in_flight and (
-            window.in_flight[0] is not probe or probe.line is not None or _is_number_error(previous)
+            window.in_flight[0] is not probe or probe.line is not None or is_number_error(previous)
         ):
             window.pop_oldest()
         if stated_last is not None and phase is RepRapPhase.RUNNING:
@@ -726,12 +675,12 @@ class RepRapDialect:
     def _finish_greeting(self, accepted_through: int) -> None:
         self._phase = RepRapPhase.RUNNING
         self._acked_through = accepted_through
-        if not self._greeted:
-            self._greeted = True
-            self._events.append(ControllerReady(self._probing.kind))
+        ready = self._greeting.finished(self._probing.kind)
+        if ready is not None:
+            self._events.append(ready)
 
     def _handle_start(self, text: str) -> None:
-        if self._greeted:
+        if self._greeting.greeted:
             # Never resend across a reset: the controller lost its queue and state.
             self._fail(FailureKind.RESET, "the controller reset (it sent 'start')")
         else:
@@ -791,24 +740,23 @@ class RepRapDialect:
             return
         self._window.forget()
         self._confirm_through(expected - 1)  # the M110's number: the reset took
-        if _is_checksum_error(previous):
+        if is_checksum_error(previous):
             # The gap line arrived corrupted: once more, then no verdict.
-            self._gap_attempts += 1
-            if self._gap_attempts < GAP_CHECK_ATTEMPTS:
+            if self._greeting.gap_line_garbled():
                 self._send_gap_line(now)
             else:
-                self._check_at_greeting = False
                 self._finish_greeting(expected - 1)
             return
-        self._check_at_greeting = False  # once per connection
+        self._greeting.check_due = False  # once per connection
         self._phase = RepRapPhase.PROBE_CHECK
-        self._push(Transmission(None, _ping_wire(number), now, number))
+        self._push(Transmission(None, ping_wire(number), now, number))
         self.stats.pings += 1
 
     def _check_answered(self, number: int, previous: replies.Reply | None) -> None:
         self._window.forget()
         expected = self._history.next_number
-        if number == expected + 1 and _is_checksum_error(previous):
+        verdict = check_verdict(number, expected, is_checksum_error(previous))
+        if verdict is CheckVerdict.OWN_COUNT:
             # It named a line it never got, and now takes it for received: renumber,
             # and from now on probe with lines that run. It answers as OctoPrint's
             # virtual printer does: keep within that one's receive buffer too.
@@ -823,7 +771,7 @@ class RepRapDialect:
             )
             self._regreet()
             return
-        if number != expected or not _is_checksum_error(previous):
+        if verdict is CheckVerdict.GARBLED:
             self._regreet()  # a garbled answer: no verdict, keep the usual probe
             return
         self._finish_greeting(expected - 1)
@@ -865,7 +813,7 @@ class RepRapDialect:
     # --- transmission -------------------------------------------------------
 
     def _begin_greeting(self) -> None:
-        self._greeting_attempts = self._unanswered_greetings = 0
+        self._greeting.begin()
         self._restart_greeting()
 
     def _restart_greeting(self) -> None:
@@ -881,14 +829,7 @@ class RepRapDialect:
         late answer to an earlier attempt's probe is never taken for this one's: lines
         must not start while an earlier M110 could still reset the numbering.
         """
-        base = self._greeting_attempts
-        self._greeting_attempts += 1
-        command = reset_command(base)
-        wire = frame(base, command)
-        reset = Line(
-            base, command, None, wire, True, is_reset=True, is_host_line=True, patient=True
-        )
-        self._history.restart(reset)
+        self._history.restart(self._greeting.reset_line())
         self._probing.superseded()
 
     def _next_line_to_transmit(self) -> Line | None:
@@ -945,7 +886,7 @@ class RepRapDialect:
         self._push(Transmission(line, line.wire, now, line.number, retransmitted=retransmitted))
 
     def _send_probe(self, now: float) -> None:
-        if self._phase is RepRapPhase.GREETING and self._check_at_greeting:
+        if self._phase is RepRapPhase.GREETING and self._greeting.check_due:
             self._send_gap_line(now)  # its refusal confirms the M110, and starts the check
             return
         probing = self._probing
@@ -976,7 +917,7 @@ class RepRapDialect:
                 number = history.next_number
             else:
                 number = self._acked_through + 1
-            line, wire = None, _ping_wire(number)
+            line, wire = None, ping_wire(number)
         probing.attempt += 1
         probe = Transmission(line, wire, now, number)
         probing.current = probe
@@ -1009,36 +950,3 @@ class RepRapDialect:
         oldest = self._history.get(self._acked_through + 1)
         self._failure = DialectFailed(kind, reason, oldest.tag if oldest is not None else None)
         self._events.append(self._failure)
-
-
-def _ping_wire(number: int) -> bytes:
-    """``N<number> M105 S<k>*9999``: refused by any controller that checks checksums."""
-    for k in range(10):
-        body = f"N{number} {PROBE_COMMAND} S{k}".encode("ascii")
-        if checksum(body) not in _PING_UNSAFE:
-            return body + b"*" + _PING_CHECKSUM + b"\n"
-    raise AssertionError("unreachable: ten bodies cannot all have unsafe checksums")
-
-
-def _stated_last_line(reply: replies.Reply | None) -> int | None:
-    """The "Last Line: L" of a Marlin line error just before a resend request."""
-    if isinstance(reply, replies.Error) and reply.line_error:
-        match = _LAST_LINE.search(reply.text)
-        if match is not None:
-            return int(match.group(1))
-    return None
-
-
-def _is_number_error(reply: replies.Reply | None) -> bool:
-    """A line refused for its number ("Line Number is not Last Line Number+1")."""
-    return (
-        isinstance(reply, replies.Error)
-        and reply.line_error
-        and "checksum" not in reply.text.lower()
-    )
-
-
-def _is_checksum_error(reply: replies.Reply | None) -> bool:
-    return (
-        isinstance(reply, replies.Error) and reply.line_error and "checksum" in reply.text.lower()
-    )
