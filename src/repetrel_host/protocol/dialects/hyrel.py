@@ -16,7 +16,7 @@ whose own notices were lost or garbled), and for nothing when none agrees; a com
 is complete then. Where every line sent must be known to have run (the end of a job, before
 a host action, a command's reply) the host sends an ``M115`` of its own after the last of
 them: a *sync*; one goes among the lines too, after as many of them as the answers say run
-in :data:`SYNC_INTERVAL` seconds (at most :data:`SYNC_EVERY`), so that what ran (the resume
+in :data:`SYNC_INTERVAL` seconds (at most :data:`SYNC_EVERY`), so that what ran (the recovery
 point) follows the job, fast or slow, and one just before an ``M0`` (which waits; what
 follows it waits behind it). Up to 8 KB of job may wait in the controller when the last ACK
 comes: a job ends once a sync's answer says its last line ran, and with it all the
@@ -24,7 +24,7 @@ controller wrote meanwhile.
 
 Answers are counted by the link's order, not by their text: nothing in an answer says
 which M115 it is for, and taking one too many would call lines run that have not (a job
-done during a dwell, a resume point past lines that never ran). An answer is a line that is
+done during a dwell, a recovery point past lines that never ran). An answer is a line that is
 no message (``>IN: FIRMWARE_NAME:...`` quotes the identity; an answer and a message that a
 garbled newline ran together are told apart). A controller that says an answer twice
 writes the two together: an answer with nothing between it and the one before (no ACK
@@ -124,7 +124,7 @@ ANSWER_AT_ONCE = 1.0
 # (its answer may have come, not taken). The status requests wake the dialect by then.
 STALL_PATIENCE = STATUS_AFTER
 SYNC_RETRY = 30.0  # an M115 unanswered this long: its answer may be lost, another may go
-# Syncs among the lines: each answer says how far the controller got (the resume point
+# Syncs among the lines: each answer says how far the controller got (the recovery point
 # after a stop: what ran since the last one runs again), and releases lines whose ACK was
 # lost before they fill the window. One goes after as many lines as run in SYNC_INTERVAL
 # seconds, as the answers tell: on a slow job 256 lines are minutes of printing. (Not
