@@ -66,11 +66,7 @@ class Wire:
         if connection is not self.connection:
             return
         log.debug("received %r", data)
-        for tap in self.taps:
-            tap(False, data)
-        tail = self.tail
-        if tail is not None:
-            tail.append((False, data))
+        self._show(False, data)
         self.last_data_at = now = self.loop.time()
         pump = self.pump
         if pump is not None:  # none between a failure and the next greeting: let it drain
@@ -82,17 +78,21 @@ class Wire:
         if not data or connection is None or connection.transport is None:
             return
         log.debug("sending %r", data)
-        for tap in self.taps:
-            tap(True, data)
-        tail = self.tail
-        if tail is not None:
-            tail.append((True, data))
+        self._show(True, data)
         wire_log = self.log
         if wire_log is not None:  # first: the history is never behind the wire
             written = wire_log.write(data)  # one write(2) a call (unbuffered)
             while written < len(data):  # a short one (a signal): the rest, or ENOSPC raised
                 written += wire_log.write(data[written:]) or len(data) - written
         connection.transport.write(data)
+
+    def _show(self, sent: bool, data: bytes) -> None:
+        """To the taps and the tail, as it goes (``sent``: written, else read)."""
+        for tap in self.taps:
+            tap(sent, data)
+        tail = self.tail
+        if tail is not None:
+            tail.append((sent, data))
 
     def drive(self) -> None:
         """Let the pump write what it can now (lines, an urgent byte), and re-arm its timer."""
