@@ -64,7 +64,7 @@ class Request:
     granted: str | None = None  # the key, once a person allowed it
     decided: float | None = None
 
-    def public(self) -> dict[str, object]:
+    def public(self) -> dict[str, str]:
         """As OctoPrint lists a pending decision."""
         return {
             "app_id": self.app,

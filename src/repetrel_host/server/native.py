@@ -31,6 +31,7 @@ from pydantic import BaseModel, Field
 from repetrel_host.server import jobs, store, timelapse, uploads
 from repetrel_host.server.access import OWNER
 from repetrel_host.server.auth import user_of
+from repetrel_host.server.events import AppKeyEvent
 from repetrel_host.server.octoprint import appkeys, files
 from repetrel_host.server.print_server import answered, server_of
 from repetrel_host.server.printers.heaters import heaters
@@ -296,10 +297,11 @@ def router() -> APIRouter:
         """Server-sent events: each printer as it stands first, then printer states, jobs,
         progress, temperatures and controller messages as they come (JSON data)."""
         server = server_of(request)
-        names = [server.service(printer).name] if printer else list(server.services)
+        only = server.service(printer).name if printer else None
+        names = [only] if only is not None else list(server.services)
 
         async def stream() -> AsyncIterator[str]:
-            async with server.events.subscribe() as queue:
+            async with server.events.listen(only) as events:  # before the snapshot: none lost
                 for name in names:
                     now = {
                         "type": "printer",
@@ -309,12 +311,11 @@ def router() -> APIRouter:
                     yield _sse(now)
                 while True:
                     try:
-                        event = await asyncio.wait_for(queue.get(), KEEPALIVE)
+                        event = await asyncio.wait_for(events.get(), KEEPALIVE)
                     except TimeoutError:
                         yield ": keepalive\n\n"  # proxies keep the stream open
                         continue
-                    if event.get("printer", names[0]) in names:  # none: the server's
-                        yield _sse(event)
+                    yield _sse(event.as_json())
 
         return StreamingResponse(stream(), media_type="text/event-stream")
 
@@ -340,7 +341,7 @@ def router() -> APIRouter:
         server = server_of(request)
         if not server.access.revoke(app):
             raise HTTPException(404, f"no key for app '{app}'")
-        appkeys.tell(server, "revoked", app_id=app)
+        server.events.publish(AppKeyEvent("revoked", app))
         return Response(status_code=204)
 
     @router.get("/jobs/{job_id}")

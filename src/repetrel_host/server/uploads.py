@@ -22,6 +22,7 @@ from repetrel_host.gcode.layer_moves import layer_moves
 from repetrel_host.gcode.thumbnails import ThumbnailError
 from repetrel_host.gcode.thumbnails import read as read_thumbnail
 from repetrel_host.server.analyses import Stamp, describe, stamp
+from repetrel_host.server.events import FileChanged
 from repetrel_host.server.print_server import PrintServer
 from repetrel_host.server.workers import in_worker
 
@@ -256,16 +257,8 @@ def file_changed(
 ) -> None:
     """An upload (or a folder: ``folder``) was ``added`` or ``removed`` by ``operation``
     (add, copy, move, remove): on the server's events (OctoPrint's FileAdded...)."""
-    server.events.publish(
-        {
-            "type": "file",
-            "what": what,
-            "path": path.relative_to(server.files).as_posix(),
-            "name": path.name,
-            "folder": folder,
-            "operation": operation,
-        }
-    )
+    where = path.relative_to(server.files).as_posix()
+    server.events.publish(FileChanged(what, where, path.name, folder, operation))
 
 
 def check(server: PrintServer, printer: str, path: Path) -> tuple[list[str], int]:

@@ -335,16 +335,16 @@ def router() -> APIRouter:
         farm = farm_of(request)
 
         async def stream() -> AsyncIterator[str]:
-            async with farm.events.subscribe() as queue:
+            async with farm.events.listen() as events:
                 hello = {"type": "hello", "node": farm.id, "time": time.time()}
                 yield f"data: {json.dumps(hello)}\n\n"
                 while True:
                     try:
-                        event = await asyncio.wait_for(queue.get(), KEEPALIVE)
+                        event = await asyncio.wait_for(events.get(), KEEPALIVE)
                     except TimeoutError:
                         yield ": keepalive\n\n"
                         continue
-                    yield f"data: {json.dumps(event)}\n\n"
+                    yield f"data: {json.dumps(event.as_json())}\n\n"
 
         return StreamingResponse(stream(), media_type="text/event-stream")
 

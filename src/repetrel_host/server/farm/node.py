@@ -29,7 +29,7 @@ import repetrel_host as rh
 from repetrel_host.config import load_library
 from repetrel_host.errors import ConfigError, HostError
 from repetrel_host.gcode.lint import Severity
-from repetrel_host.server.events import EventHub
+from repetrel_host.server.events import EventHub, FarmEvent
 from repetrel_host.server.farm import needs
 from repetrel_host.server.farm.db import FarmDB, LeaseLost
 from repetrel_host.server.store import JobRecord, JobState, Store
@@ -306,7 +306,7 @@ class FarmNode:
                 await asyncio.sleep(delay)
 
     async def _notified(self, message: dict[str, Any]) -> None:
-        self.events.publish({"type": "farm", **message})
+        self.events.publish(FarmEvent(message))
         kind = message.get("kind")
         if kind == "job" and message.get("queued"):
             self._look_again()

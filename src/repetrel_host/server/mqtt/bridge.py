@@ -30,7 +30,16 @@ from typing import Any, Protocol
 
 import aiomqtt
 
-from repetrel_host.server.events import Event, EventHub
+from repetrel_host.server.events import (
+    EventHub,
+    JobChanged,
+    PrinterMessage,
+    PrinterState,
+    PrintProgress,
+    ServerEvent,
+    SnapshotTaken,
+    TemperatureReadings,
+)
 from repetrel_host.server.mqtt.homeassistant import DEFAULT_PREFIX, Discovery
 from repetrel_host.server.printers.service import PrinterService, Refused
 from repetrel_host.server.store import Store
@@ -40,14 +49,14 @@ log = logging.getLogger("repetrel_host.server")
 RECONNECT_FIRST = 1.0
 RECONNECT_MAX = 30.0
 ACTIONS = ("pause", "resume", "cancel", "release")
-# Event types and whether their topic is retained.
-_TOPICS = {
-    "printer": True,
-    "job": True,
-    "progress": True,
-    "temperatures": True,
-    "snapshot": True,
-    "message": False,
+# The events published, each under its printer's topic, and whether that is retained.
+_TOPICS: dict[type[ServerEvent], tuple[str, bool]] = {
+    PrinterState: ("state", True),
+    JobChanged: ("job", True),
+    PrintProgress: ("progress", True),
+    TemperatureReadings: ("temperatures", True),
+    SnapshotTaken: ("snapshot", True),
+    PrinterMessage: ("message", False),
 }
 
 
@@ -115,27 +124,22 @@ class MqttBridge:
                 await asyncio.wait_for(client.publish(online, b"false", qos=1, retain=True), 2)
 
     async def _forward(self, client: aiomqtt.Client, online: str) -> None:
-        async with self.server.events.subscribe() as queue:  # before the snapshot: none lost
+        # Listening before the snapshot: none lost.
+        async with self.server.events.listen(kinds=tuple(_TOPICS)) as events:
             await client.publish(online, b"true", qos=1, retain=True)
             self._heaters.clear()  # announced again: the broker may have lost them
             for service in self.server.services.values():
                 await self._announce(client, service.name)
-                await self._publish(client, self._printer_event(service.name))
+                await self._publish(client, PrinterState(service.name, service.state, service.held))
                 last = self.server.store.last_started(service.name)
                 if last is not None:
-                    await self._publish(
-                        client, {"type": "job", "printer": service.name, "job": last.as_json()}
-                    )
+                    await self._publish(client, JobChanged(service.name, last))
             if self.settings.commands:
                 await client.subscribe(f"{self.prefix}/+/command", qos=1)
             async with asyncio.TaskGroup() as group:
                 group.create_task(self._commands(client))
-                while True:
-                    await self._publish(client, await queue.get())
-
-    def _printer_event(self, name: str) -> Event:
-        service = self.server.services[name]
-        return {"type": "printer", "printer": name, "state": service.state, "held": service.held}
+                async for event in events:
+                    await self._publish(client, event)
 
     async def _announce(self, client: aiomqtt.Client, name: str) -> None:
         """Home Assistant's discovery configs of printer ``name`` (retained), with every
@@ -150,13 +154,13 @@ class MqttBridge:
             await client.publish(topic, json.dumps(payload).encode(), 1, True)
         self._heaters[name] = heaters
 
-    async def _announce_heaters(self, client: aiomqtt.Client, event: Event) -> None:
+    async def _announce_heaters(self, client: aiomqtt.Client, event: TemperatureReadings) -> None:
         """A heater reported for the first time (a chamber, a second hotend): its sensors."""
-        name = event["printer"]
+        name = event.printer
         announced = self._heaters.get(name)
         if self.discovery is None or announced is None:
             return
-        new = sorted(set(event["readings"]) - announced)
+        new = sorted(set(event.readings) - announced)
         if not new:
             return
         uuid = self.server.printer_uuid(name)
@@ -164,18 +168,19 @@ class MqttBridge:
             await client.publish(topic, json.dumps(payload).encode(), 1, True)
         announced.update(new)
 
-    async def _publish(self, client: aiomqtt.Client, event: Event) -> None:
-        kind = event["type"]
-        retain = _TOPICS.get(kind)
-        if retain is None:
+    async def _publish(self, client: aiomqtt.Client, event: ServerEvent) -> None:
+        published = _TOPICS.get(type(event))
+        if published is None:
             return
-        if kind == "temperatures":
+        topic, retain = published
+        if isinstance(event, TemperatureReadings):
             await self._announce_heaters(client, event)
-        topic = "state" if kind == "printer" else kind
-        fields = {k: v for k, v in event.items() if k not in ("type", "printer")}
-        text = str(event["text"]) if kind == "message" else json.dumps(fields)
-        data = text.encode()  # a message is the controller's line itself
-        await client.publish(f"{self.prefix}/{event['printer']}/{topic}", data, 1, retain)
+        if isinstance(event, PrinterMessage):
+            text = event.text  # a message is the controller's line itself
+        else:
+            fields = {k: v for k, v in event.as_json().items() if k not in ("type", "printer")}
+            text = json.dumps(fields)
+        await client.publish(f"{self.prefix}/{event.printer}/{topic}", text.encode(), 1, retain)
 
     async def _commands(self, client: aiomqtt.Client) -> None:
         async for message in client.messages:

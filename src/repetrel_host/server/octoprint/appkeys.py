@@ -15,6 +15,7 @@ from fastapi.responses import JSONResponse, RedirectResponse, Response
 
 from repetrel_host.server.access import OWNER, AppKey
 from repetrel_host.server.auth import user_of
+from repetrel_host.server.events import AppKeyEvent
 from repetrel_host.server.print_server import PrintServer, server_of
 
 
@@ -50,11 +51,6 @@ def _user(request: Request) -> str:
     return user
 
 
-def tell(server: PrintServer, what: str, **fields: Any) -> None:
-    """An app-key request or decision, on the server's event stream (the page shows it)."""
-    server.events.publish({"type": "appkey", "what": what, **fields})
-
-
 def router() -> APIRouter:
     router = APIRouter()
 
@@ -70,7 +66,7 @@ def router() -> APIRouter:
         server = server_of(request)
         remote = request.client.host if request.client is not None else ""
         pending = server.access.request(app, remote, user if isinstance(user, str) else None)
-        tell(server, "request", **pending.public())
+        server.events.publish(AppKeyEvent("request", **pending.public()))
         base = _base(request)
         answer = {
             "app_token": pending.app_token,
@@ -128,11 +124,11 @@ def router() -> APIRouter:
                 app = next((k.app for k in server.access.app_keys() if k.key == key), None)
             if not isinstance(app, str) or not server.access.revoke(app):
                 raise HTTPException(400, "Need either app or key")
-            tell(server, "revoked", app_id=app)
+            server.events.publish(AppKeyEvent("revoked", app))
             return Response(status_code=204)
         if command == "generate":
             granted = server.access.grant(_named(data.get("app")), user)
-            tell(server, "granted", app_id=granted.app)
+            server.events.publish(AppKeyEvent("granted", granted.app))
             return JSONResponse(
                 {"user_id": granted.user, "app_id": granted.app, "api_key": granted.key}
             )
@@ -146,7 +142,7 @@ def decided(server: PrintServer, user_token: str, allow: bool, user: str = OWNER
     pending = server.access.decide(user_token, allow, user)
     if pending is None:
         raise HTTPException(404, "no such request: already decided, or the app stopped asking")
-    tell(server, "granted" if allow else "denied", **pending.public())
+    server.events.publish(AppKeyEvent("granted" if allow else "denied", **pending.public()))
 
 
 def key_json(key: AppKey) -> dict[str, Any]:

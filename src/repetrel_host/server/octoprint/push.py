@@ -28,12 +28,23 @@ from dataclasses import dataclass
 from typing import Any
 
 import repetrel_host as rh
+from repetrel_host.server.events import (
+    AppKeyEvent,
+    FileChanged,
+    JobChanged,
+    PrinterMessage,
+    PrinterState,
+    ServerEvent,
+    SnapshotTaken,
+    TemperatureReadings,
+    ZChanged,
+)
 from repetrel_host.server.octoprint import model
 from repetrel_host.server.octoprint.messages import Frame, Subscriptions, connected_text, dumps
 from repetrel_host.server.octoprint.terminal import LOG_LINES, terminal_lines
 from repetrel_host.server.print_server import PrintServer
 from repetrel_host.server.printers.service import PrinterService
-from repetrel_host.server.store import ENDED
+from repetrel_host.server.store import ENDED, JobRecord
 
 log = logging.getLogger("repetrel_host.server")
 
@@ -424,26 +435,25 @@ class Feed:
         for client in list(self.clients):
             client.offer_plugin(plugin, frame)
 
-    def on_event(self, event: dict[str, Any]) -> None:
+    def on_event(self, event: ServerEvent) -> None:
         """One of the server's events, as OctoPrint's messages."""
-        kind = event.get("type")
-        if kind == "temperatures":
-            self.temps.append(model.temperature_sample(time.time(), event["readings"]))
-        elif kind == "message":
-            self.messages.append(str(event["text"]))
-        elif kind == "printer":
-            self._linked(event["state"] in _LINKED)
+        if isinstance(event, TemperatureReadings):
+            self.temps.append(model.temperature_sample(time.time(), event.readings))
+        elif isinstance(event, PrinterMessage):
+            self.messages.append(event.text)
+        elif isinstance(event, PrinterState):
+            self._linked(event.state in _LINKED)
             self._changed()
-        elif kind == "job":
-            self._job(event["job"])
+        elif isinstance(event, JobChanged):
+            self._job(event.record)
             self._changed()
-        elif kind == "z":
-            self.event("ZChange", {"new": event["new"], "old": event["old"]})
-        elif kind == "snapshot":
-            self.event("CaptureDone", {"file": event["file"]})
-        elif kind == "file":
+        elif isinstance(event, ZChanged):
+            self.event("ZChange", {"new": event.new, "old": event.old})
+        elif isinstance(event, SnapshotTaken):
+            self.event("CaptureDone", {"file": event.file})
+        elif isinstance(event, FileChanged):
             self._file(event)
-        elif kind == "appkey":
+        elif isinstance(event, AppKeyEvent):
             self._appkey(event)
 
     def _linked(self, linked: bool) -> None:
@@ -457,8 +467,8 @@ class Feed:
         else:
             self.event("Disconnected", {})
 
-    def _job(self, job: dict[str, Any]) -> None:
-        job_id, state = int(job["id"]), str(job["state"])
+    def _job(self, changed: JobRecord) -> None:
+        job_id, state = changed.id, changed.state.value
         before = self.jobs.get(job_id)
         if state == before:
             return
@@ -487,29 +497,29 @@ class Feed:
             else:
                 self.event("PrintFailed", {**payload, "reason": "error", "error": record.error})
 
-    def _file(self, event: dict[str, Any]) -> None:
-        what = "Added" if event["what"] == "added" else "Removed"
-        payload = {"storage": "local", "path": event["path"], "name": event["name"]}
-        if event["folder"]:
+    def _file(self, event: FileChanged) -> None:
+        what = "Added" if event.what == "added" else "Removed"
+        payload = {"storage": "local", "path": event.path, "name": event.name}
+        if event.folder:
             self.event(f"Folder{what}", payload)
         else:
             kind = ["machinecode", "gcode"]
-            self.event(f"File{what}", {**payload, "type": kind, "operation": event["operation"]})
+            self.event(f"File{what}", {**payload, "type": kind, "operation": event.operation})
         self.event("UpdatedFiles", {"type": "printables"})
 
-    def _appkey(self, event: dict[str, Any]) -> None:
+    def _appkey(self, event: AppKeyEvent) -> None:
         """The appkeys plugin's messages: a request to decide, a decision made."""
-        if event.get("what") == "request":
+        if event.what == "request":
             data = {
                 "type": "request_access",
-                "app_name": event.get("app_id"),
-                "user_token": event.get("user_token"),
-                "user_id": event.get("user_id"),
-                "remote_address": event.get("remote_address"),
+                "app_name": event.app_id,
+                "user_token": event.user_token,
+                "user_id": event.user_id,
+                "remote_address": event.remote_address,
             }
             self.plugin("appkeys", data)
-        elif event.get("user_token"):
-            self.plugin("appkeys", {"type": "end_request", "user_token": event["user_token"]})
+        elif event.user_token:
+            self.plugin("appkeys", {"type": "end_request", "user_token": event.user_token})
 
     def close(self) -> None:
         if self._timer is not None:
@@ -558,17 +568,17 @@ class Push:
         feed.close()
 
     async def _route(self) -> None:
-        async with self.server.events.subscribe() as queue:
-            while True:
-                event = await queue.get()
-                printer = event.get("printer")
+        async with self.server.events.listen() as events:
+            async for event in events:
                 feeds = list(self.feeds.values())
                 for feed in feeds:
-                    if printer is None or printer == feed.name:
+                    if event.printer is None or event.printer == feed.name:
                         try:
                             feed.on_event(event)
                         except Exception:  # a bug here must not end every feed
-                            log.exception("printer %s: push socket event %s", feed.name, event)
+                            log.exception(
+                                "printer %s: push socket event %s", feed.name, event.as_json()
+                            )
 
     async def stop(self) -> None:
         for end in self.on_stop:

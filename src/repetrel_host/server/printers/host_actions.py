@@ -9,7 +9,7 @@ from collections.abc import Callable
 from datetime import datetime
 from pathlib import Path
 
-from repetrel_host.server.events import Event
+from repetrel_host.server.events import PrinterMessage, ServerEvent, SnapshotTaken
 from repetrel_host.server.printers.config import PrinterConfig
 from repetrel_host.server.printers.running import Running
 from repetrel_host.session.camera import Camera
@@ -27,7 +27,11 @@ class HostActions:
     """One printer's camera, and what its jobs' host codes do: told as the server's events."""
 
     def __init__(
-        self, name: str, config: PrinterConfig, data_dir: Path, publish: Callable[[Event], None]
+        self,
+        name: str,
+        config: PrinterConfig,
+        data_dir: Path,
+        publish: Callable[[ServerEvent], None],
     ) -> None:
         self.name = name
         self.config = config
@@ -75,9 +79,7 @@ class HostActions:
 
     def _snapshot_taken(self, path: Path) -> None:
         log.info("printer %s: snapshot %s", self.name, path.name)
-        self.publish(
-            {"type": "snapshot", "printer": self.name, "file": path.name, "url": self.url(path)}
-        )
+        self.publish(SnapshotTaken(self.name, path.name, self.url(path)))
 
     def url(self, snapshot: Path) -> str:
         """Where the API serves ``snapshot``."""
@@ -86,4 +88,4 @@ class HostActions:
     def tell(self, text: str) -> None:
         """A message about the printer: logged, and told as the server's event."""
         log.info("printer %s: %s", self.name, text)
-        self.publish({"type": "message", "printer": self.name, "text": text})
+        self.publish(PrinterMessage(self.name, text))

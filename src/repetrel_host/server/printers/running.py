@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 import repetrel_host as rh
 from repetrel_host.gcode.analysis import FileSummary
 from repetrel_host.gcode.marks import SlicerMarks
-from repetrel_host.server.events import Event
+from repetrel_host.server.events import PrintProgress
 from repetrel_host.server.store import JobRecord
 
 
@@ -74,7 +74,7 @@ def filament_used(running: Running, completed: bool) -> dict[str, dict[str, floa
 
 def progress_event(
     printer: str, record: JobRecord, job: rh.PrintJob, running: Running | None, completed: bool
-) -> Event:
+) -> PrintProgress:
     """The progress event of ``record``'s ``job`` on ``printer`` (``running``: what is known
     of it while it streams; ``completed``: it ended complete): its lines and bytes, its
     layer, its completion and the time it has left."""
@@ -89,18 +89,16 @@ def progress_event(
         completion = 100.0 * running.fraction
         if not job.done:
             left, how = running.time_left(time.time() - (record.started or time.time()))
-    return {
-        "type": "progress",
-        "printer": printer,
-        "job": record.id,
-        "lines": job.lines,
-        "last_line": last_line,
-        "bytes": job.offset,
-        "size": job.size,
-        "layer": running.layer if running else 0,
-        "layers": len(running.layers) if running else 0,
-        "completion": round(completion, 2) if completion is not None else None,
-        "time_left": round(left) if left is not None else None,  # seconds
-        # "analysis": the slicer's estimate; "linear": the rate so far
-        "time_left_from": how,
-    }
+    return PrintProgress(
+        printer=printer,
+        job=record.id,
+        lines=job.lines,
+        last_line=last_line,
+        offset=job.offset,
+        size=job.size,
+        layer=running.layer if running else 0,
+        layers=len(running.layers) if running else 0,
+        completion=round(completion, 2) if completion is not None else None,
+        time_left=round(left) if left is not None else None,
+        time_left_from=how,
+    )

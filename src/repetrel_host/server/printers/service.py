@@ -22,7 +22,15 @@ import repetrel_host as rh
 from repetrel_host.config import Loadout, UserConfig
 from repetrel_host.gcode.lint import Finding
 from repetrel_host.server.analyses import Analyses
-from repetrel_host.server.events import Event
+from repetrel_host.server.events import (
+    JobChanged,
+    PrinterMessage,
+    PrinterState,
+    ServerEvent,
+    StateDetail,
+    TemperatureReadings,
+    ZChanged,
+)
 from repetrel_host.server.printers.checks import JobChecks
 from repetrel_host.server.printers.config import PrinterConfig
 from repetrel_host.server.printers.host_actions import HostActions, snapshot_name
@@ -71,7 +79,7 @@ class PrinterService:
         store: Store,
         data_dir: Path,
         user: UserConfig,
-        publish: Callable[[Event], None] = lambda event: None,
+        publish: Callable[[ServerEvent], None] = lambda event: None,
         analyses: Analyses | None = None,
     ) -> None:
         self.name = name
@@ -402,7 +410,7 @@ class PrinterService:
         self.publish(progress_event(self.name, record, job, self.running, completed))
         z = self.running.z if self.running is not None else None
         if z is not None and z != self._z:  # a new height, as the slicer marked it
-            self.publish({"type": "z", "printer": self.name, "new": z, "old": self._z})
+            self.publish(ZChanged(self.name, z, self._z))
             self._z = z
         paused = self.printer is not None and self.printer.state is rh.State.PAUSED
         if paused != self._paused and not job.done:
@@ -469,7 +477,7 @@ class PrinterService:
     def job_changed(self, job_id: int) -> None:
         record = self.store.job(job_id)
         if record is not None:
-            self.publish({"type": "job", "printer": self.name, "job": record.as_json()})
+            self.publish(JobChanged(self.name, record))
 
     async def _forward(self, printer: rh.Printer) -> None:
         """The session's states, temperatures and messages, as the server's events."""
@@ -484,16 +492,13 @@ class PrinterService:
                     self.publish(self.state_event(state))
                 self.wake()  # READY again: the queue may go on
             elif isinstance(event, rh.Temperatures):
-                now = time.time()
-                self.temperature_history.append((now, dict(event.readings)))
-                readings = {sensor: list(value) for sensor, value in event.readings.items()}
-                self.publish(
-                    {"type": "temperatures", "printer": name, "time": now, "readings": readings}
-                )
+                now, readings = time.time(), dict(event.readings)
+                self.temperature_history.append((now, readings))
+                self.publish(TemperatureReadings(name, now, readings))
             elif isinstance(event, rh.NoAnswerYet):
                 continue  # logged as it came (_heard)
             else:
-                self.publish({"type": "message", "printer": name, "text": event.text})
+                self.publish(PrinterMessage(name, event.text))
 
     # --- control ----------------------------------------------------------------------
 
@@ -513,17 +518,12 @@ class PrinterService:
         self.changed()
         self.publish(self.state_event(self.state))
 
-    def state_event(self, state: str) -> Event:
+    def state_event(self, state: str) -> PrinterState:
         """The event of a new state: with since when, why, and a phase asked for."""
-        return {
-            "type": "printer",
-            "printer": self.name,
-            "state": state,
-            "held": self.held,
-            "since": self.state_since,
-            "reason": self.state_reason or self.last_error or None,
-            "phase": self.phase or None,  # "pausing", "resuming": asked for, not reached
-        }
+        reason = self.state_reason or self.last_error or None
+        # The phase: "pausing", "resuming", asked for and not reached.
+        detail = StateDetail(self.state_since, reason, self.phase or None)
+        return PrinterState(self.name, state, self.held, detail)
 
     def select(self, path: Path | None) -> None:
         """OctoPrint's selected file (None: unselect); the last job's is forgotten."""
