@@ -155,3 +155,17 @@ def test_loop_delay_bench_reports_each_step_and_every_line_once() -> None:
     assert steps == ["upload long.gcode", "check long.gcode", "upload big.gcode", "check big.gcode"]
     assert "answers meanwhile: " in result.stdout
     assert "every line sent once, in order: True" in result.stdout
+
+
+ESTIMATE = Path(__file__).parent.parent / "bench" / "estimate.py"
+
+
+@pytest.mark.timeout(120)
+def test_estimate_bench_prints_each_files_figures_beside_the_slicers() -> None:
+    result = subprocess.run(
+        [sys.executable, str(ESTIMATE)], capture_output=True, text=True, timeout=110
+    )
+    assert result.returncode == 0, result.stderr
+    rows = [line for line in result.stdout.splitlines() if line.startswith("| cone")]
+    assert len(rows) == 1 and ("(-" in rows[0] or "(+" in rows[0])
+    assert "sphere-prusaslicer.gcode | 3,175 |" in result.stdout  # PrusaSlicer's 52m 55s
