@@ -3,6 +3,7 @@ option mistakes, and Ctrl-C while the machine is moving."""
 
 from __future__ import annotations
 
+import re
 import signal
 import time
 from pathlib import Path
@@ -66,6 +67,25 @@ def test_check_names_the_profile_from_the_slicer(tmp_path: Path) -> None:
     assert "machine profile hyrel (default: no machine given)" in result.stdout
     result = hyrel_send(str(plain), "--check", "--machine", "esr")
     assert "machine profile esr (--machine)" in result.stdout
+
+
+@pytest.mark.timeout(60)
+def test_check_names_the_print_time_from_the_moves_beside_the_slicers(tmp_path: Path) -> None:
+    result = hyrel_send(str(CONE), "--check")
+    assert result.returncode == 0, result.stderr
+    # PrusaSlicer wrote 12m 33s; ours is from the moves, with its settings' limits.
+    assert re.search(
+        r"cone-prusaslicer.gcode: estimated time 12m 3\ds, limits from the file's slicer "
+        r"settings; the slicer's: 12m 33s",
+        result.stdout,
+    ), result.stdout
+    plain = tmp_path / "plain.gcode"
+    plain.write_text("G28\nG1 X100 F600\n")  # 10 mm/s, below every jerk: 10 s flat
+    result = hyrel_send(str(plain), "--check")
+    assert "plain.gcode: estimated time 10s, limits from Marlin's defaults\n" in result.stdout
+    plain.write_text("M104 S200\n")
+    result = hyrel_send(str(plain), "--check")
+    assert "plain.gcode: no moves: no print time" in result.stdout
 
 
 def test_the_profile_comes_from_the_firmware_and_is_named(tmp_path: Path) -> None:

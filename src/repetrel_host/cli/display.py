@@ -91,6 +91,16 @@ class JobStatus:
         return self.marks.at(last.source_line, job.offset / max(job.size, 1))
 
 
+def spoken(seconds: float) -> str:
+    """A duration as a person says it: ``52m 55s``, ``1h 2m 3s``, ``40s``."""
+    minutes, second = divmod(int(seconds + 0.5), 60)
+    hours, minute = divmod(minutes, 60)
+    parts = [f"{hours}h"] if hours else []
+    if hours or minute:
+        parts.append(f"{minute}m")
+    return " ".join([*parts, f"{second}s"])
+
+
 def clock(seconds: float) -> str:
     minutes, second = divmod(int(seconds + 0.5), 60)
     hours, minute = divmod(minutes, 60)

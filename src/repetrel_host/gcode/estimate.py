@@ -76,7 +76,7 @@ DEFAULT_LIMITS = Limits(
     print_acceleration=3000.0,
     retract_acceleration=3000.0,
     travel_acceleration=3000.0,
-    source="defaults (Marlin's)",
+    source="Marlin's defaults",
 )
 
 
