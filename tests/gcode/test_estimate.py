@@ -139,3 +139,10 @@ def test_a_file_with_no_limits_anywhere_gets_more_than_distance_over_feed(
             plain += math.dist((x, y, z), new) / (feed / 60)
             x, y, z = new
     assert plain > 0 and result.seconds > plain
+
+
+def test_odd_lines_of_a_file_cost_no_crash() -> None:
+    # A zero acceleration or feed rate (M204 P0, F0) is no limit; a G1 with no move is nothing.
+    result = estimate(lines("M204 P0 T0 R0", "M201 X0", "G1 X10 F600", "G1 X20 F0", "G1"), X_ONLY)
+    assert result.seconds == pytest.approx(1.0, rel=1e-2)  # the F0 move: no time (PrusaSlicer)
+    assert result.moves == 2

@@ -47,7 +47,9 @@ class Limits:
     source: str = "defaults"
 
     def with_words(self, word: str, values: dict[str, float]) -> Limits:
-        """These limits after an ``M201``-``M205`` line of the file (``values``: its words)."""
+        """These limits after an ``M201``-``M205`` line of the file (``values``: its words; a
+        value that is not above zero is no limit, and is left out)."""
+        values = {letter: v for letter, v in values.items() if v > 0.0}
         per_axis = {letter: v for letter, v in values.items() if letter in AXES}
         if word == "M201":
             return replace(self, max_acceleration={**self.max_acceleration, **per_axis})
@@ -91,12 +93,9 @@ class _Block:
     entry: float
     nominal_length: bool
     axis_speed: tuple[float, float, float, float]  # signed, mm/s, at cruise
-    dwell: float = 0.0  # a G4's seconds, as a block of no distance
 
     def time(self, exit_speed: float) -> float:
         """Its trapezoid's duration, from ``entry`` to ``exit_speed``."""
-        if self.distance <= 0.0:
-            return self.dwell
         a, entry, cruise, d = self.acceleration, self.entry, self.cruise, self.distance
         accelerate = max(0.0, (cruise * cruise - entry * entry) / (2 * a))
         decelerate = max(0.0, (cruise * cruise - exit_speed * exit_speed) / (2 * a))
