@@ -72,6 +72,8 @@ def test_dwells_feed_overrides_and_relative_moves_count() -> None:
     assert base == pytest.approx(10.0, rel=1e-9)
     assert estimate(lines("G1 X100 F600", "G4 S3"), X_ONLY).seconds == pytest.approx(13.0)
     assert estimate(lines("G4 P500"), X_ONLY).seconds == pytest.approx(0.5)
+    written_otherwise = estimate(lines("g01 x100 f600", "G1X200"), X_ONLY).seconds
+    assert written_otherwise == pytest.approx(20.0, rel=1e-9)  # as the controller reads them
     assert estimate(lines("M220 S50", "G1 X100 F1200"), X_ONLY).seconds == pytest.approx(10.0)
     relative = estimate(lines("G91", "G1 X50 F600", "G1 X50"), X_ONLY).seconds
     assert relative == pytest.approx(10.0, rel=1e-9)

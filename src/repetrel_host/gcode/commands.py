@@ -5,6 +5,8 @@ from __future__ import annotations
 import re
 
 _WORD = re.compile(r"([A-Za-z])\s*(\d+)(\.\d+)?")
+_HEAD = re.compile(r"^\s*[A-Za-z]\s*\d+(?:\.\d+)?")
+_VALUE = re.compile(r"([A-Z])\s*([-+]?(?:\d+\.?\d*|\.\d+))")
 
 # Commands a controller acknowledges only after its motion queue drained and
 # the command finished (docs/protocol.md, "Numbered lines").
@@ -48,6 +50,16 @@ def command_word(command: str) -> str:
         return command.split(" ", 1)[0].upper()
     letter, number, fraction = match.groups()
     return letter.upper() + str(int(number)) + (fraction or "")
+
+
+def command_rest(command: str) -> str:
+    """What follows the command's own word, upper-cased: `` X5 E.2`` of ``g1 x5 e.2``."""
+    return _HEAD.sub("", command, count=1).upper()
+
+
+def command_words(command: str) -> dict[str, float]:
+    """The words after the command's own: ``G1 X5 E.2`` (or ``G1X5E.2``) gives X 5 and E 0.2."""
+    return {letter: float(value) for letter, value in _VALUE.findall(command_rest(command))}
 
 
 def is_unbuffered(command: str) -> bool:

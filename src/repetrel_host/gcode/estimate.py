@@ -28,9 +28,10 @@ from dataclasses import dataclass, field, replace
 from itertools import pairwise
 from pathlib import Path
 
+from repetrel_host.gcode.commands import command_rest, command_word, command_words
+
 AXES = "XYZE"
 LOOKAHEAD = 64  # blocks kept behind the newest for the passes (PrusaSlicer keeps 64)
-_WORD = re.compile(r"([A-Z])\s*([-+]?(?:\d+\.?\d*|\.\d+))")
 _EPSILON = 1e-9
 
 
@@ -147,14 +148,14 @@ class Estimator:
 
     def feed(self, line: int, command: str) -> None:
         """One command of the file (its source ``line``), comments already removed."""
-        text = command.strip().upper()
+        text = command.strip()
         if not text:
             return
-        head = text.split(None, 1)[0] if " " in text else _head(text)
+        head = command_word(text)
         if head in ("G0", "G1"):
-            self._move(line, _words(text[len(head) :]))
+            self._move(line, command_words(text))
         elif head == "G4":
-            words = _words(text[2:])
+            words = command_words(text)
             seconds = words.get("S", 0.0) + words.get("P", 0.0) / 1000.0
             self._dwell(line, seconds)
         elif head == "G90":
@@ -170,19 +171,20 @@ class Estimator:
         elif head == "G21":
             self._scale = 1.0
         elif head == "G92":
-            for letter, value in _words(text[3:]).items():
+            for letter, value in command_words(text).items():
                 if letter in AXES:
                     self._position[AXES.index(letter)] = value * self._scale
         elif head == "G28":
-            named = [a for a in "XYZ" if a in text[3:]] or list("XYZ")
+            rest = command_rest(text)
+            named = [a for a in "XYZ" if a in rest] or list("XYZ")
             for axis in named:
                 self._position[AXES.index(axis)] = 0.0
         elif head == "M220":
-            self._feed_factor = _words(text[4:]).get("S", 100.0) / 100.0
+            self._feed_factor = command_words(text).get("S", 100.0) / 100.0
         elif head == "M221":
-            self._flow_factor = _words(text[4:]).get("S", 100.0) / 100.0
+            self._flow_factor = command_words(text).get("S", 100.0) / 100.0
         elif head in ("M201", "M203", "M204", "M205"):
-            limits = self.limits.with_words(head, _words(text[4:]))
+            limits = self.limits.with_words(head, command_words(text))
             self.limits = replace(limits, source="the file's M201-M205 lines")
 
     def finish(self) -> Estimate:
@@ -321,15 +323,6 @@ def _junction(
     if previous.safe > threshold and safe > threshold:  # not coasting: each starts afresh
         junction = safe
     return junction
-
-
-def _head(text: str) -> str:
-    match = re.match(r"[A-Z]\d+(?:\.\d+)?", text)
-    return match.group() if match else text
-
-
-def _words(text: str) -> dict[str, float]:
-    return {letter: float(value) for letter, value in _WORD.findall(text)}
 
 
 def estimate(commands: Iterable[tuple[int, str]], limits: Limits = DEFAULT_LIMITS) -> Estimate:

@@ -29,12 +29,11 @@ Pure: it reads the commands it is given and builds lines; nothing here touches a
 
 from __future__ import annotations
 
-import re
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from enum import StrEnum
 
-from repetrel_host.gcode.commands import command_word
+from repetrel_host.gcode.commands import command_rest, command_word, command_words
 
 LIFT = 10.0  # mm above the highest Z of the skipped part (the safe stop lifts 10 mm too)
 Z_FEED = 600.0  # mm/min for the Z moves, XY_FEED for the XY one (Marlin's recovery's)
@@ -44,8 +43,6 @@ MM_PER_INCH = 25.4
 # its reference says M109 fails on a group.
 FIRST_GROUP_ADDRESS = 30
 
-_HEAD = re.compile(r"^\s*[A-Za-z]\s*\d+(?:\.\d+)?")
-_WORDS = re.compile(r"([A-Z])\s*([-+]?(?:\d+\.?\d*|\.\d+))")
 _HEATERS = {  # set command -> (heater kind, waits)
     "M104": ("hotend", False),
     "M109": ("hotend", True),
@@ -112,15 +109,15 @@ class MachineState:
         """Take one command of the skipped part into account."""
         word = command_word(command)
         if word in ("G0", "G1", "G2", "G3"):
-            self._move(_words(command))
+            self._move(command_words(command))
         elif word in _HEATERS:
-            self._heater(number, word, _words(command))
+            self._heater(number, word, command_words(command))
         elif word == "M106":
-            self._fan(number, command, _words(command))
+            self._fan(number, command, command_words(command))
         elif word == "M107":
-            self._fan_off(_words(command))
+            self._fan_off(command_words(command))
         elif word in _REPLAYED:
-            self.settings[(word, _int(_words(command).get("T")))] = (command, number)
+            self.settings[(word, _int(command_words(command).get("T")))] = (command, number)
         elif word == "G90":
             self.absolute = self.absolute_e = True
         elif word == "G91":
@@ -132,7 +129,7 @@ class MachineState:
         elif word in ("G20", "G21"):
             self.inches = word == "G20"
         elif word == "G92":
-            self._set_position(_words(command))
+            self._set_position(command_words(command))
         elif word == "G28":
             self._homed(command)
         elif word[:1] == "T" and word[1:].isdigit():
@@ -201,7 +198,7 @@ class MachineState:
     def _homed(self, command: str) -> None:
         # Where home is, the file does not say: unknown until a move names the axis. The
         # axes are named with or without a value (G28 X, G28 X0).
-        named = _HEAD.sub("", command, count=1).upper()
+        named = command_rest(command)
         for axis in [a for a in "XYZ" if a in named] or list("XYZ"):
             setattr(self, axis.lower(), None)
 
@@ -318,12 +315,6 @@ def _heat(word: str, heater: HeaterTarget) -> str:
 def _name(heater: HeaterTarget) -> str:
     which = f" T{heater.address}" if heater.address is not None else ""
     return f"the {heater.kind}{which}"
-
-
-def _words(command: str) -> dict[str, float]:
-    """The words after the command's own: ``G1 X5 E.2`` (or ``G1X5E.2``) gives X 5 and E 0.2."""
-    rest = _HEAD.sub("", command, count=1).upper()
-    return {letter: float(value) for letter, value in _WORDS.findall(rest)}
 
 
 def _fan_key(words: dict[str, float]) -> tuple[tuple[str, int | None, str], float]:
