@@ -262,7 +262,7 @@ class Subscription:
         return self
 
     async def __anext__(self) -> ServerEvent:
-        return await self._queue.get()
+        return await self.get()
 
 
 class EventHub:

@@ -232,8 +232,9 @@ class Printer:
         Hyrel's link), not the caller's nor a job's. Returns what removes the tap. For
         tests that read what the controller ran (a fake's log) without the host's lines."""
         self._line_taps.append(callback)
-        if self._wire.pump is not None:
-            self._wire.pump.dialect.on_first_send = self._first_send
+        pump = self._wire.pump
+        if pump is not None:
+            pump.dialect.on_first_send = self._first_send
         return lambda: self._line_taps.remove(callback)
 
     def _first_send(self, command: str, tag: object, own: bool) -> None:
@@ -287,7 +288,8 @@ class Printer:
             self.emergency_stop()
             return Reply(command, [], "")
         if word == "M108":
-            if self._wire.pump is not None and self._wire.pump.controller_holds:
+            pump = self._wire.pump
+            if pump is not None and pump.controller_holds:
                 # On Hyrel's link it is end-wait, which would end the hold behind the
                 # session's back (and the later resume() a heat-up's wait).
                 raise UsageError("the job is paused: resume() ends the pause, not M108")
@@ -374,12 +376,13 @@ class Printer:
         job ends with a ControllerError, and no safe stop is owed."""
         self._urgent("M112")
         self._owed.forgive()  # the controller halted: its heaters are off
-        if self._wire.pump is not None:
+        pump = self._wire.pump
+        if pump is not None:
             error = ControllerError(
                 "stopped by an emergency stop (M112): the controller halted (heaters off) "
                 "and needs a reset"
             )
-            self._wire.pump.emergency_stop(self._loop.time(), error)
+            pump.emergency_stop(self._loop.time(), error)
             self._wire.drive()
 
     # --- jobs -------------------------------------------------------------------
@@ -526,8 +529,9 @@ class Printer:
             raise UsageError("no job is printing")
         if self.state is State.PAUSED:
             return
-        if self._wire.pump is not None:
-            self._wire.pump.pause(at_layer_end)
+        pump = self._wire.pump
+        if pump is not None:
+            pump.pause(at_layer_end)
             self._wire.drive()
         await self._until(lambda: self.state is not State.PRINTING or job.done)
         if self.state not in (State.PAUSED,):  # (a tuple: the await changed it)
@@ -547,8 +551,8 @@ class Printer:
         if job.m0 is not None:
             m0, job.m0 = job.m0, None
             m0.set_result(None)
-        elif self._wire.pump is not None:
-            self._wire.pump.resume()
+        elif (pump := self._wire.pump) is not None:
+            pump.resume()
             self._wire.drive()
 
     async def _back_to_job(self, job: PrintJob) -> None:
