@@ -134,6 +134,7 @@ class Estimator:
 
     limits: Limits = DEFAULT_LIMITS
     on_time: Callable[[int, float], None] | None = None
+    lookahead: int = LOOKAHEAD  # blocks kept behind the newest (a firmware's planner size)
     seconds: float = 0.0
     moves: int = 0
     _position: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0, 0.0])
@@ -189,8 +190,13 @@ class Estimator:
 
     def finish(self) -> Estimate:
         """Every block done: the estimate."""
-        self._plan(keep=0)
+        self.flush()
         return Estimate(self.seconds, self.moves, self.limits.source)
+
+    def flush(self) -> None:
+        """Every block waiting done now, as when no move follows for a while (each one's
+        time told); the next move still joins the last one at the jerk's speed."""
+        self._plan(keep=0)
 
     def _dwell(self, line: int, seconds: float) -> None:
         # The planner empties before a dwell (Marlin's G4 waits for the moves).
@@ -263,8 +269,8 @@ class Estimator:
         self._blocks.append(block)
         self._previous = block
         self.moves += 1
-        if len(self._blocks) >= 2 * LOOKAHEAD:
-            self._plan(keep=LOOKAHEAD)
+        if len(self._blocks) >= 2 * self.lookahead:
+            self._plan(keep=self.lookahead)
 
     def _plan(self, keep: int) -> None:
         """The passes over the blocks waiting, then every one but the last ``keep`` done."""
