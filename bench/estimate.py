@@ -125,7 +125,7 @@ def main() -> None:
                 path = Path(folder) / f"{variant}-{name}"
                 path.write_text("\n".join(text) + "\n", encoding="utf-8")
                 started = time.process_time()
-                figures[variant] = estimate_file(path).seconds
+                figures[variant] = estimate_file(path).moving
                 if variant == "config":
                     cpu = time.process_time() - started
                     octoprint = octoprint_method(path)

@@ -30,6 +30,7 @@ from pydantic import (
 
 from repetrel_host.errors import ConfigError
 from repetrel_host.gcode import addressing
+from repetrel_host.gcode.estimate import DEFAULT_LIMITS, Limits
 
 # Numbers keep the type they were written with, so 1.0 prints "1.0" and 77 prints "77",
 # the way the Hyrel reference writes them.
@@ -72,6 +73,56 @@ class LinkDefaults(_Model):
     checksum: bool = False  # hyrel: every line with the additive checksum
 
 
+Axis = Literal["X", "Y", "Z", "E"]
+Positive = Annotated[float, Field(gt=0)]
+
+
+class HeatRates(_Model):
+    """Degrees per second each kind of heater gains (for the heat waits)."""
+
+    hotend: Positive = DEFAULT_LIMITS.heat_rates["hotend"]
+    bed: Positive = DEFAULT_LIMITS.heat_rates["bed"]
+    chamber: Positive = DEFAULT_LIMITS.heat_rates["chamber"]
+
+
+class MachineLimits(_Model):
+    """What a machine's planner runs with, for the print time: ``[NAME.limits]``. What is not
+    given is Marlin's default; ``source`` says where the figures come from."""
+
+    source: str = Field(min_length=1)
+    max_feedrate: dict[Axis, Positive] = {}  # mm/s (M203 on Marlin)
+    max_acceleration: dict[Axis, Positive] = {}  # mm/s² (M201)
+    jerk: dict[Axis, Positive] = {}  # mm/s (M205 X Y Z E)
+    junction_deviation: float = Field(default=0.0, ge=0)  # mm (M205 J); 0: the classic jerk
+    print_acceleration: Positive = DEFAULT_LIMITS.print_acceleration  # mm/s² (M204 P)
+    retract_acceleration: Positive = DEFAULT_LIMITS.retract_acceleration  # M204 R
+    travel_acceleration: Positive = DEFAULT_LIMITS.travel_acceleration  # M204 T
+    rapid: dict[Axis, Positive] = {}  # mm/min: Hyrel's G0 speed per axis (its M203)
+    heat_rates: HeatRates = HeatRates()
+    tool_change: float = Field(default=0.0, ge=0)  # seconds beyond the moves
+
+    def planner(self) -> Limits:
+        """These figures as the estimator's limits."""
+        return Limits(
+            max_feedrate=_over(DEFAULT_LIMITS.max_feedrate, self.max_feedrate),
+            max_acceleration=_over(DEFAULT_LIMITS.max_acceleration, self.max_acceleration),
+            jerk=_over(DEFAULT_LIMITS.jerk, self.jerk),
+            print_acceleration=self.print_acceleration,
+            retract_acceleration=self.retract_acceleration,
+            travel_acceleration=self.travel_acceleration,
+            source=f"the machine profile ({self.source})",
+            junction_deviation=self.junction_deviation,
+            rapid={str(axis): value / 60.0 for axis, value in self.rapid.items()},
+            heat_rates=self.heat_rates.model_dump(),
+            tool_change=self.tool_change,
+        )
+
+
+def _over(base: dict[str, float], given: Mapping[Axis, float]) -> dict[str, float]:
+    """``base``'s figures per axis, with ``given``'s in their place."""
+    return {**base, **{str(axis): value for axis, value in given.items()}}
+
+
 class Machine(_Model):
     description: str = ""
     # hyrel: Hyrel's code chart and T addressing apply; marlin: a RepRap-style controller.
@@ -82,6 +133,11 @@ class Machine(_Model):
     pause_sync: str = "M400"
     safe_stop: list[str] | None = None  # default: the standard footer's safe part
     link: LinkDefaults = LinkDefaults()
+    limits: MachineLimits | None = None  # for the print time; default: Marlin's
+
+    def planner_limits(self) -> Limits:
+        """The limits its print time is estimated with, when the file gives none."""
+        return self.limits.planner() if self.limits is not None else DEFAULT_LIMITS
 
 
 class Unprime(_Model):

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import re
+from dataclasses import replace
 from itertools import pairwise
 from pathlib import Path
 
@@ -117,7 +118,10 @@ def test_a_real_file_is_within_half_a_percent_of_its_slicers_figure(tmp_path: Pa
     )
     result = estimate_file(stripped)
     assert result.limits_from == "the file's slicer settings"
-    assert result.seconds == pytest.approx(12 * 60 + 33, rel=0.005)
+    assert result.moving == pytest.approx(12 * 60 + 33, rel=0.005)
+    # Its M104 S200, a home, then M109 S200: from 25 degrees at the default 2 degrees a
+    # second, less what the heater gained during the moves between; counted apart.
+    assert 80 < result.heating <= (200 - 25) / 2.0
 
 
 def test_a_file_with_no_limits_anywhere_gets_more_than_distance_over_feed(
@@ -148,3 +152,85 @@ def test_odd_lines_of_a_file_cost_no_crash() -> None:
     result = estimate(lines("M204 P0 T0 R0", "M201 X0", "G1 X10 F600", "G1 X20 F0", "G1"), X_ONLY)
     assert result.seconds == pytest.approx(1.0, rel=1e-2)  # the F0 move: no time (PrusaSlicer)
     assert result.moves == 2
+
+
+def trapezoid(distance: float, acceleration: float, start: float, top: float, end: float) -> float:
+    """The seconds of a move that reaches ``top`` (it must) from ``start``, down to ``end``."""
+    up = (top * top - start * start) / (2 * acceleration)
+    down = (top * top - end * end) / (2 * acceleration)
+    return (top - start) / acceleration + (top - end) / acceleration + (distance - up - down) / top
+
+
+def test_an_arc_runs_as_marlins_straight_pieces_whichever_way_it_is_written() -> None:
+    # A quarter circle of radius 50 at 10 mm/s: no axis goes faster than its 10 mm/s jerk,
+    # so the pieces run at full speed throughout: the arc's length over the speed.
+    centre = estimate(lines("G1 X50 Y0 F600", "G3 X0 Y50 I-50 J0"), X_ONLY)
+    radius = estimate(lines("G1 X50 Y0 F600", "G3 X0 Y50 R50"), X_ONLY)
+    first = 50 / 10
+    assert centre.seconds == pytest.approx(first + math.pi / 2 * 50 / 10, rel=1e-3)
+    assert radius.seconds == pytest.approx(centre.seconds, rel=1e-9)
+    assert centre.moves == 1 + 78  # 78.5 mm in pieces of about a millimetre
+    # Clockwise the other way round is three quarters of the circle.
+    long_way = estimate(lines("G1 X50 Y0 F600", "G2 X0 Y50 I-50 J0"), X_ONLY)
+    assert long_way.seconds == pytest.approx(first + 3 * math.pi / 2 * 50 / 10, rel=1e-3)
+
+
+def test_junction_deviation_takes_a_corner_at_marlins_speed() -> None:
+    limits = replace(X_ONLY, junction_deviation=0.05)
+    result = estimate(lines("G1 X100 F6000", "G1 Y100"), limits)
+    # 90 degrees: sqrt(a * J * sin(45°) / (1 - sin(45°))) = 10.99 mm/s at the corner; each
+    # move starts or ends at Marlin's least speed, 0.05 mm/s.
+    sin_half = math.sqrt(0.5)
+    corner = math.sqrt(1000 * 0.05 * sin_half / (1 - sin_half))
+    expected = trapezoid(100, 1000, 0.05, 100, corner) + trapezoid(100, 1000, corner, 100, 0.05)
+    assert result.seconds == pytest.approx(expected, rel=1e-6)
+    # M205 J in the file turns it on.
+    assert estimate(lines("M205 J0.05", "G1 X100 F6000", "G1 Y100"), X_ONLY).seconds == (
+        pytest.approx(expected, rel=1e-6)
+    )
+
+
+def test_heat_waits_count_from_where_each_heater_is() -> None:
+    cold = Estimator(X_ONLY)
+    for number, command in lines("M104 S200", "M109 S200", "M190 S60", "M109 S200"):
+        cold.feed(number, command)
+    result = cold.finish()
+    assert result.heating == pytest.approx((200 - 25) / 2.0 + (60 - 25) / 0.5, rel=1e-9)
+    assert result.seconds == pytest.approx(result.heating)
+    hot = Estimator(X_ONLY, temperatures={"T0": 200.0, "B": 60.0})
+    for number, command in lines("M109 S200", "M190 S60"):
+        hot.feed(number, command)
+    assert hot.finish().heating == 0.0
+    # A heater set early heats during the moves: the wait is what is left.
+    early = estimate(lines("M104 S45", "G1 X100 F600", "M109 S45"), X_ONLY)
+    assert early.heating == pytest.approx(max(0.0, 10 - 100 / 10), abs=0.2)
+
+
+def test_a_tool_change_takes_the_profiles_time_once_per_change() -> None:
+    limits = replace(X_ONLY, tool_change=5.0)
+    result = estimate(lines("T0", "T1", "T1", "T0"), limits)
+    assert result.tool_changes == 2
+    assert result.seconds == pytest.approx(10.0)
+
+
+def test_hyrels_g0_runs_at_its_rapid_speed_and_its_f_is_for_that_move_only() -> None:
+    def hyrel(*commands: str) -> float:
+        estimator = Estimator(X_ONLY, hyrel=True)
+        for number, command in lines(*commands):
+            estimator.feed(number, command)
+        return estimator.finish().seconds
+
+    one = estimate(lines("G1 X100 F6000"), X_ONLY).seconds  # 100 mm at 100 mm/s
+    assert hyrel("G1 F600", "M203 X6000", "G0 X100") == pytest.approx(one, rel=1e-9)
+    # Without M203 a G0 goes at the axis's top speed (200 mm/s here), not at F.
+    assert hyrel("G1 F600", "G0 X100") < one
+    # G0 F600 goes at 10 mm/s once; the G1 after it at the F it had (6000).
+    assert hyrel("G1 F6000", "G0 X10 F600", "G1 X110") == pytest.approx(1.0 + one, rel=1e-9)
+    # M674 S5: a G1 that does not print, longer than 5 mm, is a G0.
+    assert hyrel("M203 X6000", "G1 F600", "M674 S5", "G1 X100") == pytest.approx(one, rel=1e-9)
+    # E holds nothing back: an E-only move takes no time; a prime dwells where printing starts.
+    assert hyrel("G1 E10 F60") == 0.0
+    # (as a G4 there, stopping the motion), not where it goes on printing.
+    dwelt = hyrel("G1 F6000", "G1 X100", "G4 P250", "G1 X200 E1", "G1 X300 E2")
+    primed = hyrel("M722 S10000 E100 P250 T0", "G1 F6000", "G1 X100", "G1 X200 E1", "G1 X300 E2")
+    assert primed == pytest.approx(dwelt, rel=1e-9)

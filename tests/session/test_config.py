@@ -186,3 +186,39 @@ def test_a_mistyped_loadout_name_lists_the_known_ones() -> None:
     with pytest.raises(ConfigError, match="wiki-one-head, wiki-two-heads") as error:
         find_loadout(Path("wiki-one-haed"))
     assert "no such loadout" in str(error.value)
+
+
+def test_a_machines_limits_are_the_print_times_and_say_where_they_come_from(
+    tmp_path: Path, library: Library
+) -> None:
+    # No shipped Hyrel profile has figures (Hyrel publishes none): Marlin's defaults.
+    assert library.machines["hydra-16a"].planner_limits().source == "Marlin's defaults"
+    path = write(
+        tmp_path,
+        """
+        [machines.lab-16a]
+        yokes = 1
+        slots_per_yoke = 5
+        firmware = "v5"
+        [machines.lab-16a.limits]
+        source = "our Repetrel settings"
+        max_feedrate = { X = 150 }
+        junction_deviation = 0.05
+        rapid = { X = 6000 }
+        heat_rates = { bed = 0.25 }
+        tool_change = 3
+        """,
+        "config.toml",
+    )
+    limits = load_library(load_user_config(path)).machines["lab-16a"].planner_limits()
+    assert limits.source == "the machine profile (our Repetrel settings)"
+    assert limits.max_feedrate["X"] == 150 and limits.max_feedrate["Y"] == 300  # Marlin's
+    assert limits.rapid == {"X": 100.0}  # mm/min in the file, mm/s inside
+    assert limits.heat_rates == {"hotend": 2.0, "bed": 0.25, "chamber": 0.1}
+    assert (limits.junction_deviation, limits.tool_change) == (0.05, 3)
+    bad = write(tmp_path, path.read_text().replace("X = 150", "X = 0"), "bad.toml")
+    with pytest.raises(ConfigError, match=r"machines\.lab-16a\.limits\.max_feedrate\.X"):
+        load_library(load_user_config(bad))
+    unsourced = write(tmp_path, path.read_text().replace('source = "our Repetrel settings"', ""))
+    with pytest.raises(ConfigError, match=r"limits\.source"):
+        load_library(load_user_config(unsourced))

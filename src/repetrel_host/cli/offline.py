@@ -16,7 +16,6 @@ from repetrel_host.cli.exit_codes import EXIT_BAD_INPUT, EXIT_OK
 from repetrel_host.cli.out import Out
 from repetrel_host.config import load_user_config
 from repetrel_host.gcode.analysis import slicer_estimate
-from repetrel_host.gcode.estimate import estimate_file
 from repetrel_host.gcode.lint import Finding, Severity
 from repetrel_host.protocol.dialects import create_dialect
 from repetrel_host.session import history as print_history
@@ -44,19 +43,24 @@ def check_verdict(console: Out, plan: JobPlan, findings: list[Finding]) -> int:
         f"profile {plan.profile.describe()}",
         markup=False,
     )
-    console.print(f"{plan.job.name}: {time_sentence(plan.job.path)}", markup=False)
+    console.print(f"{plan.job.name}: {time_sentence(plan)}", markup=False)
     return EXIT_BAD_INPUT if refused else EXIT_OK
 
 
-def time_sentence(path: Path) -> str:
-    """The print time from the file's moves, where its limits came from, and the slicer's
-    own figure beside it (never in its place)."""
-    found = estimate_file(path)
+def time_sentence(plan: JobPlan) -> str:
+    """The job's print time from its moves (the heat waits in it), where its limits came
+    from, and the slicer's own figure beside it (never in its place)."""
+    found = plan.print_time()
     if not found.moves:
         return "no moves: no print time"
-    said = slicer_estimate(path)
+    said = slicer_estimate(plan.job.path)
     slicer = f"; the slicer's: {spoken(said)}" if said is not None else ""
-    return f"estimated time {spoken(found.seconds)}, limits from {found.limits_from}{slicer}"
+    heating = ""
+    if found.heating >= 1:
+        heating = f" ({spoken(found.moving)} moving, {spoken(found.heating)} heating)"
+    return (
+        f"estimated time {spoken(found.seconds)}{heating}, limits from {found.limits_from}{slicer}"
+    )
 
 
 def dry_run(errors: Out, plan: JobPlan, framed: bool, protocol: str | None) -> None:

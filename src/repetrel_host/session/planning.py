@@ -26,6 +26,7 @@ from repetrel_host.config import (
 from repetrel_host.errors import ConfigError, JobError, UsageError
 from repetrel_host.gcode import addressing
 from repetrel_host.gcode.analysis import scan_marks
+from repetrel_host.gcode.estimate import Estimate, estimate_file
 from repetrel_host.gcode.header import header_commands, safe_stop_commands, safe_stop_for_either
 from repetrel_host.gcode.lint import Finding, Linter, Severity
 from repetrel_host.links import FAKE_PORT
@@ -102,6 +103,24 @@ class JobPlan:
             return chain(self.header, self.job.items(check, pause_sync))
         restore = [JobLine(0, 0, line.command, 0, RECOVERY_SOURCE) for line in recovery.preamble]
         return chain(self.header, restore, self.job.items(check, pause_sync, recovery.line))
+
+    def print_time(
+        self,
+        on_time: Callable[[int, float], None] | None = None,
+        temperatures: dict[str, float] | None = None,
+    ) -> Estimate:
+        """The job's print time from its moves, its header's first, as its machine runs them
+        (the machine's limits where the file gives none; Hyrel's code chart on a Hyrel
+        machine). ``on_time`` and ``temperatures``: as the estimator takes them."""
+        machine = self.machine
+        return estimate_file(
+            self.job.path,
+            machine.planner_limits() if machine else None,
+            hyrel=machine is not None and machine.family == "hyrel",
+            temperatures=temperatures,
+            on_time=on_time,
+            first=[line.command for line in self.header],
+        )
 
     def linter(self, streaming: bool = False) -> Linter:
         firmware, positions, loaded_tools, code_chart = self.lint_settings
