@@ -61,7 +61,8 @@ def test_the_status_line_and_p_pausing_and_resuming(
     screen.expect("Keys: p pauses and resumes; Ctrl-C stops the job safely.")
     # Layer and Z as the slicer marked them, M73's percent, the temperatures heard.
     screen.expect(r"layer 2/3 · Z 0\.65 · 30 % \(M73\) · T \d+\.\d/200")
-    screen.expect(r"\d:\d\d left\*")  # M73's minutes left, starred: the slicer's
+    # The plan's time left (the slicer's, starred, only until the plan is made) and the end.
+    screen.expect(r"\d:\d\d left, ends \d\d:\d\d")
     screen.send("p")
     screen.expect("pausing: the controller finishes what it was sent")
     paused = screen.expect(r"Paused at layers\.gcode:(\d+) - press p to resume")
@@ -81,14 +82,12 @@ def test_the_status_line_and_p_pausing_and_resuming(
 
 
 @pytest.mark.timeout(60)
-def test_time_left_from_the_measured_rate_without_slicer_marks(
-    tmp_path: Path, screens: list
-) -> None:
+def test_time_left_from_the_plan_without_slicer_marks(tmp_path: Path, screens: list) -> None:
     job = tmp_path / "plain.gcode"
     job.write_text("".join(f"G1 X{i % 100} Y{i % 7}\n" for i in range(1500)))
     screen = Screen(str(job), "--no-history", home=tmp_path)
     screens.append(screen)
-    screen.expect(r"\d+ lines/s \d+:\d\d left\s")  # no star: measured, not estimated
+    screen.expect(r"\d+ lines/s \d+:\d\d left, ends")  # no star: the plan's, not a slicer's
     assert "layer" not in screen.text() and "*time left" not in screen.text()
     screen.send("\x03")  # Ctrl-C: the safe stop, as without a terminal
     screen.expect("stopping: sending the safe-stop sequence")

@@ -121,7 +121,12 @@ def test_the_job_panel_draws_the_layer_and_pauses_resumes_cancels_and_resumes_it
     assert state["resume"] == (True, "") and state["cancel"] == (True, "")
     paused = printer(client)["job"]
     assert paused["state"] == "paused"
-    said = {"analysis": "(slicer's estimate)", "linear": "(at the rate so far)"}
+    said = {
+        "estimate": "(planned, at this printer's pace)",
+        "plan": "(planned)",
+        "slicer": "(slicer's estimate)",
+        "linear": "(at the rate so far)",
+    }
     assert said[paused["time_left_from"]] in browser.text("#panel-job .job-facts")
     assert two_printers.executed("left")[-1] == lines[paused["last_line"] - 1]
     # The view shows exactly the acknowledged moves of the layer being printed.

@@ -21,9 +21,9 @@ import pytest
 
 import repetrel_host as rh
 from repetrel_host.fakes.fake_controller import BuiltInFake
-from repetrel_host.server.workers import in_worker, stop_workers
 from repetrel_host.session.job import MAX_KEPT_LINE, _raw_lines
 from repetrel_host.session.planning import PRECHECK_LIMIT
+from repetrel_host.session.workers import in_worker, stop_workers
 from tests.support.helpers import executed
 from tests.support.server import Server, job_state, wait_for
 

@@ -2,8 +2,10 @@
 
 Below the bar, a status line: the layer and Z the last acknowledged line belongs to (as
 the slicer marked them, :mod:`repetrel_host.gcode.marks`), M73's percentage, and the
-temperatures the session last heard; the time left is the slicer's estimate when the file
-has one, else the measured rate's. Imported only once a job streams (rich is slow to load).
+temperatures the session last heard; the time left (and the clock time of the end) is the
+plan's remainder at the pace the run keeps (:meth:`PrintJob.time_left`), until the plan is
+made the slicer's estimate when the file has one, else the measured rate's. Imported only
+once a job streams (rich is slow to load).
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ import sys
 import termios
 import tty
 from collections.abc import Callable, Iterable
+from datetime import datetime, timedelta
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
@@ -62,8 +65,10 @@ class JobStatus:
 
     def show(self, job: PrintJob, elapsed: float) -> tuple[str, str]:
         """The status line (``layer 12/82 · Z 3.65 · 42 % (M73) · T 200.1/200 · B 60.0/60``)
-        and the time left: the slicer's estimate where it gave one (starred), else the
-        measured rate's (bytes acknowledged per second); empty until there is one."""
+        and the time left with the clock time of the end: the plan's (the job's
+        :meth:`~PrintJob.time_left`); until it is made, the slicer's estimate where it gave
+        one (starred), else the measured rate's (bytes acknowledged per second); empty
+        until there is one."""
         parts = []
         where = self._where(job)
         if where is not None and self.marks is not None:
@@ -75,7 +80,11 @@ class JobStatus:
                 parts.append(f"{where.percent:g} % (M73)")
         parts.extend(format_temperatures(self.printer.temperatures))
         done = job.offset
-        if where is not None and where.seconds_left is not None:
+        planned = job.time_left()
+        if planned is not None:
+            ends = (datetime.now() + timedelta(seconds=planned)).strftime("%H:%M")
+            left = f"{clock(planned)} left, ends {ends}"
+        elif where is not None and where.seconds_left is not None:
             parts.append("*time left: the slicer's estimate")
             left = f"{clock(where.seconds_left)} left*"
         elif done > 0 and elapsed > 0:

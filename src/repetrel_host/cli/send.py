@@ -39,6 +39,7 @@ from repetrel_host.errors import (
     UsageError,
 )
 from repetrel_host.gcode.analysis import scan_marks, slicer_estimate
+from repetrel_host.gcode.timeline import learned_pace
 from repetrel_host.links import FAKE_PORT, FakeLink
 from repetrel_host.protocol.events import ProbeKind
 from repetrel_host.session.connect import connect
@@ -51,6 +52,7 @@ from repetrel_host.session.events import (
     State,
     StopDelayed,
 )
+from repetrel_host.session.history import paces
 from repetrel_host.session.planning import (
     JobPlan,
     LinkRequest,
@@ -63,6 +65,7 @@ from repetrel_host.session.print_job import PrintJob
 from repetrel_host.session.printer import Printer
 from repetrel_host.session.pump import Outcome, Summary
 from repetrel_host.session.recovery import recovery_command, recovery_from, recovery_window
+from repetrel_host.session.workers import stop_workers
 
 if TYPE_CHECKING:
     from rich.progress import TaskID
@@ -299,6 +302,10 @@ async def _stream(
     progress.start()
     if console.console.is_terminal:  # where the status line shows (the scan costs CPU a line)
         tasks.add(loop.create_task(status.read_marks()))
+    # The plan's time at each line, in a worker process: the time left, and this run's pace
+    # for the printer's next jobs (kept in its record).
+    prior = learned_pace(paces(stream_file.parent, printer.port, plan.profile.name or ""))
+    tasks.add(loop.create_task(job.follow_time(prior)))
     refresher = asyncio.create_task(refresh())
     watcher = asyncio.create_task(_watch(console, printer, job, actions, wait_for_enter, keyboard))
     completed = False
@@ -308,6 +315,7 @@ async def _stream(
         keys.stop()
         for running in (refresher, watcher, *tasks):
             running.cancel()
+        stop_workers()  # a long file's planning is not waited for
         signals.remove()
         _update(progress, task, job, started, status)
         if completed:  # its last state, as output that is not a terminal keeps it

@@ -184,6 +184,8 @@ class Estimator:
     limits: Limits = DEFAULT_LIMITS
     on_time: Callable[[int, float], None] | None = None
     lookahead: int = LOOKAHEAD  # blocks kept behind the newest (a firmware's planner size)
+    # Told the heat waits' seconds so far as a wait adds to them (before its on_time).
+    on_heat: Callable[[float], None] | None = None
     hyrel: bool = False
     temperatures: dict[str, float] = field(default_factory=dict)
     seconds: float = 0.0
@@ -314,6 +316,9 @@ class Estimator:
         if head in _HEATER_WAITS and heater.rate > 0:
             wait = max(0.0, heater.target - heater.at(now)) / heater.rate
             self.heating += wait
+            if self.on_heat is not None:
+                self._plan(keep=0)
+                self.on_heat(self.heating)
             self._pause(line, wait)
 
     def _tool_change(self, line: int, tool: str) -> None:
@@ -637,14 +642,19 @@ def estimate_file(
     hyrel: bool = False,
     temperatures: dict[str, float] | None = None,
     on_time: Callable[[int, float], None] | None = None,
+    on_heat: Callable[[float], None] | None = None,
     first: Iterable[str] = (),
 ) -> Estimate:
     """The estimate of the file at ``path``, read line by line (memory flat in its size),
     with the limits of its slicer's settings, else ``machine``'s, else the defaults.
     ``first``: commands that run before the file (a job's header; their line is 0).
-    ``hyrel``, ``temperatures``, ``on_time``: as :class:`Estimator` takes them."""
+    ``hyrel``, ``temperatures``, ``on_time``, ``on_heat``: as :class:`Estimator` takes them."""
     estimator = Estimator(
-        file_limits(path, machine), on_time, hyrel=hyrel, temperatures=dict(temperatures or {})
+        file_limits(path, machine),
+        on_time,
+        on_heat=on_heat,
+        hyrel=hyrel,
+        temperatures=dict(temperatures or {}),
     )
     for command in first:
         estimator.feed(0, command)

@@ -4,7 +4,7 @@ per file, valid while the file's size and time are those it was made from) so th
 reads no file again.
 
 A file is analysed as it is uploaded, or as its job starts when it never was (in a worker
-process, :mod:`~repetrel_host.server.workers`); a listing that finds a file without one (put
+process, :mod:`~repetrel_host.session.workers`); a listing that finds a file without one (put
 there by hand, moved with its folder) shows it without and has it analysed in the
 background, one file at a time, as OctoPrint does. Nothing here runs on the event loop but
 :meth:`Analyses.known` (memory only)."""
@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from repetrel_host.gcode.analysis import Analysis, FileSummary, analyse
-from repetrel_host.server.workers import in_worker
+from repetrel_host.session.workers import in_worker
 
 log = logging.getLogger("repetrel_host.server")
 

@@ -39,7 +39,7 @@ from repetrel_host.server.mqtt.bridge import MqttBridge, MqttSettings
 from repetrel_host.server.octoprint import appkeys, rest, sockjs
 from repetrel_host.server.octoprint.push import Push
 from repetrel_host.server.print_server import PrintServer, server_of
-from repetrel_host.server.workers import stop_workers
+from repetrel_host.session.workers import stop_workers
 
 __all__ = ["PrintServer", "create_app"]
 

@@ -80,7 +80,7 @@ class PrintProgress:
     layers: int
     completion: float | None
     time_left: int | None  # seconds
-    time_left_from: str | None  # "analysis": the slicer's estimate; "linear": the rate so far
+    time_left_from: str | None  # printers.running.LEFT_FROM: estimate, plan, slicer, linear
 
     def as_json(self) -> dict[str, Any]:
         return {

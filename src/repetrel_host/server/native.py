@@ -98,7 +98,7 @@ def _running_json(service: PrinterService) -> dict[str, Any]:
         "layers": len(running.layers),
         "completion": round(100.0 * running.fraction, 2),
         "time_left": round(left) if left is not None else None,  # seconds
-        "time_left_from": how,  # "analysis": the slicer's estimate; "linear": the rate so far
+        "time_left_from": how,  # see printers.running.LEFT_FROM
     }
 
 

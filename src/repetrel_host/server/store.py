@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from repetrel_host.gcode.heaters import Heater
+from repetrel_host.gcode.timeline import PACE_JOBS
 from repetrel_host.protocol.reports import JobReport
 
 PROGRESS_INTERVAL = 0.5  # seconds between progress records of a streaming job
@@ -75,6 +76,9 @@ _ADDED_COLUMNS = {
     "fence": "INTEGER",
     "version": "INTEGER NOT NULL DEFAULT 0",
     "synced_version": "INTEGER NOT NULL DEFAULT 0",
+    # Actual over planned moving time as the job ran (gcode.timeline: TimeLeft.measured):
+    # the printer's next jobs expect its pace.
+    "pace": "REAL",
 }
 OWED, SENT = "owed", "sent"
 
@@ -119,6 +123,7 @@ class JobRecord:
     fence: int | None = None  # the farm claim's fencing token
     version: int = 0  # changes made to the record
     synced_version: int = 0  # changes the farm was told
+    pace: float | None = None  # actual over planned moving time, as it ran
 
     def as_json(self) -> dict[str, object]:
         return {
@@ -140,6 +145,7 @@ class JobRecord:
             "filament": json.loads(self.filament) if self.filament else None,
             "from_line": self.from_line,
             "farm_job": self.farm_id,
+            "pace": self.pace,
         }
 
 
@@ -347,8 +353,9 @@ class Store:
         error: str | None = None,
         report: str | None = None,
         filament: dict[str, dict[str, float]] | None = None,
+        pace: float | None = None,
     ) -> None:
-        """A job's new state; an ended one's error, M773 report and filament with it."""
+        """A job's new state; an ended one's error, M773 report, filament and pace with it."""
         now = time.time()
         with self._transaction() as db:
             if state in ACTIVE:
@@ -361,8 +368,8 @@ class Store:
                 used = json.dumps(filament) if filament is not None else None
                 db.execute(
                     "UPDATE jobs SET state = ?, ended = ?, error = ?, report = ?, filament = ?,"
-                    " version = version + 1 WHERE id = ?",
-                    (state.value, now, error, report, used, job_id),
+                    " pace = ?, version = version + 1 WHERE id = ?",
+                    (state.value, now, error, report, used, pace, job_id),
                 )
             else:
                 db.execute(
@@ -400,6 +407,15 @@ class Store:
                 " WHERE id = ? AND (lines != ? OR last_line != ?)",
                 (lines, last_line, job_id, lines, last_line),
             )
+
+    def paces(self, printer: str) -> list[float]:
+        """The paces of ``printer``'s last jobs that have one, newest first."""
+        rows = self._db.execute(
+            "SELECT pace FROM jobs WHERE printer = ? AND pace IS NOT NULL"
+            " ORDER BY ended DESC LIMIT ?",
+            (printer, PACE_JOBS),
+        )
+        return [float(row[0]) for row in rows]
 
     def last_started(self, printer: str) -> JobRecord | None:
         """The printer's most recently started job."""

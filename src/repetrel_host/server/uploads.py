@@ -24,7 +24,7 @@ from repetrel_host.gcode.thumbnails import read as read_thumbnail
 from repetrel_host.server.analyses import Stamp, describe, stamp
 from repetrel_host.server.events import FileChanged
 from repetrel_host.server.print_server import PrintServer
-from repetrel_host.server.workers import in_worker
+from repetrel_host.session.workers import in_worker
 
 log = logging.getLogger("repetrel_host.server")
 

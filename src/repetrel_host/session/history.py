@@ -64,6 +64,10 @@ class Record:
     ended: str
     error: str = ""  # the failure's sentence
     error_kind: str = ""  # link failure, controller error, error
+    machine: str = ""  # the machine profile's name
+    # Actual over planned moving time (gcode.timeline's TimeLeft.measured): what the next
+    # job on this printer expects; None when too little of the run was watched.
+    pace: float | None = None
 
     def to_json(self) -> str:
         return json.dumps(asdict(self), indent=1) + "\n"
@@ -82,6 +86,16 @@ class Record:
             return cls(**{k: v for k, v in data.items() if k in names})
         except TypeError:  # a field missing
             return None
+
+
+def paces(folder: Path, port: str, machine: str) -> Iterable[float]:
+    """The paces of the runs in ``folder`` on ``port`` with ``machine``, newest first."""
+    for run in reversed(runs(folder)):
+        record = read_record(run.stream)
+        if record is None or record.pace is None:
+            continue
+        if (record.port, record.machine) == (port, machine):
+            yield record.pace
 
 
 def error_kind(error: HostError) -> str:

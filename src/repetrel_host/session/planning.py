@@ -29,6 +29,7 @@ from repetrel_host.gcode.analysis import scan_marks
 from repetrel_host.gcode.estimate import Estimate, estimate_file
 from repetrel_host.gcode.header import header_commands, safe_stop_commands, safe_stop_for_either
 from repetrel_host.gcode.lint import Finding, Linter, Severity
+from repetrel_host.gcode.timeline import Timeline
 from repetrel_host.links import FAKE_PORT
 from repetrel_host.links.ports import AUTO_PORT
 from repetrel_host.protocol.flow import HYREL_WINDOW, FlowControl, FlowMode
@@ -105,22 +106,31 @@ class JobPlan:
         return chain(self.header, restore, self.job.items(check, pause_sync, recovery.line))
 
     def print_time(
-        self,
-        on_time: Callable[[int, float], None] | None = None,
-        temperatures: dict[str, float] | None = None,
+        self, timeline: Timeline | None = None, temperatures: dict[str, float] | None = None
     ) -> Estimate:
         """The job's print time from its moves, its header's first, as its machine runs them
         (the machine's limits where the file gives none; Hyrel's code chart on a Hyrel
-        machine). ``on_time`` and ``temperatures``: as the estimator takes them."""
+        machine). ``timeline``: given the time at its lines as they are planned.
+        ``temperatures``: each heater's at the start (else the room's)."""
         machine = self.machine
-        return estimate_file(
+        found = estimate_file(
             self.job.path,
             machine.planner_limits() if machine else None,
             hyrel=machine is not None and machine.family == "hyrel",
             temperatures=temperatures,
-            on_time=on_time,
+            on_time=timeline.add if timeline else None,
+            on_heat=timeline.heated if timeline else None,
             first=[line.command for line in self.header],
         )
+        if timeline is not None:
+            timeline.finish()
+        return found
+
+    def timeline(self, temperatures: dict[str, float] | None = None) -> Timeline:
+        """The job's planned time at its lines (:meth:`print_time`'s)."""
+        timeline = Timeline()
+        self.print_time(timeline, temperatures)
+        return timeline
 
     def linter(self, streaming: bool = False) -> Linter:
         firmware, positions, loaded_tools, code_chart = self.lint_settings

@@ -10,12 +10,14 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from datetime import datetime
 from pathlib import Path
 from typing import Protocol
 
 from repetrel_host.errors import HostError
+from repetrel_host.gcode.timeline import TimeLeft
 from repetrel_host.protocol.reports import JobReport, ReportReader
 from repetrel_host.session import history as print_history
 from repetrel_host.session.events import Done, Failed, JobEvent, Progress, Report, State
@@ -23,6 +25,7 @@ from repetrel_host.session.hub import EventFanout
 from repetrel_host.session.job import HostAction, JobLine
 from repetrel_host.session.planning import JobPlan
 from repetrel_host.session.pump import JobRun, Outcome, Summary
+from repetrel_host.session.workers import in_worker
 
 # A job's progress goes to its event subscribers at most this often.
 PROGRESS_INTERVAL = 0.1
@@ -38,6 +41,9 @@ class JobPrinter(Protocol):
 
     @property
     def port(self) -> str: ...
+
+    @property
+    def temperatures(self) -> dict[str, tuple[float, float | None]]: ...
 
     async def pause(self, at_layer_end: bool = False) -> None: ...
 
@@ -93,6 +99,7 @@ class PrintJob:
         self.m0: asyncio.Future[None] | None = None  # an M0 waiting for resume()
         self.reports = ReportReader()  # the M773 report, read from the messages
         self.started = datetime.now()
+        self.following: TimeLeft | None = None  # the planned time, once follow_time made it
         self._keeper: print_history.ProgressKeeper | None = None  # the progress record
 
     @property
@@ -116,6 +123,39 @@ class PrintJob:
     def last(self) -> JobLine | None:
         """The last job line the controller acknowledged."""
         return self._run.last
+
+    async def follow_time(self, prior: float = 1.0) -> None:
+        """Plan the job's time at its lines, so that :meth:`time_left` can say it; its heat
+        waits start where the printer's heaters are. ``prior``: the printer's pace from its
+        past jobs (see :class:`~repetrel_host.gcode.timeline.TimeLeft`). A long file takes
+        seconds of CPU: planned in a worker process, so the streams keep the interpreter. A
+        file that cannot be planned (gone, unreadable, its worker ended) leaves the job
+        without it: :meth:`time_left` stays None."""
+        # Marlin's T is the active hotend: the first, where it reports no T0.
+        heard = self.printer.temperatures
+        temperatures = {
+            ("T0" if name == "T" and "T0" not in heard else name): current
+            for name, (current, _) in heard.items()
+        }
+        try:
+            timeline = await asyncio.to_thread(in_worker, self.plan.timeline, temperatures)
+        except (OSError, HostError):
+            return
+        self.following = TimeLeft(timeline, prior)
+
+    def time_left(self, now: float | None = None) -> float | None:
+        """Seconds the job has left at the line acknowledged last: the plan's remainder at
+        the pace the run keeps (:meth:`follow_time` first; None before it is planned, and
+        0 once the job ended)."""
+        if self.done:
+            return 0.0
+        following = self.following
+        if following is None:
+            return None
+        last = self._run.last
+        line = last.source_line if last is not None else 0
+        moving = self.printer.state is not State.PAUSED
+        return following.left(line, time.monotonic() if now is None else now, moving)
 
     @property
     def header_lines(self) -> int:
@@ -306,4 +346,6 @@ class PrintJob:
             ended=ended.isoformat(timespec="seconds"),
             error=str(error) if error is not None else "",
             error_kind=print_history.error_kind(error) if error is not None else "",
+            machine=self.plan.profile.name or "",
+            pace=round(pace, 4) if (pace := self.following and self.following.measured) else None,
         )

@@ -29,8 +29,8 @@ from repetrel_host.server.farm import needs
 from repetrel_host.server.farm.node import FILE_TIMEOUT, TIMEOUT, FarmNode
 from repetrel_host.server.print_server import PrintServer, server_of
 from repetrel_host.server.uploads import receive, safe_file_name
-from repetrel_host.server.workers import in_worker
 from repetrel_host.session.planning import JobRequest, layer_line, plan_job
+from repetrel_host.session.workers import in_worker
 
 log = logging.getLogger("repetrel_host.server.farm")
 

@@ -133,10 +133,14 @@ def job(service: PrinterService) -> dict[str, Any]:
     }
 
 
+# The server's names for where a time left came from, as OctoPrint says them.
+_ORIGINS = {"plan": "analysis", "slicer": "analysis"}
+
+
 def progress(service: PrinterService) -> dict[str, Any]:
-    """OctoPrint's ``progress``: completion (%), file position, print time and time left
-    (the slicer's estimate where the file has one: origin ``analysis``; else the rate so
-    far: ``linear``)."""
+    """OctoPrint's ``progress``: completion (%), file position, print time and time left,
+    with its origin in OctoPrint's words: ``estimate`` (the plan at the run's or the
+    printer's pace), ``analysis`` (the plan, or the slicer's figure), ``linear`` (the rate)."""
     shown = _shown(service)
     none = {"completion": None, "filepos": None, "printTime": None, "printTimeLeft": None}
     if shown is None or (service.running is None and service.selected is not None):
@@ -151,6 +155,7 @@ def progress(service: PrinterService) -> dict[str, Any]:
     origin: str | None = None
     if ended is None:
         left, origin = shown.time_left(elapsed)
+        origin = _ORIGINS.get(origin, origin) if origin is not None else None
     return {
         "completion": 100.0 * fraction,
         "filepos": job.size if completed else job.offset,

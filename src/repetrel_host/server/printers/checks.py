@@ -11,12 +11,12 @@ import repetrel_host as rh
 from repetrel_host.config import Loadout, UserConfig, find_loadout, load_library, load_loadout
 from repetrel_host.gcode.lint import Finding, Severity
 from repetrel_host.protocol.reports import Firmware
-from repetrel_host.server.workers import in_worker
 from repetrel_host.session.planning import (
     JobPlan,
     JobRequest,
     plan_job,
 )
+from repetrel_host.session.workers import in_worker
 
 
 def _fingerprint(plan: JobPlan) -> tuple[object, ...]:

@@ -13,6 +13,10 @@ from repetrel_host.gcode.marks import SlicerMarks
 from repetrel_host.server.events import PrintProgress
 from repetrel_host.server.store import JobRecord
 
+# How a time left was found: the plan at the pace of the run or of the printer's past jobs;
+# the plan as it is; the slicer's figure; the rate so far.
+LEFT_FROM = ("estimate", "plan", "slicer", "linear")
+
 
 @dataclass
 class Running:
@@ -44,16 +48,21 @@ class Running:
         return min(self.job.offset / max(self.job.size, 1), 1.0)
 
     def time_left(self, elapsed: float) -> tuple[float | None, str | None]:
-        """Seconds left of the job after ``elapsed`` seconds of it, and how they were found:
-        the slicer's estimate where the file has one (``analysis``), else the rate so far
-        (``linear``, once 0.5 % and 5 s went); (None, None) before either can tell. One
-        figure for every face: OctoPrint's printTimeLeft, MQTT's progress."""
+        """Seconds left of the job after ``elapsed`` seconds of it, and how they were found
+        (:data:`LEFT_FROM`): the plan's remainder (the job's ``time_left``); until the plan
+        is made, the slicer's estimate where the file has one, else the rate so far (once
+        0.5 % and 5 s went); (None, None) before any can tell. One figure for every face:
+        OctoPrint's printTimeLeft, MQTT's progress, the page, /v1."""
+        planned = self.job.time_left()
+        following = self.job.following
+        if planned is not None and following is not None:
+            return planned, "estimate" if following.corrected else "plan"
         fraction = self.fraction
         last = self.job.last
         if self.marks is not None and last is not None:
             left = self.marks.at(last.source_line, fraction).seconds_left
             if left is not None:
-                return left, "analysis"
+                return left, "slicer"
         if fraction > 0.005 and elapsed > 5:
             return elapsed * (1 - fraction) / fraction, "linear"
         return None, None

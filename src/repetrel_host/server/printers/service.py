@@ -21,6 +21,7 @@ from typing import Any
 import repetrel_host as rh
 from repetrel_host.config import Loadout, UserConfig
 from repetrel_host.gcode.lint import Finding
+from repetrel_host.gcode.timeline import learned_pace
 from repetrel_host.server.analyses import Analyses
 from repetrel_host.server.events import (
     JobChanged,
@@ -329,6 +330,10 @@ class PrinterService:
         farm = f", farm job {record.farm_id}" if record.farm_id is not None else ""
         log.info("printer %s: printing job %d (%s%s)", self.name, record.id, record.name, farm)
         self.job_changed(record.id)
+        # The plan's time at each line (in a worker process), for the time left and the pace.
+        following = asyncio.ensure_future(
+            job.follow_time(learned_pace(self.store.paces(self.name)))
+        )
         try:  # read while the job streams: a big file
             await asyncio.to_thread(self._read_job, running, path)
         except OSError:
@@ -367,9 +372,11 @@ class PrinterService:
             self.running = None
             self.changed()
             watching.cancel()
+            following.cancel()
         report = job.report  # the controller's M773 report, kept with the job
         used = filament_used(running, completed)
-        self.store.set_state(record.id, state, error, report.text if report else None, used)
+        pace = job.following.measured if job.following is not None else None
+        self.store.set_state(record.id, state, error, report.text if report else None, used, pace)
         if printer.owed_safe_stop or isinstance(ending.exception(), rh.SafeStopError):
             # Owed to the printer's next contact, whatever the job is recorded as (and
             # after a restart too): the session sends it once the printer answers.

@@ -155,7 +155,7 @@ export async function mount(main, { stream, say }) {
                   { class: "numbers" },
                   percent != null ? `${percent.toFixed(1)} %` : "",
                   job.layers ? ` · layer ${job.layer} of ${job.layers}` : "",
-                  job.time_left != null ? ` · ${duration(job.time_left)} left${job.time_left_from === "analysis" ? " (slicer's estimate)" : ""}` : "",
+                  job.time_left != null ? ` · ${duration(job.time_left)} left${job.time_left_from === "slicer" ? " (slicer's estimate)" : ""}` : "",
                 ),
               ]
             : h("div", { class: "file idle" }, printer.error && category(printer) !== "offline" ? printer.error : "no job"),

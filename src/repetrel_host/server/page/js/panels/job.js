@@ -7,7 +7,7 @@ import { h, clock, duration } from "../api.js";
 const ENDED = new Set(["completed", "failed", "interrupted", "cancelled"]);
 const RESUMABLE = new Set(["failed", "interrupted", "cancelled"]);
 const STATE_CLASS = { printing: "busy", paused: "paused", completed: "ok", cancelled: "offline", interrupted: "held", failed: "error" };
-const LEFT_FROM = { analysis: "(slicer's estimate)", linear: "(at the rate so far)" };
+const LEFT_FROM = { estimate: "(planned, at this printer's pace)", plan: "(planned)", slicer: "(slicer's estimate)", linear: "(at the rate so far)" };
 const CACHED_LAYERS = 8;
 const COLOURS = { done: "#1d63c9", todo: "#a9b1bd", travelDone: "rgba(29, 99, 201, 0.35)", travelTodo: "rgba(120, 130, 145, 0.3)", area: "#dde1e7" };
 
@@ -105,7 +105,10 @@ export async function mount(body, ctx) {
     rows.push(fact("Lines acknowledged", `${count(job.lines)} of ${count(job.total_lines)}`, job.from_line ? `(resumed from line ${count(job.from_line)})` : ""));
     if (running) {
       if (job.started) rows.push(fact("Elapsed", duration(Date.now() / 1000 - job.started)));
-      if (job.time_left != null) rows.push(fact("Time left", duration(job.time_left), LEFT_FROM[job.time_left_from] || ""));
+      if (job.time_left != null) {
+        rows.push(fact("Time left", duration(job.time_left), LEFT_FROM[job.time_left_from] || ""));
+        rows.push(fact("Ends", clock(Date.now() / 1000 + job.time_left)));
+      }
     } else {
       if (job.started && job.ended) rows.push(fact("Ran", duration(job.ended - job.started)));
       if (job.ended) rows.push(fact("Ended", clock(job.ended)));

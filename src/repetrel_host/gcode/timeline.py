@@ -1,0 +1,163 @@
+"""A job's planned time at its lines, and the time it has left as it runs.
+
+:class:`Timeline` keeps the estimator's time at the end of the job's lines (:mod:`repetrel_host.
+gcode.estimate`'s ``on_time``) sparsely: a point a second or so apart, never more than
+:data:`MOST_POINTS` (the spacing doubles when they would be), so a file of any size costs a
+few hundred kilobytes at most. Heat waits are kept apart: their time is the heaters', not the
+motion's.
+
+:class:`TimeLeft` turns it into the seconds a running job has left at the line the controller
+acknowledged: the plan's remainder, its moving part scaled by how the run has gone so far
+(actual ÷ planned time over the stretches it watched moving), blended in from a prior pace
+(what this printer's past jobs took against their plans) as the print advances. The clock
+is the caller's: nothing here reads the time.
+"""
+
+from __future__ import annotations
+
+import bisect
+import statistics
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from itertools import islice
+
+MOST_POINTS = 4096
+BLEND_SHARE = 0.25  # of the planned moving time: the run's own pace counts fully from there
+PACE_JOBS = 5  # a printer's pace: the median of its last jobs' (one odd job does not sway it)
+
+
+def learned_pace(paces: Iterable[float]) -> float:
+    """A printer's pace from its past jobs' (newest first): the median of the last
+    :data:`PACE_JOBS`; 1 (as planned) when it has none."""
+    recent = list(islice(paces, PACE_JOBS))
+    return statistics.median(recent) if recent else 1.0
+
+
+@dataclass
+class Timeline:
+    """The planned seconds at the end of a job's lines, kept sparsely (see the module)."""
+
+    spacing: float = 1.0  # seconds between the points kept
+    lines: list[int] = field(default_factory=list)
+    seconds: list[float] = field(default_factory=list)
+    heating: list[float] = field(default_factory=list)  # of the seconds, the heat waits'
+    total: float = 0.0
+    total_heating: float = 0.0
+    _seen: tuple[int, float, float] | None = None  # the last point told, maybe not kept
+    _heating: float = 0.0  # the heat waits' seconds so far, as last told
+
+    def heated(self, heating: float) -> None:
+        """The heat waits so far take ``heating`` seconds (the estimator's ``on_heat``)."""
+        self._heating = heating
+
+    def add(self, line: int, seconds: float) -> None:
+        """The plan reaches ``seconds`` at the end of ``line`` (the estimator's ``on_time``);
+        told in order."""
+        heating = self._heating
+        if heating != self.total_heating and self._seen is not None:
+            self._keep(*self._seen)  # a wait: the point before it, so it is not spread
+        self.total, self.total_heating = seconds, heating
+        self._seen = (line, seconds, heating)
+        if (
+            not self.seconds
+            or seconds - self.seconds[-1] >= self.spacing
+            or heating != (self.heating[-1])
+        ):
+            self._keep(line, seconds, heating)
+
+    def finish(self) -> None:
+        """The plan is complete: its last point kept."""
+        if self._seen is not None:
+            self._keep(*self._seen)
+
+    def _keep(self, line: int, seconds: float, heating: float) -> None:
+        if self.lines and line <= self.lines[-1]:
+            self.seconds[-1], self.heating[-1] = seconds, heating  # the same line, later
+            return
+        self.lines.append(line)
+        self.seconds.append(seconds)
+        self.heating.append(heating)
+        if len(self.lines) > MOST_POINTS:  # every other one goes, the first and last stay
+            keep = [*range(0, len(self.lines) - 1, 2), len(self.lines) - 1]
+            self.lines = [self.lines[i] for i in keep]
+            self.seconds = [self.seconds[i] for i in keep]
+            self.heating = [self.heating[i] for i in keep]
+            self.spacing *= 2
+
+    def at(self, line: int) -> tuple[float, float]:
+        """The planned seconds at the end of ``line``, and the heat waits' share of them
+        (between points kept, the line's share of the way)."""
+        index = bisect.bisect_left(self.lines, line)
+        if index >= len(self.lines):
+            return self.total, self.total_heating
+        if self.lines[index] == line or index == 0:
+            if index == 0 and self.lines[0] != line:
+                share = line / self.lines[0] if self.lines[0] > 0 else 1.0
+                return self.seconds[0] * max(share, 0.0), 0.0
+            return self.seconds[index], self.heating[index]
+        before, after = self.lines[index - 1], self.lines[index]
+        share = (line - before) / (after - before)
+        heating = self.heating[index - 1]
+        seconds = self.seconds[index - 1] + share * (self.seconds[index] - self.seconds[index - 1])
+        return seconds, heating
+
+
+@dataclass
+class TimeLeft:
+    """The seconds a running job has left (see the module). ``prior``: this printer's pace,
+    actual over planned moving time, from its past jobs (1: as planned)."""
+
+    timeline: Timeline
+    prior: float = 1.0
+    watched_actual: float = 0.0  # seconds watched moving...
+    watched_planned: float = 0.0  # ...and what the plan gave them
+    _last: tuple[int, float] | None = None  # the last line seen and when
+
+    def observe(self, line: int, now: float, moving: bool = True) -> None:
+        """The controller acknowledged up to ``line`` by ``now``. ``moving``: False while the
+        job is paused (the stretch around it is not watched)."""
+        last = self._last
+        self._last = (line, now) if moving else None
+        if last is None or line < last[0]:
+            return
+        seconds, heating = self.timeline.at(line)
+        before, heating_before = self.timeline.at(last[0])
+        if heating != heating_before:  # a heat wait in between: the heaters' time, not watched
+            return
+        self.watched_actual += now - last[1]
+        self.watched_planned += seconds - before
+
+    @property
+    def pace(self) -> float:
+        """Actual over planned moving time: the run's own, blended in from the prior as it
+        was watched (fully from :data:`BLEND_SHARE` of the plan's moving time)."""
+        moving = self.timeline.total - self.timeline.total_heating
+        if self.watched_planned <= 0 or moving <= 0:
+            return self.prior
+        weight = min(1.0, self.watched_planned / (BLEND_SHARE * moving))
+        run = self.watched_actual / self.watched_planned
+        return (1 - weight) * self.prior + weight * run
+
+    @property
+    def corrected(self) -> bool:
+        """The plan is no longer taken as it is: the run was watched, or the printer's past
+        jobs said its pace."""
+        return self.watched_planned > 0 or self.prior != 1.0
+
+    @property
+    def measured(self) -> float | None:
+        """The run's own pace, once a tenth of the plan's moving time was watched (what a
+        printer's history learns from); None before."""
+        moving = self.timeline.total - self.timeline.total_heating
+        if moving <= 0 or self.watched_planned < 0.1 * moving:
+            return None
+        return self.watched_actual / self.watched_planned
+
+    def left(self, line: int, now: float, moving: bool = True) -> float:
+        """The seconds left after ``line``, acknowledged by ``now`` (observed first): the
+        plan's moving remainder at the pace, and its heat waits as planned."""
+        self.observe(line, now, moving)
+        seconds, heating = self.timeline.at(line)
+        heat_left = self.timeline.total_heating - heating
+        moving_left = self.timeline.total - seconds - heat_left
+        return max(0.0, moving_left * self.pace + heat_left)

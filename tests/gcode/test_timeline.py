@@ -1,0 +1,88 @@
+"""The planned time at a job's lines (sparse, bounded) and the time left as a run goes."""
+
+from __future__ import annotations
+
+import pytest
+
+from repetrel_host.gcode.timeline import MOST_POINTS, TimeLeft, Timeline
+
+
+def even(lines: int, each: float, start: int = 1) -> Timeline:
+    timeline = Timeline()
+    for line in range(start, start + lines):
+        timeline.add(line, line * each)
+    timeline.finish()
+    return timeline
+
+
+def test_a_long_plan_is_kept_in_a_bounded_number_of_points_and_read_between_them() -> None:
+    timeline = even(1_000_000, 0.01)  # 10,000 s over a million lines
+    assert len(timeline.lines) <= MOST_POINTS
+    assert timeline.spacing > 1.0
+    assert timeline.total == pytest.approx(10_000)
+    for line in (1, 12_345, 500_000, 999_999, 1_000_000):
+        assert timeline.at(line)[0] == pytest.approx(line * 0.01, abs=timeline.spacing)
+    assert timeline.at(2_000_000) == (pytest.approx(10_000), 0.0)
+
+
+def test_a_heat_wait_is_a_step_at_its_line_not_spread_over_the_lines_before() -> None:
+    timeline = Timeline()
+    for line in range(1, 11):
+        timeline.add(line, line * 0.3)
+    timeline.heated(50.0)
+    timeline.add(11, 3.0 + 50.0)
+    for line in range(12, 21):
+        timeline.add(line, 53.0 + (line - 11) * 0.3)
+    timeline.finish()
+    assert timeline.at(10) == (pytest.approx(3.0), 0.0)
+    assert timeline.at(11) == (pytest.approx(53.0), 50.0)
+    assert timeline.total_heating == 50.0
+
+
+def test_a_run_at_the_plans_pace_has_the_plans_remainder_left() -> None:
+    timeline = even(1000, 1.0)
+    following = TimeLeft(timeline)
+    for line in range(1, 1001, 50):
+        assert following.left(line, now=float(line)) == pytest.approx(1000 - line)
+
+
+def test_a_slower_run_is_found_out_and_counts_fully_from_a_quarter_of_the_plan() -> None:
+    timeline = even(1000, 1.0)
+    following = TimeLeft(timeline, prior=1.0)
+    left = 0.0
+    for line in range(1, 301):
+        left = following.left(line, now=line * 1.1)
+    assert following.pace == pytest.approx(1.1)
+    assert left == pytest.approx((1000 - 300) * 1.1)
+    # Earlier, the prior still weighs: an eighth of the plan watched, half each.
+    early = TimeLeft(timeline, prior=1.0)
+    for line in range(1, 127):
+        early.left(line, now=line * 1.1)
+    assert early.pace == pytest.approx(1.05, abs=0.002)
+    assert early.measured == pytest.approx(1.1)
+
+
+def test_a_printers_prior_pace_is_the_estimate_before_the_run_says_anything() -> None:
+    following = TimeLeft(even(1000, 1.0), prior=0.9)
+    assert following.left(0, now=0.0) == pytest.approx(900)
+    assert following.measured is None
+
+
+def test_heat_waits_and_pauses_are_not_taken_for_slow_moving() -> None:
+    timeline = Timeline()
+    timeline.heated(100.0)
+    timeline.add(1, 100.0)  # a wait planned at 100 s, first thing
+    for line in range(2, 1002):
+        timeline.add(line, 100.0 + (line - 1))
+    timeline.finish()
+    following = TimeLeft(timeline)
+    following.left(0, now=0.0)
+    following.left(1, now=400.0)  # the heaters took 400 s, not 100: the plan's business
+    for line in range(2, 300):
+        following.left(line, now=400.0 + (line - 1))
+    following.left(300, now=700.0, moving=False)  # paused for an hour...
+    following.left(300, now=4300.0, moving=False)
+    for line in range(301, 400):  # ...and on again at the plan's pace
+        following.left(line, now=4300.0 + (line - 300))
+    assert following.pace == pytest.approx(1.0, abs=0.01)
+    assert following.left(400, now=4400.0) == pytest.approx(1100 - 499, abs=5)
