@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from repetrel_host.gcode.timeline import MOST_POINTS, TimeLeft, Timeline
+from repetrel_host.gcode.timeline import MOST_POINTS, TimeLeft, Timeline, learned_pace
 
 
 def even(lines: int, each: float, start: int = 1) -> Timeline:
@@ -86,3 +86,9 @@ def test_heat_waits_and_pauses_are_not_taken_for_slow_moving() -> None:
         following.left(line, now=4300.0 + (line - 300))
     assert following.pace == pytest.approx(1.0, abs=0.01)
     assert following.left(400, now=4400.0) == pytest.approx(1100 - 499, abs=5)
+
+
+def test_a_printers_pace_is_the_median_of_its_last_five_jobs() -> None:
+    assert learned_pace([]) == 1.0
+    assert learned_pace([1.1]) == 1.1
+    assert learned_pace([1.1, 1.3, 5.0, 1.2, 0.9, 9.9]) == 1.2  # one odd job, the sixth unread

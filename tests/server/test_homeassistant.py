@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import asyncio
 import json
+import time
 from collections.abc import Callable
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -109,7 +111,8 @@ def test_each_printer_is_a_home_assistant_device_whose_sensors_read_real_message
     async def scenario() -> None:
         node = f"hyrel_{uuid}"
         # The chamber's sensors too, once the printer reported one (C:).
-        expected = ["state", "progress", "time_left", "file", "pause", "resume", "cancel"]
+        expected = ["state", "progress", "time_left", "print_end", "file"]
+        expected += ["pause", "resume", "cancel"]
         expected += [
             f"{h}_{w}" for h in ("hotend", "bed", "chamber") for w in ("temperature", "target")
         ]
@@ -149,8 +152,12 @@ def test_each_printer_is_a_home_assistant_device_whose_sensors_read_real_message
                 assert value == "cone.gcode"
             elif key == "progress":
                 assert 0 <= float(value) <= 100 and config["unit_of_measurement"] == "%"
-            elif key == "time_left":  # the slicer's estimate (12m 33s for the whole cone)
-                assert 0 < int(value) <= 753 and config["device_class"] == "duration"
+            elif key == "time_left":  # the plan's (13m 58s for the whole cone, heat included)
+                assert 0 <= int(value) <= 840 and config["device_class"] == "duration"
+            elif key == "print_end":  # when, in Home Assistant's timestamp form
+                ends = datetime.fromisoformat(value)
+                assert ends.tzinfo is not None and config["device_class"] == "timestamp"
+                assert abs(ends.timestamp() - time.time()) <= 840 + 60
             elif key == "hotend_target":
                 assert float(value) == 200.0 and config["unit_of_measurement"] == "°C"
             else:  # the temperatures, the other targets
@@ -263,7 +270,7 @@ def test_the_discovery_prefix_is_chosen_or_discovery_turned_off(
     found = asyncio.run(scenario())
     assert not configs_of(found, "homeassistant")
     if prefix is not None:  # without --mqtt-commands: no buttons
-        configs = configs_of(found, prefix).values()
-        assert len(configs) == 8 and not any("command_topic" in c for c in configs)
+        configs = configs_of(found, prefix).values()  # the printer's 5, each heater's 2
+        assert len(configs) == 9 and not any("command_topic" in c for c in configs)
     else:
         assert [t for t in found if t.endswith("/config")] == []

@@ -105,6 +105,24 @@ def test_a_record_reads_back_and_garbage_is_no_record(tmp_path: Path) -> None:
     assert history.read_record(tmp_path / "20250304-101113-none.gcode") is None
 
 
+def test_a_printers_paces_are_its_runs_on_that_port_and_machine_newest_first(
+    tmp_path: Path,
+) -> None:
+    runs = [
+        ("20250304-101112", "/dev/ttyACM0", "hydra-16a", 1.10),
+        ("20250305-101112", "/dev/ttyACM1", "hydra-16a", 2.00),  # another printer
+        ("20250306-101112", "/dev/ttyACM0", "esr", 3.00),  # another machine profile
+        ("20250307-101112", "/dev/ttyACM0", "hydra-16a", None),  # too short to tell
+        ("20250308-101112", "/dev/ttyACM0", "hydra-16a", 1.20),
+    ]
+    for stamp, port, machine, pace in runs:
+        stream = tmp_path / f"{stamp}-cube.gcode"
+        stream.write_text("G1 X1\n")
+        history.write_record(stream, record(port=port, machine=machine, pace=pace))
+    assert list(history.paces(tmp_path, "/dev/ttyACM0", "hydra-16a")) == [1.20, 1.10]
+    assert list(history.paces(tmp_path / "none", "/dev/ttyACM0", "hydra-16a")) == []
+
+
 def test_a_progress_reads_back_in_the_records_place_until_the_record_replaces_it(
     tmp_path: Path,
 ) -> None:

@@ -81,6 +81,7 @@ class PrintProgress:
     completion: float | None
     time_left: int | None  # seconds
     time_left_from: str | None  # printers.running.LEFT_FROM: estimate, plan, slicer, linear
+    ends: str | None = None  # when it should end: ISO 8601, UTC
 
     def as_json(self) -> dict[str, Any]:
         return {
@@ -96,6 +97,7 @@ class PrintProgress:
             "completion": self.completion,
             "time_left": self.time_left,
             "time_left_from": self.time_left_from,
+            "ends": self.ends,
         }
 
 

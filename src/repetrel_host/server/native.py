@@ -35,6 +35,7 @@ from repetrel_host.server.events import AppKeyEvent
 from repetrel_host.server.octoprint import appkeys, files
 from repetrel_host.server.print_server import answered, server_of
 from repetrel_host.server.printers.heaters import heaters
+from repetrel_host.server.printers.running import progress_event
 from repetrel_host.server.printers.service import PrinterService
 from repetrel_host.server.store import ACTIVE
 
@@ -81,24 +82,14 @@ def _latest_snapshot(service: PrinterService) -> str | None:
 def _running_json(service: PrinterService) -> dict[str, Any]:
     running = service.running
     assert running is not None
-    job = running.job
-    record = running.record
-    last = job.last
-    left, how = running.time_left(time.time() - (record.started or time.time()))
+    progress = progress_event(service.name, running.record, running.job, running, False)
     return {
-        **record.as_json(),
+        **running.record.as_json(),
         "state": "paused" if service.state == "paused" else "printing",
         # Its safe stop under way (a cancel held up by a heat wait): OctoPrint's Cancelling.
-        "stopping": job.stopping,
-        "lines": job.lines,
-        "last_line": last.source_line if last else 0,
-        "bytes": job.offset,
-        "size": job.size,
-        "layer": running.layer,
-        "layers": len(running.layers),
-        "completion": round(100.0 * running.fraction, 2),
-        "time_left": round(left) if left is not None else None,  # seconds
-        "time_left_from": how,  # see printers.running.LEFT_FROM
+        "stopping": running.job.stopping,
+        # Lines, bytes, layer, completion, the time left and how it was found, the end.
+        **{k: v for k, v in progress.as_json().items() if k not in ("type", "printer", "job")},
     }
 
 

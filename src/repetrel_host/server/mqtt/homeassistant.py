@@ -87,6 +87,18 @@ class Discovery:
                 name,
                 uuid,
                 "sensor",
+                "print_end",
+                {
+                    "name": "Print end",
+                    "state_topic": f"{topics}/progress",
+                    "value_template": "{{ value_json.ends }}",
+                    "device_class": "timestamp",
+                },
+            ),
+            self._entity(
+                name,
+                uuid,
+                "sensor",
                 "file",
                 {
                     "name": "File",

@@ -6,6 +6,7 @@ from __future__ import annotations
 import bisect
 import time
 from dataclasses import dataclass, field
+from datetime import UTC, datetime, timedelta
 
 import repetrel_host as rh
 from repetrel_host.gcode.analysis import FileSummary
@@ -81,6 +82,11 @@ def filament_used(running: Running, completed: bool) -> dict[str, dict[str, floa
     }
 
 
+def _ends(left: float) -> str:
+    """When a job with ``left`` seconds to go should end: ISO 8601, UTC, to the second."""
+    return (datetime.now(UTC) + timedelta(seconds=left)).isoformat(timespec="seconds")
+
+
 def progress_event(
     printer: str, record: JobRecord, job: rh.PrintJob, running: Running | None, completed: bool
 ) -> PrintProgress:
@@ -110,4 +116,5 @@ def progress_event(
         completion=round(completion, 2) if completion is not None else None,
         time_left=round(left) if left is not None else None,
         time_left_from=how,
+        ends=_ends(left) if left is not None and not completed else None,
     )
