@@ -92,3 +92,13 @@ def test_a_printers_pace_is_the_median_of_its_last_five_jobs() -> None:
     assert learned_pace([]) == 1.0
     assert learned_pace([1.1]) == 1.1
     assert learned_pace([1.1, 1.3, 5.0, 1.2, 0.9, 9.9]) == 1.2  # one odd job, the sixth unread
+
+
+def test_the_burst_that_fills_the_controllers_buffer_is_not_taken_for_speed() -> None:
+    # 30 lines acknowledged at once (into the buffer), then one a second: the lead is 30 s.
+    following = TimeLeft(even(1000, 1.0))
+    following.left(0, now=0.0)
+    following.left(30, now=0.1)
+    for second in range(1, 400):
+        following.left(30 + second, now=0.1 + second)
+    assert following.pace == pytest.approx(1.0, abs=0.01)
