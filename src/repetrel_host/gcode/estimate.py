@@ -10,6 +10,12 @@ could accelerate to) over the blocks not yet done, then each done block's time i
 trapezoid's. This follows the estimator in PrusaSlicer's ``GCodeProcessor`` (itself
 Marlin's planner), whose figure a slicer writes as "estimated printing time (normal mode)".
 
+Beyond Marlin's moves: ``M205 J`` (junction deviation) in place of the classic jerk; ``G2``/
+``G3`` arcs in Marlin's straight pieces; the heat waits (``M109``, ``M190``, ``M191``) from
+where each heater is, at the profile's rates, counted apart (a slicer's figure leaves them
+out); a tool change's time; and Hyrel's code chart where the caller says so (see
+:meth:`Estimator.feed`).
+
 Streaming and bounded: blocks are finished in batches, keeping :data:`LOOKAHEAD` behind the
 newest for the passes, so memory does not grow with the file. The time at the end of each
 move's source line is told as it is known (``on_time``), for a time left at any line.
