@@ -39,6 +39,11 @@ def test_the_farm_view_shows_each_printer_live_filters_and_releases(
     tile = "[data-printer=left]"
     browser.wait(lambda: browser.text(f"{tile} .badge") == "printing", "left printing")
     browser.wait(lambda: "layer" in browser.text(f"{tile} .numbers"), "its layer")
+    # The time it has left (the plan's) and the clock time the printer is free again.
+    browser.wait(
+        lambda: re.search(r"left · free at \d", browser.text(f"{tile} .numbers")),
+        "its time left and when it is free",
+    )
     assert browser.text(f"{tile} .file") == "cylinder.gcode"
     browser.wait(
         lambda: (

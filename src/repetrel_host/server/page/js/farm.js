@@ -1,7 +1,7 @@
 // The farm at a glance: every printer as a tile (state, the job's thumbnail, progress,
 // temperatures, the held queue's Release), sorted and filtered; a tile opens the printer.
 
-import { get, post, keyed, h, allow, duration } from "./api.js";
+import { get, post, keyed, h, allow, clock, duration } from "./api.js";
 import { category, stateWords, stateClass, whyNot } from "./state.js";
 
 const FILTERS = ["all", "printing", "idle", "held", "offline", "error"];
@@ -156,6 +156,7 @@ export async function mount(main, { stream, say }) {
                   percent != null ? `${percent.toFixed(1)} %` : "",
                   job.layers ? ` · layer ${job.layer} of ${job.layers}` : "",
                   job.time_left != null ? ` · ${duration(job.time_left)} left${job.time_left_from === "slicer" ? " (slicer's estimate)" : ""}` : "",
+                  job.ends ? ` · free at ${clock(Date.parse(job.ends) / 1000)}` : "",
                 ),
               ]
             : h("div", { class: "file idle" }, printer.error && category(printer) !== "offline" ? printer.error : "no job"),
