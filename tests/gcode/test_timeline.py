@@ -46,7 +46,7 @@ def test_a_run_at_the_plans_pace_has_the_plans_remainder_left() -> None:
         assert following.left(line, now=float(line)) == pytest.approx(1000 - line)
 
 
-def test_a_slower_run_is_found_out_and_counts_fully_from_a_quarter_of_the_plan() -> None:
+def test_a_slower_run_is_found_out_and_counts_fully_from_a_tenth_of_the_plan() -> None:
     timeline = even(1000, 1.0)
     following = TimeLeft(timeline, prior=1.0)
     left = 0.0
@@ -54,11 +54,14 @@ def test_a_slower_run_is_found_out_and_counts_fully_from_a_quarter_of_the_plan()
         left = following.left(line, now=line * 1.1)
     assert following.pace == pytest.approx(1.1)
     assert left == pytest.approx((1000 - 300) * 1.1)
-    # Earlier, the prior still weighs: an eighth of the plan watched, half each.
+    # Earlier, the prior still weighs: 51 s watched (after 30 s settling), about half each.
     early = TimeLeft(timeline, prior=1.0)
-    for line in range(1, 127):
+    for line in range(1, 82):
         early.left(line, now=line * 1.1)
-    assert early.pace == pytest.approx(1.05, abs=0.002)
+    assert early.watched_planned == pytest.approx(51)
+    assert early.pace == pytest.approx(0.49 * 1.0 + 0.51 * 1.1)
+    assert early.measured is None  # a tenth of the plan not watched yet
+    early.left(140, now=140 * 1.1)
     assert early.measured == pytest.approx(1.1)
 
 
@@ -95,10 +98,10 @@ def test_a_printers_pace_is_the_median_of_its_last_five_jobs() -> None:
 
 
 def test_the_burst_that_fills_the_controllers_buffer_is_not_taken_for_speed() -> None:
-    # 30 lines acknowledged at once (into the buffer), then one a second: the lead is 30 s.
+    # 20 lines acknowledged at once (into the buffer), then one a second: the lead is 20 s.
     following = TimeLeft(even(1000, 1.0))
     following.left(0, now=0.0)
-    following.left(30, now=0.1)
-    for second in range(1, 400):
-        following.left(30 + second, now=0.1 + second)
-    assert following.pace == pytest.approx(1.0, abs=0.01)
+    following.left(20, now=0.1)
+    for second in range(1, 200):
+        following.left(20 + second, now=0.1 + second)
+    assert following.pace == pytest.approx(1.0)

@@ -22,12 +22,12 @@ from dataclasses import dataclass, field
 from itertools import islice
 
 MOST_POINTS = 4096
-BLEND_SHARE = 0.25  # of the planned moving time: the run's own pace counts fully from there
+BLEND_SHARE = 0.1  # of the planned moving time: the run's own pace counts fully from there
 PACE_JOBS = 5  # a printer's pace: the median of its last jobs' (one odd job does not sway it)
-# Seconds not watched after the run starts or resumes: the controller's buffer fills in a
-# burst, acknowledging lines well ahead of the motion; from then on the lead is steady and
-# cancels out of the pace.
-SETTLE = 5.0
+# Planned seconds not watched after the run starts or resumes: the controller's buffer fills
+# in a burst, acknowledging lines well ahead of the motion (Hyrel's 8 KB hold up to about 20
+# s of printing); from then on the lead is steady and cancels out of the pace.
+SETTLE = 30.0
 
 
 def learned_pace(paces: Iterable[float]) -> float:
@@ -116,19 +116,19 @@ class TimeLeft:
     watched_actual: float = 0.0  # seconds watched moving...
     watched_planned: float = 0.0  # ...and what the plan gave them
     _last: tuple[int, float] | None = None  # the last line seen and when
-    _settled: float = 0.0  # when watching starts (after a start or a pause)
+    _settled: float = 0.0  # the planned time from which it is watched (after a start or pause)
 
     def observe(self, line: int, now: float, moving: bool = True) -> None:
         """The controller acknowledged up to ``line`` by ``now``. ``moving``: False while the
         job is paused (the stretch around it is not watched)."""
         last = self._last
         self._last = (line, now) if moving else None
-        if last is None:
-            self._settled = now + SETTLE
-            return
-        if now < self._settled or line < last[0]:
-            return
         seconds, heating = self.timeline.at(line)
+        if last is None:
+            self._settled = seconds + SETTLE
+            return
+        if seconds < self._settled or line < last[0]:
+            return
         before, heating_before = self.timeline.at(last[0])
         if heating != heating_before:  # a heat wait in between: the heaters' time, not watched
             return
