@@ -1,7 +1,7 @@
 """Each uploaded file's analysis (:class:`~repetrel_host.gcode.analysis.FileSummary`: OctoPrint's
-``gcodeAnalysis``, layers, slicer), kept in the data folder (``analysis/``, a small JSON file
-per file, valid while the file's size and time are those it was made from) so that a restart
-reads no file again.
+``gcodeAnalysis``, layers, slicer, the print time from the moves beside the slicer's), kept in
+the data folder (``analysis/``, a small JSON file per file, valid while the file's size and
+time are those it was made from) so that a restart reads no file again.
 
 A file is analysed as it is uploaded, or as its job starts when it never was (in a worker
 process, :mod:`~repetrel_host.server.workers`); a listing that finds a file without one (put
@@ -24,7 +24,7 @@ from repetrel_host.server.workers import in_worker
 
 log = logging.getLogger("repetrel_host.server")
 
-FORMAT = 2  # of the files kept: another number (a changed analysis) makes them stale
+FORMAT = 3  # of the files kept: another number (a changed analysis) makes them stale
 Stamp = tuple[int, int]  # a file's size and modification time (ns)
 
 
@@ -88,9 +88,10 @@ class Analyses:
 
     def analyse(self, path: Path, moves: bool = True) -> Analysis:
         """``path`` read once, now (any thread but the event loop's): with ``moves``, its
-        summary is kept. :class:`OSError` when it cannot be read."""
+        summary, with the print time from its moves, is kept. :class:`OSError` when it
+        cannot be read."""
         before = stamp(path)
-        found = in_worker(analyse, path, moves=moves)
+        found = in_worker(summarise, path) if moves else in_worker(analyse, path, moves=False)
         if found.summary is not None and stamp(path) == before:  # not changed meanwhile
             self.keep(path, found.summary, before)
         return found
@@ -157,6 +158,13 @@ class Analyses:
         return self.folder / f"{digest[:24]}.json"
 
 
+def summarise(path: Path) -> Analysis:
+    """What the server keeps of a file (run in a worker): :func:`analyse`'s pass and the
+    print time from its moves, with the file's own limits, else Marlin's defaults."""
+    return analyse(path, planned=True, machine=None)  # machine: a profile's limits, later
+
+
 def describe(summary: FileSummary | None) -> dict[str, Any] | None:
-    """The native API's ``analysis`` of a file: OctoPrint's, with layers and slicer."""
+    """The native API's ``analysis`` of a file: OctoPrint's, with layers and slicer, and
+    both print times always there."""
     return summary.as_json() if summary is not None else None

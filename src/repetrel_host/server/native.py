@@ -85,6 +85,7 @@ def _running_json(service: PrinterService) -> dict[str, Any]:
     record = running.record
     last = job.last
     left, how = running.time_left(time.time() - (record.started or time.time()))
+    summary = running.summary
     return {
         **record.as_json(),
         "state": "paused" if service.state == "paused" else "printing",
@@ -99,6 +100,11 @@ def _running_json(service: PrinterService) -> dict[str, Any]:
         "completion": round(100.0 * running.fraction, 2),
         "time_left": round(left) if left is not None else None,  # seconds
         "time_left_from": how,  # "analysis": the slicer's estimate; "linear": the rate so far
+        # The whole job's print time from its moves (None until its file is read), and the
+        # slicer's own figure beside it.
+        "estimated_time": running.planned_seconds,
+        "estimated_time_limits_from": summary.planned_limits_from if summary else None,
+        "slicer_estimated_time": running.slicer_seconds,
     }
 
 

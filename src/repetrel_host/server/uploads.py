@@ -21,7 +21,7 @@ from repetrel_host.gcode.analysis import Analysis, FileSummary, analyse
 from repetrel_host.gcode.layer_moves import layer_moves
 from repetrel_host.gcode.thumbnails import ThumbnailError
 from repetrel_host.gcode.thumbnails import read as read_thumbnail
-from repetrel_host.server.analyses import Stamp, describe, stamp
+from repetrel_host.server.analyses import Stamp, describe, stamp, summarise
 from repetrel_host.server.events import FileChanged
 from repetrel_host.server.print_server import PrintServer
 from repetrel_host.server.workers import in_worker
@@ -168,7 +168,7 @@ async def receive(server: PrintServer, upload: UploadFile, partial: Path, digest
 def _analysed(path: Path) -> FileSummary | None:
     """The upload's analysis; None (and logged) when it fails: the upload is kept."""
     try:
-        return in_worker(analyse, path).summary
+        return in_worker(summarise, path).summary
     except Exception:
         log.exception("the analysis of the upload %s failed", path.name)
         return None
