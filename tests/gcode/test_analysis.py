@@ -13,6 +13,7 @@ import json
 import math
 import shutil
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +23,7 @@ from octorest import OctoRest
 from repetrel_host.fakes.fake_controller import BuiltInFake
 from repetrel_host.gcode import analysis
 from repetrel_host.gcode.analysis import Box, Filament, FileSummary, analyse
+from repetrel_host.gcode.estimate import estimate_file
 from repetrel_host.gcode.marks import Layer
 from tests.support.paths import DATA
 from tests.support.server import KEY, Server, wait_for
@@ -91,7 +93,8 @@ def test_relative_e_retractions_and_moves_that_do_not_extrude(tmp_path: Path) ->
         "maxZ": 0.3,
     }
     assert found["travelDimensions"] == {"width": 90, "depth": 90, "height": 5}
-    assert "estimatedPrintTime" not in found  # no slicer estimate in the file
+    assert "slicerEstimatedPrintTime" not in found  # no slicer estimate in the file
+    assert "estimatedPrintTime" not in found  # the moves' time not asked for
 
 
 def test_each_tool_keeps_its_own_e_and_diameter(tmp_path: Path) -> None:
@@ -165,7 +168,7 @@ def test_prusaslicer_files_as_the_slicer_and_octoprint_measure_them(
     assert summary is not None
     assert summary.slicer == "PrusaSlicer 2.5.0"
     assert summary.layers == len(found.marks.layers) == len(found.layer_offsets) == layers
-    assert summary.estimated_seconds == found.marks.total_seconds == seconds
+    assert summary.slicer_seconds == found.marks.total_seconds == seconds
     assert summary.filament == {"tool0": Filament(length, volume)}  # the slicer's figures
     assert summary.printing_area == box
     content = path.read_bytes()
@@ -244,19 +247,22 @@ def test_cura_marks_and_filament_in_metres(tmp_path: Path) -> None:
     found = analyse(path)
     assert found.marks.layers == [Layer(1, 6, 0.2), Layer(2, 10, 0.4)]
     assert found.summary is not None and found.summary.slicer == "Cura 5.2.1"
-    assert found.summary.estimated_seconds == 600
+    assert found.summary.slicer_seconds == 600
     assert lengths(found.summary) == {"tool0": 1500}  # the slicer's, not the moves' 2
 
 
 def test_a_summary_is_kept_and_read_back_whole() -> None:
-    summary = analyse(CONE).summary
+    summary = analyse(CONE, planned=True).summary
     assert summary is not None
-    assert FileSummary.from_dict(summary.as_dict()) == summary
+    assert summary.planned_seconds is not None and summary.slicer_seconds == 753
+    assert summary.planned_limits_from == "the file's slicer settings"
+    assert FileSummary.from_dict(json.loads(json.dumps(summary.as_dict()))) == summary
     empty = FileSummary()
     assert FileSummary.from_dict(empty.as_dict()) == empty
     keys = set(summary.gcode_analysis())
     assert keys == {
         "estimatedPrintTime",
+        "slicerEstimatedPrintTime",
         "filament",
         "dimensions",
         "printingArea",
@@ -290,8 +296,14 @@ def test_the_servers_files_and_job_carry_the_analysis_kept_across_a_restart(
     with server.client() as client:  # octorest sends the folder's name as JSON: form data
         assert client.post("/api/files/local", data={"foldername": "sub"}).status_code == 201
     rest.move("cone.gcode", "sub")  # its analysis goes with it
+    # The print time from the moves follows the upload's analysis, made in the background.
+    wait_for(
+        lambda: "estimatedPrintTime" in rest.files_info("local", "sub/cone.gcode")["gcodeAnalysis"],
+        what="the cone's print time",
+    )
     cone = rest.files_info("local", "sub/cone.gcode")["gcodeAnalysis"]
-    assert cone["estimatedPrintTime"] == 753
+    planned = estimate_file(CONE).seconds  # from the moves, PrusaSlicer's figure beside it
+    assert cone["estimatedPrintTime"] == planned and cone["slicerEstimatedPrintTime"] == 753
     assert cone["filament"] == {"tool0": {"length": 1083.86, "volume": 2.61}}
     assert cone["dimensions"] == {"width": 41.242, "depth": 41.242, "height": 24.65}
     assert cone["printingArea"] == {
@@ -308,9 +320,14 @@ def test_the_servers_files_and_job_carry_the_analysis_kept_across_a_restart(
         assert native["sub/cone.gcode"]["layers"] == 82
         assert native["sub/cone.gcode"]["slicer"] == "PrusaSlicer 2.5.0"
         assert native["sub/cone.gcode"]["filament"] == cone["filament"]
+        assert native["sub/cone.gcode"]["estimatedPrintTime"] == planned
+        assert native["sub/cone.gcode"]["slicerEstimatedPrintTime"] == 753
+        limits = native["sub/cone.gcode"]["estimatedPrintTimeLimitsFrom"]
+        assert limits == "the file's slicer settings"
     rest.select("sub/cone.gcode")
     selected = rest.job_info()["job"]
-    assert selected["estimatedPrintTime"] == 753 and selected["filament"] == cone["filament"]
+    assert selected["estimatedPrintTime"] == planned and selected["filament"] == cone["filament"]
+    assert selected["slicerEstimatedPrintTime"] == 753
 
     # A file put there by hand is listed, and analysed in the background.
     shutil.copy(SPHERE, server.data_dir / "files" / "sphere.gcode")
@@ -341,7 +358,20 @@ def test_the_servers_files_and_job_carry_the_analysis_kept_across_a_restart(
             what="the first layer",
         )
         assert printing["layers"] == 3 and printing["layer"] <= 3
-        assert job["estimatedPrintTime"] is None  # the file has no estimate
+        running = wait_for(
+            lambda: (
+                ((now := client.get("/v1/printers/bench").json()["job"]) and now["estimated_time"])
+                and now
+            ),
+            what="the running job's estimate",
+        )
+        layers_file = server.data_dir / "files" / "layers.gcode"
+        assert running["estimated_time"] == estimate_file(layers_file).seconds
+        assert running["estimated_time_limits_from"] == "Marlin's defaults"
+        assert running["slicer_estimated_time"] is None
+        # No slicer's estimate in the file: the time from its moves all the same.
+        assert job["slicerEstimatedPrintTime"] is None
+        assert job["estimatedPrintTime"] == running["estimated_time"]
         wait_for(lambda: client.get("/api/job").json()["progress"]["completion"] == 100)
         assert client.get("/api/job").json()["job"]["filament"] == job["filament"]
 
@@ -353,11 +383,13 @@ def test_the_servers_files_and_job_carry_the_analysis_kept_across_a_restart(
     for path in kept:
         entry = json.loads(path.read_text())
         if entry["file"] == "files/sub/cone.gcode":
-            entry["analysis"]["estimated_seconds"] = 1234.0
+            entry["analysis"]["planned_seconds"] = 1234.0
+            entry["analysis"]["slicer_seconds"] = 1200.0
             path.write_text(json.dumps(entry))
     again = servers({"bench": fake.port})
     answer = OctoRest(url=again.url, apikey=KEY).files_info("local", "sub/cone.gcode")
     assert answer["gcodeAnalysis"]["estimatedPrintTime"] == 1234.0
+    assert answer["gcodeAnalysis"]["slicerEstimatedPrintTime"] == 1200.0
 
 
 def test_numbers_too_big_for_a_float_are_left_out_not_answered_as_infinity(
@@ -373,9 +405,55 @@ def test_numbers_too_big_for_a_float_are_left_out_not_answered_as_infinity(
     found = analyse(path)
     summary = found.summary
     assert summary is not None
-    assert summary.estimated_seconds is None
+    assert summary.slicer_seconds is None
     assert summary.printing_area is None and summary.travel_area is None
     assert summary.filament == {}  # an infinite length is none
     assert found.marks.layers == [Layer(1, 4, 1.2)]  # ;Z:1.2.3 read as far as it goes
     assert found.marks.progress == [(5, None, 5)]
     json.dumps(summary.as_json(), allow_nan=False)  # what a JSON answer needs
+    # The moves' time: none past a float's range, and the rest of the summary stands.
+    planned = analyse(path, planned=True).summary
+    assert planned is not None
+    assert replace(planned, planned_seconds=None, planned_limits_from=None) == summary
+    json.dumps(planned.as_json(), allow_nan=False)
+    beyond = write(tmp_path, f"G1 X{huge}\nG1 Y5\n", name="beyond.gcode")  # inf - inf: NaN
+    beyond_summary = analyse(beyond, planned=True).summary
+    assert beyond_summary is not None and beyond_summary.printing_area is None
+    json.dumps(beyond_summary.as_json(), allow_nan=False)
+
+
+def test_the_time_from_the_moves_stands_beside_the_slicers_never_in_its_place(
+    tmp_path: Path,
+) -> None:
+    cone = analyse(CONE, planned=True).summary
+    assert cone is not None
+    assert cone.planned_seconds == estimate_file(CONE).seconds
+    assert cone.slicer_seconds == 753  # PrusaSlicer's "12m 33s", kept
+    octoprint = cone.gcode_analysis()
+    assert octoprint["estimatedPrintTime"] == cone.planned_seconds
+    assert octoprint["slicerEstimatedPrintTime"] == 753
+    native = cone.as_json()
+    assert native["estimatedPrintTime"] == cone.planned_seconds
+    assert native["estimatedPrintTimeLimitsFrom"] == "the file's slicer settings"
+    assert native["slicerEstimatedPrintTime"] == 753
+
+    # Moves and no time comment (hand-written, Cura's flavours): ours alone.
+    bare = write(tmp_path, "G28\nG1 X10 Y10 F3000\nG1 X50 E2\nG1 Y60 E2\n", name="bare.gcode")
+    summary = analyse(bare, planned=True).summary
+    assert summary is not None and summary.slicer_seconds is None
+    assert summary.planned_seconds == estimate_file(bare).seconds
+    assert summary.planned_seconds is not None and summary.planned_seconds > 0
+    assert summary.planned_limits_from == "Marlin's defaults"
+    assert summary.gcode_analysis()["estimatedPrintTime"] == summary.planned_seconds
+    assert "slicerEstimatedPrintTime" not in summary.gcode_analysis()
+    assert summary.as_json()["slicerEstimatedPrintTime"] is None
+
+    # No moves: no figure, as OctoPrint leaves it out.
+    still = analyse(write(tmp_path, "M104 S200\nM84\n", name="still.gcode"), planned=True)
+    assert still.summary is not None and still.summary.planned_seconds is None
+    assert "estimatedPrintTime" not in still.summary.gcode_analysis()
+    assert still.summary.as_json()["estimatedPrintTime"] is None
+
+    # A part of the file (a recovery's read) has no whole-job time.
+    part = analyse(CONE, until_line=100, planned=True).summary
+    assert part is not None and part.planned_seconds is None

@@ -234,3 +234,9 @@ def test_hyrels_g0_runs_at_its_rapid_speed_and_its_f_is_for_that_move_only() -> 
     dwelt = hyrel("G1 F6000", "G1 X100", "G4 P250", "G1 X200 E1", "G1 X300 E2")
     primed = hyrel("M722 S10000 E100 P250 T0", "G1 F6000", "G1 X100", "G1 X200 E1", "G1 X300 E2")
     assert primed == pytest.approx(dwelt, rel=1e-9)
+
+
+def test_numbers_no_machine_reaches_are_not_moves() -> None:
+    huge = "9" * 400  # a float of it is infinite
+    result = estimate(lines(f"G1 X{huge} F6000", "G1 Y5", f"G92 X{huge}", "G1 X5"), X_ONLY)
+    assert math.isfinite(result.seconds) and result.moves == 2

@@ -4,6 +4,7 @@ dragging, a job cancelled, a file deleted."""
 
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
 from typing import Any
@@ -13,8 +14,10 @@ from selenium.webdriver.common.action_chains import ActionChains
 from selenium.webdriver.common.keys import Keys
 from selenium.webdriver.support.ui import Select
 
+from repetrel_host.gcode.estimate import estimate_file
 from tests.support.images import block, encoded, picture
 from tests.support.page import Browser, TwoPrinters, needs_browser
+from tests.support.paths import DATA
 from tests.support.server import gcode, wait_for
 
 pytestmark = [needs_browser, pytest.mark.timeout(120)]
@@ -36,6 +39,15 @@ def sliced() -> str:
         lines += [";LAYER_CHANGE", f";Z:{z}", f"G1 Z{z} F600", MOVES[layer], MOVES[3 + layer]]
     lines += ["; estimated printing time (normal mode) = 1m 30s", ""]
     return "\n".join(lines)
+
+
+def page_duration(seconds: float) -> str:
+    """A time as the page writes it ("1 h 05 min", "4 min 10 s", "12 s")."""
+    whole = math.floor(seconds + 0.5)  # JavaScript's Math.round
+    hours, minutes, rest = whole // 3600, whole % 3600 // 60, whole % 60
+    if hours:
+        return f"{hours} h {minutes:02d} min"
+    return f"{minutes} min {rest:02d} s" if minutes else f"{rest} s"
 
 
 def shot(browser: Browser, name: str) -> None:
@@ -95,9 +107,12 @@ def test_an_upload_shows_its_analysis_and_prints_through_the_lint(
         "the thumbnail loaded",
     )
     meta = browser.text(f"{row} .file-meta")
-    assert "1 min 30 s (slicer)" in meta and "3 layers" in meta
+    # The time from its moves (a few seconds), with the slicer's beside it: over a minute apart.
+    ours = page_duration(estimate_file(part).seconds)
+    assert f"{ours} (slicer: 1 min 30 s)" in meta and "3 layers" in meta
     browser.click(f"{row} button.details")
     details = browser.text(f"{row} .file-details")
+    assert f"{ours}, limits from Marlin's defaults; the slicer's: 1 min 30 s" in details
     assert "PrusaSlicer 2.7.1" in details
     assert "layers\n3" in details
     assert "tool0: 2.7 mm" in details  # 0.3 + 0.4 + 0.5 + 0.4 + 0.5 + 0.6 mm
@@ -137,6 +152,26 @@ def test_an_upload_shows_its_analysis_and_prints_through_the_lint(
     ran = two_printers.executed("right")
     assert [ran.count(move) for move in MOVES] == [1] * len(MOVES)
     assert ran.count("G10") == 1
+
+    # Times less than a minute apart: ours alone (PrusaSlicer's 12m 33s for the cone, whose
+    # heat wait, which a slicer leaves out, is taken out here).
+    text = (DATA / "cone-prusaslicer.gcode").read_text()
+    unheated = tmp_path / "cone.gcode"
+    unheated.write_text("\n".join(ln for ln in text.splitlines() if not ln.startswith("M10")))
+    with two_printers.server.client() as client:
+        cone = ("cone.gcode", unheated.read_bytes())
+        assert client.post("/v1/files", files={"file": cone}).status_code == 201
+    browser.click(".files-crumbs a")  # back to the top, where the cone is
+    cone_row = '.file-row[data-path="cone.gcode"]'
+    planned = estimate_file(unheated).seconds
+    assert abs(planned - 753) <= 60
+    # The slicer's figure first; ours once the background analysis told the page.
+    browser.wait(
+        lambda: page_duration(planned) in browser.text(f"{cone_row} .file-meta"), "its time"
+    )
+    cone_meta = browser.text(f"{cone_row} .file-meta")
+    assert page_duration(planned) in cone_meta and "slicer" not in cone_meta
+    shot(browser, "times")
 
 
 def test_the_queue_is_reordered_by_dragging_and_a_job_cancelled(

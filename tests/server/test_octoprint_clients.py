@@ -4,6 +4,8 @@ and the fake controller, whose executed log says what the printer did."""
 
 from __future__ import annotations
 
+import datetime
+import re
 import subprocess
 import sys
 from collections.abc import Callable
@@ -15,6 +17,7 @@ import pytest
 from octorest import OctoRest
 
 from repetrel_host.fakes.fake_controller import BuiltInFake
+from repetrel_host.gcode.estimate import estimate_file
 from tests.support.helpers import executed
 from tests.support.paths import DATA
 from tests.support.server import KEY, Server, gcode, wait_for
@@ -74,8 +77,13 @@ def test_octoprint_cli_status_files_print_temp_and_connection(
     info = octoprint_cli(config, "files", "info", "sub/cone.gcode")
     assert info.returncode == 0, info
     assert "Path: sub/cone.gcode" in info.stdout and "Type: machinecode" in info.stdout
-    assert "Estimated Print Time: " in info.stdout  # PrusaSlicer's estimate
+    # The time from the moves, as octoprint-cli writes it (PrusaSlicer's 12m 33s is beside it).
+    planned = str(datetime.timedelta(seconds=estimate_file(CONE).seconds)).split(".")[0]
+    assert f"Estimated Print Time: {planned}\n" in info.stdout
     assert "Successful Prints: 0" in info.stdout
+    # A file with moves and no time comment has an estimate all the same.
+    bare = octoprint_cli(config, "files", "info", "part.gcode")
+    assert bare.returncode == 0 and "Estimated Print Time: 0:00:" in bare.stdout, bare
 
     temp = octoprint_cli(config, "temp", "extruder", "205")
     assert temp.returncode == 0 and "Extruder temp set to 205" in temp.stdout, temp
@@ -92,6 +100,8 @@ def test_octoprint_cli_status_files_print_temp_and_connection(
     assert selected.returncode == 0 and "part.gcode has been loaded" in selected.stdout
     loaded = octoprint_cli(config, "print", "status")
     assert "Loaded File: part.gcode" in loaded.stdout, loaded
+    # The selected file's estimate, from its moves (it was "unavailable": no slicer's comment).
+    assert re.search(r"Estimated Print Time: \d\d:\d\d\n", loaded.stdout), loaded
     started = octoprint_cli(config, "print", "start")
     assert started.returncode == 0 and "Starting print" in started.stdout, started
     with server.client() as client:

@@ -7,9 +7,12 @@ It gives, read once and streaming (pieces of about 1 MB: a 1 GB job is never hel
 - where each of those layers begins, in bytes (the server's progress counts layers by the
   bytes acknowledged);
 - a :class:`FileSummary` of the file, OctoPrint's ``gcodeAnalysis`` (``octoprint/util/
-  gcodeInterpreter.py`` and ``octoprint/filemanager/analysis.py``): the slicer's estimated
-  print time, filament per tool, the box of the extruding moves and of every move; with the
-  layer count and the slicer's name.
+  gcodeInterpreter.py`` and ``octoprint/filemanager/analysis.py``): filament per tool, the
+  box of the extruding moves and of every move; with the layer count, the slicer's name and
+  its estimated print time;
+- on request (``planned``), the print time the moves take as the firmware's planner runs
+  them (:func:`~repetrel_host.gcode.estimate.estimate_file`, a second read of the file),
+  kept beside the slicer's figure, never in its place.
 
 Layers: the slicer's own marks when the file has any (PrusaSlicer's ``;LAYER_CHANGE``,
 Cura's ``;LAYER:``, Simplify3D's ``; layer N``: only the first of these kinds met is counted,
@@ -39,10 +42,11 @@ import math
 import re
 from bisect import bisect_right
 from collections.abc import Iterable, Iterator
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, BinaryIO
 
+from repetrel_host.gcode.estimate import Limits, estimate_file
 from repetrel_host.gcode.marks import Layer, SlicerMarks
 from repetrel_host.gcode.thumbnails import Thumbnail
 
@@ -128,7 +132,11 @@ class Filament:
 class FileSummary:
     """What a file list shows of a file (OctoPrint's ``gcodeAnalysis``, and more)."""
 
-    estimated_seconds: float | None = None  # the slicer's estimate
+    slicer_seconds: float | None = None  # the slicer's estimate, from its comments
+    # The print time from the moves (the planner's; None: no moves, or not asked for) and
+    # where its limits came from ("the file's slicer settings", "Marlin's defaults"...).
+    planned_seconds: float | None = None
+    planned_limits_from: str | None = None
     filament: dict[str, Filament] = field(default_factory=dict)  # by tool: "tool0"...
     printing_area: Box | None = None  # of the extruding moves
     travel_area: Box | None = None  # of every move
@@ -137,13 +145,18 @@ class FileSummary:
     thumbnails: tuple[Thumbnail, ...] = ()  # the slicer's preview images, where they lie
 
     def gcode_analysis(self) -> dict[str, Any]:
-        """OctoPrint's ``gcodeAnalysis``: without ``estimatedPrintTime`` when the file has no
-        estimate; a file with no extruding move has OctoPrint's empty result (zeros)."""
+        """OctoPrint's ``gcodeAnalysis``. ``estimatedPrintTime`` is the time from the moves
+        (what OctoPrint's own analysis gives there), left out when the file has none; the
+        slicer's figure is beside it as ``slicerEstimatedPrintTime`` (a key OctoPrint's
+        clients ignore), when the file states one. A file with no extruding move has
+        OctoPrint's empty result (zeros)."""
         empty = Box(0, 0, 0, 0, 0, 0)
         printing, travel = self.printing_area or empty, self.travel_area or empty
         found: dict[str, Any] = {}
-        if self.estimated_seconds is not None:
-            found["estimatedPrintTime"] = self.estimated_seconds
+        if self.planned_seconds is not None:
+            found["estimatedPrintTime"] = self.planned_seconds
+        if self.slicer_seconds is not None:
+            found["slicerEstimatedPrintTime"] = self.slicer_seconds
         found["filament"] = {
             tool: {"length": used.length, "volume": used.volume}
             for tool, used in self.filament.items()
@@ -157,13 +170,21 @@ class FileSummary:
         return found
 
     def as_json(self) -> dict[str, Any]:
-        """OctoPrint's ``gcodeAnalysis``, with the layer count, the slicer's name and the
-        embedded thumbnails' formats and sizes."""
+        """OctoPrint's ``gcodeAnalysis`` with both estimates always present (None when
+        unknown) and where the limits of ours came from, the layer count, the slicer's name
+        and the embedded thumbnails' formats and sizes."""
         thumbnails = [
             {"format": t.format, "width": t.width, "height": t.height} for t in self.thumbnails
         ]
-        analysis = self.gcode_analysis()
-        return {**analysis, "layers": self.layers, "slicer": self.slicer, "thumbnails": thumbnails}
+        return {
+            **self.gcode_analysis(),
+            "estimatedPrintTime": self.planned_seconds,
+            "estimatedPrintTimeLimitsFrom": self.planned_limits_from,
+            "slicerEstimatedPrintTime": self.slicer_seconds,
+            "layers": self.layers,
+            "slicer": self.slicer,
+            "thumbnails": thumbnails,
+        }
 
     def largest_thumbnail(self) -> Thumbnail | None:
         """The embedded image with the most pixels (the one a page shows), if any."""
@@ -181,9 +202,14 @@ class FileSummary:
         def box(found: dict[str, float] | None) -> Box | None:
             return Box(**{name: float(value) for name, value in found.items()}) if found else None
 
-        estimate = data["estimated_seconds"]
+        def seconds(found: float | None) -> float | None:
+            return float(found) if found is not None else None
+
+        limits_from = data["planned_limits_from"]
         return cls(
-            estimated_seconds=float(estimate) if estimate is not None else None,
+            slicer_seconds=seconds(data["slicer_seconds"]),
+            planned_seconds=seconds(data["planned_seconds"]),
+            planned_limits_from=str(limits_from) if limits_from is not None else None,
             filament={
                 tool: Filament(float(used["length"]), float(used["volume"]))
                 for tool, used in data["filament"].items()
@@ -210,13 +236,37 @@ class Analysis:
     summary: FileSummary | None  # None when the moves were not read
 
 
-def analyse(path: Path, until_line: int | None = None, moves: bool = True) -> Analysis:
+def analyse(
+    path: Path,
+    until_line: int | None = None,
+    moves: bool = True,
+    *,
+    planned: bool = False,
+    machine: Limits | None = None,
+) -> Analysis:
     """``path`` read once (:class:`OSError` when it cannot be). ``until_line``: read no
     further than the piece holding that line (what a recovery needs of a big file; a summary
     is then of that part only). ``moves=False``: the marks and offsets alone, no summary
-    (about three times faster: moves are read only for their Z, where no comment says Z)."""
+    (about three times faster: moves are read only for their Z, where no comment says Z).
+
+    ``planned`` (with a summary of the whole file): the summary also carries the print time
+    the moves take, read again by :func:`~repetrel_host.gcode.estimate.estimate_file`
+    (several times the pass's own cost) with the file's limits, else ``machine``'s, else
+    Marlin's defaults; None for a file without moves."""
     with path.open("rb") as handle:
-        return scan(chunks(handle), until_line, moves)
+        found = scan(chunks(handle), until_line, moves)
+    if planned and found.summary is not None and until_line is None:
+        try:
+            estimate = estimate_file(path, machine)
+        except ArithmeticError:  # numbers past a float's range: the rest of it stands
+            return found
+        if estimate.moves and math.isfinite(estimate.seconds):  # JSON has no infinity
+            found.summary = replace(
+                found.summary,
+                planned_seconds=estimate.seconds,
+                planned_limits_from=estimate.limits_from,
+            )
+    return found
 
 
 def chunks(handle: BinaryIO) -> Iterator[bytes]:
@@ -603,7 +653,7 @@ class _Pass:
         if not self.moves:
             return Analysis(marks, [at for _, at in found], None)
         summary = FileSummary(
-            estimated_seconds=self.estimate,
+            slicer_seconds=self.estimate,
             filament=self._filament(),
             printing_area=_box(self.printed),
             travel_area=_box(self.travelled),

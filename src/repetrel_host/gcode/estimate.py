@@ -229,9 +229,9 @@ class Estimator:
             return
         head = command_word(text)
         if head in ("G0", "G1"):
-            self._move(line, head, command_words(text))
+            self._move(line, head, _finite_words(text))
         elif head in ("G2", "G3"):
-            self._arc(line, head == "G2", command_words(text))
+            self._arc(line, head == "G2", _finite_words(text))
         elif head == "G4":
             words = command_words(text)
             self._pause(line, words.get("S", 0.0) + words.get("P", 0.0) / 1000.0)
@@ -248,7 +248,7 @@ class Estimator:
         elif head == "G21":
             self._scale = 1.0
         elif head == "G92":
-            for letter, value in command_words(text).items():
+            for letter, value in _finite_words(text).items():
                 if letter in AXES:
                     self._position[AXES.index(letter)] = value * self._scale
         elif head == "G28":
@@ -261,7 +261,7 @@ class Estimator:
         elif head == "M221":
             self._flow_factor = command_words(text).get("S", 100.0) / 100.0
         elif head in _HEATER_SETS or head in _HEATER_WAITS:
-            self._heat(line, head, command_words(text))
+            self._heat(line, head, _finite_words(text))
         elif head[0] == "T" and head[1:].isdigit():
             self._tool_change(line, head[1:])
         elif self.hyrel and head == "M203":
@@ -271,7 +271,7 @@ class Estimator:
         elif self.hyrel and head == "M674":
             self._turbo = command_words(text).get("S")
         elif self.hyrel and head == "M722":
-            words = command_words(text)
+            words = _finite_words(text)
             if "P" in words:
                 self._prime[str(int(words.get("T", 0)))] = max(words["P"], 0.0) / 1000.0
         elif head in ("M201", "M203", "M204", "M205"):
@@ -328,7 +328,7 @@ class Estimator:
             self._pause(line, wait)
 
     def _tool_change(self, line: int, tool: str) -> None:
-        tool = str(int(tool))
+        tool = tool.lstrip("0") or "0"  # T01 is T1 (and no T of 8,000 digits is an int)
         if tool == self._tool:
             return
         self._tool = tool
@@ -551,6 +551,13 @@ def _junction(
     if previous.safe > threshold and safe > threshold:  # not coasting: each starts afresh
         junction = safe
     return junction
+
+
+def _finite_words(command: str) -> dict[str, float]:
+    """A command's words that are numbers a machine can go to (``X1e999`` is none)."""
+    return {
+        letter: value for letter, value in command_words(command).items() if math.isfinite(value)
+    }
 
 
 def _deviation_junction(

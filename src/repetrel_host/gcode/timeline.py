@@ -47,6 +47,7 @@ class Timeline:
     heating: list[float] = field(default_factory=list)  # of the seconds, the heat waits'
     total: float = 0.0
     total_heating: float = 0.0
+    limits_from: str = ""  # where the plan's limits came from (the estimate's)
     _seen: tuple[int, float, float] | None = None  # the last point told, maybe not kept
     _heating: float = 0.0  # the heat waits' seconds so far, as last told
 

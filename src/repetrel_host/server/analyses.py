@@ -1,10 +1,12 @@
 """Each uploaded file's analysis (:class:`~repetrel_host.gcode.analysis.FileSummary`: OctoPrint's
-``gcodeAnalysis``, layers, slicer), kept in the data folder (``analysis/``, a small JSON file
-per file, valid while the file's size and time are those it was made from) so that a restart
-reads no file again.
+``gcodeAnalysis``, layers, slicer, the print time from the moves beside the slicer's), kept in
+the data folder (``analysis/``, a small JSON file per file, valid while the file's size and
+time are those it was made from) so that a restart reads no file again.
 
-A file is analysed as it is uploaded, or as its job starts when it never was (in a worker
-process, :mod:`~repetrel_host.session.workers`); a listing that finds a file without one (put
+A file is analysed as it is uploaded (its print time from the moves then follows in the
+background: the planner's pass takes seconds a megabyte, as OctoPrint's own analysis does
+after an upload), or as its job starts when it never was (in a worker process,
+:mod:`~repetrel_host.session.workers`); a listing that finds a file without one (put
 there by hand, moved with its folder) shows it without and has it analysed in the
 background, one file at a time, as OctoPrint does. Nothing here runs on the event loop but
 :meth:`Analyses.known` (memory only)."""
@@ -16,6 +18,7 @@ import json
 import logging
 import queue
 import threading
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +27,7 @@ from repetrel_host.session.workers import in_worker
 
 log = logging.getLogger("repetrel_host.server")
 
-FORMAT = 2  # of the files kept: another number (a changed analysis) makes them stale
+FORMAT = 3  # of the files kept: another number (a changed analysis) makes them stale
 Stamp = tuple[int, int]  # a file's size and modification time (ns)
 
 
@@ -36,9 +39,12 @@ def stamp(path: Path) -> Stamp:
 class Analyses:
     """The summaries of the files below ``root``, kept in ``folder``."""
 
-    def __init__(self, folder: Path, root: Path) -> None:
+    def __init__(
+        self, folder: Path, root: Path, on_made: Callable[[Path], None] | None = None
+    ) -> None:
         self.folder = folder
         self.root = root
+        self.on_made = on_made  # told of each file analysed in the background (its thread)
         self._known: dict[Path, tuple[Stamp, FileSummary]] = {}
         self._waiting: queue.SimpleQueue[Path] = queue.SimpleQueue()
         self._queued: set[Path] = set()
@@ -78,9 +84,10 @@ class Analyses:
         return summary
 
     def summary(self, path: Path) -> FileSummary | None:
-        """:meth:`cached`, or None and the file analysed in the background."""
+        """:meth:`cached`, or None and the file analysed in the background (and one whose
+        moves are not planned yet given its print time there)."""
         found = self.cached(path)
-        if found is None:
+        if found is None or unplanned(found):
             self._enqueue(path)
         return found
 
@@ -88,9 +95,10 @@ class Analyses:
 
     def analyse(self, path: Path, moves: bool = True) -> Analysis:
         """``path`` read once, now (any thread but the event loop's): with ``moves``, its
-        summary is kept. :class:`OSError` when it cannot be read."""
+        summary, with the print time from its moves, is kept. :class:`OSError` when it
+        cannot be read."""
         before = stamp(path)
-        found = in_worker(analyse, path, moves=moves)
+        found = in_worker(summarise, path) if moves else in_worker(analyse, path, moves=False)
         if found.summary is not None and stamp(path) == before:  # not changed meanwhile
             self.keep(path, found.summary, before)
         return found
@@ -136,8 +144,11 @@ class Analyses:
         while True:
             path = self._waiting.get()
             try:
-                if self.cached(path) is None:
+                kept = self.cached(path)
+                if kept is None or unplanned(kept):
                     self.analyse(path)
+                    if self.on_made is not None:
+                        self.on_made(path)
             except OSError:
                 pass  # gone meanwhile
             except Exception:  # a bug: the file goes without, the server on
@@ -157,6 +168,19 @@ class Analyses:
         return self.folder / f"{digest[:24]}.json"
 
 
+def unplanned(summary: FileSummary) -> bool:
+    """A summary of a file with moves, its print time not worked out yet (an upload's: the
+    planner's pass takes seconds a megabyte, so it is made in the background)."""
+    return summary.planned_seconds is None and summary.travel_area is not None
+
+
+def summarise(path: Path) -> Analysis:
+    """What the server keeps of a file (run in a worker): :func:`analyse`'s pass and the
+    print time from its moves, with the file's own limits, else Marlin's defaults."""
+    return analyse(path, planned=True, machine=None)  # machine: a profile's limits, later
+
+
 def describe(summary: FileSummary | None) -> dict[str, Any] | None:
-    """The native API's ``analysis`` of a file: OctoPrint's, with layers and slicer."""
+    """The native API's ``analysis`` of a file: OctoPrint's, with layers and slicer, and
+    both print times always there."""
     return summary.as_json() if summary is not None else None

@@ -157,7 +157,8 @@ class SnapshotTaken:
 @dataclass(frozen=True)
 class FileChanged:
     """An upload (or a folder) was ``added`` or ``removed`` by an ``operation`` (add, copy,
-    move, remove); ``path`` is below the uploads. The server's, for every printer."""
+    move, remove), or its analysis was made in the background (``analysed``, by
+    ``analyse``); ``path`` is below the uploads. The server's, for every printer."""
 
     type: ClassVar[str] = "file"
     printer: ClassVar[None] = None
@@ -272,10 +273,18 @@ class EventHub:
 
     def __init__(self) -> None:
         self._subscriptions: set[Subscription] = set()
+        self._loop: asyncio.AbstractEventLoop | None = None  # the listeners', once one came
 
     def publish(self, event: ServerEvent) -> None:
         for subscription in self._subscriptions:
             subscription.offer(event)
+
+    def publish_from_thread(self, event: ServerEvent) -> None:
+        """:meth:`publish` from another thread (a background analysis): on the listeners'
+        event loop; nothing when no one ever listened."""
+        loop = self._loop
+        if loop is not None and not loop.is_closed():
+            loop.call_soon_threadsafe(self.publish, event)
 
     @asynccontextmanager
     async def listen(
@@ -284,6 +293,7 @@ class EventHub:
         """The events published while in the block: those of ``printer`` (and the server's,
         for every printer) when given, of ``kinds`` when given."""
         subscription = Subscription(printer, kinds)
+        self._loop = asyncio.get_running_loop()
         self._subscriptions.add(subscription)
         try:
             yield subscription

@@ -17,7 +17,7 @@ from fastapi import HTTPException, Request
 from repetrel_host.config import UserConfig
 from repetrel_host.server.access import Access
 from repetrel_host.server.analyses import Analyses
-from repetrel_host.server.events import EventHub
+from repetrel_host.server.events import EventHub, FileChanged
 from repetrel_host.server.printers.config import PrinterConfig
 from repetrel_host.server.printers.service import PrinterService, Refused
 from repetrel_host.server.store import JobState, Store
@@ -57,7 +57,7 @@ class PrintServer:
         self.events = EventHub()
         self._uuids: dict[str, str] | None = None  # printer_uuid's, once read
         # Each file's analysis, kept in the data folder (made at its upload).
-        self.analyses = Analyses(data_dir / "analysis", data_dir)
+        self.analyses = Analyses(data_dir / "analysis", data_dir, self._analysed)
         self.services = {
             name: PrinterService(
                 name, config, self.store, data_dir, self.user, self.events.publish, self.analyses
@@ -116,6 +116,15 @@ class PrintServer:
         await asyncio.gather(*(service.stop() for service in self.services.values()))
         if self.farm is not None:  # after the printers: their jobs' ends are reported
             await self.farm.stop()
+
+    def _analysed(self, path: Path) -> None:
+        """A file's analysis was made in the background (its thread): the faces are told, so
+        that a list shows its print time (OctoPrint's MetadataAnalysisFinished)."""
+        if path.is_relative_to(self.files):
+            where = path.relative_to(self.files).as_posix()
+            self.events.publish_from_thread(
+                FileChanged("analysed", where, path.name, False, "analyse")
+            )
 
     def close(self) -> None:
         self.store.close()

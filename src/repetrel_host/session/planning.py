@@ -129,7 +129,7 @@ class JobPlan:
     def timeline(self, temperatures: dict[str, float] | None = None) -> Timeline:
         """The job's planned time at its lines (:meth:`print_time`'s)."""
         timeline = Timeline()
-        self.print_time(timeline, temperatures)
+        timeline.limits_from = self.print_time(timeline, temperatures).limits_from
         return timeline
 
     def linter(self, streaming: bool = False) -> Linter:

@@ -103,19 +103,22 @@ def file_entry(service: PrinterService, path: Path | None) -> dict[str, Any]:
 
 
 def job(service: PrinterService) -> dict[str, Any]:
-    """OctoPrint's ``job``: the file, the slicer's estimate and filament (from the file's
-    analysis, None without one), the last print's time."""
+    """OctoPrint's ``job``: the file, its estimated print time (from its moves, as
+    OctoPrint's own analysis gives it) with the slicer's beside it
+    (``slicerEstimatedPrintTime``, which OctoPrint's clients ignore) and its filament (from
+    the file's analysis, None without one), the last print's time."""
     shown = _shown(service)
     path = service.selected
-    summary = estimate = None
+    summary = None
     if shown is not None and (service.running is not None or path is None):
         path = service.data_dir / shown.record.file
         summary = shown.summary
-        estimate = shown.marks.total_seconds if shown.marks is not None else None
-    elif path is not None:
-        summary = service.analyses.known(path)  # read as it was selected
-    if estimate is None and summary is not None:
-        estimate = summary.estimated_seconds
+        planned, slicer = shown.planned_seconds, shown.slicer_seconds
+    else:
+        if path is not None:
+            summary = service.analyses.known(path)  # read as it was selected
+        planned = summary.planned_seconds if summary is not None else None
+        slicer = summary.slicer_seconds if summary is not None else None
     filament = None
     if summary is not None and summary.filament:
         filament = {
@@ -125,7 +128,8 @@ def job(service: PrinterService) -> dict[str, Any]:
     last = service.last_print_time(path) if path is not None else None
     return {
         "file": file_entry(service, path),
-        "estimatedPrintTime": estimate,
+        "estimatedPrintTime": planned,
+        "slicerEstimatedPrintTime": slicer,
         "averagePrintTime": last,
         "lastPrintTime": last,
         "filament": filament,

@@ -500,7 +500,9 @@ class Feed:
     def _file(self, event: FileChanged) -> None:
         what = "Added" if event.what == "added" else "Removed"
         payload = {"storage": "local", "path": event.path, "name": event.name}
-        if event.folder:
+        if event.what == "analysed":  # its gcodeAnalysis is complete: OctoPrint's words
+            self.event("MetadataAnalysisFinished", {**payload, "origin": "local"})
+        elif event.folder:
             self.event(f"Folder{what}", payload)
         else:
             kind = ["machinecode", "gcode"]

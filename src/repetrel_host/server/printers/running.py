@@ -44,6 +44,31 @@ class Running:
         return self.marks.at(last.source_line).z
 
     @property
+    def planned_seconds(self) -> float | None:
+        """The whole job's print time from its moves: its own plan once made (its machine's
+        limits, its header, the heaters where they were), else the file's analysis' (None
+        until either is known, or for a file without moves)."""
+        following = self.job.following
+        if following is not None and following.timeline.total > 0:
+            return following.timeline.total
+        return self.summary.planned_seconds if self.summary is not None else None
+
+    @property
+    def planned_limits_from(self) -> str | None:
+        """Where the limits of :attr:`planned_seconds` came from."""
+        following = self.job.following
+        if following is not None and following.timeline.total > 0:
+            return following.timeline.limits_from
+        return self.summary.planned_limits_from if self.summary is not None else None
+
+    @property
+    def slicer_seconds(self) -> float | None:
+        """The slicer's own estimate of the whole job, where the file states one."""
+        if self.marks is not None and self.marks.total_seconds is not None:
+            return self.marks.total_seconds
+        return self.summary.slicer_seconds if self.summary is not None else None
+
+    @property
     def fraction(self) -> float:
         """The share of the file's bytes the controller acknowledged (0 to 1)."""
         return min(self.job.offset / max(self.job.size, 1), 1.0)

@@ -1,7 +1,8 @@
 // The server's uploaded files: upload (a drop zone and a file input, each upload with its
 // progress), folders (a breadcrumb, new, delete), a search across folders, sorting, and
-// each file's analysis (the slicer's estimate, filament, layers, size, thumbnail). "Print"
-// asks the lint first: warnings are shown before the job is queued, errors refuse it.
+// each file's analysis (the print time from its moves beside the slicer's estimate,
+// filament, layers, size, thumbnail). "Print" asks the lint first: warnings are shown
+// before the job is queued, errors refuse it.
 
 import { h, clock, duration } from "../api.js";
 
@@ -15,7 +16,25 @@ const SORTS = {
 /** A path below the uploads, as a URL path ("parts/a b.gcode" -> "parts/a%20b.gcode"). */
 export const urlPath = (path) => path.split("/").map(encodeURIComponent).join("/");
 const folderOf = (path) => (path.includes("/") ? path.slice(0, path.lastIndexOf("/")) : "");
-const estimate = (file) => (file.analysis ? file.analysis.estimatedPrintTime ?? null : null);
+/** The file's print time: ours (from its moves), else the slicer's; null when neither. */
+const estimate = (file) => {
+  const a = file.analysis;
+  return a ? a.estimatedPrintTime ?? a.slicerEstimatedPrintTime ?? null : null;
+};
+/** The row's time: ours, with the slicer's beside it when they differ by over a minute
+ * ("52 min 53 s (slicer: 54 min 10 s)"); the slicer's alone for a file without moves. */
+function shownTime(a) {
+  const ours = a.estimatedPrintTime, slicer = a.slicerEstimatedPrintTime;
+  if (ours == null) return slicer == null ? null : `${duration(slicer)} (slicer)`;
+  if (slicer == null || Math.abs(ours - slicer) <= 60) return duration(ours);
+  return `${duration(ours)} (slicer: ${duration(slicer)})`;
+}
+/** The details' sentence, worded as hyrel-send --check says it. */
+function timeSentence(a) {
+  const slicer = a.slicerEstimatedPrintTime != null ? `; the slicer's: ${duration(a.slicerEstimatedPrintTime)}` : "";
+  if (a.estimatedPrintTime == null) return `no moves: no print time${slicer}`;
+  return `${duration(a.estimatedPrintTime)}, limits from ${a.estimatedPrintTimeLimitsFrom}${slicer}`;
+}
 /** A finding without its repeated severity: "warning: a.gcode:3: warning: G10 ..." ->
  * "a.gcode:3: warning: G10 ...". */
 const finding = (text) => text.replace(/^(error|warning): (?=.*: (error|warning): )/, "");
@@ -147,11 +166,11 @@ export function mount(body, ctx) {
 
   function fileRow(file) {
     const analysis = file.analysis;
-    const time = estimate(file);
     const meta = [bytes(file.size), clock(file.date)];
     if (!analysis) meta.push(!pending(file) ? "no analysis (not G-code)" : tries < 30 ? "analysing…" : "not analysed (yet)");
     else {
-      if (time != null) meta.push(`${duration(time)} (slicer)`);
+      const time = shownTime(analysis);
+      if (time != null) meta.push(time);
       if (analysis.layers) meta.push(`${analysis.layers} layers`);
     }
     const thumb = file.thumbnail
@@ -177,7 +196,7 @@ export function mount(body, ctx) {
     const facts = [];
     const fact = (term, ...value) => facts.push(h("dt", {}, term), h("dd", {}, ...value));
     fact("slicer", a.slicer || "not said");
-    fact("estimated time", a.estimatedPrintTime != null ? `${duration(a.estimatedPrintTime)} (the slicer's)` : "not in the file");
+    fact("estimated time", timeSentence(a));
     const tools = Object.entries(a.filament || {});
     fact("filament", tools.length ? tools.map(([tool, used]) => h("div", {}, `${tool}: ${metres(used.length)}, ${used.volume.toFixed(2)} cm³`)) : "none extruded");
     fact("layers", String(a.layers || 0));
