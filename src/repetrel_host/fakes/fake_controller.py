@@ -277,8 +277,8 @@ def build_parser() -> argparse.ArgumentParser:
         prog="hyrel-fake-controller",
         description="A fake motion controller on a pseudo-terminal: Marlin-style, or on "
         "Hyrel's own link (--protocol hyrel). By default it runs every command at once on "
-        "an unlimited link; --move-time, --command-time, --heat-rate, --bandwidth and "
-        "--latency slow it down, --faults makes it noisy.",
+        "an unlimited link; --move-time (or --time-scale), --command-time, --heat-rate, "
+        "--bandwidth and --latency slow it down, --faults makes it noisy.",
         formatter_class=_DefaultsShown,
     )
     parser.add_argument(
@@ -337,6 +337,16 @@ def build_parser() -> argparse.ArgumentParser:
         default=0.0,
         metavar="SECONDS",
         help="time a move takes (default: 0, at once)",
+    )
+    parser.add_argument(
+        "--time-scale",
+        type=float,
+        default=None,
+        metavar="X",
+        help="each move takes the time the firmware's planner gives it (accelerations, "
+        "feed rates, junction speeds, as the host's estimate plans them), divided by X: 100 "
+        "runs an hour's print in 36 s; G4 dwells are divided too (default: none, "
+        "--move-time's time)",
     )
     parser.add_argument(
         "--command-time",
@@ -426,6 +436,13 @@ def settings_from_args(args: argparse.Namespace) -> ControllerSettings:
         args.rx_buffer = HYREL_RX_BUFFER if args.protocol == "hyrel" else 128
     if args.identify_time < 0:
         raise SystemExit("hyrel-fake-controller: --identify-time must not be negative")
+    if args.time_scale is not None and args.move_time:
+        raise SystemExit(
+            "hyrel-fake-controller: --time-scale and --move-time each say how long a move "
+            "takes: give one"
+        )
+    if args.time_scale is not None and not args.time_scale > 0:
+        raise SystemExit("hyrel-fake-controller: --time-scale must be above zero")
     if args.rx_buffer < 2 or args.slots < 1 or args.planner < 1 or args.extruders < 1:
         raise SystemExit(
             "hyrel-fake-controller: --rx-buffer, --slots, --planner and --extruders must be "
@@ -447,6 +464,7 @@ def settings_from_args(args: argparse.Namespace) -> ControllerSettings:
         slots=args.slots,
         planner=args.planner,
         move_time=args.move_time,
+        time_scale=args.time_scale,
         command_time=args.command_time,
         banner=not args.no_banner and args.protocol != "hyrel",  # "start" is Marlin's
         advanced_ok=args.advanced_ok,

@@ -249,6 +249,7 @@ class HyrelControllerSimulator(ControllerSimulator):
         word = command_word(line.command)
         self._count_command(word, now)
         command = QueuedCommand(line.command, word, line.number, urgent=line.urgent)
+        self._plan(command)
         queue = self._queue
         if not line.urgent:
             queue.append(command)
@@ -267,7 +268,7 @@ class HyrelControllerSimulator(ControllerSimulator):
             self._reply(PING_REPLY, now)
         elif control is Control.ABORT:
             self._queue.clear()
-            self._planner.clear()
+            self._drop_moves()
             self._rx.clear()
             self._line.clear()
             self._planner_end = self._busy_until = now
@@ -336,7 +337,7 @@ class HyrelControllerSimulator(ControllerSimulator):
             for heater in self.heaters.values():
                 heater[1] = 0.0
             self._queue.clear()
-            self._planner.clear()
+            self._drop_moves()
             self._rx.clear()
             self._reply(b">ER: halted (M112): every heater off\n", now)
             self.hung = True

@@ -4,7 +4,8 @@ The same engine runs behind the pty fake controller (real time) and in
 in-memory tests (simulated time). It models the link (bandwidth and latency
 each way), the receive buffer in bytes (dropping bytes on overflow like a UART,
 or pushing back like USB), the command slots, the planner, and how long each
-command takes. It acknowledges a buffered command once it is planned, an
+command takes: a fixed time per move, or (``time_scale``) the time the firmware's
+planner would give it, scaled. It acknowledges a buffered command once it is planned, an
 unbuffered one once the planner drained and the command finished.
 
 Faults (:class:`Faults`) are seeded and reproducible. They can also be switched
@@ -23,7 +24,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, fields, replace
 from enum import Enum
 
+from repetrel_host.fakes.planned import PlannedTimes
 from repetrel_host.gcode.commands import command_word, is_unbuffered
+from repetrel_host.gcode.estimate import DEFAULT_LIMITS, Limits
 from repetrel_host.protocol.controller import Accepted, ControllerProtocol, Rejected
 
 _MOVES = frozenset({"G0", "G1", "G2", "G3", "G5"})
@@ -120,6 +123,13 @@ class ControllerSettings:
     slots: int = 4  # command slots (Marlin's BUFSIZE)
     planner: int = 16  # planner blocks
     move_time: float = 0.0  # how long one move takes to execute
+    # Moves take the time the firmware's planner gives them (as repetrel_host.gcode.estimate
+    # plans them), divided by this: at 100 an hour's print runs in 36 s. Dwells (G4) are
+    # part of the plan and scaled too; heat waits keep heat_rate's time. None: move_time.
+    time_scale: float | None = None
+    # The planner's limits with time_scale, before the job's own M201-M205 lines change
+    # them (as a firmware's configuration); None: Marlin's defaults.
+    limits: Limits | None = None
     command_time: float = 0.0  # how long any other command takes
     banner: bool = True  # say "start" at boot
     advanced_ok: bool = False  # ADVANCED_OK: "ok N<last line> P<planner free> B<slots free>"
@@ -140,6 +150,12 @@ class ControllerSettings:
     # The first M115 after a start (or a reset) takes this long to run, holding the queue
     # behind it: a controller slow to say who it is (busy at boot, a loaded host's fake).
     identify_time: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.time_scale is not None and not self.time_scale > 0:
+            raise ValueError("time_scale must be above zero")
+        if self.time_scale is not None and self.move_time:
+            raise ValueError("time_scale and move_time each say how long a move takes: give one")
 
 
 @dataclass(slots=True)
@@ -182,6 +198,7 @@ class QueuedCommand:
     number: int | None
     started: bool = False
     urgent: bool = False  # Hyrel's link: ahead of the queue
+    planned: int | None = None  # its number in the planned times (with time_scale)
 
 
 class ControllerSimulator:
@@ -210,6 +227,14 @@ class ControllerSimulator:
         self._line = bytearray()  # the line being read out of the receive buffer
         self._queue: deque[QueuedCommand] = deque()
         self._planner: deque[float] = deque()  # finish time of each planned move
+        # With time_scale: the moves in the planner still waiting for their planned time
+        # (their numbers in self._planned), after those in self._planner.
+        self._untimed: deque[int] = deque()
+        self._planned = (
+            PlannedTimes(self.settings.limits or DEFAULT_LIMITS, planner_lookahead(self.settings))
+            if self.settings.time_scale is not None
+            else None
+        )
         self._planner_end = now
         self._busy_until = now
         self._last_step = now
@@ -320,13 +345,18 @@ class ControllerSimulator:
             head = self._queue[0]
             if self._busy_until > self._last_step:
                 times.append(self._busy_until)
-            elif head.word in _MOVES and len(self._planner) >= self.settings.planner:
+            elif head.word in _MOVES and self._planner_full() and self._planner:
                 times.append(self._planner[0])
             elif is_unbuffered(head.text) and not head.started and self._planner:
                 times.append(self._planner_end)
             if self.faults.busy_interval and self._blocked():
                 times.append(self._next_busy)
+        if self._untimed:
+            times.append(self._planner_end)  # idle then: the moves waiting get their times
         return min(times) if times else None
+
+    def _planner_full(self) -> bool:
+        return len(self._planner) + len(self._untimed) >= self.settings.planner
 
     def _holding(self) -> bool:
         """The queue waits whatever it holds (a Hyrel pause byte); never on Marlin."""
@@ -337,18 +367,22 @@ class ControllerSimulator:
         if not self._queue:
             return False
         head = self._queue[0]
-        return self._busy_until > self._last_step or (
-            head.word in _MOVES and len(self._planner) >= self.settings.planner
-        )
+        return self._busy_until > self._last_step or (head.word in _MOVES and self._planner_full())
 
     def _step(self, now: float) -> None:
         self._last_step = now
         while not self.hung:
             self._fill_slots(now)
+            self._time_moves(now)
             if self._process_head(now):
                 continue
             if self._inbound and self._inbound[0][0] <= now and self._rx_free() > 0:
                 self._deliver(now)
+                continue
+            if self._untimed and self._planner_end <= now and self._planned is not None:
+                # The planner ran dry and nothing more came: the moves in it run now, as
+                # a firmware runs what it has, planned without the moves still to come.
+                self._planned.settle()
                 continue
             break
         if self._report_every is not None and now >= self._next_report:
@@ -422,7 +456,9 @@ class ControllerSimulator:
             command = outcome.command
             word = command_word(command)
             self._count_command(word, now)
-            self._queue.append(QueuedCommand(command, word, outcome.number))
+            queued = QueuedCommand(command, word, outcome.number)
+            self._plan(queued)
+            self._queue.append(queued)
         elif isinstance(outcome, Rejected):
             self._reply(outcome.reply.removesuffix(b"ok\n"), now)
             if outcome.reply.endswith(b"ok\n") and not self.faults.resend_without_ok:
@@ -468,13 +504,17 @@ class ControllerSimulator:
             self._ok(b"ok\n", now)
             return True
         if command.word in _MOVES:
-            if len(self._planner) >= self.settings.planner:
+            if self._planner_full():
                 return False
-            start = max(now, self._planner_end)
-            self._planner_end = start + self.settings.move_time
-            self._planner.append(self._planner_end)
+            if command.planned is not None:
+                self._untimed.append(command.planned)
+                self._time_moves(now)
+            else:
+                start = max(now, self._planner_end)
+                self._planner_end = start + self.settings.move_time
+                self._planner.append(self._planner_end)
         elif is_unbuffered(command.text) and not command.started:
-            if self._planner:
+            if self._planner or self._untimed:
                 return False  # wait until every planned move is done
             command.started = True
             self._busy_until = now + self._duration(command)
@@ -496,6 +536,35 @@ class ControllerSimulator:
         self._answer(command, now)
         return True
 
+    def _plan(self, command: QueuedCommand) -> None:
+        """With time_scale: a command entering the queue goes to the planned times (its
+        number kept). Before a command that waits for the moves to finish, every move
+        before it gets its time: the firmware stops there, whatever follows."""
+        planned = self._planned
+        if planned is None or command.text.startswith(DEBUG_PREFIX):
+            return
+        command.planned = planned.queued(command.text, command.word in _MOVES)
+        if is_unbuffered(command.text):
+            planned.settle()
+
+    def _time_moves(self, now: float) -> None:
+        """The moves in the planner whose planned time is known run, in order, each
+        after the one before (its time divided by time_scale)."""
+        planned, scale = self._planned, self.settings.time_scale
+        if planned is None or scale is None:
+            return
+        while self._untimed and planned.known(self._untimed[0]):
+            seconds = planned.take(self._untimed.popleft()) / scale
+            self._planner_end = max(now, self._planner_end) + seconds
+            self._planner.append(self._planner_end)
+
+    def _drop_moves(self) -> None:
+        """The planner is emptied (a kill, a reset, an abort): its moves never run."""
+        self._planner.clear()
+        self._untimed.clear()
+        if self._planned is not None:
+            self._planned.reset()
+
     def _duration(self, command: QueuedCommand) -> float:
         heater = _HEATERS.get(command.word)
         if heater is not None and heater[1]:
@@ -505,7 +574,8 @@ class ControllerSimulator:
             match = _DWELL.search(command.text[2:])
             if match is not None:
                 value = float(match.group(2))
-                return value / 1000.0 if match.group(1).upper() == "P" else value
+                seconds = value / 1000.0 if match.group(1).upper() == "P" else value
+                return seconds / (self.settings.time_scale or 1.0)  # part of the plan
             return 0.0
         return self.settings.command_time
 
@@ -672,7 +742,7 @@ class ControllerSimulator:
         for heater in self.heaters.values():
             heater[1] = 0.0
         self._queue.clear()
-        self._planner.clear()
+        self._drop_moves()
         self._rx.clear()
         self._reply(KILLED, now)
         self.hung = True
@@ -683,7 +753,7 @@ class ControllerSimulator:
             heater[1] = 0.0
         self.tool = 0
         self._queue.clear()
-        self._planner.clear()
+        self._drop_moves()
         self._rx.clear()
         self._line.clear()
         self._planner_end = self._busy_until = now
@@ -700,7 +770,7 @@ class ControllerSimulator:
             self.counts.dropped_oks += 1
             return
         if self.settings.advanced_ok and line == b"ok\n":
-            planner_free = self.settings.planner - len(self._planner)
+            planner_free = self.settings.planner - len(self._planner) - len(self._untimed)
             slots_free = self.settings.slots - len(self._queue)
             last = self.protocol.last_line
             line = f"ok N{last} P{planner_free} B{slots_free}\n".encode()
@@ -739,6 +809,15 @@ class ControllerSimulator:
     def _wire_time(self, size: int) -> float:
         bandwidth = self.settings.bandwidth
         return 0.0 if bandwidth is None else size / bandwidth
+
+
+def planner_lookahead(settings: ControllerSettings) -> int:
+    """The lookahead the planned times use: half the planner. The estimator settles its
+    blocks in batches, keeping ``lookahead`` behind the newest once twice that many wait;
+    this fake holds at most its planner and command slots, so with half the planner a move
+    is settled (with between half and all the planner's blocks behind it, as the firmware
+    looks ahead over what its planner holds) before the planner runs dry."""
+    return max(1, settings.planner // 2)
 
 
 def _number(text: str, name: str) -> float:
