@@ -169,3 +169,24 @@ def test_estimate_bench_prints_each_files_figures_beside_the_slicers() -> None:
     rows = [line for line in result.stdout.splitlines() if line.startswith("| cone")]
     assert len(rows) == 1 and ("(-" in rows[0] or "(+" in rows[0])
     assert "sphere-prusaslicer.gcode | 3,175 |" in result.stdout  # PrusaSlicer's 52m 55s
+
+
+TIME_LEFT = Path(__file__).parent.parent / "bench" / "time_left.py"
+
+
+@pytest.mark.timeout(120)
+def test_time_left_bench_prints_each_printers_errors_and_pace() -> None:
+    command = [sys.executable, str(TIME_LEFT), "--layers", "1", "--runs", "1"]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=110)
+    assert result.returncode == 0, result.stderr
+    lines = result.stdout.splitlines()[2:]  # below the header and its rule
+    rows = [line.split(" | ") for line in lines]
+    names = [row[0] for row in rows]
+    assert names == [
+        "| keeps to the plan",
+        "| 10 % slower, pace unknown",
+        "| 10 % slower, its next job",
+    ]
+    for row in rows:
+        assert all(cell.endswith("%") for cell in row[2:6]), row
+        assert float(row[6].rstrip(" |")) > 0.5  # the pace measured, x the scale

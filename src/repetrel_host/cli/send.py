@@ -65,7 +65,7 @@ from repetrel_host.session.print_job import PrintJob
 from repetrel_host.session.printer import Printer
 from repetrel_host.session.pump import Outcome, Summary
 from repetrel_host.session.recovery import recovery_command, recovery_from, recovery_window
-from repetrel_host.session.workers import stop_workers
+from repetrel_host.session.workers import in_worker, stop_workers
 
 if TYPE_CHECKING:
     from rich.progress import TaskID
@@ -305,7 +305,7 @@ async def _stream(
     # The plan's time at each line, in a worker process: the time left, and this run's pace
     # for the printer's next jobs (kept in its record).
     prior = learned_pace(paces(stream_file.parent, printer.port, plan.profile.name or ""))
-    tasks.add(loop.create_task(job.follow_time(prior)))
+    tasks.add(loop.create_task(job.follow_time(prior, in_worker)))
     refresher = asyncio.create_task(refresh())
     watcher = asyncio.create_task(_watch(console, printer, job, actions, wait_for_enter, keyboard))
     completed = False

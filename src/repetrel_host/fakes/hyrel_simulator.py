@@ -165,6 +165,8 @@ class HyrelControllerSimulator(ControllerSimulator):
     """A :class:`ControllerSimulator` on Hyrel's link; ``ack_headroom`` and ``watchdog``
     as the firmware has them unless a test wants them smaller."""
 
+    HYREL_CODE_CHART = True
+
     def __init__(
         self,
         settings: ControllerSettings | None = None,

@@ -21,9 +21,10 @@ class PlannedTimes:
     gets the sum, which is why a time counts as known only once a later one is told.
     """
 
-    def __init__(self, limits: Limits, lookahead: int) -> None:
+    def __init__(self, limits: Limits, lookahead: int, hyrel: bool = False) -> None:
         self._limits = limits
         self._lookahead = lookahead
+        self._hyrel = hyrel  # Hyrel's code chart (the estimator's ``hyrel``)
         self._queued = 0  # commands fed so far: the next one's number
         self._known_through = -1  # every command numbered up to this has its time
         self._told = 0.0  # the estimator's running total at its last word
@@ -62,7 +63,9 @@ class PlannedTimes:
         self._estimator = self._new_estimator()
 
     def _new_estimator(self) -> Estimator:
-        return Estimator(self._limits, on_time=self._tell, lookahead=self._lookahead)
+        return Estimator(
+            self._limits, on_time=self._tell, lookahead=self._lookahead, hyrel=self._hyrel
+        )
 
     def _tell(self, number: int, seconds: float) -> None:
         """The estimator's word: the running total at the end of command ``number``.

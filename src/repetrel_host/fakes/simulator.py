@@ -204,6 +204,8 @@ class QueuedCommand:
 class ControllerSimulator:
     """Feed bytes with :meth:`receive`, run with :meth:`advance`, read :meth:`take_output`."""
 
+    HYREL_CODE_CHART = False  # its moves planned as Hyrel's firmware runs them (time_scale)
+
     def __init__(
         self,
         settings: ControllerSettings | None = None,
@@ -231,7 +233,11 @@ class ControllerSimulator:
         # (their numbers in self._planned), after those in self._planner.
         self._untimed: deque[int] = deque()
         self._planned = (
-            PlannedTimes(self.settings.limits or DEFAULT_LIMITS, planner_lookahead(self.settings))
+            PlannedTimes(
+                self.settings.limits or DEFAULT_LIMITS,
+                planner_lookahead(self.settings),
+                hyrel=self.HYREL_CODE_CHART,
+            )
             if self.settings.time_scale is not None
             else None
         )

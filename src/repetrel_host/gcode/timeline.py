@@ -48,7 +48,9 @@ class Timeline:
     total: float = 0.0
     total_heating: float = 0.0
     limits_from: str = ""  # where the plan's limits came from (the estimate's)
-    _seen: tuple[int, float, float] | None = None  # the last point told, maybe not kept
+    moves: list[int] = field(default_factory=list)  # moves (and dwells) planned by each point
+    total_moves: int = 0
+    _seen: tuple[int, float, float, int] | None = None  # the last point told, maybe not kept
     _heating: float = 0.0  # the heat waits' seconds so far, as last told
 
     def heated(self, heating: float) -> None:
@@ -62,32 +64,71 @@ class Timeline:
         if heating != self.total_heating and self._seen is not None:
             self._keep(*self._seen)  # a wait: the point before it, so it is not spread
         self.total, self.total_heating = seconds, heating
-        self._seen = (line, seconds, heating)
+        self.total_moves += 1
+        self._seen = (line, seconds, heating, self.total_moves)
         if (
             not self.seconds
             or seconds - self.seconds[-1] >= self.spacing
-            or heating != (self.heating[-1])
+            or heating != self.heating[-1]
         ):
-            self._keep(line, seconds, heating)
+            self._keep(*self._seen)
 
     def finish(self) -> None:
         """The plan is complete: its last point kept."""
         if self._seen is not None:
             self._keep(*self._seen)
 
-    def _keep(self, line: int, seconds: float, heating: float) -> None:
-        if self.lines and line <= self.lines[-1]:
-            self.seconds[-1], self.heating[-1] = seconds, heating  # the same line, later
+    def _keep(self, line: int, seconds: float, heating: float, moves: int) -> None:
+        if self.lines and line <= self.lines[-1]:  # the same line, later
+            self.seconds[-1], self.heating[-1], self.moves[-1] = seconds, heating, moves
             return
         self.lines.append(line)
         self.seconds.append(seconds)
         self.heating.append(heating)
+        self.moves.append(moves)
         if len(self.lines) > MOST_POINTS:  # every other one goes, the first and last stay
             keep = [*range(0, len(self.lines) - 1, 2), len(self.lines) - 1]
             self.lines = [self.lines[i] for i in keep]
             self.seconds = [self.seconds[i] for i in keep]
             self.heating = [self.heating[i] for i in keep]
+            self.moves = [self.moves[i] for i in keep]
             self.spacing *= 2
+
+    def running(self, line: int, held: float) -> tuple[float, float]:
+        """:meth:`at` the move a controller runs when it acknowledged ``line`` and holds
+        ``held`` moves (its planner's) behind the one it runs: that many moves earlier."""
+        acknowledged = self.at(line)
+        if held <= 0 or not self.lines:
+            return acknowledged
+        moves = self._moves_at(line) - held
+        index = bisect.bisect_left(self.moves, moves)
+        if index >= len(self.moves):
+            return acknowledged
+        if index <= 0 or self.heating[index - 1] != acknowledged[1]:
+            if acknowledged[1] > 0:
+                # A heat wait in between: it emptied the planner, so what runs is past it.
+                first = bisect.bisect_left(self.heating, acknowledged[1])
+                return min(self.seconds[first], acknowledged[0]), acknowledged[1]
+            first_moves = self.moves[0]
+            share = max(moves, 0.0) / first_moves if first_moves > 0 else 0.0
+            return self.seconds[0] * share, 0.0
+        before, after = self.moves[index - 1], self.moves[index]
+        share = (moves - before) / (after - before) if after > before else 1.0
+        start = self.seconds[index - 1]
+        return start + share * (self.seconds[index] - start), self.heating[index - 1]
+
+    def _moves_at(self, line: int) -> float:
+        """The moves planned by the end of ``line``, in proportion between points."""
+        index = bisect.bisect_left(self.lines, line)
+        if index >= len(self.lines):
+            return float(self.total_moves)
+        if self.lines[index] == line:
+            return float(self.moves[index])
+        if index == 0:
+            return self.moves[0] * line / self.lines[0] if self.lines[0] > 0 else 0.0
+        before, after = self.lines[index - 1], self.lines[index]
+        share = (line - before) / (after - before)
+        return self.moves[index - 1] + share * (self.moves[index] - self.moves[index - 1])
 
     def at(self, line: int) -> tuple[float, float]:
         """The planned seconds at the end of ``line``, and the heat waits' share of them
@@ -114,6 +155,7 @@ class TimeLeft:
 
     timeline: Timeline
     prior: float = 1.0
+    held: float = 0.0  # moves the controller holds acknowledged behind the one it runs
     watched_actual: float = 0.0  # seconds watched moving...
     watched_planned: float = 0.0  # ...and what the plan gave them
     _last: tuple[int, float] | None = None  # the last line seen and when
@@ -124,13 +166,13 @@ class TimeLeft:
         job is paused (the stretch around it is not watched)."""
         last = self._last
         self._last = (line, now) if moving else None
-        seconds, heating = self.timeline.at(line)
+        seconds, heating = self.timeline.running(line, self.held)
         if last is None:
             self._settled = seconds + SETTLE
             return
         if seconds < self._settled or line < last[0]:
             return
-        before, heating_before = self.timeline.at(last[0])
+        before, heating_before = self.timeline.running(last[0], self.held)
         if heating != heating_before:  # a heat wait in between: the heaters' time, not watched
             return
         self.watched_actual += now - last[1]
@@ -166,7 +208,7 @@ class TimeLeft:
         """The seconds left after ``line``, acknowledged by ``now`` (observed first): the
         plan's moving remainder at the pace, and its heat waits as planned."""
         self.observe(line, now, moving)
-        seconds, heating = self.timeline.at(line)
+        seconds, heating = self.timeline.running(line, self.held)
         heat_left = self.timeline.total_heating - heating
         moving_left = self.timeline.total - seconds - heat_left
         return max(0.0, moving_left * self.pace + heat_left)

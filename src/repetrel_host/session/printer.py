@@ -164,6 +164,11 @@ class Printer:
         return self.link.port
 
     @property
+    def protocol(self) -> str:
+        """The link's protocol: "reprap" or "hyrel"."""
+        return self.settings.protocol
+
+    @property
     def job(self) -> PrintJob | None:
         """The job streaming now, if any."""
         return self._job

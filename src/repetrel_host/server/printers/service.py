@@ -45,6 +45,7 @@ from repetrel_host.session.planning import (
     JobRequest,
     recovery_plan,
 )
+from repetrel_host.session.workers import in_worker
 
 log = logging.getLogger("repetrel_host.server")
 
@@ -331,9 +332,8 @@ class PrinterService:
         log.info("printer %s: printing job %d (%s%s)", self.name, record.id, record.name, farm)
         self.job_changed(record.id)
         # The plan's time at each line (in a worker process), for the time left and the pace.
-        following = asyncio.ensure_future(
-            job.follow_time(learned_pace(self.store.paces(self.name)))
-        )
+        prior = learned_pace(self.store.paces(self.name))
+        following = asyncio.ensure_future(job.follow_time(prior, in_worker))
         try:  # read while the job streams: a big file
             await asyncio.to_thread(self._read_job, running, path)
         except OSError:
