@@ -6,9 +6,10 @@ take their planned time (``--time-scale``, its own process on a pty, a 2 Mbaud l
 
 Two printers: one that keeps to the plan (its pace, 1/scale, known from its past jobs), and
 one 10 % slower than the plan whose pace is not known (the plan's assumed), then its next
-job, which starts from the pace its first one taught it. For each run: the time left's
-error against the real remainder where the job reached 10, 25, 50 and 75 % of its file, and
-the pace the run measured (x the scale: 1.000 is the plan's). This measures the plumbing,
+job, which starts from the pace its first one taught it (its history's record). For each
+run: the pace it starts from, the time left's error against the real remainder where the
+job reached 10, 25, 50 and 75 % of its file, and the pace the run measured (paces x the
+scale: 1.000 is the plan's). This measures the plumbing,
 not the model: the fake's moves take the time the same planner gives them.
 """
 
@@ -39,8 +40,11 @@ def first_layers(folder: Path, layers: int) -> Path:
     return path
 
 
-async def run(job_file: Path, scale: float, prior: float, history: Path) -> tuple[list, float]:
-    """The errors at :data:`SHARES` and the pace measured (x scale)."""
+async def run(
+    job_file: Path, scale: float, prior: float, history: Path
+) -> tuple[list, float, tuple[str, str]]:
+    """The errors at :data:`SHARES`, the pace measured, and the printer (its port and
+    machine profile, as its history knows it)."""
     fake = ["--time-scale", str(scale)]
     async with rh.connect("fake", baud=2_000_000, fake_args=fake, poll_interval=None) as printer:
         job = await printer.print(job_file, history=history)
@@ -57,7 +61,7 @@ async def run(job_file: Path, scale: float, prior: float, history: Path) -> tupl
         _, when, left = next(s for s in samples if s[0] >= share)
         errors.append(None if left is None else (left - (end - when)) / (end - when))
     measured = job.following.measured if job.following is not None else None
-    return errors, (measured or 0.0)
+    return errors, (measured or 0.0), (job.printer.port, job.plan.profile.name or "")
 
 
 def main() -> None:
@@ -67,30 +71,35 @@ def main() -> None:
     parser.add_argument("--runs", type=int, default=3)
     args = parser.parse_args()
     scale = args.scale
-    print("| printer | run | " + " | ".join(f"{s:.0%}" for s in SHARES) + " | pace |")
-    print("|---|---|" + "---|" * len(SHARES) + "---|")
+    shares = " | ".join(f"{s:.0%}" for s in SHARES)
+    print(f"| printer | run | pace it starts from | {shares} | pace measured |")
+    print("|---|---|---|" + "---|" * len(SHARES) + "---|")
 
-    def row(name: str, number: int, errors: list, measured: float) -> None:
+    def row(name: str, number: int, prior: float, errors: list, measured: float) -> None:
         cells = " | ".join("-" if e is None else f"{e:+.1%}" for e in errors)
-        print(f"| {name} | {number} | {cells} | {measured * scale:.3f} |", flush=True)
+        print(
+            f"| {name} | {number} | {prior * scale:.3f} | {cells} | {measured * scale:.3f} |",
+            flush=True,
+        )
 
     with tempfile.TemporaryDirectory() as folder:
         job_file = first_layers(Path(folder), args.layers)
         for number in range(1, args.runs + 1):
             history = Path(folder) / "keeps" / f"20261204-10000{number}-cone.gcode"
             history.parent.mkdir(exist_ok=True)
-            row("keeps to the plan", number, *asyncio.run(run(job_file, scale, 1 / scale, history)))
+            errors, measured, _ = asyncio.run(run(job_file, scale, 1 / scale, history))
+            row("keeps to the plan", number, 1 / scale, errors, measured)
         for number in range(1, args.runs + 1):
             runs = Path(folder) / f"slower-{number}"
             runs.mkdir()
             slower = scale / 1.1
             first = runs / "20261204-100000-cone.gcode"
-            errors, measured = asyncio.run(run(job_file, slower, 1 / scale, first))
-            row("10 % slower, pace unknown", number, errors, measured)
-            learned = learned_pace(paces(runs, "fake", "marlin"))
+            errors, measured, printer = asyncio.run(run(job_file, slower, 1 / scale, first))
+            row("10 % slower, pace unknown", number, 1 / scale, errors, measured)
+            learned = learned_pace(paces(runs, *printer))  # from the first run's record
             second = runs / "20261204-110000-cone.gcode"
-            errors, measured = asyncio.run(run(job_file, slower, learned, second))
-            row("10 % slower, its next job", number, errors, measured)
+            errors, measured, _ = asyncio.run(run(job_file, slower, learned, second))
+            row("10 % slower, its next job", number, learned, errors, measured)
 
 
 if __name__ == "__main__":

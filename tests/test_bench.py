@@ -174,19 +174,29 @@ def test_estimate_bench_prints_each_files_figures_beside_the_slicers() -> None:
 TIME_LEFT = Path(__file__).parent.parent / "bench" / "time_left.py"
 
 
-@pytest.mark.timeout(120)
-def test_time_left_bench_prints_each_printers_errors_and_pace() -> None:
-    command = [sys.executable, str(TIME_LEFT), "--layers", "1", "--runs", "1"]
-    result = subprocess.run(command, capture_output=True, text=True, timeout=110)
+@pytest.mark.timeout(150)
+def test_time_left_bench_finds_the_remainder_and_each_printers_pace() -> None:
+    """The time left's plumbing against the fake whose moves take their planned time (the
+    cone's first two layers at x12): the plan made as the job starts, the line the
+    controller runs, the run's pace, the pace the next job starts from. The bench's own
+    figures come within 2 or 3 %; the bounds here are looser, since a loaded machine's fake
+    strays from its plan, but plumbing gone wrong (a wrong line, a lost pace, the
+    controller's lead not counted) is off by 20 % or more."""
+    command = [sys.executable, str(TIME_LEFT), "--layers", "2", "--runs", "1"]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=140)
     assert result.returncode == 0, result.stderr
     lines = result.stdout.splitlines()[2:]  # below the header and its rule
-    rows = [line.split(" | ") for line in lines]
-    names = [row[0] for row in rows]
-    assert names == [
-        "| keeps to the plan",
-        "| 10 % slower, pace unknown",
-        "| 10 % slower, its next job",
-    ]
-    for row in rows:
-        assert all(cell.endswith("%") for cell in row[2:6]), row
-        assert float(row[6].rstrip(" |")) > 0.5  # the pace measured, x the scale
+    rows = {row[0].strip("| "): row[2:] for row in (line.split(" | ") for line in lines)}
+    # Each printer's pace at the start (the next job's from its first's record) and measured.
+    paces = {
+        "keeps to the plan": (1.0, 1.0),
+        "10 % slower, pace unknown": (1.0, 1.1),
+        "10 % slower, its next job": (1.1, 1.1),
+    }
+    assert list(rows) == list(paces)
+    for name, cells in rows.items():
+        start, measured = paces[name]
+        assert float(cells[0]) == pytest.approx(start, rel=0.05), name
+        errors = [float(cell.rstrip("%")) for cell in cells[1:5]]
+        assert all(abs(error) <= 10 for error in errors[1:]), (name, errors)  # 25 to 75 %
+        assert float(cells[5].rstrip(" |")) == pytest.approx(measured, rel=0.05), name

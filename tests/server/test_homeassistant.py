@@ -122,7 +122,8 @@ def test_each_printer_is_a_home_assistant_device_whose_sensors_read_real_message
 
         found = await retained(broker, "#")
         async with asyncio.timeout(30):
-            while not set(expected) <= set(keys(found)):
+            # Every sensor's config, and the job's first progress (the states they read).
+            while not set(expected) <= set(keys(found)) or "hyrel/bench/progress" not in found:
                 await asyncio.sleep(0.2)
                 found = await retained(broker, "#")
         assert keys(found) == sorted(expected)

@@ -47,6 +47,7 @@ from repetrel_host.session.planning import (
 )
 from repetrel_host.session.workers import in_worker
 
+READING_GRACE = 10.0  # seconds a job's end waits for its file's reading (its filament)
 log = logging.getLogger("repetrel_host.server")
 
 RECONNECT_FIRST = 0.5
@@ -334,12 +335,9 @@ class PrinterService:
         # The plan's time at each line (in a worker process), for the time left and the pace.
         prior = learned_pace(self.store.paces(self.name))
         following = asyncio.ensure_future(job.follow_time(prior, in_worker))
-        try:  # read while the job streams: a big file
-            await asyncio.to_thread(self._read_job, running, path)
-        except OSError:
-            pass  # gone or unreadable: the job streams what it opened, without layers
-        except Exception:  # a bug: the job is followed all the same
-            log.exception("printer %s: job %d's file was not analysed", self.name, record.id)
+        # Its file read while it streams (a big file takes long): its progress goes out
+        # from the start, its layers and filament once they are known.
+        reading = asyncio.ensure_future(self._read_job(running, path))
         state, error = JobState.COMPLETED, None
         ending = asyncio.ensure_future(job.wait())
         try:
@@ -373,6 +371,10 @@ class PrinterService:
             self.changed()
             watching.cancel()
             following.cancel()
+        # Its filament goes in its record: read by now, but for a big file (whose job ended
+        # soon: it goes without rather than hold the queue up).
+        await asyncio.wait({reading}, timeout=READING_GRACE)
+        reading.cancel()
         report = job.report  # the controller's M773 report, kept with the job
         used = filament_used(running, completed)
         pace = job.following.measured if job.following is not None else None
@@ -391,13 +393,24 @@ class PrinterService:
         self._state_changed()
         self._ended.set()
 
-    def _read_job(self, running: Running, path: Path) -> None:
+    async def _read_job(self, running: Running, path: Path) -> None:
         """The job's file, read once (in a thread): its layers' marks and offsets, and its
         summary (kept since its upload; else made now, and kept)."""
-        summary = self.analyses.cached(path)
-        found = self.analyses.analyse(path, moves=summary is None)
-        running.marks, running.layers = found.marks, found.layer_offsets
-        running.summary = summary or found.summary
+
+        def read() -> None:
+            summary = self.analyses.cached(path)
+            found = self.analyses.analyse(path, moves=summary is None)
+            running.marks, running.layers = found.marks, found.layer_offsets
+            running.summary = summary or found.summary
+
+        try:
+            await asyncio.to_thread(read)
+        except OSError:
+            pass  # gone or unreadable: the job streams what it opened, without layers
+        except Exception:  # a bug: the job is followed all the same
+            log.exception(
+                "printer %s: job %d's file was not analysed", self.name, running.record.id
+            )
 
     async def _watch(self, job: rh.PrintJob) -> None:
         """The job's word that its safe stop is held up: logged, told, and remembered."""
