@@ -122,8 +122,13 @@ def test_each_printer_is_a_home_assistant_device_whose_sensors_read_real_message
 
         found = await retained(broker, "#")
         async with asyncio.timeout(30):
-            # Every sensor's config, and the job's first progress (the states they read).
-            while not set(expected) <= set(keys(found)) or "hyrel/bench/progress" not in found:
+            # Every sensor's config, and the states they read (the job's first progress, the
+            # temperatures).
+            def missing() -> bool:
+                read = {c["state_topic"] for c in configs_of(found).values() if "state_topic" in c}
+                return not set(expected) <= set(keys(found)) or not read <= set(found)
+
+            while missing():
                 await asyncio.sleep(0.2)
                 found = await retained(broker, "#")
         assert keys(found) == sorted(expected)

@@ -6,8 +6,9 @@ gcode.estimate`'s ``on_time``) sparsely: a point a second or so apart, never mor
 few hundred kilobytes at most. Heat waits are kept apart: their time is the heaters', not the
 motion's.
 
-:class:`TimeLeft` turns it into the seconds a running job has left at the line the controller
-acknowledged: the plan's remainder, its moving part scaled by how the run has gone so far
+:class:`TimeLeft` turns it into the seconds a running job has left at the move the controller
+runs (the moves it holds behind the last one it acknowledged counted back): the plan's
+remainder, its moving part scaled by how the run has gone so far
 (actual ÷ planned time over the stretches it watched moving), blended in from a prior pace
 (what this printer's past jobs took against their plans) as the print advances. The clock
 is the caller's: nothing here reads the time.

@@ -367,6 +367,7 @@ class PrintJob:
             outcome = print_history.COMPLETED
         ended = datetime.now()
         seconds = summary.seconds if summary else (ended - self.started).total_seconds()
+        measured = self.following.measured if self.following is not None else None
         return print_history.Record(
             job=self.name,
             outcome=outcome,
@@ -379,5 +380,5 @@ class PrintJob:
             error=str(error) if error is not None else "",
             error_kind=print_history.error_kind(error) if error is not None else "",
             machine=self.plan.profile.name or "",
-            pace=round(pace, 4) if (pace := self.following and self.following.measured) else None,
+            pace=round(measured, 4) if measured is not None else None,
         )
