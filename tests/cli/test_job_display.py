@@ -82,12 +82,15 @@ def test_the_status_line_and_p_pausing_and_resuming(
 
 
 @pytest.mark.timeout(60)
-def test_time_left_from_the_plan_without_slicer_marks(tmp_path: Path, screens: list) -> None:
+def test_time_left_from_the_rate_then_the_plan_without_slicer_marks(
+    tmp_path: Path, screens: list
+) -> None:
     job = tmp_path / "plain.gcode"
-    job.write_text("".join(f"G1 X{i % 100} Y{i % 7}\n" for i in range(1500)))
+    job.write_text("".join(f"G1 X{i % 100} Y{i % 7}\n" for i in range(8000)))
     screen = Screen(str(job), "--no-history", home=tmp_path)
     screens.append(screen)
-    screen.expect(r"\d+ lines/s \d+:\d\d left, ends")  # no star: the plan's, not a slicer's
+    screen.expect(r"\d+ lines/s \d+:\d\d left\s")  # no star: the rate's, not a slicer's
+    screen.expect(r"\d+ lines/s \d+:\d\d left, ends")  # then the plan's, a few seconds in
     assert "layer" not in screen.text() and "*time left" not in screen.text()
     screen.send("\x03")  # Ctrl-C: the safe stop, as without a terminal
     screen.expect("stopping: sending the safe-stop sequence")

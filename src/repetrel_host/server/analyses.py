@@ -3,13 +3,13 @@
 the data folder (``analysis/``, a small JSON file per file, valid while the file's size and
 time are those it was made from) so that a restart reads no file again.
 
-A file is analysed as it is uploaded (its print time from the moves then follows in the
-background: the planner's pass takes seconds a megabyte, as OctoPrint's own analysis does
-after an upload), or as its job starts when it never was (in a worker process,
-:mod:`~repetrel_host.session.workers`); a listing that finds a file without one (put
-there by hand, moved with its folder) shows it without and has it analysed in the
-background, one file at a time, as OctoPrint does. Nothing here runs on the event loop but
-:meth:`Analyses.known` (memory only)."""
+A file is analysed as it is uploaded (its print time from the moves follows in the
+background once a listing shows it: the planner's pass takes seconds a megabyte, and an
+upload printed at once gets its job's own plan), or as its job starts when it never was
+(in a worker process, :mod:`~repetrel_host.session.workers`); a listing that finds a file
+without one (put there by hand, moved with its folder) shows it without and has it
+analysed in the background, one file at a time, as OctoPrint does. Nothing here runs on
+the event loop but :meth:`Analyses.known` (memory only)."""
 
 from __future__ import annotations
 
@@ -170,7 +170,8 @@ class Analyses:
 
 def unplanned(summary: FileSummary) -> bool:
     """A summary of a file with moves, its print time not worked out yet (an upload's: the
-    planner's pass takes seconds a megabyte, so it is made in the background)."""
+    planner's pass takes seconds a megabyte, so it is made in the background when a listing
+    shows the file)."""
     return summary.planned_seconds is None and summary.travel_area is not None
 
 

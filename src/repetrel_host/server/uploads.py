@@ -139,7 +139,6 @@ async def save_upload(
     _HASHES[_stat_key(target)] = digest.hexdigest()
     if summary is not None:
         server.analyses.keep(target, summary, made_from)  # a rename keeps size and time
-        server.analyses.summary(target)  # its print time, made in the background
     file_changed(server, target, "added", "add")
     return Upload(target, findings, commands, "; ".join(filter(None, (shortened, note))))
 

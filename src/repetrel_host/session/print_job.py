@@ -34,6 +34,8 @@ PROGRESS_INTERVAL = 0.1
 # layers 7 % short; 19.5 came within 0.2 %). Hyrel's controller holds up to 8 KB.
 MARLIN_HELD_MOVES = 19.5
 HYREL_HELD_BYTES = 8192
+# Seconds a job runs before its time is planned (see PrintJob.follow_time).
+PLAN_AFTER = 3.0
 # Seconds between looks at the line acknowledged, for the pace a job keeps.
 PACE_INTERVAL = 0.25
 # Events a late subscriber to a job still gets.
@@ -137,7 +139,9 @@ class PrintJob:
         """The last job line the controller acknowledged."""
         return self._run.last
 
-    async def follow_time(self, prior: float = 1.0, run: Runner | None = None) -> None:
+    async def follow_time(
+        self, prior: float = 1.0, run: Runner | None = None, after: float = PLAN_AFTER
+    ) -> None:
         """Plan the job's time at its lines, so that :meth:`time_left` can say it; its heat
         waits start where the printer's heaters are. ``prior``: the printer's pace from its
         past jobs (see :class:`~repetrel_host.gcode.timeline.TimeLeft`). A long file takes
@@ -145,7 +149,12 @@ class PrintJob:
         the server give :func:`~repetrel_host.session.workers.in_worker`, a worker process,
         so the streams keep the interpreter; a script may too, from a ``__main__`` guard).
         A file that cannot be planned (gone, unreadable, its worker ended) leaves the job
-        without it: :meth:`time_left` stays None."""
+        without it: :meth:`time_left` stays None. Planning starts once the job has run
+        ``after`` seconds: its start keeps the CPU, and a job over by then needs no time
+        left (the slicer's figure, else the rate, serve meanwhile)."""
+        await asyncio.sleep(after)
+        if self.done:
+            return
         # Marlin's T is the active hotend: the first, where it reports no T0.
         heard = self.printer.temperatures
         temperatures = {
