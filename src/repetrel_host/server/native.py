@@ -92,8 +92,8 @@ def _running_json(service: PrinterService) -> dict[str, Any]:
         **{k: v for k, v in progress.as_json().items() if k not in ("type", "printer", "job")},
         # The whole job's print time from its moves (None until its file is read), and the
         # slicer's own figure beside it.
-        "estimated_time": running.planned_seconds,
-        "estimated_time_limits_from": running.planned_limits_from,
+        "estimated_time": running.planned[0],
+        "estimated_time_limits_from": running.planned[1],
         "slicer_estimated_time": running.slicer_seconds,
     }
 

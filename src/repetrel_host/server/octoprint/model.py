@@ -113,7 +113,7 @@ def job(service: PrinterService) -> dict[str, Any]:
     if shown is not None and (service.running is not None or path is None):
         path = service.data_dir / shown.record.file
         summary = shown.summary
-        planned, slicer = shown.planned_seconds, shown.slicer_seconds
+        planned, slicer = shown.planned[0], shown.slicer_seconds
     else:
         if path is not None:
             summary = service.analyses.known(path)  # read as it was selected

@@ -44,22 +44,16 @@ class Running:
         return self.marks.at(last.source_line).z
 
     @property
-    def planned_seconds(self) -> float | None:
-        """The whole job's print time from its moves: its own plan once made (its machine's
-        limits, its header, the heaters where they were), else the file's analysis' (None
-        until either is known, or for a file without moves)."""
+    def planned(self) -> tuple[float | None, str | None]:
+        """The whole job's print time from its moves, and where its limits came from: its
+        own plan once made (its machine's limits, its header, the heaters where they were),
+        else the file's analysis' (None until either is known, or for a file without
+        moves)."""
         following = self.job.following
         if following is not None and following.timeline.total > 0:
-            return following.timeline.total
-        return self.summary.planned_seconds if self.summary is not None else None
-
-    @property
-    def planned_limits_from(self) -> str | None:
-        """Where the limits of :attr:`planned_seconds` came from."""
-        following = self.job.following
-        if following is not None and following.timeline.total > 0:
-            return following.timeline.limits_from
-        return self.summary.planned_limits_from if self.summary is not None else None
+            return following.timeline.total, following.timeline.limits_from
+        summary = self.summary
+        return (summary.planned_seconds, summary.planned_limits_from) if summary else (None, None)
 
     @property
     def slicer_seconds(self) -> float | None:
