@@ -46,7 +46,7 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, BinaryIO
 
-from repetrel_host.gcode.estimate import Limits, estimate_file
+from repetrel_host.gcode.estimate import estimate_file
 from repetrel_host.gcode.marks import Layer, SlicerMarks
 from repetrel_host.gcode.thumbnails import Thumbnail
 
@@ -242,7 +242,6 @@ def analyse(
     moves: bool = True,
     *,
     planned: bool = False,
-    machine: Limits | None = None,
 ) -> Analysis:
     """``path`` read once (:class:`OSError` when it cannot be). ``until_line``: read no
     further than the piece holding that line (what a recovery needs of a big file; a summary
@@ -251,13 +250,14 @@ def analyse(
 
     ``planned`` (with a summary of the whole file): the summary also carries the print time
     the moves take, read again by :func:`~repetrel_host.gcode.estimate.estimate_file`
-    (several times the pass's own cost) with the file's limits, else ``machine``'s, else
-    Marlin's defaults; None for a file without moves."""
+    (several times the pass's own cost) with the file's limits, else Marlin's defaults (a
+    file is not a machine's: a job's own plan has its machine's); None for a file without
+    moves."""
     with path.open("rb") as handle:
         found = scan(chunks(handle), until_line, moves)
     if planned and found.summary is not None and until_line is None:
         try:
-            estimate = estimate_file(path, machine)
+            estimate = estimate_file(path)
         except ArithmeticError:  # numbers past a float's range: the rest of it stands
             return found
         if estimate.moves and math.isfinite(estimate.seconds):  # JSON has no infinity

@@ -323,7 +323,6 @@ class Estimator:
             wait = max(0.0, heater.target - heater.at(now)) / heater.rate
             self.heating += wait
             if self.on_heat is not None:
-                self._plan(keep=0)
                 self.on_heat(self.heating)
             self._pause(line, wait)
 

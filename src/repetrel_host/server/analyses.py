@@ -93,12 +93,13 @@ class Analyses:
 
     # --- making ----------------------------------------------------------------------
 
-    def analyse(self, path: Path, moves: bool = True) -> Analysis:
+    def analyse(self, path: Path, moves: bool = True, planned: bool = True) -> Analysis:
         """``path`` read once, now (any thread but the event loop's): with ``moves``, its
-        summary, with the print time from its moves, is kept. :class:`OSError` when it
-        cannot be read."""
+        summary is kept, with ``planned`` the print time from its moves in it (a job's
+        start does without: the job plans its own). :class:`OSError` when it cannot be
+        read."""
         before = stamp(path)
-        found = in_worker(summarise, path) if moves else in_worker(analyse, path, moves=False)
+        found = in_worker(analyse, path, moves=moves, planned=moves and planned)
         if found.summary is not None and stamp(path) == before:  # not changed meanwhile
             self.keep(path, found.summary, before)
         return found
@@ -173,12 +174,6 @@ def unplanned(summary: FileSummary) -> bool:
     planner's pass takes seconds a megabyte, so it is made in the background when a listing
     shows the file)."""
     return summary.planned_seconds is None and summary.travel_area is not None
-
-
-def summarise(path: Path) -> Analysis:
-    """What the server keeps of a file (run in a worker): :func:`analyse`'s pass and the
-    print time from its moves, with the file's own limits, else Marlin's defaults."""
-    return analyse(path, planned=True, machine=None)  # machine: a profile's limits, later
 
 
 def describe(summary: FileSummary | None) -> dict[str, Any] | None:

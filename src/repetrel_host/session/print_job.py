@@ -184,6 +184,12 @@ class PrintJob:
             self.time_left()
             await asyncio.sleep(PACE_INTERVAL)
 
+    @property
+    def pace(self) -> float | None:
+        """The pace this run kept: actual over planned moving time (None: not planned, or
+        too little of it watched; see :attr:`TimeLeft.measured`)."""
+        return self.following.measured if self.following is not None else None
+
     def time_left(self, now: float | None = None) -> float | None:
         """Seconds the job has left at the line acknowledged last: the plan's remainder at
         the pace the run keeps (:meth:`follow_time` first; None before it is planned, and
@@ -376,7 +382,6 @@ class PrintJob:
             outcome = print_history.COMPLETED
         ended = datetime.now()
         seconds = summary.seconds if summary else (ended - self.started).total_seconds()
-        measured = self.following.measured if self.following is not None else None
         return print_history.Record(
             job=self.name,
             outcome=outcome,
@@ -389,5 +394,5 @@ class PrintJob:
             error=str(error) if error is not None else "",
             error_kind=print_history.error_kind(error) if error is not None else "",
             machine=self.plan.profile.name or "",
-            pace=round(measured, 4) if measured is not None else None,
+            pace=round(self.pace, 4) if self.pace is not None else None,
         )

@@ -377,8 +377,9 @@ class PrinterService:
         reading.cancel()
         report = job.report  # the controller's M773 report, kept with the job
         used = filament_used(running, completed)
-        pace = job.following.measured if job.following is not None else None
-        self.store.set_state(record.id, state, error, report.text if report else None, used, pace)
+        self.store.set_state(
+            record.id, state, error, report.text if report else None, used, job.pace
+        )
         if printer.owed_safe_stop or isinstance(ending.exception(), rh.SafeStopError):
             # Owed to the printer's next contact, whatever the job is recorded as (and
             # after a restart too): the session sends it once the printer answers.
@@ -399,7 +400,8 @@ class PrinterService:
 
         def read() -> None:
             summary = self.analyses.cached(path)
-            found = self.analyses.analyse(path, moves=summary is None)
+            # Its print time is the job's own plan (follow_time): not planned twice.
+            found = self.analyses.analyse(path, moves=summary is None, planned=False)
             running.marks, running.layers = found.marks, found.layer_offsets
             running.summary = summary or found.summary
 
