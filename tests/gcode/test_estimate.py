@@ -79,8 +79,19 @@ def test_dwells_feed_overrides_and_relative_moves_count() -> None:
     relative = estimate(lines("G91", "G1 X50 F600", "G1 X50"), X_ONLY).seconds
     assert relative == pytest.approx(10.0, rel=1e-9)
     assert estimate(lines("G92 X100", "G1 X100 F600"), X_ONLY).seconds == 0.0  # no move
+    bare = estimate(lines("G1 X100 F600", "G92", "G1 X100"), X_ONLY).seconds  # X is 0 again
+    assert bare == pytest.approx(20.0, rel=1e-9)
     inches = estimate(lines("G20", "G1 X1 F24"), X_ONLY).seconds  # 25.4 mm at 10.16 mm/s
     assert inches == pytest.approx(2.5, rel=1e-4)
+
+
+def test_m400_ends_the_moves_so_the_next_starts_from_rest() -> None:
+    # Two moves in a line join at speed; with M400 between, each ramps up and down alone.
+    joined = estimate(lines("G1 X50 F6000", "G1 X100"), X_ONLY).seconds
+    apart = estimate(lines("G1 X50 F6000", "M400", "G1 X100"), X_ONLY).seconds
+    alone = estimate(lines("G1 X50 F6000"), X_ONLY).seconds
+    assert apart == pytest.approx(2 * alone, rel=1e-9)
+    assert apart > joined
 
 
 def test_the_files_own_m201_to_m205_lines_set_the_limits() -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 
+from repetrel_host.gcode.estimate import HeatWait
 from repetrel_host.gcode.timeline import MOST_POINTS, TimeLeft, Timeline, learned_pace
 
 
@@ -13,6 +14,11 @@ def even(lines: int, each: float, start: int = 1) -> Timeline:
         timeline.add(line, line * each)
     timeline.finish()
     return timeline
+
+
+def wait(line: int, starts: float, seconds: float, heating: float = 0.0) -> HeatWait:
+    """A hotend's wait for 200 degrees at 2 a second, planned at ``starts``."""
+    return HeatWait(line, "T0", 200.0, 2.0, starts, seconds, heating or seconds)
 
 
 def test_a_long_plan_is_kept_in_a_bounded_number_of_points_and_read_between_them() -> None:
@@ -29,7 +35,7 @@ def test_a_heat_wait_is_a_step_at_its_line_not_spread_over_the_lines_before() ->
     timeline = Timeline()
     for line in range(1, 11):
         timeline.add(line, line * 0.3)
-    timeline.heated(50.0)
+    timeline.heated(wait(11, 3.0, 50.0))
     timeline.add(11, 3.0 + 50.0)
     for line in range(12, 21):
         timeline.add(line, 53.0 + (line - 11) * 0.3)
@@ -73,7 +79,7 @@ def test_a_printers_prior_pace_is_the_estimate_before_the_run_says_anything() ->
 
 def test_heat_waits_and_pauses_are_not_taken_for_slow_moving() -> None:
     timeline = Timeline()
-    timeline.heated(100.0)
+    timeline.heated(wait(1, 0.0, 100.0))
     timeline.add(1, 100.0)  # a wait planned at 100 s, first thing
     for line in range(2, 1002):
         timeline.add(line, 100.0 + (line - 1))
@@ -105,3 +111,51 @@ def test_the_burst_that_fills_the_controllers_buffer_is_not_taken_for_speed() ->
     for second in range(1, 200):
         following.left(20 + second, now=0.1 + second)
     assert following.pace == pytest.approx(1.0)
+
+
+def heat_wait_midway() -> Timeline:
+    """Lines 1-100 a second each; line 101 waits 50 s (100 to 200 degrees, as planned);
+    lines 102-200 a second each."""
+    timeline = Timeline()
+    for line in range(1, 101):
+        timeline.add(line, float(line))
+    timeline.heated(wait(101, 100.0, 50.0))
+    timeline.add(101, 150.0)
+    for line in range(102, 201):
+        timeline.add(line, 150.0 + line - 101)
+    timeline.finish()
+    return timeline
+
+
+def test_the_wait_at_hand_counts_from_where_its_heater_reports() -> None:
+    following = TimeLeft(heat_wait_midway())
+    assert following.left(100, now=100.0) == pytest.approx(149)  # no reports: as planned
+    hot = {"T0": (150.0, 200.0)}  # set, and halfway up at 2 degrees a second: 25 s to go
+    assert following.left(100, now=101.0, heaters=hot) == pytest.approx(99 + 25)
+    # The line waits while it climbs: the time left counts down, and the wait is no slow move.
+    for second in range(1, 21):
+        left = following.left(100, now=101.0 + second, heaters={"T0": (150 + 2 * second, 200)})
+        assert left == pytest.approx(99 + 25 - second)
+    assert following.pace == 1.0
+    reached = {"T0": (199.5, 200.0)}
+    assert following.left(100, now=125.0, heaters=reached) == pytest.approx(99)
+    # A heater set elsewhere (or off) says nothing of this wait: the plan's 50 s stand.
+    assert following.left(100, now=125.0, heaters={"T0": (150.0, 0.0)}) == pytest.approx(149)
+
+
+def test_a_heater_set_early_heats_during_the_moves_before_its_wait() -> None:
+    following = TimeLeft(heat_wait_midway())
+    # 30 s of moves before the wait; 80 degrees to climb (40 s): 10 s are left to wait.
+    left = following.left(70, now=70.0, heaters={"T0": (120.0, 200.0)})
+    assert left == pytest.approx(30 + 10 + 99)
+
+
+def test_a_controller_that_took_the_wait_and_the_lines_after_it_still_waits_for_its_heater() -> (
+    None
+):
+    # Hyrel's link acknowledges lines as they enter its buffer: line 120 is taken, the
+    # heater still climbs, so the moves from the wait on are all still to run.
+    following = TimeLeft(heat_wait_midway(), held=30)
+    left = following.left(120, now=100.0, heaters={"T0": (180.0, 200.0)})
+    assert left == pytest.approx(10 + 99)
+    assert following.left(120, now=110.0, heaters={"T0": (200.0, 200.0)}) == pytest.approx(99)

@@ -159,6 +159,21 @@ class Estimate:
         return self.seconds - self.heating
 
 
+@dataclass(frozen=True, slots=True)
+class HeatWait:
+    """A heat wait as planned: its ``line``, ``heater`` ("T0", "B", "C"), ``target`` and the
+    heater's ``rate`` (degrees a second), the planned seconds it ``starts`` at and the
+    ``seconds`` it waits; ``heating``: every wait's seconds so far, its own counted."""
+
+    line: int
+    heater: str
+    target: float
+    rate: float
+    starts: float
+    seconds: float
+    heating: float
+
+
 _HEATER_WAITS = {"M109": "hotend", "M190": "bed", "M191": "chamber"}
 _HEATER_SETS = {"M104": "hotend", "M140": "bed", "M141": "chamber"}
 
@@ -190,8 +205,8 @@ class Estimator:
     limits: Limits = DEFAULT_LIMITS
     on_time: Callable[[int, float], None] | None = None
     lookahead: int = LOOKAHEAD  # blocks kept behind the newest (a firmware's planner size)
-    # Told the heat waits' seconds so far as a wait adds to them (before its on_time).
-    on_heat: Callable[[float], None] | None = None
+    # Told each heat wait as it is planned (before its on_time).
+    on_heat: Callable[[HeatWait], None] | None = None
     hyrel: bool = False
     temperatures: dict[str, float] = field(default_factory=dict)
     seconds: float = 0.0
@@ -248,9 +263,11 @@ class Estimator:
         elif head == "G21":
             self._scale = 1.0
         elif head == "G92":
-            for letter, value in _finite_words(text).items():
-                if letter in AXES:
-                    self._position[AXES.index(letter)] = value * self._scale
+            given = {a: v for a, v in _finite_words(text).items() if a in AXES}
+            for letter, value in (given or dict.fromkeys(AXES, 0.0)).items():  # bare: all 0
+                self._position[AXES.index(letter)] = value * self._scale
+        elif head == "M400":  # the moves end; the next one starts from rest
+            self._pause(line, 0.0)
         elif head == "G28":
             rest = command_rest(text)
             named = [a for a in "XYZ" if a in rest] or list("XYZ")
@@ -323,7 +340,8 @@ class Estimator:
             wait = max(0.0, heater.target - heater.at(now)) / heater.rate
             self.heating += wait
             if self.on_heat is not None:
-                self.on_heat(self.heating)
+                told = HeatWait(line, name, heater.target, heater.rate, now, wait, self.heating)
+                self.on_heat(told)
             self._pause(line, wait)
 
     def _tool_change(self, line: int, tool: str) -> None:
@@ -654,7 +672,7 @@ def estimate_file(
     hyrel: bool = False,
     temperatures: dict[str, float] | None = None,
     on_time: Callable[[int, float], None] | None = None,
-    on_heat: Callable[[float], None] | None = None,
+    on_heat: Callable[[HeatWait], None] | None = None,
     first: Iterable[str] = (),
 ) -> Estimate:
     """The estimate of the file at ``path``, read line by line (memory flat in its size),

@@ -4,7 +4,8 @@
 gcode.estimate`'s ``on_time``) sparsely: a point a second or so apart, never more than
 :data:`MOST_POINTS` (the spacing doubles when they would be), so a file of any size costs a
 few hundred kilobytes at most. Heat waits are kept apart: their time is the heaters', not the
-motion's.
+motion's; each wait is kept too, so that the heaters' live reports can say how long the wait
+at hand has left.
 
 :class:`TimeLeft` turns it into the seconds a running job has left at the move the controller
 runs (the moves it holds behind the last one it acknowledged counted back): the plan's
@@ -18,9 +19,11 @@ from __future__ import annotations
 
 import bisect
 import statistics
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from itertools import islice
+
+from repetrel_host.gcode.estimate import HeatWait
 
 MOST_POINTS = 4096
 BLEND_SHARE = 0.1  # of the planned moving time: the run's own pace counts fully from there
@@ -29,6 +32,8 @@ PACE_JOBS = 5  # a printer's pace: the median of its last jobs' (one odd job doe
 # in a burst, acknowledging lines well ahead of the motion (Hyrel's 8 KB hold up to about 20
 # s of printing); from then on the lead is steady and cancels out of the pace.
 SETTLE = 30.0
+# A heater this close below its target has reached it (Marlin's M109 waits within a degree).
+REACHED = 1.0
 
 
 def learned_pace(paces: Iterable[float]) -> float:
@@ -51,12 +56,31 @@ class Timeline:
     limits_from: str = ""  # where the plan's limits came from (the estimate's)
     moves: list[int] = field(default_factory=list)  # moves (and dwells) planned by each point
     total_moves: int = 0
+    waits: list[HeatWait] = field(default_factory=list)  # the first MOST_POINTS, in order
+    wait_moves: list[int] = field(default_factory=list)  # the moves planned before each
     _seen: tuple[int, float, float, int] | None = None  # the last point told, maybe not kept
     _heating: float = 0.0  # the heat waits' seconds so far, as last told
 
-    def heated(self, heating: float) -> None:
-        """The heat waits so far take ``heating`` seconds (the estimator's ``on_heat``)."""
-        self._heating = heating
+    def heated(self, wait: HeatWait) -> None:
+        """A heat wait is planned (the estimator's ``on_heat``)."""
+        self._heating = wait.heating
+        if len(self.waits) < MOST_POINTS:
+            self.waits.append(wait)
+            self.wait_moves.append(self.total_moves)
+
+    def waits_at(self, line: int, seconds: float) -> tuple[HeatWait | None, HeatWait | None]:
+        """The heat wait the move at ``seconds`` (:meth:`running` at ``line``) may still be
+        in (the last at or before ``line``, when it ends where that move is: a controller
+        that acknowledges lines as it takes them keeps waiting after), and the next one."""
+        index = bisect.bisect_right([wait.line for wait in self.waits], line)
+        last = self.waits[index - 1] if index > 0 else None
+        if last is not None and seconds > last.starts + last.seconds + 1e-6:
+            last = None
+        return last, self.waits[index] if index < len(self.waits) else None
+
+    def next_to(self, line: int, wait: HeatWait) -> bool:
+        """No move is planned between ``line`` and ``wait``."""
+        return self._moves_at(line) >= self.wait_moves[self.waits.index(wait)]
 
     def add(self, line: int, seconds: float) -> None:
         """The plan reaches ``seconds`` at the end of ``line`` (the estimator's ``on_time``);
@@ -161,10 +185,15 @@ class TimeLeft:
     watched_planned: float = 0.0  # ...and what the plan gave them
     _last: tuple[int, float] | None = None  # the last line seen and when
     _settled: float = 0.0  # the planned time from which it is watched (after a start or pause)
+    _line: int = -1  # the line acknowledged last time the time left was asked
 
-    def observe(self, line: int, now: float, moving: bool = True) -> None:
+    def observe(self, line: int, now: float, moving: bool = True, waiting: bool = False) -> None:
         """The controller acknowledged up to ``line`` by ``now``. ``moving``: False while the
-        job is paused (the stretch around it is not watched)."""
+        job is paused (the stretch around it is not watched, and the run settles again
+        after). ``waiting``: it may be waiting for a heater (the stretch is not watched)."""
+        if waiting and self._last is not None:
+            self._last = (line, now)
+            return
         last = self._last
         self._last = (line, now) if moving else None
         seconds, heating = self.timeline.running(line, self.held)
@@ -205,11 +234,47 @@ class TimeLeft:
             return None
         return self.watched_actual / self.watched_planned
 
-    def left(self, line: int, now: float, moving: bool = True) -> float:
+    def left(
+        self,
+        line: int,
+        now: float,
+        moving: bool = True,
+        heaters: Mapping[str, tuple[float, float | None]] | None = None,
+    ) -> float:
         """The seconds left after ``line``, acknowledged by ``now`` (observed first): the
-        plan's moving remainder at the pace, and its heat waits as planned."""
-        self.observe(line, now, moving)
+        plan's moving remainder at the pace, and its heat waits as planned. ``heaters``:
+        the controller's latest reports ({"T0": (current, target)}, as the plan names
+        them); the wait at hand then counts from where its heater is, and a wait is not
+        watched as motion."""
         seconds, heating = self.timeline.running(line, self.held)
+        waiting, ahead = self.timeline.waits_at(line, seconds)
+        # Maybe in a wait: the move that runs is at a wait's end (its line taken, lines after
+        # it too), or the wait's line is next; then no line taken since is no slow move.
+        stalled = line == self._line and (
+            waiting is not None or (ahead is not None and self.timeline.next_to(line, ahead))
+        )
+        self._line = line
+        if waiting is not None and _heating_to(waiting, heaters):  # still heating: in it
+            seconds, heating = waiting.starts, waiting.heating - waiting.seconds
+            ahead = waiting
+            stalled = True
+        self.observe(line, now, moving, waiting=stalled)
+        degrees = _heating_to(ahead, heaters) if ahead is not None else None
         heat_left = self.timeline.total_heating - heating
-        moving_left = self.timeline.total - seconds - heat_left
-        return max(0.0, moving_left * self.pace + heat_left)
+        moving_left = max(0.0, self.timeline.total - seconds - heat_left) * self.pace
+        if ahead is not None and degrees is not None:  # counted from the heater's report
+            before = max(0.0, ahead.starts - seconds) * self.pace  # it heats during those
+            heat_left += max(0.0, degrees / ahead.rate - before) - ahead.seconds
+        return max(0.0, moving_left + heat_left)
+
+
+def _heating_to(
+    wait: HeatWait, heaters: Mapping[str, tuple[float, float | None]] | None
+) -> float | None:
+    """The degrees ``wait``'s heater has still to climb, as it reports (0 when there), when
+    it is set to the wait's target; None otherwise (the plan's figure stands)."""
+    heard = heaters.get(wait.heater) if heaters else None
+    if heard is None or heard[1] is None or wait.rate <= 0 or abs(heard[1] - wait.target) > 0.5:
+        return None
+    short = wait.target - heard[0]
+    return short if short > REACHED else 0.0

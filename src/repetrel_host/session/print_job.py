@@ -155,12 +155,7 @@ class PrintJob:
         await asyncio.sleep(after)
         if self.done:
             return
-        # Marlin's T is the active hotend: the first, where it reports no T0.
-        heard = self.printer.temperatures
-        temperatures = {
-            ("T0" if name == "T" and "T0" not in heard else name): current
-            for name, (current, _) in heard.items()
-        }
+        temperatures = {name: current for name, (current, _) in self._heaters().items()}
         try:
             planning = self.plan.timeline
             timeline = await (
@@ -202,7 +197,17 @@ class PrintJob:
         last = self._run.last
         line = last.source_line if last is not None else 0
         moving = self.printer.state is not State.PAUSED
-        return following.left(line, time.monotonic() if now is None else now, moving)
+        now = time.monotonic() if now is None else now
+        return following.left(line, now, moving, self._heaters())
+
+    def _heaters(self) -> dict[str, tuple[float, float | None]]:
+        """The controller's last temperature reports, named as the plan names its heaters
+        (Marlin's T is the active hotend: the first, where it reports no T0)."""
+        heard = self.printer.temperatures
+        return {
+            ("T0" if name == "T" and "T0" not in heard else name): reading
+            for name, reading in heard.items()
+        }
 
     @property
     def header_lines(self) -> int:
