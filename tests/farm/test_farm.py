@@ -529,3 +529,51 @@ def test_farm_options_without_a_server_get_one_sentence(tmp_path: Path) -> None:
     done = hyrel_send(str(job), "--server", "http://127.0.0.1:9", "--farm", "--printer", "x")
     assert done.returncode == 2
     assert "--printer and --release name one printer: not with --farm" in done.stderr
+
+
+def test_a_job_gets_its_estimate_and_a_printing_printer_its_free_time(
+    farm: Farm, tmp_path: Path
+) -> None:
+    from repetrel_host.gcode.analysis import analyse
+
+    pla = loadout(tmp_path, "pla", (1, "MK1-250", "PLA"))
+    a = start_node(farm, "a", {"a1": {"loadout": pla}}, ("--move-time", "0.005"))
+    source = tmp_path / "long.gcode"
+    source.write_bytes(part("470", moves=4000))
+    planned = analyse(source, planned=True).summary
+    assert planned is not None and planned.planned_seconds
+    answer = farm.submit("a", source.read_bytes(), "long.gcode")
+    assert answer.status_code == 201, answer.text
+    (job_id,) = answer.json()["jobs"]
+    # Planned after the submit answered, by the node that received the file.
+    job = farm.wait(lambda: (j := farm.jobs()[job_id])["estimated_time"] is not None and j)
+    assert job["estimated_time"] == pytest.approx(planned.planned_seconds)
+    assert job["estimate_of"] == "file"
+    # Printing: a1 is free at its job's expected end.
+    farm.wait(lambda: _printing(farm, job_id), what="the job to stream")
+    printer = farm.wait(lambda: (p := _printer(farm, "a1"))["free_at"] is not None and p)
+    assert printer["state"] == "printing" and printer["job"] == job_id
+    assert printer["free_at"] > farm.jobs()[job_id]["started"]
+    # Paused: its end waits for a person, so a1 has no free time.
+    with a.client() as client:
+        assert client.post("/v1/printers/a1/pause").status_code == 204
+    farm.wait(lambda: _printer(farm, "a1")["state"] == "paused", what="a1 to pause")
+    assert _printer(farm, "a1")["free_at"] is None
+    farm.wait(lambda: farm.jobs()[job_id]["expected_end"] is None, what="the end withdrawn")
+    with a.client() as client:
+        assert client.delete(f"/v1/farm/jobs/{job_id}").status_code == 200
+    cut = farm.wait(lambda: (j := farm.jobs()[job_id])["state"] == "cancelled" and j)
+    assert _printer(farm, "a1")["free_at"] is None
+    # Its rest, from a line: the whole file's estimate at once, the rest's once planned.
+    with a.client() as client:
+        resumed = client.post(f"/v1/farm/jobs/{job_id}/resume")
+    assert resumed.status_code == 201, resumed.text
+    (rest_id,) = resumed.json()["jobs"]
+    rest = farm.wait(lambda: (j := farm.jobs()[rest_id])["estimate_of"] == "rest" and j)
+    assert rest["from_line"] == cut["last_line"] + 1
+    assert 0 < rest["estimated_time"] < job["estimated_time"]
+
+
+def _printer(farm: Farm, name: str) -> dict[str, Any]:
+    printer: dict[str, Any] = next(p for p in farm.view()["printers"] if p["name"] == name)
+    return printer

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import hashlib
+import json
 import os
 import uuid
 from pathlib import Path
@@ -111,6 +112,45 @@ async def test_a_report_without_the_current_fence_is_refused(db: FarmDB, tmp_pat
     assert done["state"] == "completed" and done["local_id"] == 7
 
 
+async def test_an_estimate_is_told_and_a_recovered_job_starts_with_the_whole_files(
+    db: FarmDB, tmp_path: Path
+) -> None:
+    printers = {"p": caps("p", "a")}
+    a = await node(db, "a", printers)
+    jobs = await queue(db, tmp_path, 2)
+    assert [(await db.job(job, T))["estimated_time"] for job in jobs] == [None, None]
+    listener = await db.listen()
+    async with listener:
+        await db.estimated(jobs, 2520.0, "file", T)
+        notice = await anext(listener.notifies(timeout=T))
+    assert json.loads(notice.payload) == {"kind": "job", "jobs": jobs, "estimated": True}
+    listed = {job["id"]: job for job in await db.jobs(T)}
+    assert [(listed[job]["estimated_time"], listed[job]["estimate_of"]) for job in jobs] == [
+        (2520.0, "file"),
+        (2520.0, "file"),
+    ]
+    # A printing job's expected end comes with its progress; its end clears it.
+    claim = await db.claim(a, "p", printers["p"], T)
+    assert claim is not None and await db.start(claim["id"], claim["fence"], T)
+    fields = {
+        "state": "printing", "lines": 1, "last_line": 1, "started": 1.0, "ended": None,
+        "error": None, "report": None, "filament": None, "safe_stop": None, "local_id": 1,
+        "expected_end": 2_000_000_000.0,
+    }  # fmt: skip
+    assert await db.report(claim["id"], claim["fence"], fields, T)
+    assert (await db.job(claim["id"], T))["expected_end"] == 2_000_000_000.0
+    fields |= {"state": "cancelled", "ended": 2.0, "expected_end": None}
+    assert await db.report(claim["id"], claim["fence"], fields, T)
+    assert (await db.job(claim["id"], T))["expected_end"] is None
+    # Its rest: the whole file's estimate until the rest is planned.
+    rest = await db.recover(claim["id"], 2, T)
+    recovered = await db.job(rest, T)
+    assert (recovered["estimated_time"], recovered["estimate_of"]) == (2520.0, "file")
+    await db.estimated([rest], 1200.0, "rest", T)
+    recovered = await db.job(rest, T)
+    assert (recovered["estimated_time"], recovered["estimate_of"]) == (1200.0, "rest")
+
+
 async def test_a_lost_lease_interrupts_its_printing_jobs_and_requeues_its_claims(
     db: FarmDB, tmp_path: Path
 ) -> None:
@@ -184,4 +224,4 @@ async def test_an_older_schema_is_migrated_once_in_order(farm_db: str) -> None:
             )
         }
     assert versions == list(range(1, len(MIGRATIONS) + 1))
-    assert {"from_line", "resumes"} <= columns
+    assert {"from_line", "resumes", "estimated_time", "estimate_of", "expected_end"} <= columns

@@ -54,6 +54,13 @@ def test_the_page_shows_every_node_and_sends_a_file_to_the_farm(
     assert "T1 SDS-05 PETG 0.5 mm" in browser.text('.farm-printer[data-printer="a2"]')
     assert browser.attributes(".farm-jobs tbody tr", "data-state")[:2] == ["queued", "completed"]
     assert "printer=b1" in browser.text(f'.farm-jobs tr[data-job="{waiting}"]')
+    # Its planned time, once the node that received it planned it, and the queue's total.
+    farm.wait(lambda: farm.jobs()[waiting]["estimated_time"] is not None, what="its estimate")
+    browser.wait(
+        lambda: browser.text(f'.farm-jobs tr[data-job="{waiting}"] td.estimate') == "about 1 min",
+        "the page to show the job's estimate (from the farm's events)",
+    )
+    assert browser.text(".farm-queue-total") == "1 queued · about 1 min"
 
     # A file sent from the page: checked against the farm and queued; the page follows it.
     job = tmp_path / "clip.gcode"

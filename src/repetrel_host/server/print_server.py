@@ -72,7 +72,7 @@ class PrintServer:
         if farm is not None:
             from repetrel_host.server.farm.node import FarmNode
 
-            self.farm = FarmNode(farm, data_dir, self.store, self.services)
+            self.farm = FarmNode(farm, data_dir, self.store, self.services, self.analyses)
         for record in self.store.interrupt_active():
             log.warning(
                 "job %d (%s) on printer %s was interrupted: acknowledged through at least "

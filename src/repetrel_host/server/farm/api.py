@@ -95,6 +95,7 @@ async def farm_json(farm: FarmNode) -> dict[str, Any]:
     jobs = await _asked(farm.db.jobs(TIMEOUT))
     counts = await _asked(farm.db.counts(TIMEOUT))
     by_id = {node["id"]: node for node in nodes}
+    by_job = {job["id"]: job for job in jobs}
     return {
         "node": {"id": farm.id, "name": farm.settings.name, "ready": farm.ready},
         "nodes": nodes,
@@ -108,6 +109,7 @@ async def farm_json(farm: FarmNode) -> dict[str, Any]:
                 "state": "offline" if printer["lost"] else printer["state"],
                 "held": printer["held"],
                 "job": printer["job"],
+                "free_at": free_at(printer, by_job.get(printer["job"])),
                 "capabilities": printer["caps"],
             }
             for printer in printers
@@ -116,6 +118,14 @@ async def farm_json(farm: FarmNode) -> dict[str, Any]:
         "jobs": [job_json(job, by_id, farm.settings.node_url) for job in jobs],
         "counts": counts,
     }
+
+
+def free_at(printer: dict[str, Any], job: dict[str, Any] | None) -> float | None:
+    """When a printing printer should be free (its job's expected end, a timestamp); None
+    for any other (a paused one waits for a person) or while its job's end is unknown."""
+    if printer["lost"] or printer["state"] != "printing" or job is None:
+        return None
+    return job["expected_end"] if job["state"] == "printing" else None
 
 
 def _plan_elsewhere(path: Path, printer: dict[str, Any], user: UserConfig) -> Any:
@@ -234,6 +244,7 @@ async def submit(
     ids = await _asked(
         farm.db.submit(name, file_hash, wanted, priority, copies, commands, user, TIMEOUT)
     )
+    farm.estimate(ids, cached)  # planned in the background: the listing shows it when made
     shown = ", ".join(map(str, ids))
     log.info("farm: %s queued as job %s (%s)", name, shown, needs.describe(wanted))
     return {
@@ -312,6 +323,11 @@ def router() -> APIRouter:
         except ValueError as exc:
             raise HTTPException(409, str(exc)) from None
         log.info("farm: job %d recovered from line %d as job %d", job_id, line, made)
+        # Its estimate is the whole file's (copied) until the rest is planned: here, when
+        # this node has the file (planning another node's file would fetch it first).
+        path = farm.cache_path(found["file"], found["name"])
+        if path.exists():
+            farm.estimate([made], path, line)
         return {"jobs": [made], "resumes": job_id, "from_line": line}
 
     @router.delete("/v1/farm/jobs/{job_id}")

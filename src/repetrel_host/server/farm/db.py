@@ -8,6 +8,10 @@ psycopg 3: one library for the async server and for the synchronous tests and be
 Every method is one transaction. A change that others should see sends a notification on
 the channel ``farm`` in the same transaction (delivered when it commits): ``{"kind":
 "job"|"node"|"printer"|"cancel", ...}``.
+
+A job's estimate (``estimated_time``: planned seconds) is filled after its submit, once the
+node that received the file has planned it (``{"kind": "job", "jobs": [...], "estimated":
+true}`` tells); a printing job's ``expected_end`` comes with its node's progress reports.
 """
 
 from __future__ import annotations
@@ -45,7 +49,8 @@ ACTIVE = ("claimed", "printing", "paused")
 _JOB = """
     id, name, file, needs, priority, state, submitted_by, total_lines, node::text AS node,
     printer, fence, refused, lines, last_line, error, report, filament, safe_stop, local_id,
-    from_line, resumes,
+    from_line, resumes, estimated_time, estimate_of,
+    extract(epoch FROM expected_end)::float8 AS expected_end,
     extract(epoch FROM submitted)::float8 AS submitted,
     extract(epoch FROM claimed)::float8 AS claimed,
     extract(epoch FROM started)::float8 AS started,
@@ -353,8 +358,10 @@ class FarmDB:
 
     async def report(self, job: int, fence: int, fields: dict[str, Any], timeout: float) -> bool:
         """What the node streaming the job knows of it (its state, lines acknowledged, its
-        end), written only with the claim's token: False when it no longer holds."""
+        end, when a printing job should end), written only with the claim's token: False
+        when it no longer holds."""
         values = {
+            "expected_end": None,  # a report that does not say: not printing
             **fields,
             "filament": Jsonb(fields["filament"]) if fields.get("filament") else None,
             "job": job,
@@ -365,7 +372,8 @@ class FarmDB:
                 "UPDATE jobs SET state = %(state)s, lines = %(lines)s, last_line = %(last_line)s,"
                 " started = to_timestamp(%(started)s), ended = to_timestamp(%(ended)s),"
                 " error = %(error)s, report = %(report)s, filament = %(filament)s,"
-                " safe_stop = %(safe_stop)s, local_id = %(local_id)s, updated = now()"
+                " safe_stop = %(safe_stop)s, local_id = %(local_id)s,"
+                " expected_end = to_timestamp(%(expected_end)s), updated = now()"
                 " WHERE id = %(job)s AND fence = %(fence)s"
                 " RETURNING (SELECT state FROM jobs WHERE id = %(job)s) AS was",
                 values,
@@ -377,10 +385,21 @@ class FarmDB:
                 await self._notify(db, {"kind": "job", "job": job, "state": fields["state"]})
             return row is not None
 
+    async def estimated(self, jobs: list[int], seconds: float, of: str, timeout: float) -> None:
+        """The jobs' planned print time: ``of`` the whole ``file``, or the ``rest`` from
+        their first line (a recovered job's)."""
+        async with self._transaction(timeout) as db:
+            await db.execute(
+                "UPDATE jobs SET estimated_time = %s, estimate_of = %s WHERE id = ANY(%s)",
+                (seconds, of, jobs),
+            )
+            await self._notify(db, {"kind": "job", "jobs": jobs, "estimated": True})
+
     async def recover(self, job: int, from_line: int, timeout: float) -> int:
         """Queue the rest of an ended job from ``from_line``, for the printer that printed
-        it (its part is on that bed); the new job's number. ValueError (a sentence) when
-        the job cannot be recovered."""
+        it (its part is on that bed); the new job's number, its estimate the whole file's
+        until the rest is planned. ValueError (a sentence) when the job cannot be
+        recovered."""
         async with self._transaction(timeout) as db:
             row = await (
                 await db.execute(
@@ -396,9 +415,11 @@ class FarmDB:
             if row["printer"] is None or row["node_name"] is None:
                 raise ValueError(f"farm job {job} never ran on a printer: queue it again")
             pinned = {"names": [f"{row['node_name']}/{row['printer']}"]}
+            whole = row["estimated_time"] if row["estimate_of"] == "file" else None
             cursor = await db.execute(
                 "INSERT INTO jobs (name, file, needs, priority, total_lines, submitted_by,"
-                " from_line, resumes) VALUES (%s, %s, %s, %s, %s, %s, %s, %s) RETURNING id",
+                " from_line, resumes, estimated_time, estimate_of)"
+                " VALUES (%s, %s, %s, %s, %s, %s, %s, %s, %s, %s) RETURNING id",
                 (
                     row["name"],
                     row["file"],
@@ -408,6 +429,8 @@ class FarmDB:
                     row["submitted_by"],
                     from_line,
                     job,
+                    whole,
+                    "file" if whole is not None else None,
                 ),
             )
             made = (await cursor.fetchone())["id"]

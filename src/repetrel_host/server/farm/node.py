@@ -29,8 +29,9 @@ import repetrel_host as rh
 from repetrel_host.config import load_library
 from repetrel_host.errors import ConfigError, HostError
 from repetrel_host.gcode.lint import Severity
+from repetrel_host.server.analyses import Analyses
 from repetrel_host.server.events import EventHub, FarmEvent
-from repetrel_host.server.farm import needs
+from repetrel_host.server.farm import estimates, needs
 from repetrel_host.server.farm.db import FarmDB, LeaseLost
 from repetrel_host.server.store import JobRecord, JobState, Store
 
@@ -89,6 +90,7 @@ class FarmNode:
         data_dir: Path,
         store: Store,
         services: dict[str, PrinterService],
+        analyses: Analyses | None = None,
     ) -> None:
         self.settings = settings
         self.id = node_id(data_dir)
@@ -98,6 +100,10 @@ class FarmNode:
         self.services = services
         self.db = FarmDB(settings.url)
         self.events = EventHub()  # the farm's notifications, for /v1/farm/events
+        # The files' analyses (the server's): a farm job's estimate is its file's plan.
+        self.analyses = analyses or Analyses(data_dir / "analysis", data_dir)
+        # Jobs whose file this node has, waiting for their estimate: (jobs, file, from line).
+        self._unestimated: asyncio.Queue[tuple[list[int], Path, int | None]] = asyncio.Queue()
         self.caps: dict[str, dict[str, Any]] = {}
         self.loadouts: dict[str, str | None] = {}
         self.ready = False  # registered, lease held: may claim
@@ -128,7 +134,7 @@ class FarmNode:
         for name, service in self.services.items():
             self.caps[name], self.loadouts[name] = self._capabilities(name, service)
         loop = asyncio.get_running_loop()
-        for run in (self._heartbeats, self._listen, self._sync):
+        for run in (self._heartbeats, self._listen, self._sync, self._estimate_jobs):
             self._tasks.append(loop.create_task(run(), name=f"farm {run.__name__}"))
 
     async def stop(self) -> None:
@@ -277,6 +283,7 @@ class FarmNode:
                     "filament": None,
                     "safe_stop": None,
                     "local_id": None,
+                    "expected_end": None,
                 }
                 await self._call(self.db.report(job["id"], job["fence"], fields, TIMEOUT))
 
@@ -418,6 +425,36 @@ class FarmNode:
         log.warning("farm: job %d not printed on %s: %s", record.farm_id, record.printer, why)
         self.store.drop(record.id)
 
+    # --- estimates ---------------------------------------------------------------------------
+
+    def estimate(self, jobs: list[int], path: Path, from_line: int | None = None) -> None:
+        """Plan ``path`` in the background (the rest from ``from_line``, when given) and
+        give ``jobs`` the planned time: a request never waits for a plan."""
+        self._unestimated.put_nowait((jobs, path, from_line))
+
+    async def _estimate_jobs(self) -> None:
+        """Plan the files of the jobs waiting for their estimate, one at a time (a plan
+        takes a core for seconds), and write each estimate when the database answers."""
+        while not self._stopping:
+            jobs, path, from_line = await self._unestimated.get()
+            try:
+                found = await asyncio.to_thread(estimates.planned, self.analyses, path, from_line)
+            except Exception as exc:  # unreadable, the host ending, a bug: they go without
+                if not self._stopping:
+                    log.warning("farm: jobs %s have no estimate: %s", jobs, exc)
+                continue
+            if found is None:
+                continue  # a file without moves has no planned time
+            seconds, of = found
+            delay = 1.0
+            while not self._stopping:
+                try:
+                    await self._call(self.db.estimated(jobs, seconds, of, TIMEOUT))
+                    break
+                except FarmAway:
+                    await asyncio.sleep(delay)
+                    delay = min(delay * 2, RETRY_MAX)
+
     # --- reports -----------------------------------------------------------------------------
 
     def _changed(self, printer: str) -> None:
@@ -455,6 +492,7 @@ class FarmNode:
                 "filament": json.loads(record.filament) if record.filament else None,
                 "safe_stop": record.safe_stop,
                 "local_id": record.id,
+                "expected_end": self._expected_end(record),
             }
             taken = await self._call(self.db.report(record.farm_id, record.fence, fields, TIMEOUT))
             if not taken:
@@ -465,6 +503,24 @@ class FarmNode:
                     record.id,
                 )
             self.store.mark_synced(record.id, record.version)
+
+    def _expected_end(self, record: JobRecord) -> float | None:
+        """When ``record``'s job should end (a timestamp), as its printer's page says; None
+        unless it is printing (a paused job's end waits for a person) and its time left is
+        known."""
+        service = self.services.get(record.printer)
+        running = service.running if service is not None else None
+        if (
+            record.state is not JobState.PRINTING
+            or service is None
+            or service.state != "printing"
+            or running is None
+            or running.record.id != record.id
+        ):
+            return None
+        now = time.time()
+        left, _ = running.time_left(now - (record.started or now))
+        return now + left if left is not None else None
 
     async def _push_printers(self) -> None:
         for name in list(self._dirty):

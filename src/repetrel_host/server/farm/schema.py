@@ -83,6 +83,12 @@ MIGRATIONS: list[str] = [
     ALTER TABLE jobs ADD COLUMN from_line integer;  -- the file's line it starts from
     ALTER TABLE jobs ADD COLUMN resumes bigint;     -- the job it resumes
     """,
+    # 3: how long a job should take, and when a printing one should end.
+    """
+    ALTER TABLE jobs ADD COLUMN estimated_time double precision;  -- planned seconds
+    ALTER TABLE jobs ADD COLUMN estimate_of text;   -- 'file' (the whole) or 'rest' (from from_line)
+    ALTER TABLE jobs ADD COLUMN expected_end timestamptz;  -- a printing job's, as its node sees it
+    """,
 ]
 
 

@@ -1,9 +1,11 @@
 // The farm across machines (hyrel-server --farm): every node and its printers, each linking
 // to the page of the node that drives it; the shared queue in claim order, with cancel; a
-// form that submits a file with its requirements. Kept fresh by the farm's event stream
+// form that submits a file with its requirements. Each job shows its planned time (filled
+// in once the node that received its file has planned it) and the queue its total; a
+// printing printer, when it should be free. Kept fresh by the farm's event stream
 // (PostgreSQL's notifications). On a server that is not in a farm, nothing is shown.
 
-import { call, get, del, upload, keyed, h, clock } from "../api.js";
+import { call, get, del, upload, keyed, h, clock, duration } from "../api.js";
 
 const STATE_CLASS = { ready: "ok", printing: "busy", paused: "paused", offline: "offline", error: "error" };
 const ENDED_SHOWN = 10; // the last jobs that ended, under the queue
@@ -72,6 +74,7 @@ export async function mount(section, { say }) {
       h("span", { class: `badge ${state === "held" ? "wait" : STATE_CLASS[state] || "offline"}` }, state),
       h("span", { class: "what muted" }, [has.machine, ...tools, ...(has.tags || []).map((tag) => `#${tag}`)].filter(Boolean).join(" · ")),
       job ? h("span", { class: "job" }, `${job.name} · ${job.lines}/${job.total_lines} lines`) : null,
+      printer.free_at ? h("span", { class: "free-at muted" }, `free at ${clock(printer.free_at)}`) : null,
     );
   }
 
@@ -99,6 +102,7 @@ export async function mount(section, { say }) {
         h("td", {}, job.requires, job.priority ? ` · priority ${job.priority}` : ""),
         h("td", {}, where),
         h("td", { class: "numbers" }, job.total_lines ? `${job.lines}/${job.total_lines}` : ""),
+        h("td", { class: "estimate numbers" }, estimate(job)),
         h("td", { class: "error" }, job.error || ""),
         h("td", {}, action),
       );
@@ -110,10 +114,23 @@ export async function mount(section, { say }) {
       h(
         "table",
         { class: "farm-jobs" },
-      h("thead", {}, h("tr", {}, ["job", "file", "state", "needs", "printer", "lines", "", ""].map((name) => h("th", {}, name)))),
+      h("thead", {}, h("tr", {}, ["job", "file", "state", "needs", "printer", "lines", "time", "", ""].map((name) => h("th", {}, name)))),
         h("tbody", {}, rows),
       ),
+      queueTotal(),
     );
+  }
+
+  function queueTotal() {
+    const queued = farm.jobs.filter((job) => job.state === "queued");
+    if (!queued.length) return null;
+    const planned = queued.filter((job) => job.estimated_time != null);
+    const seconds = planned.reduce((sum, job) => sum + job.estimated_time, 0);
+    const waiting = queued.length - planned.length;
+    const parts = [`${queued.length} queued`];
+    if (planned.length) parts.push(about(seconds));
+    if (waiting) parts.push(`${waiting} without an estimate`);
+    return h("p", { class: "farm-queue-total muted" }, parts.join(" · "));
   }
 
   async function cancelJob(job) {
@@ -174,6 +191,19 @@ export async function mount(section, { say }) {
   setInterval(() => {
     if (farm.jobs.some((job) => job.state === "printing")) later();
   }, 4000);
+}
+
+// A job's planned time: "about 42 min"; the whole file's for a job from a line whose rest
+// was not planned; nothing until its node planned it (or for a file without moves).
+function estimate(job) {
+  if (job.estimated_time == null) return "";
+  const whole = job.from_line && job.estimate_of === "file";
+  return h("span", { title: whole ? "the whole file's: the rest from its line was not planned" : "planned from the file's moves" }, about(job.estimated_time), whole ? " (whole file)" : "");
+}
+
+/** "about 42 min", "about 3 h 05 min": a plan is not to the second. */
+function about(seconds) {
+  return `about ${duration(Math.max(60, Math.round(seconds / 60) * 60)).replace(/ 00 s$/, "")}`;
 }
 
 function badge(state) {
