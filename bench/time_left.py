@@ -3,6 +3,7 @@ take their planned time (``--time-scale``, its own process on a pty, a 2 Mbaud l
 
     python bench/time_left.py               # the cone's first 4 layers at x12, 3 runs each
     python bench/time_left.py --layers 10 --scale 10 --runs 1
+    python bench/time_left.py --protocol hyrel    # on Hyrel's link (its 8 KB buffer)
 
 Two printers: one that keeps to the plan (its pace, 1/scale, known from its past jobs), and
 one 10 % slower than the plan whose pace is not known (the plan's assumed), then its next
@@ -41,12 +42,15 @@ def first_layers(folder: Path, layers: int) -> Path:
 
 
 async def run(
-    job_file: Path, scale: float, prior: float, history: Path
+    job_file: Path, scale: float, prior: float, history: Path, protocol: str
 ) -> tuple[list, float, tuple[str, str]]:
     """The errors at :data:`SHARES`, the pace measured, and the printer (its port and
     machine profile, as its history knows it)."""
-    fake = ["--time-scale", str(scale)]
-    async with rh.connect("fake", baud=2_000_000, fake_args=fake, poll_interval=None) as printer:
+    fake = ["--time-scale", str(scale), "--protocol", protocol]
+    connecting = rh.connect(
+        "fake", baud=2_000_000, fake_args=fake, poll_interval=None, protocol=protocol
+    )
+    async with connecting as printer:
         job = await printer.print(job_file, history=history)
         await job.follow_time(prior, after=0.0)  # at once: the plumbing, not the start's CPU
         samples = []
@@ -69,6 +73,7 @@ def main() -> None:
     parser.add_argument("--layers", type=int, default=4)
     parser.add_argument("--scale", type=float, default=12.0)
     parser.add_argument("--runs", type=int, default=3)
+    parser.add_argument("--protocol", choices=["reprap", "hyrel"], default="reprap")
     args = parser.parse_args()
     scale = args.scale
     shares = " | ".join(f"{s:.0%}" for s in SHARES)
@@ -87,18 +92,22 @@ def main() -> None:
         for number in range(1, args.runs + 1):
             history = Path(folder) / "keeps" / f"20261204-10000{number}-cone.gcode"
             history.parent.mkdir(exist_ok=True)
-            errors, measured, _ = asyncio.run(run(job_file, scale, 1 / scale, history))
+            errors, measured, _ = asyncio.run(
+                run(job_file, scale, 1 / scale, history, args.protocol)
+            )
             row("keeps to the plan", number, 1 / scale, errors, measured)
         for number in range(1, args.runs + 1):
             runs = Path(folder) / f"slower-{number}"
             runs.mkdir()
             slower = scale / 1.1
             first = runs / "20261204-100000-cone.gcode"
-            errors, measured, printer = asyncio.run(run(job_file, slower, 1 / scale, first))
+            errors, measured, printer = asyncio.run(
+                run(job_file, slower, 1 / scale, first, args.protocol)
+            )
             row("10 % slower, pace unknown", number, 1 / scale, errors, measured)
             learned = learned_pace(paces(runs, *printer))  # from the first run's record
             second = runs / "20261204-110000-cone.gcode"
-            errors, measured, _ = asyncio.run(run(job_file, slower, learned, second))
+            errors, measured, _ = asyncio.run(run(job_file, slower, learned, second, args.protocol))
             row("10 % slower, its next job", number, learned, errors, measured)
 
 
