@@ -32,6 +32,7 @@ def queue(
         printer, path.name, relative(server, path), commands, user, from_line
     )
     log.info("job %d (%s) queued on printer %s", record.id, path.name, printer)
+    server.analyses.later(path)  # its estimate: the file's print time, worked out if need be
     service = server.services[printer]
     service.job_changed(record.id)
     service.wake()
