@@ -32,8 +32,11 @@ def queue(
         printer, path.name, relative(server, path), commands, user, from_line
     )
     log.info("job %d (%s) queued on printer %s", record.id, path.name, printer)
-    server.analyses.later(path)  # its estimate: the file's print time, worked out if need be
     service = server.services[printer]
+    if service.waits(record.id):
+        # Its estimate needs the file's print time: worked out now, in the background (a
+        # job that starts at once plans its own, and the same plan need not run twice).
+        server.analyses.later(path)
     service.job_changed(record.id)
     service.wake()
     return record

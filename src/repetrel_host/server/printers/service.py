@@ -482,6 +482,15 @@ class PrinterService:
             for record in self.store.queued(self.name)
         }
 
+    def waits(self, job_id: int) -> bool:
+        """Whether queued job ``job_id`` waits (a job runs or is queued before it, the
+        queue is held, the printer is not ready) rather than starting at once."""
+        first = self.store.next_queued(self.name)
+        if first is None or first.id != job_id:
+            return True
+        busy = self.running is not None or self._starting is not None
+        return busy or self.held or self.state != "ready"
+
     def _free_from(self, left: float | None) -> float | None:
         """When the printer is free of what it does now: the running job's end, now when it
         is ready and idle; None when it cannot be told (paused, offline, a job's time left
