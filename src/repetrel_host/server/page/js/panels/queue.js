@@ -235,17 +235,17 @@ export function mount(body, ctx) {
   ctx.stream.on("file", later);
   ctx.stream.onReconnect(load);
   let held = null;
-  let shownFree = null; // the printer's free time when the queue was last listed
+  let shownFree = ""; // the printer's free time ("15:10") when the queue was last listed
+  let listedAt = 0;
   ctx.onChange((printer) => {
-    // The queued jobs' ends move with the running job's time left: listed again when it
-    // moved a minute (not every progress: a drag would be cut off).
-    const free = printer.free_at ? Date.parse(printer.free_at) : null;
-    if (free !== null && jobs.some((j) => j.state === "queued")) {
-      if (shownFree === null) shownFree = free;
-      else if (Math.abs(free - shownFree) >= 60000) {
-        shownFree = free;
-        later();
-      }
+    // The queued jobs' ends move with the running job's time left: listed again when the
+    // printer's free time shows another minute, so that the last end and the header agree
+    // (every 10 s at most, not every progress: a drag would be cut off).
+    const free = clockOf(printer.free_at);
+    if (free && free !== shownFree && jobs.some((j) => j.state === "queued") && Date.now() - listedAt > 10000) {
+      shownFree = free;
+      listedAt = Date.now();
+      later();
     }
     // The "held" hint follows the printer.
     if (printer.held === held) return;
