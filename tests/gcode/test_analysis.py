@@ -415,7 +415,8 @@ def test_numbers_too_big_for_a_float_are_left_out_not_answered_as_infinity(
     # The moves' time: none past a float's range, and the rest of the summary stands.
     planned = analyse(path, planned=True).summary
     assert planned is not None
-    assert replace(planned, planned_seconds=None, planned_limits_from=None) == summary
+    unplanned = replace(planned, planned_seconds=None, planned_limits_from=None, planned_points=())
+    assert unplanned == summary
     json.dumps(planned.as_json(), allow_nan=False)
     beyond = write(tmp_path, f"G1 X{huge}\nG1 Y5\n", name="beyond.gcode")  # inf - inf: NaN
     beyond_summary = analyse(beyond, planned=True).summary
@@ -458,3 +459,24 @@ def test_the_time_from_the_moves_stands_beside_the_slicers_never_in_its_place(
     # A part of the file (a recovery's read) has no whole-job time.
     part = analyse(CONE, until_line=100, planned=True).summary
     assert part is not None and part.planned_seconds is None
+
+
+def test_a_planned_file_keeps_its_time_at_a_few_lines_for_a_job_from_a_line() -> None:
+    cone = analyse(CONE, planned=True).summary
+    assert cone is not None and cone.planned_seconds is not None
+    points = cone.planned_points
+    assert 2 <= len(points) <= analysis.PLANNED_POINTS
+    assert [line for line, _ in points] == sorted({line for line, _ in points})
+    assert points[-1][1] == pytest.approx(cone.planned_seconds, abs=0.01)
+    # From the start, all of it; past the last move, nothing; in between, less and less.
+    assert cone.planned_after(0) == pytest.approx(cone.planned_seconds)
+    assert cone.planned_after(points[-1][0]) == pytest.approx(0, abs=0.01)
+    middle = points[len(points) // 2][0]
+    assert cone.planned_seconds > cone.planned_after(middle) > cone.planned_after(middle + 500)
+    # A summary kept before the points were has none: what a job from a line has left is
+    # not known, and said so (None), never guessed.
+    kept = cone.as_dict()
+    del kept["planned_points"]
+    older = FileSummary.from_dict(json.loads(json.dumps(kept)))
+    assert older.planned_points == () and older.planned_after(middle) is None
+    assert FileSummary.from_dict(json.loads(json.dumps(cone.as_dict()))) == cone

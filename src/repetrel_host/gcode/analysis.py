@@ -12,7 +12,8 @@ It gives, read once and streaming (pieces of about 1 MB: a 1 GB job is never hel
   its estimated print time;
 - on request (``planned``), the print time the moves take as the firmware's planner runs
   them (:func:`~repetrel_host.gcode.estimate.estimate_file`, a second read of the file),
-  kept beside the slicer's figure, never in its place.
+  kept beside the slicer's figure, never in its place, with the planned time at a few dozen
+  of its lines (what a job recovered from a line has left).
 
 Layers: the slicer's own marks when the file has any (PrusaSlicer's ``;LAYER_CHANGE``,
 Cura's ``;LAYER:``, Simplify3D's ``; layer N``: only the first of these kinds met is counted,
@@ -49,10 +50,12 @@ from typing import Any, BinaryIO
 from repetrel_host.gcode.estimate import estimate_file
 from repetrel_host.gcode.marks import Layer, SlicerMarks
 from repetrel_host.gcode.thumbnails import Thumbnail
+from repetrel_host.gcode.timeline import Timeline
 
 _CHUNK = 1 << 20
 DEFAULT_DIAMETER = 1.75  # mm, where the file names none
 MAX_TOOL = 19  # T0..T19 are Hyrel's head addresses; a higher T is a device, not a head
+PLANNED_POINTS = 48  # lines whose planned time a summary keeps: a small JSON file still
 
 _NUMBER = rb"[-+]?(?:\d+\.?\d*|\.\d+)"  # what float() reads, but inf and nan
 _COMMENT = re.compile(
@@ -137,6 +140,9 @@ class FileSummary:
     # where its limits came from ("the file's slicer settings", "Marlin's defaults"...).
     planned_seconds: float | None = None
     planned_limits_from: str | None = None
+    # The planned seconds at the end of some lines, in order (:data:`PLANNED_POINTS` at
+    # most; none in a summary kept before they were).
+    planned_points: tuple[tuple[int, float], ...] = ()
     filament: dict[str, Filament] = field(default_factory=dict)  # by tool: "tool0"...
     printing_area: Box | None = None  # of the extruding moves
     travel_area: Box | None = None  # of every move
@@ -186,6 +192,21 @@ class FileSummary:
             "thumbnails": thumbnails,
         }
 
+    def planned_after(self, line: int) -> float | None:
+        """The planned seconds after ``line`` (what a job that starts at the next line
+        takes), between the points kept in proportion; None when the file was not planned or
+        its summary keeps no points."""
+        points = self.planned_points
+        if self.planned_seconds is None or not points:
+            return None
+        index = bisect_right([at for at, _ in points], line)
+        if index >= len(points):
+            return 0.0
+        after_line, after = points[index]
+        before_line, before = points[index - 1] if index > 0 else (0, 0.0)
+        share = (line - before_line) / (after_line - before_line) if after_line > before_line else 1
+        return max(0.0, self.planned_seconds - (before + share * (after - before)))
+
     def largest_thumbnail(self) -> Thumbnail | None:
         """The embedded image with the most pixels (the one a page shows), if any."""
         return max(self.thumbnails, key=lambda t: t.width * t.height, default=None)
@@ -210,6 +231,9 @@ class FileSummary:
             slicer_seconds=seconds(data["slicer_seconds"]),
             planned_seconds=seconds(data["planned_seconds"]),
             planned_limits_from=str(limits_from) if limits_from is not None else None,
+            planned_points=tuple(
+                (int(line), float(at)) for line, at in data.get("planned_points", ())
+            ),
             filament={
                 tool: Filament(float(used["length"]), float(used["volume"]))
                 for tool, used in data["filament"].items()
@@ -256,17 +280,29 @@ def analyse(
     with path.open("rb") as handle:
         found = scan(chunks(handle), until_line, moves)
     if planned and found.summary is not None and until_line is None:
+        timeline = Timeline()
         try:
-            estimate = estimate_file(path)
+            estimate = estimate_file(path, on_time=timeline.add)
         except ArithmeticError:  # numbers past a float's range: the rest of it stands
             return found
         if estimate.moves and math.isfinite(estimate.seconds):  # JSON has no infinity
+            timeline.finish()
             found.summary = replace(
                 found.summary,
                 planned_seconds=estimate.seconds,
                 planned_limits_from=estimate.limits_from,
+                planned_points=few_points(timeline),
             )
     return found
+
+
+def few_points(timeline: Timeline) -> tuple[tuple[int, float], ...]:
+    """:data:`PLANNED_POINTS` of ``timeline``'s (line, planned seconds), evenly spread
+    over those it kept, its last among them."""
+    count = len(timeline.lines)
+    step = max(1, -(-count // PLANNED_POINTS))  # rounded up: never more than the most
+    kept = [*range(step - 1, count - 1, step), count - 1] if count else []
+    return tuple((timeline.lines[i], round(timeline.seconds[i], 2)) for i in kept)
 
 
 def chunks(handle: BinaryIO) -> Iterator[bytes]:

@@ -67,7 +67,8 @@ class JobChanged:
 @dataclass(frozen=True)
 class PrintProgress:
     """Where the printer's job is: its lines and bytes acknowledged, its layer, its
-    completion (%) and the seconds it has left, and how they were found."""
+    completion (%) and the seconds it has left, and how they were found; and when the
+    printer should be free, its queue counted."""
 
     type: ClassVar[str] = "progress"
     printer: str
@@ -82,6 +83,7 @@ class PrintProgress:
     time_left: int | None  # seconds
     time_left_from: str | None  # printers.running.LEFT_FROM: estimate, plan, slicer, linear
     ends: str | None = None  # when it should end: ISO 8601, UTC
+    free_at: str | None = None  # when the printer should be free (its queue too): ISO, UTC
 
     def as_json(self) -> dict[str, Any]:
         return {
@@ -98,6 +100,7 @@ class PrintProgress:
             "time_left": self.time_left,
             "time_left_from": self.time_left_from,
             "ends": self.ends,
+            "free_at": self.free_at,
         }
 
 

@@ -33,6 +33,10 @@ def queue(
     )
     log.info("job %d (%s) queued on printer %s", record.id, path.name, printer)
     service = server.services[printer]
+    if service.waits(record.id):
+        # Its estimate needs the file's print time: worked out now, in the background (a
+        # job that starts at once plans its own, and the same plan need not run twice).
+        server.analyses.later(path)
     service.job_changed(record.id)
     service.wake()
     return record

@@ -33,7 +33,8 @@ from repetrel_host.server.access import OWNER
 from repetrel_host.server.auth import user_of
 from repetrel_host.server.events import AppKeyEvent
 from repetrel_host.server.octoprint import appkeys, files
-from repetrel_host.server.print_server import answered, server_of
+from repetrel_host.server.print_server import PrintServer, answered, server_of
+from repetrel_host.server.printers.forecast import iso
 from repetrel_host.server.printers.heaters import heaters
 from repetrel_host.server.printers.running import progress_event
 from repetrel_host.server.printers.service import PrinterService
@@ -49,6 +50,8 @@ _SNAPSHOT = re.compile(r"[A-Za-z0-9_-]+\.(jpg|png|gif|webp|mp4)")
 def _printer_json(service: PrinterService) -> dict[str, Any]:
     printer = service.printer
     running = service.running
+    job = _running_json(service) if running is not None else None
+    free_at = service.forecast(job["time_left"] if job is not None else None).free_at
     return {
         "name": service.name,
         "port": service.port,
@@ -61,7 +64,9 @@ def _printer_json(service: PrinterService) -> dict[str, Any]:
         "protocol": printer.settings.protocol if printer else None,  # the link's: reprap, hyrel
         "temperatures": _readings(printer.temperatures if printer else {}),
         "heaters": heaters(service),
-        "job": _running_json(service) if running is not None else None,
+        "job": job,
+        # When it should be free: the end of its last queued job, else of its running one.
+        "free_at": iso(free_at),
         "camera": service.camera is not None,
         "snapshot": _latest_snapshot(service),
     }
@@ -89,13 +94,29 @@ def _running_json(service: PrinterService) -> dict[str, Any]:
         # Its safe stop under way (a cancel held up by a heat wait): OctoPrint's Cancelling.
         "stopping": running.job.stopping,
         # Lines, bytes, layer, completion, the time left and how it was found, the end.
-        **{k: v for k, v in progress.as_json().items() if k not in ("type", "printer", "job")},
+        **{
+            k: v
+            for k, v in progress.as_json().items()
+            if k not in ("type", "printer", "job", "free_at")  # the printer's, not the job's
+        },
         # The whole job's print time from its moves (None until its file is read), and the
         # slicer's own figure beside it.
         "estimated_time": running.planned[0],
         "estimated_time_limits_from": running.planned[1],
         "slicer_estimated_time": running.slicer_seconds,
     }
+
+
+async def _jobs_json(server: PrintServer, name: str) -> list[dict[str, Any]]:
+    """The printer's jobs (queued ones first, in queue order), the queued ones with their
+    estimate and when they should start and end."""
+    service = server.service(name)
+    summaries = await asyncio.to_thread(service.queued_summaries)
+    times = service.forecast(service.running_left(), summaries).jobs
+    return [
+        {**r.as_json(), **times[r.id].as_json()} if r.id in times else r.as_json()
+        for r in server.store.jobs(service.name)
+    ]
 
 
 def _sse(event: dict[str, Any]) -> str:
@@ -173,9 +194,7 @@ def router() -> APIRouter:
 
     @router.get("/printers/{name}/jobs")
     async def printer_jobs(request: Request, name: str) -> list[dict[str, Any]]:
-        server = server_of(request)
-        server.service(name)
-        return [r.as_json() for r in server.store.jobs(name)]
+        return await _jobs_json(server_of(request), name)
 
     @router.post("/printers/{name}/jobs", status_code=201)
     async def submit(
@@ -381,7 +400,7 @@ def router() -> APIRouter:
         if record is None or not server.store.move(job_id, move.before):
             where = f" or job {move.before} is not" if move.before is not None else ""
             raise HTTPException(409, f"job {job_id} is not queued{where}")
-        return [r.as_json() for r in server.store.jobs(record.printer)]
+        return await _jobs_json(server, record.printer)
 
     @router.get("/printers/{name}/snapshots")
     async def snapshots(request: Request, name: str) -> list[dict[str, Any]]:

@@ -248,6 +248,14 @@ class Store:
         ).fetchone()
         return _record(row) if row is not None else None
 
+    def queued(self, printer: str) -> list[JobRecord]:
+        """The printer's queued jobs, in queue order."""
+        rows = self._db.execute(
+            "SELECT * FROM jobs WHERE printer = ? AND state = 'queued' ORDER BY position",
+            (printer,),
+        ).fetchall()
+        return [_record(row) for row in rows]
+
     def unsynced(self) -> list[JobRecord]:
         """Farm jobs with changes the farm was not told (a queued one has nothing to tell)."""
         rows = self._db.execute(

@@ -14,12 +14,14 @@ import contextlib
 import logging
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import repetrel_host as rh
 from repetrel_host.config import Loadout, UserConfig
+from repetrel_host.gcode.analysis import FileSummary
 from repetrel_host.gcode.lint import Finding
 from repetrel_host.gcode.timeline import learned_pace
 from repetrel_host.server.analyses import Analyses
@@ -34,6 +36,7 @@ from repetrel_host.server.events import (
 )
 from repetrel_host.server.printers.checks import JobChecks
 from repetrel_host.server.printers.config import PrinterConfig
+from repetrel_host.server.printers.forecast import Forecast, forecast, iso
 from repetrel_host.server.printers.host_actions import HostActions, snapshot_name
 from repetrel_host.server.printers.running import Running, filament_used, progress_event
 from repetrel_host.server.store import PROGRESS_INTERVAL, JobQueue, JobRecord, JobState, Store
@@ -148,6 +151,8 @@ class PrinterService:
 
     def start(self) -> None:
         self._task = asyncio.get_running_loop().create_task(self._run(), name=self.name)
+        for record in self.store.queued(self.name):  # their estimates known from the start
+            self.analyses.later(self.data_dir / record.file)
 
     async def stop(self) -> None:
         """Stop feeding; a running job is stopped with its safe stop first (and recorded as
@@ -429,7 +434,10 @@ class PrinterService:
     ) -> None:
         last = job.last
         self.store.progress(record.id, job.lines, last.source_line if last else 0)
-        self.publish(progress_event(self.name, record, job, self.running, completed))
+        event = progress_event(self.name, record, job, self.running, completed)
+        # The printer's free time goes with it: it moves with the time left (and the queue).
+        free_at = self.forecast(event.time_left).free_at if not completed else None
+        self.publish(replace(event, free_at=iso(free_at)))
         z = self.running.z if self.running is not None else None
         if z is not None and z != self._z:  # a new height, as the slicer marked it
             self.publish(ZChanged(self.name, z, self._z))
@@ -442,6 +450,55 @@ class PrinterService:
             )
             self.store.set_state(record.id, JobState.PAUSED if paused else JobState.PRINTING)
             self.job_changed(record.id)
+
+    # --- the queue's times (forecast.py) ------------------------------------------------
+
+    def running_left(self) -> float | None:
+        """The seconds the running job has left (None: no job runs, or none can tell)."""
+        running = self.running
+        if running is None or running.job.done:
+            return None
+        started = running.record.started or time.time()
+        return running.time_left(time.time() - started)[0]
+
+    def forecast(
+        self, left: float | None, summaries: Mapping[int, FileSummary | None] | None = None
+    ) -> Forecast:
+        """The queued jobs' times and when the printer is free, the running job having
+        ``left`` seconds to go (:meth:`running_left`, or its progress event's). ``summaries``:
+        the queued jobs' files' analyses by job id (:meth:`queued_summaries`); by default
+        those in memory (for the event loop: a file not read since the start has none yet)."""
+        queued = self.store.queued(self.name)
+        if summaries is None:
+            summaries = {r.id: self.analyses.known(self.data_dir / r.file) for r in queued}
+        pace = learned_pace(self.store.paces(self.name)) if queued else 1.0
+        return forecast(queued, summaries, pace, self._free_from(left), self.held)
+
+    def queued_summaries(self) -> dict[int, FileSummary | None]:
+        """The analyses of the queued jobs' files (in a thread: read from the data folder;
+        a file whose print time is not worked out yet is planned in the background)."""
+        return {
+            record.id: self.analyses.summary(self.data_dir / record.file)
+            for record in self.store.queued(self.name)
+        }
+
+    def waits(self, job_id: int) -> bool:
+        """Whether queued job ``job_id`` waits (a job runs or is queued before it, the
+        queue is held, the printer is not ready) rather than starting at once."""
+        first = self.store.next_queued(self.name)
+        if first is None or first.id != job_id:
+            return True
+        busy = self.running is not None or self._starting is not None
+        return busy or self.held or self.state != "ready"
+
+    def _free_from(self, left: float | None) -> float | None:
+        """When the printer is free of what it does now: the running job's end, now when it
+        is ready and idle; None when it cannot be told (paused, offline, a job's time left
+        unknown, the queue held with nothing running: a part is on the bed)."""
+        now = time.time()
+        if self.running is not None:
+            return now + left if self.state == "printing" and left is not None else None
+        return now if self.state == "ready" and not self.held else None
 
     # --- checks (checks.py) ------------------------------------------------------------
 

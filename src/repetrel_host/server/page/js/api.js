@@ -190,6 +190,20 @@ export function duration(seconds) {
   return `${s} s`;
 }
 
+/** "42m", "1h 05m", "30s": a duration told roughly (an estimate's). */
+export function roughly(seconds) {
+  if (seconds == null || !isFinite(seconds)) return "";
+  const minutes = Math.round(seconds / 60);
+  if (minutes < 1) return `${Math.max(0, Math.round(seconds))}s`;
+  if (minutes < 60) return `${minutes}m`;
+  return `${Math.floor(minutes / 60)}h ${String(minutes % 60).padStart(2, "0")}m`;
+}
+
+/** When the server's ISO time ``iso`` is, as ``clock`` says it ("" for none). */
+export function clockOf(iso) {
+  return iso ? clock(Date.parse(iso) / 1000) : "";
+}
+
 /** An element: ``h("button", {class: "x", onclick}, "text", child...)``. */
 export function h(tag, attributes = {}, ...children) {
   const element = document.createElement(tag);

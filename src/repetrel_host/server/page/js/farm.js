@@ -1,7 +1,7 @@
 // The farm at a glance: every printer as a tile (state, the job's thumbnail, progress,
 // temperatures, the held queue's Release), sorted and filtered; a tile opens the printer.
 
-import { get, post, keyed, h, allow, clock, duration } from "./api.js";
+import { get, post, keyed, h, allow, clockOf, duration } from "./api.js";
 import { category, stateWords, stateClass, whyNot } from "./state.js";
 
 const FILTERS = ["all", "printing", "idle", "held", "offline", "error"];
@@ -88,6 +88,23 @@ export async function mount(main, { stream, say }) {
   }
 
   let drawing = false;
+  const refreshing = new Map(); // printer name -> its timer
+
+  function refresh(name) {
+    // A job queued, started or ended moves the printer's free time: asked again (once for
+    // several events in a row).
+    clearTimeout(refreshing.get(name));
+    refreshing.set(name, setTimeout(async () => {
+      refreshing.delete(name);
+      try {
+        const printer = await get(`/v1/printers/${encodeURIComponent(name)}`);
+        printers.set(name, { ...(printers.get(name) || {}), free_at: printer.free_at });
+        schedule();
+      } catch (error) {
+        /* the next event or the reconnection tries again */
+      }
+    }, 300));
+  }
 
   function schedule() {
     // Temperatures come every second from every printer: one redraw a frame at most.
@@ -156,7 +173,8 @@ export async function mount(main, { stream, say }) {
                   percent != null ? `${percent.toFixed(1)} %` : "",
                   job.layers ? ` · layer ${job.layer} of ${job.layers}` : "",
                   job.time_left != null ? ` · ${duration(job.time_left)} left${job.time_left_from === "slicer" ? " (slicer's estimate)" : ""}` : "",
-                  job.ends ? ` · free at ${clock(Date.parse(job.ends) / 1000)}` : "",
+                  // Its queue counted; a paused job has no end (the badge says why).
+                  printer.free_at && printer.state !== "paused" ? ` · free at ${clockOf(printer.free_at)}` : "",
                 ),
               ]
             : h("div", { class: "file idle" }, printer.error && category(printer) !== "offline" ? printer.error : "no job"),
@@ -178,6 +196,7 @@ export async function mount(main, { stream, say }) {
     const printer = printers.get(event.printer);
     if (!printer || !printer.job || printer.job.id !== event.job) return;
     Object.assign(printer.job, event);
+    if ("free_at" in event) printer.free_at = event.free_at;
     schedule();
   });
   stream.on("job", (event) => {
@@ -186,6 +205,7 @@ export async function mount(main, { stream, say }) {
     const job = event.job;
     if (job.state === "printing" || job.state === "paused") printer.job = { ...(printer.job || {}), ...job };
     else if (printer.job && printer.job.id === job.id) printer.job = null;
+    refresh(event.printer);
     schedule();
   });
   stream.on("temperatures", (event) => {
@@ -194,7 +214,10 @@ export async function mount(main, { stream, say }) {
     printer.temperatures = Object.fromEntries(Object.entries(event.readings).map(([sensor, [actual, target]]) => [sensor, { actual, target }]));
     schedule();
   });
-  stream.on("file", () => loadFiles().then(draw));
+  stream.on("file", () => {
+    loadFiles().then(draw);
+    for (const name of printers.keys()) refresh(name); // a queued job's file planned: its estimate
+  });
   stream.onReconnect(load);
   await load();
   // A server in a farm shows the whole farm under its own printers.

@@ -2,7 +2,7 @@
 // ``mount(body, ctx)``). The printer's JSON is kept here, up to date from the event stream,
 // and handed to the panels through ``ctx``.
 
-import { get, post, del, upload, keyed, h, allow, clock } from "./api.js";
+import { get, post, del, upload, keyed, h, allow, clock, clockOf } from "./api.js";
 import { stateWords, stateClass, whyNot, isOffline } from "./state.js";
 
 // Where each panel goes: the job and the machine on the left, what a person reads on the
@@ -42,9 +42,10 @@ export async function mount(main, { name, stream, say }) {
   document.title = `${name} · Hyrel print server`;
   const badge = h("span", { class: "badge" });
   const since = h("span", { class: "since" });
+  const free = h("span", { class: "free-at" });
   const release = h("button", { type: "button", id: "release", onclick: () => act("release") }, "Release the queue");
   const held = h("div", { class: "held", hidden: true }, "The queue is held after the last job: clear the bed, then ", release);
-  const head = h("section", { class: "printer-head", dataset: { printer: name } }, h("h1", {}, name), badge, since, held);
+  const head = h("section", { class: "printer-head", dataset: { printer: name } }, h("h1", {}, name), badge, since, free, held);
   const columns = { left: h("div", { class: "column" }), right: h("div", { class: "column" }), wide: h("div", { class: "wide" }) };
   main.append(head, h("div", { class: "columns" }, columns.left, columns.right), columns.wide);
 
@@ -62,6 +63,9 @@ export async function mount(main, { name, stream, say }) {
     badge.className = `badge ${stateClass(printer)}`;
     // Offline: the badge says since when, this says why; else since when it is so.
     since.textContent = isOffline(printer) ? printer.reason || "" : printer.since ? `since ${clock(printer.since)}` : "";
+    // When it should be free, its queue counted: while a job runs (a paused one has no end).
+    const freeAt = printer.job && printer.state !== "paused" ? clockOf(printer.free_at) : "";
+    free.textContent = freeAt ? `free at ${freeAt}` : "";
     held.hidden = !printer.held;
     allow(release, whyNot(printer, "release"));
     for (const listener of changeListeners) {
@@ -94,6 +98,7 @@ export async function mount(main, { name, stream, say }) {
     const job = ctx.printer && ctx.printer.job;
     if (!job || job.id !== event.job) return;
     Object.assign(job, event, { id: event.job });
+    if ("free_at" in event) ctx.printer.free_at = event.free_at;
     changed();
   });
   stream.on("job", (event) => {
@@ -107,9 +112,26 @@ export async function mount(main, { name, stream, say }) {
     } else if (job.state !== "queued") {
       ctx.lastJob = job;
     }
+    refreshFree();
     changed();
   });
   stream.onReconnect(load);
+
+  let freeTimer = null;
+  function refreshFree() {
+    // A job queued, started or ended moves the printer's free time: asked again (once for
+    // several events in a row).
+    clearTimeout(freeTimer);
+    freeTimer = setTimeout(async () => {
+      try {
+        const printer = await get(path);
+        if (ctx.printer) ctx.printer.free_at = printer.free_at;
+        changed();
+      } catch (error) {
+        /* the next event or the reconnection tries again */
+      }
+    }, 300);
+  }
 
   if (!(await load())) ctx.printer = { name, state: "connecting" };
   for (const [panel, title, where] of PANELS) {

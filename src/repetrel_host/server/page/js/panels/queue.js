@@ -2,7 +2,7 @@
 // cancelled), the history of its ended jobs (outcome, who, how long, its report; print it
 // again, or resume it from the layer where it stopped) and what its jobs add up to.
 
-import { h, clock, duration } from "../api.js";
+import { h, clock, clockOf, duration, roughly } from "../api.js";
 import { metres } from "./files.js";
 
 const SHOWN = 20; // ended jobs in the history
@@ -76,7 +76,8 @@ export function mount(body, ctx) {
       h("span", { class: "grip", "aria-hidden": "true", title: "drag to reorder" }, "⠿"),
       h("div", { class: "queue-main" },
         h("div", { class: "queue-name" }, job.name),
-        h("div", { class: "muted queue-meta" }, [`job ${job.id}`, `queued ${clock(job.submitted)}`, job.user ? `by ${job.user}` : "", job.total_lines ? `${job.total_lines} lines` : "", job.from_line ? `from line ${job.from_line}` : ""].filter(Boolean).join(" · "))),
+        h("div", { class: "muted queue-meta" }, [`job ${job.id}`, `queued ${clock(job.submitted)}`, job.user ? `by ${job.user}` : "", job.total_lines ? `${job.total_lines} lines` : "", job.from_line ? `from line ${job.from_line}` : ""].filter(Boolean).join(" · ")),
+        h("div", { class: "queue-estimate" }, estimate(job))),
       h("div", { class: "queue-actions" }, up, down, cancel));
     // Whether the dragged job comes from below this one.
     const upward = (id) => waiting.findIndex((j) => j.id === id) > index;
@@ -112,6 +113,13 @@ export function mount(body, ctx) {
     return row;
   }
 
+  /** "about 42m · ends ~15:10", "about 42m" (its start not known), "no estimate yet". */
+  function estimate(job) {
+    if (job.estimated_time == null) return "no estimate yet";
+    const whole = job.estimated_time_whole_file ? " (the whole file's)" : "";
+    const ends = job.estimated_end ? ` · ends ~${clockOf(job.estimated_end)}` : "";
+    return `about ${roughly(job.estimated_time)}${whole}${ends}`;
+  }
 
   function clearMarks() {
     for (const row of queued.children) row.classList.remove("drop-before", "drop-after", "dragging");
@@ -227,11 +235,25 @@ export function mount(body, ctx) {
   ctx.stream.on("file", later);
   ctx.stream.onReconnect(load);
   let held = null;
+  let shownFree = ""; // the printer's free time ("15:10") when the queue was last listed
+  let listedAt = 0;
   ctx.onChange((printer) => {
-    // The "held" hint follows the printer (not every progress: a drag would be cut off).
+    // The queued jobs' ends move with the running job's time left: listed again when the
+    // printer's free time shows another minute, so that the last end and the header agree
+    // (every 10 s at most, not every progress: a drag would be cut off).
+    const free = clockOf(printer.free_at);
+    if (free && free !== shownFree && jobs.some((j) => j.state === "queued") && Date.now() - listedAt > 10000) {
+      shownFree = free;
+      listedAt = Date.now();
+      later();
+    }
+    // The "held" hint follows the printer.
     if (printer.held === held) return;
     held = printer.held;
-    if (jobs.length) render();
+    if (jobs.length) {
+      render();
+      later(); // held, the queued jobs have no start: released, they have again
+    }
   });
   load();
 }
