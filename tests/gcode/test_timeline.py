@@ -1,11 +1,18 @@
-"""The planned time at a job's lines (sparse, bounded) and the time left as a run goes."""
+"""The planned time at a job's lines (sparse, bounded), the time left as a run goes, and
+the time until a later line (a running job's, from the move its controller runs)."""
 
 from __future__ import annotations
 
+import asyncio
+from pathlib import Path
+
 import pytest
 
+import repetrel_host as rh
+from repetrel_host.fakes.simulator import ControllerSettings
 from repetrel_host.gcode.estimate import HeatWait
 from repetrel_host.gcode.timeline import MOST_POINTS, TimeLeft, Timeline, learned_pace
+from tests.support.helpers import job_file, run
 
 
 def even(lines: int, each: float, start: int = 1) -> Timeline:
@@ -159,3 +166,54 @@ def test_a_controller_that_took_the_wait_and_the_lines_after_it_still_waits_for_
     left = following.left(120, now=100.0, heaters={"T0": (180.0, 200.0)})
     assert left == pytest.approx(10 + 99)
     assert following.left(120, now=110.0, heaters={"T0": (200.0, 200.0)}) == pytest.approx(99)
+
+
+def test_the_time_until_a_line_is_the_plan_from_the_running_move_at_the_pace() -> None:
+    following = TimeLeft(even(1000, 1.0), prior=1.1, held=10)
+    left = following.left(100, now=0.0)
+    # The controller runs the 90th move (10 held behind line 100's): 410 planned seconds
+    # to the end of line 500, 1.1 times as long at this printer's pace.
+    assert following.until(500, current=100) == pytest.approx(410 * 1.1)
+    assert following.until(95, current=100) == pytest.approx(5 * 1.1)  # held, not run yet
+    assert following.until(80, current=100) == 0.0  # run already
+    assert following.until(2000, current=100) == pytest.approx(left)  # past the end: all of it
+
+
+def test_a_heat_wait_before_a_line_counts_as_planned_not_at_the_pace() -> None:
+    timeline = Timeline()
+    for line in range(1, 11):
+        timeline.add(line, line * 0.3)
+    timeline.heated(wait(11, 3.0, 50.0))
+    timeline.add(11, 3.0 + 50.0)
+    for line in range(12, 21):
+        timeline.add(line, 53.0 + (line - 11) * 0.3)
+    timeline.finish()
+    following = TimeLeft(timeline, prior=2.0)
+    # From line 5 to the end of line 20: 4.2 s of moves at twice the plan, the 50 s wait.
+    assert following.until(20, current=5) == pytest.approx(4.2 * 2 + 50)
+    assert following.until(20, current=15) == pytest.approx(1.5 * 2)  # the wait is behind
+
+
+@pytest.mark.timeout(60)
+def test_a_running_jobs_time_until_a_line_once_it_is_planned(tmp_path: Path) -> None:
+    path = job_file(tmp_path, [f"G1 X{i % 2 * 50} Y{i % 7} F6000" for i in range(1500)])
+    settings = ControllerSettings(latency=0.0005, move_time=0.002)
+
+    async def scenario() -> None:
+        async with rh.connect("sim", sim=settings, poll_interval=None) as printer:
+            job = await printer.print(path, header=False, history=False)
+            assert job.time_until(1000) is None  # not planned yet
+            await job.follow_time(after=0)
+            while job.lines < 200:
+                await asyncio.sleep(0.01)
+            assert job.last is not None
+            line = job.last.source_line
+            left = job.time_left()
+            assert left is not None and job.time_until(10**9) == pytest.approx(left)
+            assert job.time_until(1) == 0.0
+            sooner, later = job.time_until(line + 300), job.time_until(line + 600)
+            assert sooner is not None and later is not None and 0 < sooner < later < left
+            await job.wait()
+            assert job.time_until(1500) is None  # it ended
+
+    run(scenario)

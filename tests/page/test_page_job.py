@@ -1,7 +1,8 @@
 """The printer page's job and camera panels in a real browser: a layered job drawn as it
 prints, paused, resumed and cancelled from the page (the fake controller's log says what
-ran), the resume offer queued from the page; the layer snapshots, a snapshot taken now, a
-time-lapse made by ffmpeg, and the plain sentence where ffmpeg is missing."""
+ran), the resume offer queued from the page, the layer shown marked with when the job
+prints it; the layer snapshots, a snapshot taken now, a time-lapse made by ffmpeg, and the
+plain sentence where ffmpeg is missing."""
 
 from __future__ import annotations
 
@@ -127,7 +128,13 @@ def test_the_job_panel_draws_the_layer_and_pauses_resumes_cancels_and_resumes_it
         "slicer": "(slicer's estimate)",
         "linear": "(at the rate so far)",
     }
-    assert said[paused["time_left_from"]] in browser.text("#panel-job .job-facts")
+    # Waited for: the plan may land as the job pauses (3 s in), its event a moment later.
+    browser.wait(
+        lambda: (
+            said[printer(client)["job"]["time_left_from"]] in browser.text("#panel-job .job-facts")
+        ),
+        "the time left, and how it was found",
+    )
     assert two_printers.executed("left")[-1] == lines[paused["last_line"] - 1]
     # The view shows exactly the acknowledged moves of the layer being printed.
     moves = client.get(f"/v1/files/part.gcode/layers/{paused['layer']}").json()["moves"]
@@ -139,10 +146,11 @@ def test_the_job_panel_draws_the_layer_and_pauses_resumes_cancels_and_resumes_it
     ran = len(two_printers.executed("left"))
     time.sleep(0.5)
     assert len(two_printers.executed("left")) == ran  # nothing runs while paused
-    # Each layer was asked for once (the next one ahead), not at each progress.
+    # Each layer's moves were asked for once (the next one ahead), not at each progress
+    # (its times are asked again, without the moves).
     asked = browser.driver.execute_script(
         "return performance.getEntriesByType('resource').map((e) => e.name)"
-        ".filter((name) => name.includes('/layers/'))"
+        ".filter((name) => name.includes('/layers/') && !name.includes('moves=false'))"
     )
     assert len(asked) == len(set(asked)) <= paused["layer"] + 1, asked
 
@@ -202,6 +210,51 @@ def test_the_job_panel_draws_the_layer_and_pauses_resumes_cancels_and_resumes_it
     browser.wait(lambda: browser.text("#panel-job .job-state") == "completed", "completed")
     browser.wait(lambda: drawn(browser)["acked"] == drawn(browser)["moves"] > 0, "all drawn done")
     assert not browser.all(".job-resume-offer:not([hidden])")
+
+
+def show_layer(browser: Browser, number: int) -> None:
+    """Move the layer slider to ``number``, as a person drags it."""
+    browser.driver.execute_script(
+        "const s = document.querySelector('#panel-job .layer-slider');"
+        "s.value = arguments[0]; s.dispatchEvent(new Event('input'));",
+        number,
+    )
+
+
+def test_the_layer_shown_is_marked_with_when_the_running_job_prints_it(
+    browser: Browser, two_printers: TwoPrinters
+) -> None:
+    client = two_printers.server.client()
+    wait_for(lambda: printer(client)["state"] == "ready", what="printer left ready")
+    part = ("part.gcode", part_gcode(layers=12, moves=500, thumbnail=False))
+    job = client.post("/v1/printers/left/jobs", files={"file": part}).json()
+    browser.open(f"{two_printers.url}/printers/left")
+    browser.wait(lambda: drawn(browser)["moves"] > 0, "the layer view draws")
+    # Once the job is planned, the layer it prints (the view follows it) is marked.
+    mark = "#panel-job .layer-mark"
+    browser.wait(lambda: browser.text(mark).startswith("printing now · done ~"), "marked now")
+    assert browser.all(".layer-mark.now")
+    running = wait_for(lambda: (j := printer(client)["job"]) and j["layer"] >= 2 and j)
+    later = running["layer"] + 4
+    assert later <= 12, running
+
+    show_layer(browser, later)  # a layer still to print: when, and in how long
+    browser.wait(lambda: drawn(browser)["layer"] == later, f"layer {later} drawn")
+    browser.wait(lambda: browser.text(mark).startswith("printed at ~"), "marked later")
+    found = re.fullmatch(r"printed at ~.+ \(in (\d+) (s|min)\)", browser.text(mark))
+    assert found, browser.text(mark)
+    seconds = int(found[1]) * (60 if found[2] == "min" else 1)
+    times = client.get(f"/v1/files/part.gcode/layers/{later}?printer=left&moves=false").json()
+    assert 0 < seconds <= printer(client)["job"]["time_left"] + 60  # within the job's end
+    assert abs(seconds - times["starts_in"]) <= 60  # the server's, as roughly as shown
+    assert not browser.all(".layer-mark.now")
+
+    show_layer(browser, 1)  # a layer printed already
+    browser.wait(lambda: browser.text(mark) == "printed", "marked printed")
+    client.delete(f"/v1/jobs/{job['id']}")
+    ended = ("cancelled", "completed")
+    wait_for(lambda: job_record(client, job["id"])["state"] in ended, what="the job's end")
+    browser.wait(lambda: not browser.all(f"{mark}:not([hidden])"), "no mark once it ended")
 
 
 def layer_thumbs(browser: Browser) -> list[str]:

@@ -82,6 +82,10 @@ def test_screenshots_of_the_farm_and_a_printer_mid_print(
         lambda: int(browser.css("#panel-job canvas").get_attribute("data-acked") or 0) > 20,
         "the layer view drawing what was acknowledged",
     )
+    browser.wait(
+        lambda: browser.text("#panel-job .layer-mark").startswith("printing now"),
+        "the layer's mark: when the job is done with it",
+    )
     browser.wait(lambda: browser.all("#panel-files img"), "the files' previews")
     browser.wait(lambda: browser.all("#panel-temperatures canvas"), "the chart")
     browser.screenshot(DOCS / "printer-desktop.png", 1400, 1000)

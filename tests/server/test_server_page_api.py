@@ -1,7 +1,8 @@
 """The /v1 endpoints the page needed, asked of a real server: presets, the heaters and how
 to set them, uploads without printing (folders, the lint's findings), a file's check, a
-layer's moves, a stored file queued again or resumed from a layer, a failed job's resume
-offer, and time-lapse videos (with ffmpeg, and the sentence without it)."""
+layer's moves and when the job printing it prints the layer, a stored file queued again or
+resumed from a layer, a failed job's resume offer, and time-lapse videos (with ffmpeg, and
+the sentence without it)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,9 @@ import os
 import shutil
 import time
 from collections.abc import Callable
+from datetime import datetime
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -117,6 +120,39 @@ def test_a_layers_moves_are_read_from_its_place_in_the_file(
         assert all(area["minX"] <= m[3] <= area["maxX"] for m in moves if m[5])
         assert client.get("/v1/files/cone.gcode/layers/83").status_code == 404
         assert client.get("/v1/files/cone.gcode/layers/0").status_code == 400
+
+
+def test_a_layer_of_the_file_a_printer_prints_says_when_it_is_printed(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
+) -> None:
+    fake = bench("--time-scale", "20")  # the cone's 14 planned minutes in 42 s
+    unknown = dict.fromkeys(("starts_in", "ends_in", "starts_at", "ends_at"))
+    with servers({"a": fake.port}).client() as client:
+        client.post("/v1/files", files={"file": ("cone.gcode", CONE.read_text())})
+        idle = client.get("/v1/files/cone.gcode/layers/40?printer=a").json()
+        assert {key: idle[key] for key in unknown} == unknown  # nothing prints it
+        assert client.get("/v1/files/cone.gcode/layers/40?printer=b").status_code == 404
+        job = client.post("/v1/printers/a/queue", json={"file": "cone.gcode"}).json()
+
+        def planned() -> Any:
+            running = client.get("/v1/printers/a").json()["job"]
+            return running and running["time_left_from"] in ("plan", "estimate") and running
+
+        running = wait_for(planned, what="the job's plan")
+        left, now = running["time_left"], max(running["layer"], 1)
+        current = client.get(f"/v1/files/cone.gcode/layers/{now}?printer=a").json()
+        later = client.get(f"/v1/files/cone.gcode/layers/{now + 10}?printer=a&moves=false")
+        later = later.json()
+        client.delete(f"/v1/jobs/{job['id']}")
+        assert len(current["moves"]) > 0 and later["moves"] is None  # not read: times only
+        assert 0 <= current["starts_in"] < later["starts_in"] <= later["ends_in"] <= left
+        assert current["starts_in"] <= current["ends_in"] <= later["starts_in"]
+        starts = datetime.fromisoformat(later["starts_at"])
+        assert starts.tzinfo is not None
+        assert abs(starts.timestamp() - time.time() - later["starts_in"]) < 5
+        wait_for(lambda: client.get(f"/v1/jobs/{job['id']}").json()["state"] == "cancelled")
+        ended = client.get("/v1/files/cone.gcode/layers/40?printer=a").json()
+        assert {key: ended[key] for key in unknown} == unknown  # it no longer prints it
 
 
 def test_a_stored_file_is_queued_again_or_resumed_from_a_layer(

@@ -225,6 +225,18 @@ class TimeLeft:
         jobs said its pace."""
         return self.watched_planned > 0 or self.prior != 1.0
 
+    def until(self, line: int, current: int) -> float:
+        """The seconds until the end of ``line`` when the controller acknowledged up to
+        ``current``: the plan between the move it runs and ``line``, its moving part at
+        :attr:`pace` and its heat waits as planned; 0 for a line already run. It observes
+        nothing (:meth:`left` does)."""
+        ran, heated = self.timeline.running(current, self.held)
+        seconds, heating = self.timeline.at(line)
+        if seconds <= ran:
+            return 0.0
+        heat = max(0.0, heating - heated)
+        return max(0.0, seconds - ran - heat) * self.pace + heat
+
     @property
     def measured(self) -> float | None:
         """The run's own pace, once a tenth of the plan's moving time was watched (what a

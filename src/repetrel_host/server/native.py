@@ -36,7 +36,7 @@ from repetrel_host.server.octoprint import appkeys, files
 from repetrel_host.server.print_server import PrintServer, answered, server_of
 from repetrel_host.server.printers.forecast import iso
 from repetrel_host.server.printers.heaters import heaters
-from repetrel_host.server.printers.running import progress_event
+from repetrel_host.server.printers.running import layer_times, progress_event
 from repetrel_host.server.printers.service import PrinterService
 from repetrel_host.server.store import ACTIVE
 
@@ -289,11 +289,26 @@ def router() -> APIRouter:
 
     @router.get("/files/{location:path}/layers/{number}")
     async def layer(
-        request: Request, location: str, number: Annotated[int, PathParameter(ge=1)]
+        request: Request,
+        location: str,
+        number: Annotated[int, PathParameter(ge=1)],
+        printer: str | None = None,
+        moves: bool = True,
     ) -> dict[str, Any]:
         """Layer ``number``'s moves, for a layer view: ``[line, x0, y0, x1, y1, extrudes]``
-        each (arcs as straight lines), its Z, and the file's layer count."""
-        return await asyncio.to_thread(uploads.layer_json, server_of(request), location, number)
+        each (arcs as straight lines; ``moves=false``: left out), its Z, the file's layer
+        count, and when ``printer`` (the first by default) prints the layer, if its running
+        job prints this file."""
+        server = server_of(request)
+        service = server.service(printer)
+        found = await asyncio.to_thread(uploads.layer_json, server, location, number, moves)
+        running = service.running
+        job = None
+        if running is not None and server.data_dir / running.record.file == (
+            uploads.uploaded(server, location)
+        ):
+            job = running.job  # the printer prints this file: when it prints the layer
+        return {**found, **layer_times(job, found["first_line"], found["last_line"])}
 
     @router.get("/files/{location:path}/thumbnail")
     async def file_thumbnail(request: Request, location: str) -> Response:

@@ -314,8 +314,11 @@ def uploads_json(server: PrintServer) -> list[dict[str, Any]]:
 _LAYERS: dict[Path, tuple[Stamp, Analysis]] = {}  # a file's layers, while it is unchanged
 
 
-def layer_json(server: PrintServer, location: str, number: int) -> dict[str, Any]:
-    """Layer ``number`` of an uploaded file, for the layer view (in a thread)."""
+def layer_json(
+    server: PrintServer, location: str, number: int, moves: bool = True
+) -> dict[str, Any]:
+    """Layer ``number`` of an uploaded file, for the layer view (in a thread); without its
+    moves (None, not read) unless ``moves``."""
     path = uploaded(server, location)
     now = stamp(path)
     known = _LAYERS.get(path)
@@ -331,7 +334,14 @@ def layer_json(server: PrintServer, location: str, number: int) -> dict[str, Any
         )
     layer = layers[number - 1]
     end = offsets[number] if number < len(offsets) else None
-    moves = layer_moves(path, offsets[number - 1], end, layer.line)
+    drawn: list[list[float]] | None = None  # not read when the moves are not asked for
+    if moves:
+        drawn = [
+            [line, round(x0, 3), round(y0, 3), round(x1, 3), round(y1, 3), int(extrudes)]
+            for line, x0, y0, x1, y1, extrudes in layer_moves(
+                path, offsets[number - 1], end, layer.line
+            )
+        ]
     summary = server.analyses.cached(path)
     area = summary.as_json().get("printingArea") if summary is not None else None
     return {
@@ -342,8 +352,5 @@ def layer_json(server: PrintServer, location: str, number: int) -> dict[str, Any
         "first_line": layer.line,
         "last_line": layers[number].line - 1 if number < len(layers) else None,
         "area": area,
-        "moves": [
-            [line, round(x0, 3), round(y0, 3), round(x1, 3), round(y1, 3), int(extrudes)]
-            for line, x0, y0, x1, y1, extrudes in moves
-        ],
+        "moves": drawn,
     }

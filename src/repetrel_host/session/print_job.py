@@ -209,6 +209,16 @@ class PrintJob:
             for name, reading in heard.items()
         }
 
+    def time_until(self, line: int) -> float | None:
+        """Seconds until the file's ``line`` is done, from the move the controller runs, at
+        the pace the run keeps (0 for a line already run). None before the job is planned
+        (:meth:`follow_time`), and once it ended."""
+        following = self.following
+        if following is None or self.done:
+            return None
+        last = self._run.last
+        return following.until(line, last.source_line if last is not None else 0)
+
     @property
     def header_lines(self) -> int:
         """Lines of the header (the plan's) the controller acknowledged."""

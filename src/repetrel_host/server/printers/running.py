@@ -1,5 +1,6 @@
 """The job a printer of the server streams now: where it is (its layer, its height, the
-share of the file acknowledged), how long it has left, and the filament it used."""
+share of the file acknowledged), how long it has left, when it prints a layer of its file,
+and the filament it used."""
 
 from __future__ import annotations
 
@@ -17,6 +18,8 @@ from repetrel_host.server.store import JobRecord
 # How a time left was found: the plan at the pace of the run or of the printer's past jobs;
 # the plan as it is; the slicer's figure; the rate so far.
 LEFT_FROM = ("estimate", "plan", "slicer", "linear")
+FILE_END = 1 << 62  # a line past the last of any file
+LAYER_TIMES = ("starts_in", "ends_in", "starts_at", "ends_at")  # when a layer is printed
 
 
 @dataclass
@@ -104,6 +107,28 @@ def filament_used(running: Running, completed: bool) -> dict[str, dict[str, floa
 def _ends(left: float) -> str:
     """When a job with ``left`` seconds to go should end: ISO 8601, UTC, to the second."""
     return (datetime.now(UTC) + timedelta(seconds=left)).isoformat(timespec="seconds")
+
+
+def layer_times(
+    job: rh.PrintJob | None, first_line: int, last_line: int | None
+) -> dict[str, int | str | None]:
+    """When ``job`` prints the layer of its file from ``first_line`` to ``last_line`` (None:
+    to the file's end), from its plan at the pace it keeps: ``starts_in`` and ``ends_in``
+    (seconds from now, 0 once there), ``starts_at`` and ``ends_at`` (ISO 8601, UTC). None
+    each without a job, or before its plan is made."""
+    unknown: dict[str, int | str | None] = dict.fromkeys(LAYER_TIMES)
+    if job is None:
+        return unknown
+    starts = job.time_until(first_line - 1)
+    ends = job.time_until(FILE_END if last_line is None else last_line)
+    if starts is None or ends is None:
+        return unknown
+    return {
+        "starts_in": round(starts),
+        "ends_in": round(ends),
+        "starts_at": _ends(starts),
+        "ends_at": _ends(ends),
+    }
 
 
 def progress_event(

@@ -1,6 +1,7 @@
 // The job: the running one (or, when none runs, the last one), its progress, Pause, Resume
 // and Cancel, and a layer view that draws a layer's moves from the file, the ones the
-// controller acknowledged in blue. After a job stopped part-way, the offer to resume it.
+// controller acknowledged in blue, and marks when the running job prints the layer shown.
+// After a job stopped part-way, the offer to resume it.
 
 import { h, clock, duration } from "../api.js";
 
@@ -9,11 +10,21 @@ const RESUMABLE = new Set(["failed", "interrupted", "cancelled"]);
 const STATE_CLASS = { printing: "busy", paused: "paused", completed: "ok", cancelled: "offline", interrupted: "held", failed: "error" };
 const LEFT_FROM = { estimate: "(planned, at this printer's pace)", plan: "(planned)", slicer: "(slicer's estimate)", linear: "(at the rate so far)" };
 const CACHED_LAYERS = 8;
+const MARK_REFRESH = 5000; // ms: the layer's times are asked again at most this often
 const COLOURS = { done: "#1d63c9", todo: "#a9b1bd", travelDone: "rgba(29, 99, 201, 0.35)", travelTodo: "rgba(120, 130, 145, 0.3)", area: "#dde1e7" };
 
 /** A path below the uploads, as a URL path ("parts/a b.gcode" -> "parts/a%20b.gcode"). */
 const urlPath = (path) => path.split("/").map(encodeURIComponent).join("/");
 const count = (n) => (n == null ? "?" : Number(n).toLocaleString());
+
+/** A time to come, as roughly as it is known: "40 s", "38 min", "2 h 05 min". */
+function roughly(seconds) {
+  const s = Math.max(0, Math.round(seconds));
+  if (s < 60) return `${s} s`;
+  const minutes = Math.round(s / 60);
+  if (minutes < 60) return `${minutes} min`;
+  return `${Math.floor(minutes / 60)} h ${String(minutes % 60).padStart(2, "0")} min`;
+}
 
 export async function mount(body, ctx) {
   const api = ctx.api;
@@ -27,6 +38,7 @@ export async function mount(body, ctx) {
   let view = { path: null, layer: 0, data: null }; // the layer drawn
   let follow = true; // the view follows the printed layer until the person moves the slider
   let drawing = 0;
+  let times = { key: null, answer: null, asked: 0, pending: false }; // the shown layer's
 
   // The summary.
   const title = h("div", { class: "job-title" });
@@ -51,10 +63,11 @@ export async function mount(body, ctx) {
   const followBox = h("input", { type: "checkbox", checked: true, onchange: () => { follow = followBox.checked; sync(); } });
   const layerWords = h("span", { class: "layer-words" });
   const layerNote = h("p", { class: "muted layer-note", hidden: true });
+  const layerMark = h("p", { class: "layer-mark", hidden: true });
   const viewer = h("div", { class: "layer-view" }, canvas,
     h("div", { class: "row layer-tools" }, slider, layerWords,
       h("label", { class: "layer-follow", title: "show the layer being printed" }, followBox, " follow the print")),
-    layerNote);
+    layerMark, layerNote);
 
   const empty = h("p", { class: "empty" }, "no job: upload a file in Files below and print it");
   body.append(empty, summary, viewer);
@@ -225,6 +238,7 @@ export async function mount(body, ctx) {
 
   function noLayers(why) {
     canvas.hidden = true;
+    layerMark.hidden = true;
     layerNote.hidden = false;
     layerNote.textContent = why ? `No layer view: ${why}` : "No layer view: this file marks no layers.";
     slider.disabled = true;
@@ -327,6 +341,51 @@ export async function mount(body, ctx) {
     const total = layersOf(job);
     const z = data.z != null ? ` · Z ${data.z} mm` : "";
     layerWords.textContent = `Layer ${data.layer} of ${total}${z}`;
+    markLayer(job, running, data.layer);
+  }
+
+  // The layer's mark: when the running job prints the layer drawn, from its plan (asked of
+  // the server with the layer's times only, again as progress comes, at most every
+  // MARK_REFRESH ms). Nothing before the job is planned, nor once it ended.
+  function markLayer(job, running, number) {
+    if (!running) return showMark(null);
+    const key = `${job.id}\n${job.path}\n${number}`;
+    if (times.key !== key) times = { key, answer: null, asked: 0, pending: false }; // asked at once
+    if (!times.pending && Date.now() - times.asked >= MARK_REFRESH) askTimes(job.path, number, key);
+    showMark(times.answer);
+  }
+
+  async function askTimes(path, number, key) {
+    times.asked = Date.now();
+    times.pending = true;
+    const printer = encodeURIComponent(ctx.name);
+    try {
+      const answer = await api.get(`/v1/files/${urlPath(path)}/layers/${number}?printer=${printer}&moves=false`);
+      if (times.key === key) {
+        times.answer = answer;
+        showMark(answer);
+      }
+    } catch (error) {
+      // The mark stays as it was: asked again at the next progress.
+    } finally {
+      if (times.key === key) times.pending = false;
+    }
+  }
+
+  /** "printing now · done ~14:32", "printed at ~15:10 (in 38 min)", "printed"; or none. */
+  function showMark(answer) {
+    const words = markWords(answer);
+    layerMark.textContent = words;
+    layerMark.hidden = !words;
+    layerMark.classList.toggle("now", words.startsWith("printing now"));
+  }
+
+  function markWords(answer) {
+    if (!answer || answer.starts_in == null || answer.ends_in == null) return "";
+    if (answer.ends_in <= 0) return "printed";
+    if (answer.starts_in <= 0) return `printing now · done ~${clock(Date.parse(answer.ends_at) / 1000)}`;
+    const starts = Date.parse(answer.starts_at) / 1000;
+    return `printed at ~${clock(starts)} (in ${roughly(starts - Date.now() / 1000)})`;
   }
 
   ctx.onChange(render);
