@@ -67,12 +67,12 @@ def test_a_slower_run_is_found_out_and_counts_fully_from_a_tenth_of_the_plan() -
         left = following.left(line, now=line * 1.1)
     assert following.pace == pytest.approx(1.1)
     assert left == pytest.approx((1000 - 300) * 1.1)
-    # Earlier, the prior still weighs: 51 s watched (after 30 s settling), about half each.
+    # Earlier, the prior still weighs: 50 s watched (from 30 s settling on), half each.
     early = TimeLeft(timeline, prior=1.0)
     for line in range(1, 82):
         early.left(line, now=line * 1.1)
-    assert early.watched_planned == pytest.approx(51)
-    assert early.pace == pytest.approx(0.49 * 1.0 + 0.51 * 1.1)
+    assert early.watched_planned == pytest.approx(50)
+    assert early.pace == pytest.approx(0.5 * 1.0 + 0.5 * 1.1)
     assert early.measured is None  # a tenth of the plan not watched yet
     early.left(140, now=140 * 1.1)
     assert early.measured == pytest.approx(1.1)
@@ -217,3 +217,29 @@ def test_a_running_jobs_time_until_a_line_once_it_is_planned(tmp_path: Path) -> 
             assert job.time_until(1500) is None  # it ended
 
     run(scenario)
+
+
+def test_once_every_line_is_acknowledged_what_the_controller_holds_counts_down() -> None:
+    # A controller that holds 100 moves: the last line is acknowledged with 100 s to run,
+    # and no line moves after it. The time left counts down by the clock, and the wait for
+    # the held moves is not taken for a slow run.
+    following = TimeLeft(even(1000, 1.0), held=100)
+    for line in range(1, 1001, 10):
+        following.left(line, now=float(line))
+    assert following.left(1000, now=1000.0) == pytest.approx(100)
+    assert following.left(1000, now=1040.0) == pytest.approx(60)
+    assert following.left(1000, now=1200.0) == 0.0
+    assert following.pace == pytest.approx(1.0)
+
+
+def test_acknowledgements_in_bursts_count_the_whole_stretch_they_end() -> None:
+    # Hyrel's controller acknowledges lines as its buffer frees room: 25 at a time here,
+    # while the run goes at the plan's pace. Asked four times a second, the time left sees
+    # the same line between bursts, the first burst's ending in the first 30 s (settling):
+    # no stretch counts the plan's 25 s against its last quarter of a second.
+    following = TimeLeft(even(1000, 1.0))
+    now = 0.0
+    while now < 600:
+        following.left(int(now // 25) * 25, now=now)
+        now += 0.25
+    assert following.pace == pytest.approx(1.0, abs=0.02)

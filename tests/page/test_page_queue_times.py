@@ -30,7 +30,7 @@ def test_a_queued_row_shows_its_estimate_and_end_and_the_header_when_the_printer
     browser.open(f"{two_printers.url}/printers/left")
     row = f'.queue-row[data-job="{queued}"] .queue-estimate'
     browser.wait(
-        lambda: re.fullmatch(r"about \d+m · ends ~\d\d?:\d\d( [AP]M)?", browser.text(row)),
+        lambda: re.fullmatch(r"about \d+ (s|min) · ends ~\d\d?:\d\d( [AP]M)?", browser.text(row)),
         "the queued job's estimate and end",
     )
     browser.wait(
@@ -54,5 +54,5 @@ def test_a_queued_row_shows_its_estimate_and_end_and_the_header_when_the_printer
     # Held: the queued job has no start, so no end; how long it takes is still said.
     with two_printers.server.client() as client:
         assert client.post("/v1/printers/left/hold").status_code == 204
-    browser.wait(lambda: re.fullmatch(r"about \d+m", browser.text(row)), "no end when held")
+    browser.wait(lambda: re.fullmatch(r"about \d+ (s|min)", browser.text(row)), "no end when held")
     browser.wait(lambda: browser.text(".printer-head .free-at") == "", "no free time when held")

@@ -186,23 +186,29 @@ class TimeLeft:
     _last: tuple[int, float] | None = None  # the last line seen and when
     _settled: float = 0.0  # the planned time from which it is watched (after a start or pause)
     _line: int = -1  # the line acknowledged last time the time left was asked
+    # Every line acknowledged: when, and the time left then (the controller runs what it
+    # holds, and no acknowledgement says how far it got).
+    _drained: tuple[float, float] | None = None
 
     def observe(self, line: int, now: float, moving: bool = True, waiting: bool = False) -> None:
         """The controller acknowledged up to ``line`` by ``now``. ``moving``: False while the
         job is paused (the stretch around it is not watched, and the run settles again
         after). ``waiting``: it may be waiting for a heater (the stretch is not watched)."""
-        if waiting and self._last is not None:
+        last = self._last
+        if waiting and last is not None:
             self._last = (line, now)
             return
-        last = self._last
-        self._last = (line, now) if moving else None
         seconds, heating = self.timeline.running(line, self.held)
-        if last is None:
+        if last is None or not moving:
+            self._last = (line, now) if moving else None
             self._settled = seconds + SETTLE
             return
-        if seconds < self._settled or line < last[0]:
-            return
+        if line == last[0]:
+            return  # no line taken since: the stretch runs on until one is (acks come in bursts)
+        self._last = (line, now)
         before, heating_before = self.timeline.running(last[0], self.held)
+        if before < self._settled or line < last[0]:
+            return  # watched from the first stretch that starts settled
         if heating != heating_before:  # a heat wait in between: the heaters' time, not watched
             return
         self.watched_actual += now - last[1]
@@ -257,13 +263,36 @@ class TimeLeft:
         plan's moving remainder at the pace, and its heat waits as planned. ``heaters``:
         the controller's latest reports ({"T0": (current, target)}, as the plan names
         them); the wait at hand then counts from where its heater is, and a wait is not
-        watched as motion."""
+        watched as motion. Once every line is acknowledged, what the controller holds is
+        counted down by the clock (no line moves then to tell the pace by)."""
+        if self.timeline.lines and line >= self.timeline.lines[-1] and moving:
+            if self._drained is None:
+                self._drained = (now, self._remainder(line, now, moving, heaters))
+            self._last = (line, now)
+            since, left = self._drained
+            return max(0.0, left - (now - since))
+        self._drained = None
+        return self._remainder(line, now, moving, heaters)
+
+    def _remainder(
+        self,
+        line: int,
+        now: float,
+        moving: bool,
+        heaters: Mapping[str, tuple[float, float | None]] | None,
+    ) -> float:
         seconds, heating = self.timeline.running(line, self.held)
         waiting, ahead = self.timeline.waits_at(line, seconds)
         # Maybe in a wait: the move that runs is at a wait's end (its line taken, lines after
-        # it too), or the wait's line is next; then no line taken since is no slow move.
+        # it too), or the wait's line is next, and its heater is not reported there; then no
+        # line taken since is no slow move.
         stalled = line == self._line and (
-            waiting is not None or (ahead is not None and self.timeline.next_to(line, ahead))
+            (waiting is not None and _heating_to(waiting, heaters) != 0.0)
+            or (
+                ahead is not None
+                and self.timeline.next_to(line, ahead)
+                and _heating_to(ahead, heaters) != 0.0
+            )
         )
         self._line = line
         if waiting is not None and _heating_to(waiting, heaters):  # still heating: in it

@@ -190,13 +190,14 @@ export function duration(seconds) {
   return `${s} s`;
 }
 
-/** "42m", "1h 05m", "30s": a duration told roughly (an estimate's). */
+/** A time to come, as roughly as it is known (an estimate's): "40 s", "38 min", "2 h 05 min". */
 export function roughly(seconds) {
   if (seconds == null || !isFinite(seconds)) return "";
-  const minutes = Math.round(seconds / 60);
-  if (minutes < 1) return `${Math.max(0, Math.round(seconds))}s`;
-  if (minutes < 60) return `${minutes}m`;
-  return `${Math.floor(minutes / 60)}h ${String(minutes % 60).padStart(2, "0")}m`;
+  const s = Math.max(0, Math.round(seconds));
+  if (s < 60) return `${s} s`;
+  const minutes = Math.round(s / 60);
+  if (minutes < 60) return `${minutes} min`;
+  return `${Math.floor(minutes / 60)} h ${String(minutes % 60).padStart(2, "0")} min`;
 }
 
 /** When the server's ISO time ``iso`` is, as ``clock`` says it ("" for none). */

@@ -5,7 +5,7 @@
 // printing printer, when it should be free. Kept fresh by the farm's event stream
 // (PostgreSQL's notifications). On a server that is not in a farm, nothing is shown.
 
-import { call, get, del, upload, keyed, h, clock, duration } from "../api.js";
+import { call, get, del, upload, keyed, h, clock, roughly } from "../api.js";
 
 const STATE_CLASS = { ready: "ok", printing: "busy", paused: "paused", offline: "offline", error: "error" };
 const ENDED_SHOWN = 10; // the last jobs that ended, under the queue
@@ -203,7 +203,7 @@ function estimate(job) {
 
 /** "about 42 min", "about 3 h 05 min": a plan is not to the second. */
 function about(seconds) {
-  return `about ${duration(Math.max(60, Math.round(seconds / 60) * 60)).replace(/ 00 s$/, "")}`;
+  return `about ${roughly(Math.max(60, seconds))}`;
 }
 
 function badge(state) {

@@ -3,7 +3,7 @@
 // controller acknowledged in blue, and marks when the running job prints the layer shown.
 // After a job stopped part-way, the offer to resume it.
 
-import { h, clock, duration } from "../api.js";
+import { h, clock, duration, roughly } from "../api.js";
 
 const ENDED = new Set(["completed", "failed", "interrupted", "cancelled"]);
 const RESUMABLE = new Set(["failed", "interrupted", "cancelled"]);
@@ -16,15 +16,6 @@ const COLOURS = { done: "#1d63c9", todo: "#a9b1bd", travelDone: "rgba(29, 99, 20
 /** A path below the uploads, as a URL path ("parts/a b.gcode" -> "parts/a%20b.gcode"). */
 const urlPath = (path) => path.split("/").map(encodeURIComponent).join("/");
 const count = (n) => (n == null ? "?" : Number(n).toLocaleString());
-
-/** A time to come, as roughly as it is known: "40 s", "38 min", "2 h 05 min". */
-function roughly(seconds) {
-  const s = Math.max(0, Math.round(seconds));
-  if (s < 60) return `${s} s`;
-  const minutes = Math.round(s / 60);
-  if (minutes < 60) return `${minutes} min`;
-  return `${Math.floor(minutes / 60)} h ${String(minutes % 60).padStart(2, "0")} min`;
-}
 
 export async function mount(body, ctx) {
   const api = ctx.api;

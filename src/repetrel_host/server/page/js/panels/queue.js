@@ -113,7 +113,7 @@ export function mount(body, ctx) {
     return row;
   }
 
-  /** "about 42m · ends ~15:10", "about 42m" (its start not known), "no estimate yet". */
+  /** "about 42 min · ends ~15:10", "about 42 min" (its start not known), "no estimate yet". */
   function estimate(job) {
     if (job.estimated_time == null) return "no estimate yet";
     const whole = job.estimated_time_whole_file ? " (the whole file's)" : "";
