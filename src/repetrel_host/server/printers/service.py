@@ -151,8 +151,6 @@ class PrinterService:
 
     def start(self) -> None:
         self._task = asyncio.get_running_loop().create_task(self._run(), name=self.name)
-        for record in self.store.queued(self.name):  # their estimates known from the start
-            self.analyses.later(self.data_dir / record.file)
 
     async def stop(self) -> None:
         """Stop feeding; a running job is stopped with its safe stop first (and recorded as
@@ -481,15 +479,6 @@ class PrinterService:
             record.id: self.analyses.summary(self.data_dir / record.file)
             for record in self.store.queued(self.name)
         }
-
-    def waits(self, job_id: int) -> bool:
-        """Whether queued job ``job_id`` waits (a job runs or is queued before it, the
-        queue is held, the printer is not ready) rather than starting at once."""
-        first = self.store.next_queued(self.name)
-        if first is None or first.id != job_id:
-            return True
-        busy = self.running is not None or self._starting is not None
-        return busy or self.held or self.state != "ready"
 
     def _free_from(self, left: float | None) -> float | None:
         """When the printer is free of what it does now: the running job's end, now when it
