@@ -38,7 +38,8 @@ def test_a_long_plan_is_kept_in_a_bounded_number_of_points_and_read_between_them
     assert timeline.at(2_000_000) == (pytest.approx(10_000), 0.0)
 
 
-def test_a_heat_wait_is_a_step_at_its_line_not_spread_over_the_lines_before() -> None:
+def wait_after_ten_lines() -> Timeline:
+    """Ten lines of 0.3 s, a 50 s heat wait at line 11, nine more lines of 0.3 s."""
     timeline = Timeline()
     for line in range(1, 11):
         timeline.add(line, line * 0.3)
@@ -47,6 +48,11 @@ def test_a_heat_wait_is_a_step_at_its_line_not_spread_over_the_lines_before() ->
     for line in range(12, 21):
         timeline.add(line, 53.0 + (line - 11) * 0.3)
     timeline.finish()
+    return timeline
+
+
+def test_a_heat_wait_is_a_step_at_its_line_not_spread_over_the_lines_before() -> None:
+    timeline = wait_after_ten_lines()
     assert timeline.at(10) == (pytest.approx(3.0), 0.0)
     assert timeline.at(11) == (pytest.approx(53.0), 50.0)
     assert timeline.total_heating == 50.0
@@ -180,15 +186,7 @@ def test_the_time_until_a_line_is_the_plan_from_the_running_move_at_the_pace() -
 
 
 def test_a_heat_wait_before_a_line_counts_as_planned_not_at_the_pace() -> None:
-    timeline = Timeline()
-    for line in range(1, 11):
-        timeline.add(line, line * 0.3)
-    timeline.heated(wait(11, 3.0, 50.0))
-    timeline.add(11, 3.0 + 50.0)
-    for line in range(12, 21):
-        timeline.add(line, 53.0 + (line - 11) * 0.3)
-    timeline.finish()
-    following = TimeLeft(timeline, prior=2.0)
+    following = TimeLeft(wait_after_ten_lines(), prior=2.0)
     # From line 5 to the end of line 20: 4.2 s of moves at twice the plan, the 50 s wait.
     assert following.until(20, current=5) == pytest.approx(4.2 * 2 + 50)
     assert following.until(20, current=15) == pytest.approx(1.5 * 2)  # the wait is behind
