@@ -88,7 +88,7 @@ class Analyses:
         moves are not planned yet given its print time there)."""
         found = self.cached(path)
         if found is None or unplanned(found):
-            self.later(path)
+            self._enqueue(path)
         return found
 
     # --- making ----------------------------------------------------------------------
@@ -130,10 +130,7 @@ class Analyses:
 
     # --- the background --------------------------------------------------------------
 
-    def later(self, path: Path) -> None:
-        """``path`` read in the background: its summary into memory from the folder, or
-        made (and its print time worked out) when it has none (memory only: for the event
-        loop too; a queued job's estimate asks it)."""
+    def _enqueue(self, path: Path) -> None:
         with self._lock:
             if path in self._queued:
                 return
