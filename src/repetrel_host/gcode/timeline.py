@@ -283,29 +283,26 @@ class TimeLeft:
     ) -> float:
         seconds, heating = self.timeline.running(line, self.held)
         waiting, ahead = self.timeline.waits_at(line, seconds)
+        waiting_short = _heating_to(waiting, heaters) if waiting is not None else None
+        ahead_short = _heating_to(ahead, heaters) if ahead is not None else None
         # Maybe in a wait: the move that runs is at a wait's end (its line taken, lines after
         # it too), or the wait's line is next, and its heater is not reported there; then no
         # line taken since is no slow move.
         stalled = line == self._line and (
-            (waiting is not None and _heating_to(waiting, heaters) != 0.0)
-            or (
-                ahead is not None
-                and self.timeline.next_to(line, ahead)
-                and _heating_to(ahead, heaters) != 0.0
-            )
+            (waiting is not None and waiting_short != 0.0)
+            or (ahead is not None and ahead_short != 0.0 and self.timeline.next_to(line, ahead))
         )
         self._line = line
-        if waiting is not None and _heating_to(waiting, heaters):  # still heating: in it
+        if waiting is not None and waiting_short:  # still heating: in it
             seconds, heating = waiting.starts, waiting.heating - waiting.seconds
-            ahead = waiting
+            ahead, ahead_short = waiting, waiting_short
             stalled = True
         self.observe(line, now, moving, waiting=stalled)
-        degrees = _heating_to(ahead, heaters) if ahead is not None else None
         heat_left = self.timeline.total_heating - heating
         moving_left = max(0.0, self.timeline.total - seconds - heat_left) * self.pace
-        if ahead is not None and degrees is not None:  # counted from the heater's report
+        if ahead is not None and ahead_short is not None:  # counted from the heater's report
             before = max(0.0, ahead.starts - seconds) * self.pace  # it heats during those
-            heat_left += max(0.0, degrees / ahead.rate - before) - ahead.seconds
+            heat_left += max(0.0, ahead_short / ahead.rate - before) - ahead.seconds
         return max(0.0, moving_left + heat_left)
 
 
