@@ -5,6 +5,7 @@ learned pace), when it should start and end, and when the printer should be free
 from __future__ import annotations
 
 import contextlib
+import json
 import sqlite3
 import time
 from collections.abc import Callable
@@ -133,3 +134,29 @@ def test_the_printers_learned_pace_scales_the_estimate_and_a_recovery_takes_the_
         assert recovered["id"] == again.json()["id"]
         assert not recovered["estimated_time_whole_file"]
         assert recovered["estimated_time"] == pytest.approx(whole, rel=0.1)  # half, twice
+
+
+@pytest.mark.timeout(60)
+def test_a_queued_jobs_file_planned_in_the_background_tells_its_printer_so_a_page_lists_it(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
+) -> None:
+    server = servers({"bench": bench().port})
+    with server.client() as client:
+        wait_for(lambda: client.get("/v1/printers/bench").json()["state"] == "ready")
+        assert client.post("/v1/printers/bench/hold").status_code == 204  # nothing starts
+        with client.stream("GET", "/v1/events", params={"printer": "bench"}) as stream:
+            lines = stream.iter_lines()
+            job = client.post("/v1/printers/bench/jobs", files={"file": ("a.gcode", gcode(3000))})
+            job_id = job.json()["id"]
+            # The first listing starts its planning; it has no estimate yet.
+            assert queued(client)[0]["estimated_time"] is None
+            told = 0
+            for line in lines:
+                if line.startswith("data: "):
+                    event = json.loads(line[len("data: ") :])
+                    if event["type"] == "job" and event["job"]["id"] == job_id:
+                        told += 1
+                        if told == 2:  # queued, then planned
+                            break
+        assert event["job"]["state"] == "queued"
+        assert queued(client)[0]["estimated_time"] > 0

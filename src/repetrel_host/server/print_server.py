@@ -17,7 +17,7 @@ from fastapi import HTTPException, Request
 from repetrel_host.config import UserConfig
 from repetrel_host.server.access import Access
 from repetrel_host.server.analyses import Analyses
-from repetrel_host.server.events import EventHub, FileChanged
+from repetrel_host.server.events import EventHub, FileChanged, JobChanged
 from repetrel_host.server.printers.config import PrinterConfig
 from repetrel_host.server.printers.service import PrinterService, Refused
 from repetrel_host.server.store import JobState, Store
@@ -119,12 +119,17 @@ class PrintServer:
 
     def _analysed(self, path: Path) -> None:
         """A file's analysis was made in the background (its thread): the faces are told, so
-        that a list shows its print time (OctoPrint's MetadataAnalysisFinished)."""
+        that a list shows its print time (OctoPrint's MetadataAnalysisFinished), and a
+        queue listing the estimate of each queued job that prints it."""
         if path.is_relative_to(self.files):
             where = path.relative_to(self.files).as_posix()
             self.events.publish_from_thread(
                 FileChanged("analysed", where, path.name, False, "analyse")
             )
+        for name in self.services:
+            for record in self.store.queued(name):
+                if self.data_dir / record.file == path:
+                    self.events.publish_from_thread(JobChanged(name, record))
 
     def close(self) -> None:
         self.store.close()
