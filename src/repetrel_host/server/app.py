@@ -35,6 +35,8 @@ from starlette.exceptions import HTTPException
 import repetrel_host as rh
 from repetrel_host.server import native
 from repetrel_host.server.auth import RequestGuard
+from repetrel_host.server.moonraker import MoonrakerFace
+from repetrel_host.server.moonraker import router as moonraker_router
 from repetrel_host.server.mqtt.bridge import MqttBridge, MqttSettings
 from repetrel_host.server.octoprint import appkeys, rest, sockjs
 from repetrel_host.server.octoprint.push import Push
@@ -60,10 +62,12 @@ def create_app(server: PrintServer, mqtt: MqttSettings | None = None) -> FastAPI
     """The app of ``server``: its APIs and page; with ``mqtt``, its bridge to that broker."""
     _long_part_headers()
     push = Push(server)
+    moonraker = MoonrakerFace(server)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         await server.start()
+        moonraker.start()
         bridge = None
         if mqtt is not None:
             bridge = asyncio.create_task(MqttBridge(server, mqtt).run(), name="mqtt")
@@ -75,12 +79,14 @@ def create_app(server: PrintServer, mqtt: MqttSettings | None = None) -> FastAPI
                 await asyncio.sleep(0.2)
                 bridge.cancel()
                 await asyncio.gather(bridge, return_exceptions=True)
+            await moonraker.stop()
             server.close()
             await push.stop()
             stop_workers()
 
     app = FastAPI(title="repetrel-host print server", version=rh.__version__, lifespan=lifespan)
     app.state.server = server
+    app.state.moonraker = moonraker
     app.add_middleware(RequestGuard, server=server)
     app.add_middleware(SingleSlashes)
 
@@ -131,6 +137,10 @@ def create_app(server: PrintServer, mqtt: MqttSettings | None = None) -> FastAPI
     sockets = sockjs.router(push)  # its own check of the printer: plain ASGI endpoints
     app.include_router(sockets)
     app.include_router(sockets, prefix="/printers/{printer}")
+    # Moonraker's face, the same way (its paths meet none of the others).
+    moonraker_routes = moonraker_router()
+    app.include_router(moonraker_routes)
+    app.include_router(moonraker_routes, prefix="/printers/{printer}")
     return app
 
 

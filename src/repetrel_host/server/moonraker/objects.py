@@ -1,0 +1,307 @@
+"""Klipper's printer objects, as Moonraker's clients read them, made from a printer of the
+server: its session (state, temperatures), its running or last job (progress, layers,
+filament) and its loadout (one ``extruder``, ``extruder1``... per heated head). The keys
+are Klipper's (its status reference); what a Hyrel host cannot know (the toolhead's live
+position, a fan's speed, a heater's power) has Klipper's idle value, and
+``docs/moonraker-clients.md`` says which."""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable, Iterable
+from typing import Any
+
+from repetrel_host.server.moonraker.host import meminfo
+from repetrel_host.server.printers.heaters import heaters
+from repetrel_host.server.printers.service import PrinterService
+from repetrel_host.server.store import JobState
+
+# The session's states as Klippy's: ready, startup, shutdown (what a lost link is to Klipper).
+_KLIPPY = {
+    "ready": "ready",
+    "printing": "ready",
+    "paused": "ready",
+    "connecting": "startup",
+    "disconnected": "shutdown",
+    "closed": "shutdown",
+}
+# How the server's ended jobs are to print_stats.
+_ENDED = {
+    JobState.COMPLETED: "complete",
+    JobState.CANCELLED: "cancelled",
+    JobState.FAILED: "error",
+    JobState.INTERRUPTED: "error",
+}
+_ZEROS = [0.0, 0.0, 0.0, 0.0]
+
+
+def klippy_state(service: PrinterService) -> str:
+    """``ready``, ``startup`` (connecting) or ``shutdown`` (the controller's link is lost
+    or closed)."""
+    return _KLIPPY.get(service.state, "shutdown")
+
+
+def state_message(service: PrinterService) -> str:
+    """Klippy's ``state_message``: why the printer is not ready, in our words."""
+    state = klippy_state(service)
+    if state == "ready":
+        return "Printer is ready"
+    if state == "startup":
+        return f"Printer {service.name} is connecting on {service.port}"
+    reason = service.state_reason or service.last_error
+    if service.state == "closed":
+        return f"The port of printer {service.name} is closed: FIRMWARE_RESTART opens it"
+    return reason or f"Printer {service.name} is not connected ({service.port})"
+
+
+def heater_names(service: PrinterService) -> dict[str, str]:
+    """The printer's heaters by Klipper's names (``extruder``, ``extruder1``...,
+    ``heater_bed``, ``heater_generic chamber``): the session's sensor of each."""
+    names: dict[str, str] = {}
+    for heater in heaters(service):
+        kind = heater["kind"]
+        if kind == "head":
+            tool = heater["tool"]
+            names[f"extruder{tool or ''}"] = heater["sensor"]
+        elif kind == "bed":
+            names["heater_bed"] = heater["sensor"]
+        else:
+            names["heater_generic chamber"] = heater["sensor"]
+    names.setdefault("extruder", "T0")  # Klipper always has one; clients read it
+    return names
+
+
+def _shown_state(service: PrinterService) -> str:
+    if service.running is not None or service.state in ("printing", "paused"):
+        if service.state == "paused" or service.phase == "pausing":
+            return "paused"
+        return "printing"
+    if service.finished is not None and service.finished_state is not None:
+        return _ENDED.get(service.finished_state, "standby")
+    return "standby"
+
+
+def _location(service: PrinterService, file: str) -> str:
+    """A job's file as Moonraker names it: its path below the gcodes root."""
+    return file.removeprefix("files/")
+
+
+class Objects:
+    """The objects of one printer: each a function of it, queried by name."""
+
+    def __init__(self, service: PrinterService) -> None:
+        self.service = service
+        self.makers: dict[str, Callable[[], dict[str, Any]]] = {
+            "webhooks": self.webhooks,
+            "print_stats": self.print_stats,
+            "virtual_sdcard": self.virtual_sdcard,
+            "display_status": self.display_status,
+            "pause_resume": self.pause_resume,
+            "idle_timeout": self.idle_timeout,
+            "toolhead": self.toolhead,
+            "gcode_move": self.gcode_move,
+            "motion_report": self.motion_report,
+            "fan": self.fan,
+            "heaters": self.heaters,
+            "configfile": self.configfile,
+            "system_stats": self.system_stats,
+        }
+
+    def names(self) -> list[str]:
+        """Every object's name, the heaters' as the loadout and reports have them."""
+        return [*self.makers, *heater_names(self.service)]
+
+    def status(self, wanted: dict[str, list[str] | None]) -> dict[str, dict[str, Any]]:
+        """The objects ``wanted`` (name: its fields, or None for all); unknown objects and
+        fields are left out, as Klipper does."""
+        heated = heater_names(self.service)
+        readings = self._readings()
+        found: dict[str, dict[str, Any]] = {}
+        for name, fields in wanted.items():
+            if name in self.makers:
+                values = self.makers[name]()
+            elif name in heated:
+                values = self._heater(name, heated[name], readings)
+            else:
+                continue
+            found[name] = values if fields is None else pick(values, fields)
+        return found
+
+    # --- the objects ----------------------------------------------------------------
+
+    def webhooks(self) -> dict[str, Any]:
+        service = self.service
+        return {"state": klippy_state(service), "state_message": state_message(service)}
+
+    def print_stats(self) -> dict[str, Any]:
+        service = self.service
+        shown = service.running or service.finished
+        stats: dict[str, Any] = {
+            "filename": "",
+            "total_duration": 0.0,
+            "print_duration": 0.0,
+            "filament_used": 0.0,
+            "state": _shown_state(service),
+            "message": service.last_error if _shown_state(service) == "error" else "",
+            "info": {"total_layer": None, "current_layer": None},
+        }
+        if shown is None:
+            return stats
+        record = shown.record
+        started = record.started or time.time()
+        ended = service.finished_at if service.running is None else None
+        duration = max((ended or time.time()) - started, 0.0)
+        used = 0.0
+        if shown.summary is not None and shown.summary.filament:
+            whole = sum(tool.length for tool in shown.summary.filament.values())
+            done = service.finished_state is JobState.COMPLETED and service.running is None
+            used = whole * (1.0 if done else shown.fraction)
+        layers = len(shown.layers)
+        stats.update(
+            filename=_location(service, record.file),
+            total_duration=round(duration, 3),
+            print_duration=round(duration, 3),
+            filament_used=round(used, 2),
+            info={
+                "total_layer": layers or None,
+                "current_layer": min(shown.layer, layers) if layers else None,
+            },
+        )
+        if record.error and stats["state"] == "error":
+            stats["message"] = record.error
+        return stats
+
+    def virtual_sdcard(self) -> dict[str, Any]:
+        service = self.service
+        shown = service.running or service.finished
+        if shown is None:
+            return {
+                "file_path": None,
+                "progress": 0.0,
+                "is_active": False,
+                "file_position": 0,
+                "file_size": 0,
+            }
+        done = service.running is None and service.finished_state is JobState.COMPLETED
+        return {
+            "file_path": str(service.data_dir / shown.record.file),
+            "progress": round(1.0 if done else shown.fraction, 4),
+            "is_active": service.running is not None and service.state == "printing",
+            "file_position": shown.job.size if done else shown.job.offset,
+            "file_size": shown.job.size,
+        }
+
+    def display_status(self) -> dict[str, Any]:
+        return {"message": None, "progress": self.virtual_sdcard()["progress"]}
+
+    def pause_resume(self) -> dict[str, Any]:
+        return {"is_paused": _shown_state(self.service) == "paused"}
+
+    def idle_timeout(self) -> dict[str, Any]:
+        service = self.service
+        printing = service.running is not None
+        since = service.running.record.started if service.running is not None else None
+        return {
+            "state": "Printing" if printing else "Ready" if service.state == "ready" else "Idle",
+            "printing_time": round(time.time() - since, 1) if since else 0.0,
+        }
+
+    def toolhead(self) -> dict[str, Any]:
+        return {
+            "homed_axes": "",
+            "axis_minimum": _ZEROS,
+            "axis_maximum": _ZEROS,
+            "print_time": 0.0,
+            "stalls": 0,
+            "estimated_print_time": 0.0,
+            "extruder": "extruder",
+            "position": _ZEROS,
+            "max_velocity": 0.0,
+            "max_accel": 0.0,
+            "minimum_cruise_ratio": 0.5,
+            "square_corner_velocity": 5.0,
+        }
+
+    def gcode_move(self) -> dict[str, Any]:
+        return {
+            "speed_factor": 1.0,
+            "speed": 0.0,
+            "extrude_factor": 1.0,
+            "absolute_coordinates": True,
+            "absolute_extrude": True,
+            "homing_origin": _ZEROS,
+            "position": _ZEROS,
+            "gcode_position": _ZEROS,
+        }
+
+    def motion_report(self) -> dict[str, Any]:
+        return {
+            "live_position": _ZEROS,
+            "live_velocity": 0.0,
+            "live_extruder_velocity": 0.0,
+            "steppers": [],
+            "trapq": [],
+        }
+
+    def fan(self) -> dict[str, Any]:
+        return {"speed": 0.0, "rpm": None}
+
+    def heaters(self) -> dict[str, Any]:
+        names = list(heater_names(self.service))
+        return {"available_heaters": names, "available_sensors": names, "available_monitors": []}
+
+    def configfile(self) -> dict[str, Any]:
+        """What a client reads of the machine: the heaters as sections, the kinematics,
+        where the files are (as text, Klipper's ``config``, and parsed, its ``settings``)."""
+        service = self.service
+        sections: dict[str, dict[str, Any]] = {
+            "printer": {"kinematics": "cartesian"},
+            "virtual_sdcard": {"path": str(service.data_dir / "files")},
+            "pause_resume": {},
+            "display_status": {},
+        }
+        for name in heater_names(service):
+            sections[name] = {}
+        return {
+            "config": {name: {k: str(v) for k, v in s.items()} for name, s in sections.items()},
+            "settings": sections,
+            "warnings": [],
+            "save_config_pending": False,
+            "save_config_pending_items": {},
+        }
+
+    def system_stats(self) -> dict[str, Any]:
+        load = os.getloadavg()[0] if hasattr(os, "getloadavg") else 0.0
+        return {
+            "sysload": round(load, 2),
+            "cputime": round(time.process_time(), 3),
+            "memavail": meminfo("MemAvailable"),
+        }
+
+    # --- heaters --------------------------------------------------------------------
+
+    def _readings(self) -> dict[str, tuple[float, float | None]]:
+        printer = self.service.printer
+        return dict(printer.temperatures) if printer is not None else {}
+
+    def _heater(
+        self, name: str, sensor: str, readings: dict[str, tuple[float, float | None]]
+    ) -> dict[str, Any]:
+        reading = readings.get(sensor)
+        if reading is None and sensor == "T0":
+            reading = readings.get("T")  # a single hotend reported as T
+        actual, target = reading if reading is not None else (0.0, 0.0)
+        values: dict[str, Any] = {
+            "temperature": round(actual, 2),
+            "target": float(target or 0.0),
+            "power": 0.0,
+        }
+        if name.startswith("extruder"):
+            values.update(can_extrude=True, pressure_advance=0.0, smooth_time=0.04)
+        return values
+
+
+def pick(values: dict[str, Any], fields: Iterable[str]) -> dict[str, Any]:
+    """The ``fields`` of ``values`` that it has."""
+    return {field: values[field] for field in fields if field in values}

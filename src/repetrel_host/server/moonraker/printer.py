@@ -1,0 +1,256 @@
+"""Moonraker's ``printer.*`` methods: the printer's info, its objects (listed, queried,
+subscribed), G-code from a console (Klipper's own commands a client sends, such as
+``PAUSE`` or ``SET_HEATER_TEMPERATURE``, done as the server does them), a print started,
+paused, resumed and cancelled by the same paths as every other face, the emergency stop and
+a reconnect for Klipper's restarts."""
+
+from __future__ import annotations
+
+import asyncio
+import re
+import shlex
+import socket
+from typing import Any
+
+import repetrel_host as rh
+from repetrel_host.server import jobs, uploads
+from repetrel_host.server.moonraker.objects import heater_names, klippy_state, state_message
+from repetrel_host.server.moonraker.rpc import Call, RpcError, method
+from repetrel_host.server.printers.heaters import heaters
+from repetrel_host.server.printers.service import PrinterService, Refused
+
+# Klipper's G-code help for the commands the face takes itself; any other line goes to the
+# controller as it is.
+KLIPPER_COMMANDS = {
+    "PAUSE": "Pauses the current print (the job's safe pause)",
+    "RESUME": "Resumes the print from a pause",
+    "CANCEL_PRINT": "Cancel the current print (its safe stop first)",
+    "SDCARD_PRINT_FILE": "Queues and starts a stored file: FILENAME=",
+    "SET_HEATER_TEMPERATURE": "Sets a heater's target: HEATER= TARGET=",
+    "TURN_OFF_HEATERS": "Turn off all heaters",
+    "FIRMWARE_RESTART": "Reconnect to the controller",
+    "RESTART": "Reconnect to the controller",
+    "M112": "Emergency stop",
+}
+
+
+@method("/printer/info")
+async def info(call: Call) -> dict[str, Any]:
+    service = call.service
+    return {
+        "state": klippy_state(service),
+        "state_message": state_message(service),
+        "hostname": socket.gethostname(),
+        "software_version": f"repetrel-host {rh.__version__}",
+        "cpu_info": "",
+        "klipper_path": "",
+        "python_path": "",
+        "log_file": "",
+        "config_file": "",
+        "process_id": 0,
+        "user_id": 0,
+        "group_id": 0,
+    }
+
+
+@method("/printer/objects/list")
+async def objects_list(call: Call) -> dict[str, Any]:
+    return {"objects": call.face.objects[call.service.name].names()}
+
+
+def _wanted(call: Call) -> dict[str, list[str] | None]:
+    """The objects asked for: ``{"objects": {name: fields or null}}``, or over HTTP's
+    query ``?toolhead&extruder=target,temperature``."""
+    objects = call.args.get("objects")
+    if objects is None:  # GET /printer/objects/query?toolhead&extruder=target
+        objects = {k: (v.split(",") if v else None) for k, v in call.args.items()}
+    if not isinstance(objects, dict):
+        raise RpcError(400, "Invalid argument objects: an object of names is needed")
+    wanted: dict[str, list[str] | None] = {}
+    for name, fields in objects.items():
+        if isinstance(fields, str):
+            fields = fields.split(",") if fields else None
+        if fields is not None and not isinstance(fields, list):
+            raise RpcError(400, f"Invalid fields for object {name}")
+        wanted[str(name)] = fields
+    return wanted
+
+
+@method("/printer/objects/query", "GET", "POST")
+async def objects_query(call: Call) -> dict[str, Any]:
+    status = call.face.objects[call.service.name].status(_wanted(call))
+    return {"eventtime": _eventtime(), "status": status}
+
+
+@method("/printer/objects/subscribe", "POST", http=False)
+async def objects_subscribe(call: Call) -> dict[str, Any]:
+    if call.connection is None:
+        raise RpcError(400, "a subscription needs the websocket")
+    return {"eventtime": _eventtime(), "status": call.connection.subscribe(_wanted(call))}
+
+
+@method("/printer/gcode/script", "POST")
+async def gcode_script(call: Call) -> str:
+    script = call.string("script")
+    for line in script.splitlines():
+        if line.strip():
+            await run_line(call, line.strip())
+    return "ok"
+
+
+@method("/printer/gcode/help", "GET", "POST")
+async def gcode_help(call: Call) -> dict[str, str]:
+    return dict(KLIPPER_COMMANDS)
+
+
+@method("/printer/print/start", "POST")
+async def print_start(call: Call) -> str:
+    await start_print(call, call.string("filename"))
+    return "ok"
+
+
+@method("/printer/print/pause", "POST")
+async def print_pause(call: Call) -> str:
+    await _control(call.service, "pause")
+    return "ok"
+
+
+@method("/printer/print/resume", "POST")
+async def print_resume(call: Call) -> str:
+    await _control(call.service, "resume")
+    return "ok"
+
+
+@method("/printer/print/cancel", "POST")
+async def print_cancel(call: Call) -> str:
+    await _control(call.service, "cancel")
+    return "ok"
+
+
+@method("/printer/emergency_stop", "POST")
+async def emergency_stop(call: Call) -> str:
+    await call.service.command("M112")
+    return "ok"
+
+
+@method("/printer/restart", "POST")
+@method("/printer/firmware_restart", "POST")
+async def restart(call: Call) -> str:
+    await reconnect(call.service)
+    return "ok"
+
+
+# --- what the methods share ------------------------------------------------------------
+
+
+async def start_print(call: Call, filename: str) -> None:
+    """Klipper's print start: the stored file queued and started now, as OctoPrint's face
+    starts one (refused when the printer is busy, held or the file fails its check)."""
+    service, server = call.service, call.server
+    if service.running is not None or service.state in ("printing", "paused"):
+        raise RpcError(400, "Printer is busy: cancel the job running first")
+    if service.held:
+        raise RpcError(
+            400, f"printer {service.name}'s queue is held: release it (the part on the bed)"
+        )
+    try:
+        path = uploads.uploaded(server, filename)
+    except Exception:
+        raise RpcError(400, f"File not found: {filename}") from None
+    findings, commands = await asyncio.to_thread(uploads.check, server, service.name, path)
+    errors = [f for f in findings if f.startswith("error")]
+    if errors:
+        raise RpcError(400, f"{path.name}: refused ({len(errors)} errors): {errors[0]}")
+    record = jobs.queue(server, service.name, path, commands, call.user)
+    # First in the queue: it is the print asked for now.
+    first = server.store.next_queued(service.name)
+    if first is not None and first.id != record.id:
+        server.store.move(record.id, first.id)
+
+
+async def _control(service: PrinterService, action: str) -> None:
+    try:
+        await service.control(action)
+    except Refused as exc:
+        raise RpcError(400, str(exc)) from None
+
+
+async def reconnect(service: PrinterService) -> None:
+    """Klipper's restarts: the port closed and opened again (refused while a job runs:
+    its safe stop needs the port)."""
+    await service.disconnect()
+    service.connect()
+
+
+_WORD = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+
+
+async def run_line(call: Call, line: str) -> None:
+    """One console line: Klipper's commands done here, any other G-code sent to the
+    controller, its reply lines told as responses."""
+    face, service = call.face, call.service
+    face.gcode_command(service.name, line)
+    found = _WORD.match(line)
+    word = found.group(0).upper() if found else ""
+    params = _params(line[len(word) :]) if word in KLIPPER_COMMANDS else {}
+    if word == "PAUSE":
+        await _control(service, "pause")
+    elif word == "RESUME":
+        await _control(service, "resume")
+    elif word == "CANCEL_PRINT":
+        await _control(service, "cancel")
+    elif word == "SDCARD_PRINT_FILE":
+        await start_print(call, params.get("FILENAME", ""))
+    elif word in ("FIRMWARE_RESTART", "RESTART"):
+        await reconnect(service)
+    elif word == "SET_HEATER_TEMPERATURE":
+        await _set_heater(call, params.get("HEATER", ""), params.get("TARGET", "0"))
+    elif word == "TURN_OFF_HEATERS":
+        for heater in heaters(service):
+            await _send(call, heater["command"].format(target=0))
+    else:
+        await _send(call, line)
+
+
+async def _send(call: Call, line: str) -> None:
+    try:
+        reply = await call.service.command(line)
+    except Refused as exc:
+        call.face.gcode_response(call.service.name, f"!! {exc}")
+        raise RpcError(400, str(exc)) from None
+    for said in reply.lines:
+        call.face.gcode_response(call.service.name, said)
+    if reply.ok_line:
+        call.face.gcode_response(call.service.name, reply.ok_line)
+
+
+async def _set_heater(call: Call, name: str, target: str) -> None:
+    """SET_HEATER_TEMPERATURE: the heater's own command (a Hyrel head by its address)."""
+    sensor = heater_names(call.service).get(name.strip().strip('"'))
+    command = next((h["command"] for h in heaters(call.service) if h["sensor"] == sensor), None)
+    if command is None and sensor == "T0":
+        command = "M104 S{target}"  # one hotend, before any report named it
+    if command is None:
+        raise RpcError(400, f"Unknown heater {name!r}")
+    try:
+        degrees = float(target)
+    except ValueError:
+        raise RpcError(400, f"Invalid TARGET {target!r}") from None
+    await _send(call, command.format(target=f"{degrees:g}"))
+
+
+def _params(text: str) -> dict[str, str]:
+    """Klipper's ``NAME=value`` parameters (values may be quoted)."""
+    found: dict[str, str] = {}
+    try:
+        words = shlex.split(text)
+    except ValueError:
+        words = text.split()
+    for word in words:
+        key, _, value = word.partition("=")
+        found[key.upper()] = value
+    return found
+
+
+def _eventtime() -> float:
+    return round(asyncio.get_running_loop().time(), 3)

@@ -1,0 +1,179 @@
+"""Moonraker's methods, one table for both transports: a method is named by its HTTP path
+("/printer/info" is ``printer.info``; where one path takes several verbs, the last part
+takes the verb, as ``server.database.get_item``), and its handler takes a :class:`Call`
+and gives the result. Errors are :class:`RpcError` with Moonraker's HTTP status; the
+websocket says them with JSON-RPC's codes (404 is -32601, "Method not found")."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from fastapi import HTTPException
+
+from repetrel_host.server.moonraker.face import Subscriber, MoonrakerFace
+from repetrel_host.server.print_server import PrintServer
+from repetrel_host.server.printers.service import PrinterService, Refused
+
+# Arguments a client adds for its own ends (a token, its connection, a cache breaker).
+EXCLUDED = frozenset({"token", "access_token", "connection_id", "_"})
+
+
+class RpcError(Exception):
+    """A refused call: ``status`` as Moonraker answers it over HTTP (400, 401, 404...)."""
+
+    def __init__(self, status: int, message: str) -> None:
+        super().__init__(message)
+        self.status = status
+        self.message = message
+
+    @property
+    def code(self) -> int:
+        """The JSON-RPC error code (Moonraker's: 404 is "method not found", 401 -32602)."""
+        return {404: -32601, 401: -32602}.get(self.status, self.status)
+
+
+@dataclass
+class Call:
+    """One call of a method: who made it, for which printer, with which arguments."""
+
+    face: MoonrakerFace
+    service: PrinterService
+    user: str | None
+    args: dict[str, Any]
+    connection: Subscriber | None = None  # the websocket's, None over HTTP
+    base_url: str = ""  # where the client reached us (for a Location header)
+
+    @property
+    def server(self) -> PrintServer:
+        return self.face.server
+
+    def get(self, name: str, default: Any = None) -> Any:
+        """The argument ``name``, else ``default``."""
+        return self.args.get(name, default)
+
+    def required(self, name: str) -> Any:
+        """The argument ``name``; 400 "No data for argument: name" when it is missing."""
+        if name not in self.args or self.args[name] is None:
+            raise RpcError(400, f"No data for argument: {name}")
+        return self.args[name]
+
+    def string(self, name: str, default: str | None = None) -> str:
+        value = self.required(name) if default is None else self.args.get(name, default)
+        if not isinstance(value, str):
+            raise RpcError(400, f"Invalid value for argument {name}: {value!r} is not a string")
+        return value
+
+    def integer(self, name: str, default: int) -> int:
+        value = self.args.get(name, default)
+        try:
+            return int(value)
+        except (TypeError, ValueError):
+            raise RpcError(400, f"Invalid value for argument {name}: {value!r}") from None
+
+    def number(self, name: str, default: float) -> float:
+        value = self.args.get(name, default)
+        try:
+            return float(value)
+        except (TypeError, ValueError):
+            raise RpcError(400, f"Invalid value for argument {name}: {value!r}") from None
+
+    def flag(self, name: str, default: bool = False) -> bool:
+        value = self.args.get(name, default)
+        if isinstance(value, bool):
+            return value
+        if isinstance(value, str) and value.lower() in ("true", "false", "1", "0"):
+            return value.lower() in ("true", "1")
+        if isinstance(value, int):
+            return bool(value)
+        raise RpcError(400, f"Invalid value for argument {name}: {value!r} is not a boolean")
+
+
+Handler = Callable[[Call], Awaitable[Any]]
+
+
+@dataclass(frozen=True)
+class Method:
+    name: str
+    path: str
+    verb: str
+    handler: Handler
+    websocket: bool = True  # an upload is HTTP's only
+    http: bool = True  # a subscription is the websocket's only
+
+
+@dataclass
+class Table:
+    """Every method, by its JSON-RPC name and by its HTTP path and verb."""
+
+    by_name: dict[str, Method] = field(default_factory=dict)
+    by_route: dict[tuple[str, str], Method] = field(default_factory=dict)
+
+    def add(
+        self,
+        path: str,
+        *verbs: str,
+        name: str | None = None,
+        websocket: bool = True,
+        http: bool = True,
+    ) -> Callable[[Handler], Handler]:
+        """A handler for ``path`` with ``verbs`` (GET when none): named from the path, or
+        ``name``."""
+
+        def register(handler: Handler) -> Handler:
+            for verb in verbs or ("GET",):
+                called = name or path.strip("/").replace("/", ".")
+                method = Method(called, path, verb, handler, websocket, http)
+                if websocket:
+                    self.by_name.setdefault(called, method)
+                if http:
+                    self.by_route[(path, verb)] = method
+            return handler
+
+        return register
+
+    def paths(self) -> set[str]:
+        return {path for path, _ in self.by_route}
+
+
+METHODS = Table()
+method = METHODS.add
+
+
+async def call(method: Method, call: Call) -> Any:
+    """``method`` run for ``call``: the printer's refusals and the API's errors as
+    :class:`RpcError`."""
+    args = {k: v for k, v in call.args.items() if k not in EXCLUDED}
+    call.args = args
+    try:
+        return await method.handler(call)
+    except Refused as exc:
+        raise RpcError(exc.status, str(exc)) from None
+    except HTTPException as exc:  # a helper shared with the other faces
+        detail = exc.detail
+        text = detail.get("error", detail) if isinstance(detail, dict) else detail
+        raise RpcError(exc.status_code, str(text)) from None
+
+
+def query_args(items: list[tuple[str, str]]) -> dict[str, Any]:
+    """A query string's arguments, with Moonraker's type hints (``limit:int=5``,
+    ``print:bool=true``, ``value:json=...``)."""
+    args: dict[str, Any] = {}
+    for key, value in items:
+        name, _, hint = key.partition(":")
+        try:
+            if hint == "int":
+                args[name] = int(value)
+            elif hint == "float":
+                args[name] = float(value)
+            elif hint == "bool":
+                args[name] = value.lower() in ("true", "1")
+            elif hint == "json":
+                args[name] = json.loads(value)
+            else:
+                args[name] = value
+        except ValueError:
+            raise RpcError(400, f"Invalid value for argument {name}: {value!r}") from None
+    return args

@@ -1,0 +1,308 @@
+"""Moonraker's transports: its methods over HTTP (``/printer/...``, ``/server/...``,
+``/machine/...``, ``/access/...``, answered as ``{"result": ...}``) and over JSON-RPC 2.0 at
+``/websocket`` (batches, notifications, the subscription's changes), for the first printer
+at the root and for each at ``/printers/NAME/...``.
+
+Model: Moonraker 0.11 (``moonraker/common.py``'s ``APIDefinition``, ``application.py``'s
+``DynamicRequestHandler`` and ``websockets.py``)."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import time
+from typing import Any
+from urllib.parse import parse_qsl
+
+from fastapi import APIRouter, Request, WebSocket, WebSocketDisconnect
+from fastapi.responses import JSONResponse, Response
+from starlette.datastructures import UploadFile
+
+from repetrel_host.server.auth import identify
+from repetrel_host.server.events import PrinterState, ServerEvent
+from repetrel_host.server.moonraker import rpc
+from repetrel_host.server.moonraker.face import MoonrakerFace, proc_stats
+from repetrel_host.server.moonraker.objects import klippy_state
+from repetrel_host.server.printers.service import PrinterService
+
+log = logging.getLogger("repetrel_host.server.moonraker")
+
+AREAS = ("printer", "server", "machine", "access")
+STATUS_EVERY = 0.25  # s: a subscription's changes go out at most this often
+PROC_STAT_EVERY = 1.0  # s: Moonraker's; Mainsail drops a socket silent for 10 s
+
+
+def _query(scope: Any) -> list[tuple[str, str]]:
+    return parse_qsl(scope.get("query_string", b"").decode("latin-1"), keep_blank_values=True)
+
+
+def _service(face: MoonrakerFace, printer: str | None) -> PrinterService:
+    service = face.server.services.get(printer or face.server.default)
+    if service is None:
+        raise rpc.RpcError(404, f"no printer '{printer}'")
+    return service
+
+
+def who(face: MoonrakerFace, scope: Any) -> tuple[bool, str | None]:
+    """(whether the request may use the API, who made it): the server's keys (header,
+    ``Authorization: Bearer``), a one-shot ``?token=``; an unknown token is ignored,
+    as Moonraker does (KlipperScreen sends ``token=False``)."""
+    user, _ = identify(face.server, scope)
+    if user is not None:
+        return True, user
+    for key, value in _query(scope):
+        if key == "token":
+            valid, owner = face.redeem(value)
+            if valid:
+                return True, owner
+    return face.server.access.public_read and scope.get("method", "GET") == "GET", None
+
+
+def face_of(request: Request | WebSocket) -> MoonrakerFace:
+    face: MoonrakerFace = request.app.state.moonraker
+    return face
+
+
+def error_body(status: int, message: str) -> JSONResponse:
+    return JSONResponse({"error": {"code": status, "message": message, "traceback": ""}}, status)
+
+
+# --- HTTP ----------------------------------------------------------------------------------
+
+
+def router() -> APIRouter:
+    """Moonraker's HTTP paths and ``/websocket``."""
+    router = APIRouter(include_in_schema=False)
+    for area in AREAS:
+        router.add_api_route(
+            f"/{area}/{{rest:path}}", _http, methods=["GET", "POST", "DELETE"], name=area
+        )
+    router.add_api_websocket_route("/websocket", _websocket)
+    return router
+
+
+async def _http(request: Request, rest: str) -> Response:
+    face = face_of(request)
+    allowed, user = who(face, request.scope)
+    if not allowed:
+        return error_body(401, "Unauthorized")
+    path = request.url.path
+    if "printer" in request.path_params:  # /printers/NAME/server/info
+        path = "/" + path.split("/", 3)[3]
+    verb = request.method
+    found = rpc.METHODS.by_route.get((path, verb))
+    if found is None:
+        known = any(p == path for p, _ in rpc.METHODS.by_route)
+        return error_body(405, "Method Not Allowed") if known else error_body(404, "Not Found")
+    try:
+        args = rpc.query_args(_query(request.scope))
+        args.update(await _body(request))
+        service = _service(face, request.path_params.get("printer"))
+        call = rpc.Call(face, service, user, args, base_url=str(request.base_url))
+        result = await rpc.call(found, call)
+    except rpc.RpcError as exc:
+        return error_body(exc.status, exc.message)
+    if isinstance(result, Response):
+        return result  # an upload's 201, a file's bytes
+    return JSONResponse({"result": result})
+
+
+async def _body(request: Request) -> dict[str, Any]:
+    """The arguments in a body: a JSON object, or a form's fields (its files too)."""
+    kind = request.headers.get("content-type", "")
+    if kind.startswith("application/json"):
+        try:
+            body = await request.json()
+        except ValueError:
+            raise rpc.RpcError(400, "the body is not JSON") from None
+        if not isinstance(body, dict):
+            raise rpc.RpcError(400, "the body is not a JSON object")
+        return body
+    if kind.startswith(("multipart/form-data", "application/x-www-form-urlencoded")):
+        form = await request.form()
+        return {k: v for k, v in form.multi_items() if isinstance(v, (str, UploadFile))}
+    return {}
+
+
+# --- the websocket -------------------------------------------------------------------------
+
+
+async def _websocket(websocket: WebSocket) -> None:
+    face = face_of(websocket)
+    allowed, user = who(face, websocket.scope)
+    if not allowed:
+        await websocket.send_denial_response(error_body(401, "Unauthorized"))
+        return
+    try:
+        service = _service(face, websocket.path_params.get("printer"))
+    except rpc.RpcError as exc:
+        await websocket.send_denial_response(error_body(404, exc.message))
+        return
+    await websocket.accept()
+    connection = Connection(face, websocket, service, user)
+    await connection.run()
+
+
+class Connection:
+    """One websocket: its requests (each in its own task: a heat wait's G-code does not
+    hold up the rest), its subscription, and what it was sent of it."""
+
+    def __init__(
+        self, face: MoonrakerFace, websocket: WebSocket, service: PrinterService, user: str | None
+    ) -> None:
+        self.face = face
+        self.websocket = websocket
+        self.service = service
+        self.printer = service.name
+        self.user = user
+        self.id = id(self)
+        self.client: dict[str, Any] = {}  # what server.connection.identify said
+        self.subscribed: dict[str, list[str] | None] = {}
+        self.sent: dict[str, dict[str, Any]] = {}  # the subscribed objects, as last sent
+        self.klippy = klippy_state(service)
+        self._outbox: asyncio.Queue[str | None] = asyncio.Queue()
+        self._changed = asyncio.Event()
+        self._tasks: set[asyncio.Task[None]] = set()
+
+    async def run(self) -> None:
+        face = self.face
+        face.connections[self.id] = self
+        writer = asyncio.create_task(self._write())
+        ticker = asyncio.create_task(self._tick())
+        try:
+            while True:
+                text = await self.websocket.receive_text()
+                task = asyncio.create_task(self._answer(text))
+                self._tasks.add(task)
+                task.add_done_callback(self._tasks.discard)
+        except (WebSocketDisconnect, RuntimeError):
+            pass
+        finally:
+            face.connections.pop(self.id, None)
+            for task in (writer, ticker, *self._tasks):
+                task.cancel()
+            await asyncio.gather(writer, ticker, *self._tasks, return_exceptions=True)
+
+    async def close(self) -> None:
+        with contextlib.suppress(Exception):
+            await self.websocket.close(1001)
+
+    # --- requests --------------------------------------------------------------------
+
+    async def _answer(self, text: str) -> None:
+        try:
+            request = json.loads(text)
+        except ValueError:
+            self._put(_error(None, -32700, "Parse error"))
+            return
+        if isinstance(request, list):
+            answers = [await self._one(r) for r in request]
+            self._put([a for a in answers if a is not None])
+        else:
+            answer = await self._one(request)
+            if answer is not None:
+                self._put(answer)
+
+    async def _one(self, request: Any) -> dict[str, Any] | None:
+        if not isinstance(request, dict) or request.get("jsonrpc") != "2.0":
+            return _error(None, -32600, "Invalid Request")
+        ident = request.get("id")
+        name = request.get("method")
+        params = request.get("params", {})
+        if not isinstance(name, str):
+            return _error(ident, -32600, "Invalid Request")
+        if not isinstance(params, dict):
+            return _error(ident, -32602, "Invalid params:")
+        found = rpc.METHODS.by_name.get(name)
+        if found is None:
+            return _error(ident, -32601, "Method not found") if "id" in request else None
+        call = rpc.Call(self.face, self.service, self.user, dict(params), self)
+        try:
+            result = await rpc.call(found, call)
+        except rpc.RpcError as exc:
+            return _error(ident, exc.code, exc.message)
+        except Exception as exc:  # a bug: said, and the socket goes on
+            log.exception("moonraker %s failed", name)
+            return _error(ident, 500, f"{type(exc).__name__}: {exc}")
+        if "id" not in request:
+            return None  # a notification from the client: no answer
+        return {"jsonrpc": "2.0", "result": result, "id": ident}
+
+    # --- subscriptions ----------------------------------------------------------------
+
+    def subscribe(self, wanted: dict[str, list[str] | None]) -> dict[str, Any]:
+        """The objects ``wanted`` from now on (replacing what was), as they are now."""
+        self.subscribed = dict(wanted)
+        status = self.face.objects[self.printer].status(self.subscribed)
+        self.sent = {name: dict(values) for name, values in status.items()}
+        return status
+
+    def heard(self, event: ServerEvent) -> None:
+        """A server event of this printer: the klippy notifications, then a status look."""
+        if isinstance(event, PrinterState):
+            state = klippy_state(self.service)
+            if state != self.klippy:
+                self.klippy = state
+                if state == "ready":
+                    self.send_later("notify_klippy_ready")
+                elif state == "shutdown":
+                    self.send_later("notify_klippy_shutdown")
+        self._changed.set()
+
+    def _changes(self) -> dict[str, dict[str, Any]]:
+        """What changed in the subscribed objects since they were last sent."""
+        if not self.subscribed:
+            return {}
+        status = self.face.objects[self.printer].status(self.subscribed)
+        changes: dict[str, dict[str, Any]] = {}
+        for name, values in status.items():
+            before = self.sent.setdefault(name, {})
+            changed = {k: v for k, v in values.items() if before.get(k, _NOTHING) != v}
+            if changed:
+                before.update(changed)
+                changes[name] = changed
+        return changes
+
+    async def _tick(self) -> None:
+        """Status changes at most every 0.25 s (sooner after an event), and Moonraker's
+        process statistics every second, which keep a client's heartbeat fed."""
+        next_stat = 0.0
+        while True:
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._changed.wait(), PROC_STAT_EVERY)
+            self._changed.clear()
+            changes = self._changes()
+            if changes:
+                self.send_later("notify_status_update", [changes, time.monotonic()])
+            now = time.monotonic()
+            if now >= next_stat:
+                next_stat = now + PROC_STAT_EVERY
+                self.send_later("notify_proc_stat_update", [proc_stats(self.face)])
+            await asyncio.sleep(STATUS_EVERY)
+
+    # --- sending ----------------------------------------------------------------------
+
+    def send_later(self, method: str, params: list[Any] | None = None) -> None:
+        message: dict[str, Any] = {"jsonrpc": "2.0", "method": method}
+        if params is not None:
+            message["params"] = params
+        self._put(message)
+
+    def _put(self, message: Any) -> None:
+        self._outbox.put_nowait(json.dumps(message))
+
+    async def _write(self) -> None:
+        while True:
+            text = await self._outbox.get()
+            if text is None:
+                return
+            await self.websocket.send_text(text)
+
+
+_NOTHING = object()
+
+
+def _error(ident: Any, code: int, message: str) -> dict[str, Any]:
+    return {"jsonrpc": "2.0", "error": {"code": code, "message": message}, "id": ident}
