@@ -68,7 +68,9 @@ def heater_names(service: PrinterService) -> dict[str, str]:
             names["heater_bed"] = heater["sensor"]
         else:
             names["heater_generic chamber"] = heater["sensor"]
-    names.setdefault("extruder", "T0")  # Klipper always has one; clients read it
+    # Klipper always has these, and clients read them: before a report names them too.
+    names.setdefault("extruder", "T0")
+    names.setdefault("heater_bed", "B")
     return names
 
 

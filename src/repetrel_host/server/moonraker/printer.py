@@ -228,8 +228,8 @@ async def _set_heater(call: Call, name: str, target: str) -> None:
     """SET_HEATER_TEMPERATURE: the heater's own command (a Hyrel head by its address)."""
     sensor = heater_names(call.service).get(name.strip().strip('"'))
     command = next((h["command"] for h in heaters(call.service) if h["sensor"] == sensor), None)
-    if command is None and sensor == "T0":
-        command = "M104 S{target}"  # one hotend, before any report named it
+    if command is None:  # before any report named it
+        command = {"T0": "M104 S{target}", "B": "M140 S{target}"}.get(sensor or "")
     if command is None:
         raise RpcError(400, f"Unknown heater {name!r}")
     try:

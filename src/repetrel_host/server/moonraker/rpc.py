@@ -13,7 +13,7 @@ from typing import Any
 
 from fastapi import HTTPException
 
-from repetrel_host.server.moonraker.face import Subscriber, MoonrakerFace
+from repetrel_host.server.moonraker.face import MoonrakerFace, Subscriber
 from repetrel_host.server.print_server import PrintServer
 from repetrel_host.server.printers.service import PrinterService, Refused
 

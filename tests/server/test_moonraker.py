@@ -1,0 +1,272 @@
+"""Moonraker's face, for real: a hyrel-server process with the fake controller on a pty,
+driven by clients other projects wrote (moonraker-api, Home Assistant's Moonraker library,
+over the websocket; klipperctl over HTTP): the key, the printer's objects and a subscription
+to them, G-code (Klipper's own commands too) read back from the fake, the buttons a web
+interface sends during a print, the link's state as Klippy's."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+from moonraker_api import MoonrakerClient, MoonrakerListener
+from moonraker_api.websockets.websocketclient import ClientNotAuthenticatedError
+
+from repetrel_host.fakes.fake_controller import BuiltInFake
+from tests.support.helpers import MARLIN_SAFE_STOP, executed
+from tests.support.server import KEY, Server, gcode, wait_for
+
+pytestmark = pytest.mark.timeout(90)
+
+
+class Heard(MoonrakerListener):
+    """What the server told the client: its notifications, in order."""
+
+    def __init__(self) -> None:
+        self.notifications: list[tuple[str, Any]] = []
+
+    async def state_changed(self, state: str) -> None:
+        pass
+
+    async def on_notification(self, method: str, data: Any) -> None:
+        self.notifications.append((method, data))
+
+    def statuses(self) -> list[dict[str, Any]]:
+        return [d[0] for m, d in self.notifications if m == "notify_status_update"]
+
+
+def client(server: Server, listener: MoonrakerListener, key: str = KEY) -> MoonrakerClient:
+    return MoonrakerClient(listener, "127.0.0.1", server.port, api_key=key)
+
+
+async def until(condition: Callable[[], Any], what: str, timeout: float = 15) -> Any:
+    for _ in range(int(timeout / 0.05)):
+        found = condition()
+        if found:
+            return found
+        await asyncio.sleep(0.05)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def targets(fake: BuiltInFake) -> dict[str, float]:
+    return {name: float(t) for name, (_, t) in fake.request("status")["temperatures"].items()}
+
+
+def klipperctl(server: Server, *args: str, key: str = KEY) -> Any:
+    done = subprocess.run(
+        [sys.executable, "-m", "klipperctl", "--url", server.url, "--api-key", key, *args],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert done.returncode == 0, done.stdout + done.stderr
+    return json.loads(done.stdout) if "--json" in args else done.stdout
+
+
+@pytest.fixture
+def printer(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
+) -> tuple[Server, BuiltInFake]:
+    fake = bench()
+    server = servers({"bench": fake.port})
+    with server.client() as http:
+        wait_for(lambda: http.get("/v1/printers/bench").json()["state"] == "ready")
+    return server, fake
+
+
+def test_home_assistants_library_connects_with_the_key_and_reads_the_printer(
+    printer: tuple[Server, BuiltInFake],
+) -> None:
+    server, _ = printer
+
+    async def run() -> None:
+        moonraker = client(server, Heard())
+        assert await moonraker.connect()
+        try:
+            assert await moonraker.get_klipper_status() == "ready"
+            info = await moonraker.get_server_info()
+            assert info["klippy_connected"] and not info["missing_klippy_requirements"]
+            assert (await moonraker.get_host_info())["hostname"]
+            objects = await moonraker.get_supported_modules()
+            for name in ("webhooks", "print_stats", "virtual_sdcard", "toolhead", "extruder"):
+                assert name in objects
+            unknown = await moonraker.call_method("printer.no_such_method")
+            assert unknown["error"]["code"] == -32601
+            missing = await moonraker.call_method("printer.gcode.script")
+            assert missing["error"]["message"] == "No data for argument: script"
+        finally:
+            await moonraker.disconnect()
+        with pytest.raises(ClientNotAuthenticatedError):
+            await client(server, Heard(), key="wrong").connect()
+
+    asyncio.run(run())
+
+
+def test_a_subscription_carries_only_what_changed_and_gcode_sets_the_fakes_heater(
+    printer: tuple[Server, BuiltInFake],
+) -> None:
+    server, fake = printer
+    heard = Heard()
+
+    async def run() -> None:
+        moonraker = client(server, heard)
+        assert await moonraker.connect()
+        try:
+            first = await moonraker.call_method(
+                "printer.objects.subscribe",
+                objects={"extruder": ["target", "temperature"], "print_stats": None},
+            )
+            assert first["status"]["extruder"]["target"] == 0
+            assert first["status"]["print_stats"]["state"] == "standby"
+            assert await moonraker.call_method("printer.gcode.script", script="M104 S120") == "ok"
+            update = await until(
+                lambda: next((s for s in heard.statuses() if "extruder" in s), None),
+                "the extruder's update",
+            )
+            assert update["extruder"]["target"] == 120
+            assert "print_stats" not in update  # nothing of it changed
+            # Klipper's own command for it, as klipperctl and the web interfaces send it.
+            said = await moonraker.call_method(
+                "printer.gcode.script", script="SET_HEATER_TEMPERATURE HEATER=extruder TARGET=95"
+            )
+            assert said == "ok"
+        finally:
+            await moonraker.disconnect()
+        # Every notification is JSON-RPC's, and the stats keep the socket fed.
+        assert any(m == "notify_proc_stat_update" for m, _ in heard.notifications)
+        assert ("notify_gcode_response", ["ok"]) in heard.notifications
+
+    asyncio.run(run())
+    assert targets(fake)["T"] == 95
+    with server.client() as http:
+        store = http.get("/server/gcode_store").json()["result"]["gcode_store"]
+    assert [e["message"] for e in store if e["type"] == "command"] == [
+        "M104 S120",
+        "SET_HEATER_TEMPERATURE HEATER=extruder TARGET=95",
+    ]
+
+
+def test_klipperctl_reads_the_printer_and_sets_a_temperature(
+    printer: tuple[Server, BuiltInFake],
+) -> None:
+    server, fake = printer
+    info = klipperctl(server, "--json", "server", "info")
+    assert info["klippy_state"] == "ready" and info["klippy_connected"] is True
+    assert klipperctl(server, "--json", "printer", "info")["state"] == "ready"
+    status = klipperctl(server, "status")
+    assert "ready" in status.lower()
+    klipperctl(server, "printer", "set-temp", "--hotend", "180", "--bed", "50")
+    assert targets(fake)["T"] == 180 and targets(fake)["B"] == 50
+    # As the controller's next temperature report tells it.
+    wait_for(
+        lambda: (
+            klipperctl(server, "--json", "printer", "query", "heater_bed")["heater_bed"]["target"]
+            == 50
+        ),
+        what="the bed's target in its object",
+    )
+
+
+@pytest.mark.parametrize(
+    "path",
+    [
+        "/printer/info",
+        "/server/info",
+        "/machine/system_info",
+        "/access/oneshot_token",
+        "/printers/bench/printer/objects/list",
+    ],
+)
+def test_a_wrong_key_or_none_is_refused_on_every_call(
+    printer: tuple[Server, BuiltInFake], path: str
+) -> None:
+    server, _ = printer
+    for headers in ({"X-Api-Key": "wrong"}, {}):
+        answer = httpx.get(server.url + path, headers=headers, params={"token": "False"})
+        assert answer.status_code == 401
+        assert answer.json() == {"error": {"code": 401, "message": "Unauthorized", "traceback": ""}}
+
+
+def test_a_refused_script_reaches_no_controller(printer: tuple[Server, BuiltInFake]) -> None:
+    server, fake = printer
+    answer = httpx.post(
+        f"{server.url}/printer/gcode/script",
+        json={"script": "M104 S222"},
+        headers={"X-Api-Key": "wrong"},
+    )
+    assert answer.status_code == 401
+    with server.client() as http:  # a command that is answered, after it
+        assert http.post("/printer/gcode/script", json={"script": "M105"}).status_code == 200
+    assert "M104 S222" not in executed(fake.log_path)
+    assert targets(fake)["T"] == 0
+
+
+def test_a_web_interfaces_pause_resume_and_cancel_buttons_during_a_print(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server], tmp_path: Path
+) -> None:
+    """Mainsail and Fluidd send PAUSE, RESUME and CANCEL_PRINT as G-code: the same safe
+    paths as the other faces, read back from print_stats and the fake's log."""
+    fake = bench("--move-time", "0.004")
+    server = servers({"bench": fake.port})
+    with server.client() as http:
+        wait_for(lambda: http.get("/v1/printers/bench").json()["state"] == "ready")
+        job = http.post("/v1/printers/bench/jobs", files={"file": ("long.gcode", gcode(20000))})
+        assert job.status_code == 201
+
+        def state() -> str:
+            query = http.get("/printer/objects/query", params={"print_stats": "state,filename"})
+            stats: dict[str, str] = query.json()["result"]["status"]["print_stats"]
+            return stats["state"]
+
+        def script(line: str) -> None:
+            answer = http.post("/printer/gcode/script", json={"script": line})
+            assert answer.status_code == 200, answer.text
+
+        wait_for(lambda: state() == "printing", what="printing")
+        script("PAUSE")
+        wait_for(lambda: state() == "paused", what="paused")
+        script("RESUME")
+        wait_for(lambda: state() == "printing", what="printing again")
+        script("CANCEL_PRINT")
+        wait_for(lambda: state() == "cancelled", what="cancelled")
+        sdcard = http.get("/printer/objects/query?virtual_sdcard").json()["result"]["status"]
+        assert 0 < sdcard["virtual_sdcard"]["progress"] < 1
+    fake.request("status")
+    ran = executed(fake.log_path)
+    assert ran[-len(MARLIN_SAFE_STOP) :] == MARLIN_SAFE_STOP
+    assert len(ran) < 20000
+
+
+def test_klippys_state_follows_the_link_through_a_firmware_restart(
+    printer: tuple[Server, BuiltInFake],
+) -> None:
+    server, _ = printer
+    heard = Heard()
+
+    async def run() -> None:
+        moonraker = client(server, heard)
+        assert await moonraker.connect()
+        try:
+            await moonraker.call_method("printer.objects.subscribe", objects={"webhooks": None})
+            assert await moonraker.call_method("printer.firmware_restart") == "ok"
+            await until(
+                lambda: any(
+                    s.get("webhooks", {}).get("state") == "ready" for s in heard.statuses()
+                ),
+                "ready again",
+            )
+        finally:
+            await moonraker.disconnect()
+
+    asyncio.run(run())
+    methods = [m for m, _ in heard.notifications if m.startswith("notify_klippy")]
+    assert methods[:2] == ["notify_klippy_shutdown", "notify_klippy_ready"]
+    states = [s["webhooks"]["state"] for s in heard.statuses() if "webhooks" in s]
+    assert states[0] == "shutdown" and states[-1] == "ready"  # "startup" may come between
