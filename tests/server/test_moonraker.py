@@ -270,3 +270,43 @@ def test_klippys_state_follows_the_link_through_a_firmware_restart(
     assert methods[:2] == ["notify_klippy_shutdown", "notify_klippy_ready"]
     states = [s["webhooks"]["state"] for s in heard.statuses() if "webhooks" in s]
     assert states[0] == "shutdown" and states[-1] == "ready"  # "startup" may come between
+
+
+def test_a_trusted_network_needs_no_key_and_a_bad_one_is_one_sentence(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server], tmp_path: Path
+) -> None:
+    fake = bench()
+    config = tmp_path / "server.toml"
+    config.write_text(
+        f'moonraker_trusted_clients = ["127.0.0.0/8"]\n[printers]\nbench = "{fake.port}"\n'
+    )
+    server = servers({}, "--config", str(config))
+
+    async def run() -> None:
+        moonraker = MoonrakerClient(Heard(), "127.0.0.1", server.port)  # no key
+        assert await moonraker.connect()
+        try:
+            assert (await moonraker.get_host_info())["state"] in ("ready", "startup")
+        finally:
+            await moonraker.disconnect()
+
+    asyncio.run(run())
+    assert httpx.get(f"{server.url}/server/info").status_code == 200
+    assert httpx.get(f"{server.url}/v1/printers").status_code == 403  # the other faces: keys
+    config.write_text('moonraker_trusted_clients = ["192.168.1.300/24"]\n[printers]\nx = "fake"\n')
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "repetrel_host.server.main",
+            "--config",
+            str(config),
+            "--data-dir",
+            str(tmp_path / "other"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert done.returncode == 2
+    assert "moonraker_trusted_clients" in done.stderr and "Traceback" not in done.stderr

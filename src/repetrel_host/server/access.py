@@ -17,8 +17,9 @@ import os
 import secrets
 import time
 from collections import OrderedDict
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass, field
+from ipaddress import IPv4Network, IPv6Network, ip_address
 from pathlib import Path
 
 OWNER = "admin"
@@ -77,9 +78,17 @@ class Request:
 class Access:
     """The server's key, the app keys, the pending requests and the login sessions."""
 
-    def __init__(self, data_dir: Path, api_key: str, public_read: bool = False) -> None:
+    def __init__(
+        self,
+        data_dir: Path,
+        api_key: str,
+        public_read: bool = False,
+        trusted: Sequence[IPv4Network | IPv6Network] = (),
+    ) -> None:
         self.api_key = api_key
         self.public_read = public_read
+        # Moonraker's trusted clients: its face lets these addresses in without a key.
+        self.trusted = tuple(trusted)
         self.path = data_dir / KEYS_FILE
         self._keys: list[AppKey] = []
         self._seen: tuple[int, int] | None = None  # the file's (mtime, size) when read
@@ -98,6 +107,16 @@ class Access:
             if hmac.compare_digest(key.encode(), granted.key.encode()):
                 return granted.user
         return None
+
+    def trusts(self, host: str | None) -> bool:
+        """``host`` (a client's address) is in a trusted network."""
+        if not self.trusted or not host:
+            return False
+        try:
+            address = ip_address(host)
+        except ValueError:
+            return False
+        return any(address in network for network in self.trusted)
 
     def app_keys(self) -> list[AppKey]:
         """The app keys, as the file holds them now."""

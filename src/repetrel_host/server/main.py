@@ -163,6 +163,7 @@ def serve(
         settings.max_upload_mb * 1024 * 1024,
         automatic_transition=settings.automatic_transition,
         public_read=settings.public_read,
+        trusted=settings.moonraker_trusted_clients,
         presets={name: p.model_dump() for name, p in settings.presets.items()},
         farm=farm_settings,
     )

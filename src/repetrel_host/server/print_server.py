@@ -8,7 +8,8 @@ import asyncio
 import json
 import logging
 import uuid
-from collections.abc import Awaitable
+from collections.abc import Awaitable, Sequence
+from ipaddress import IPv4Network, IPv6Network
 from pathlib import Path
 from typing import TYPE_CHECKING, TypeVar
 
@@ -43,13 +44,14 @@ class PrintServer:
         user: UserConfig | None = None,
         automatic_transition: bool = False,
         public_read: bool = False,
+        trusted: Sequence[IPv4Network | IPv6Network] = (),
         presets: dict[str, dict[str, float | None]] | None = None,
         farm: FarmSettings | None = None,
     ) -> None:
         self.data_dir = data_dir
         self.files = data_dir / "files"
         self.files.mkdir(parents=True, exist_ok=True)
-        self.access = Access(data_dir, api_key, public_read)
+        self.access = Access(data_dir, api_key, public_read, trusted)
         self.max_upload = max_upload
         self.presets = presets or {}  # material: {"head", "bed", "chamber"} temperatures
         self.user = user or UserConfig()

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
 import typer
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, IPvAnyNetwork, ValidationError
 
 from repetrel_host.config import CameraCommand, read_toml
 from repetrel_host.errors import ConfigError
@@ -79,6 +79,8 @@ class ServerSettings(BaseModel):
     max_upload_mb: int = Field(default=1024, gt=0)
     automatic_transition: bool = False  # start the next job by itself after one ends
     public_read: bool = False  # reads without a key (OctoPrint asks for one on every request)
+    # Moonraker's face lets these networks in without a key (its trusted_clients).
+    moonraker_trusted_clients: list[IPvAnyNetwork] = []
     mqtt: str | None = None  # HOST[:PORT] of a broker
     mqtt_prefix: str = "hyrel"
     mqtt_commands: bool = False

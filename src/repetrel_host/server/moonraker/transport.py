@@ -32,6 +32,7 @@ log = logging.getLogger("repetrel_host.server.moonraker")
 AREAS = ("printer", "server", "machine", "access")
 STATUS_EVERY = 0.25  # s: a subscription's changes go out at most this often
 PROC_STAT_EVERY = 1.0  # s: Moonraker's; Mainsail drops a socket silent for 10 s
+OUTBOX = 2000  # messages a websocket may have unsent before it is closed
 
 
 def _query(scope: Any) -> list[tuple[str, str]]:
@@ -52,6 +53,9 @@ def who(face: MoonrakerFace, scope: Any) -> tuple[bool, str | None]:
     user, _ = identify(face.server, scope)
     if user is not None:
         return True, user
+    client = scope.get("client")
+    if face.server.access.trusts(client[0] if client else None):
+        return True, None
     for key, value in _query(scope):
         if key == "token":
             valid, owner = face.redeem(value)
@@ -162,7 +166,7 @@ class Connection:
         self.subscribed: dict[str, list[str] | None] = {}
         self.sent: dict[str, dict[str, Any]] = {}  # the subscribed objects, as last sent
         self.klippy = klippy_state(service)
-        self._outbox: asyncio.Queue[str | None] = asyncio.Queue()
+        self._outbox: asyncio.Queue[str | None] = asyncio.Queue(OUTBOX)
         self._changed = asyncio.Event()
         self._tasks: set[asyncio.Task[None]] = set()
 
@@ -181,9 +185,11 @@ class Connection:
             pass
         finally:
             face.connections.pop(self.id, None)
-            for task in (writer, ticker, *self._tasks):
+            # Its calls run to their end (a print start or a cancel half done would be
+            # worse than an answer nobody reads); only the sending stops.
+            for task in (writer, ticker):
                 task.cancel()
-            await asyncio.gather(writer, ticker, *self._tasks, return_exceptions=True)
+            await asyncio.gather(writer, ticker, return_exceptions=True)
 
     async def close(self) -> None:
         with contextlib.suppress(Exception):
@@ -291,6 +297,11 @@ class Connection:
         self._put(message)
 
     def _put(self, message: Any) -> None:
+        if self._outbox.full():  # a client that reads nothing: dropped, not kept in memory
+            log.warning("moonraker: websocket %d reads nothing: closed", self.id)
+            self.face.connections.pop(self.id, None)
+            asyncio.get_running_loop().create_task(self.close())
+            return
         self._outbox.put_nowait(json.dumps(message))
 
     async def _write(self) -> None:
