@@ -310,3 +310,26 @@ def test_a_trusted_network_needs_no_key_and_a_bad_one_is_one_sentence(
     )
     assert done.returncode == 2
     assert "moonraker_trusted_clients" in done.stderr and "Traceback" not in done.stderr
+
+
+def test_an_emergency_stop_during_a_print_halts_the_controller_and_says_why(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
+) -> None:
+    fake = bench("--move-time", "0.004")
+    server = servers({"bench": fake.port})
+    with server.client() as http:
+        wait_for(lambda: http.get("/v1/printers/bench").json()["state"] == "ready")
+        job = http.post("/v1/printers/bench/jobs", files={"file": ("a.gcode", gcode(20000))})
+        assert job.status_code == 201
+
+        def stats() -> dict[str, Any]:
+            query = http.get("/printer/objects/query", params={"print_stats": "state,message"})
+            found: dict[str, Any] = query.json()["result"]["status"]["print_stats"]
+            return found
+
+        wait_for(lambda: stats()["state"] == "printing", what="printing")
+        assert http.post("/printer/emergency_stop").json() == {"result": "ok"}
+        ended = wait_for(lambda: stats()["state"] == "error" and stats(), what="the error")
+    assert "emergency stop" in ended["message"]
+    ran = executed(fake.log_path)
+    assert "M112" in ran and len(ran) < 20000

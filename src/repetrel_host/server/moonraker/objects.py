@@ -170,8 +170,9 @@ class Objects:
                 "current_layer": min(shown.layer, layers) if layers else None,
             },
         )
-        if record.error and stats["state"] == "error":
-            stats["message"] = record.error
+        if stats["state"] == "error":  # why, as the job's record says it once ended
+            ended_record = service.store.job(record.id)
+            stats["message"] = (ended_record.error if ended_record else None) or stats["message"]
         return stats
 
     def virtual_sdcard(self) -> dict[str, Any]:
