@@ -59,9 +59,9 @@ def targets(fake: BuiltInFake) -> dict[str, float]:
     return {name: float(t) for name, (_, t) in fake.request("status")["temperatures"].items()}
 
 
-def klipperctl(server: Server, *args: str, key: str = KEY) -> Any:
+def klipperctl(server: Server, *args: str, key: str = KEY, url: str | None = None) -> Any:
     done = subprocess.run(
-        [sys.executable, "-m", "klipperctl", "--url", server.url, "--api-key", key, *args],
+        [sys.executable, "-m", "klipperctl", "--url", url or server.url, "--api-key", key, *args],
         capture_output=True,
         text=True,
         timeout=60,
@@ -333,3 +333,31 @@ def test_an_emergency_stop_during_a_print_halts_the_controller_and_says_why(
     assert "emergency stop" in ended["message"]
     ran = executed(fake.log_path)
     assert "M112" in ran and len(ran) < 20000
+
+
+def test_each_printer_has_its_own_face_under_its_name(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
+) -> None:
+    left, right = bench(), bench()
+    server = servers({"left": left.port, "right": right.port})
+    with server.client() as http:
+        for name in ("left", "right"):
+            wait_for(lambda: http.get(f"/v1/printers/{name}").json()["state"] == "ready")
+
+    async def run() -> None:
+        moonraker = MoonrakerClient(
+            Heard(), "127.0.0.1", server.port, route_prefix="printers/right", api_key=KEY
+        )
+        assert await moonraker.connect()
+        try:
+            assert await moonraker.call_method("printer.gcode.script", script="M104 S120") == "ok"
+        finally:
+            await moonraker.disconnect()
+
+    asyncio.run(run())
+    klipperctl(server, "printer", "gcode", "M140 S40", url=f"{server.url}/printers/left")
+    assert targets(right)["T"] == 120 and targets(right).get("B", 0) == 0
+    assert targets(left)["T"] == 0 and targets(left)["B"] == 40
+    unknown = httpx.get(f"{server.url}/printers/nobody/server/info", headers={"X-Api-Key": KEY})
+    assert unknown.status_code == 404
+    assert unknown.json()["error"]["message"] == "no printer 'nobody'"
