@@ -21,7 +21,7 @@ from moonraker_api.websockets.websocketclient import ClientNotAuthenticatedError
 
 from repetrel_host.fakes.fake_controller import BuiltInFake
 from tests.support.helpers import MARLIN_SAFE_STOP, executed
-from tests.support.server import KEY, Server, gcode, wait_for
+from tests.support.server import KEY, Server, gcode, server_config, wait_for
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -342,7 +342,7 @@ def test_each_printer_has_its_own_face_under_its_name(
     server = servers({"left": left.port, "right": right.port})
     with server.client() as http:
         for name in ("left", "right"):
-            wait_for(lambda: http.get(f"/v1/printers/{name}").json()["state"] == "ready")
+            wait_for(lambda n=name: http.get(f"/v1/printers/{n}").json()["state"] == "ready")
 
     async def run() -> None:
         moonraker = MoonrakerClient(
@@ -361,3 +361,24 @@ def test_each_printer_has_its_own_face_under_its_name(
     unknown = httpx.get(f"{server.url}/printers/nobody/server/info", headers={"X-Api-Key": KEY})
     assert unknown.status_code == 404
     assert unknown.json()["error"]["message"] == "no printer 'nobody'"
+
+
+def test_a_hyrel_loadouts_heads_are_klippers_extruders_set_by_their_own_address(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server], tmp_path: Path
+) -> None:
+    fake = bench("--protocol", "hyrel")
+    config = server_config(
+        tmp_path, hyrel={"port": fake.port, "loadout": "wiki-two-heads", "protocol": "hyrel"}
+    )
+    server = servers({}, "--config", str(config))
+    with server.client() as http:
+        wait_for(lambda: http.get("/v1/printers/hyrel").json()["state"] == "ready")
+        heads = [h for h in http.get("/v1/printers/hyrel").json()["heaters"] if h["kind"] == "head"]
+        objects = http.get("/printer/objects/list").json()["result"]["objects"]
+        assert "extruder" in objects and "extruder1" in objects and "extruder2" not in objects
+        script = "SET_HEATER_TEMPERATURE HEATER=extruder1 TARGET=190"
+        assert http.post("/printer/gcode/script", json={"script": script}).status_code == 200
+    # The loadout's second head (tool 2, slot 3), by its Hyrel address, as the page sets it.
+    sent = heads[1]["command"].format(target=190)
+    fake.request("status")
+    assert sent in executed(fake.log_path)

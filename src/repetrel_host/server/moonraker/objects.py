@@ -56,14 +56,17 @@ def state_message(service: PrinterService) -> str:
 
 
 def heater_names(service: PrinterService) -> dict[str, str]:
-    """The printer's heaters by Klipper's names (``extruder``, ``extruder1``...,
-    ``heater_bed``, ``heater_generic chamber``): the session's sensor of each."""
+    """The printer's heaters by Klipper's names: its heads in order as ``extruder``,
+    ``extruder1``... (a Hyrel loadout's first head is ``extruder`` whatever its tool
+    number: Klipper's clients expect that one), ``heater_bed``, ``heater_generic
+    chamber``; the session's sensor of each."""
     names: dict[str, str] = {}
+    heads = 0
     for heater in heaters(service):
         kind = heater["kind"]
         if kind == "head":
-            tool = heater["tool"]
-            names[f"extruder{tool or ''}"] = heater["sensor"]
+            names[f"extruder{heads or ''}"] = heater["sensor"]
+            heads += 1
         elif kind == "bed":
             names["heater_bed"] = heater["sensor"]
         else:
