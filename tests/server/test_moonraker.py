@@ -382,3 +382,27 @@ def test_a_hyrel_loadouts_heads_are_klippers_extruders_set_by_their_own_address(
     sent = heads[1]["command"].format(target=190)
     fake.request("status")
     assert sent in executed(fake.log_path)
+
+
+def test_json_rpc_over_http_takes_a_batch_and_id_0_and_says_each_error(
+    printer: tuple[Server, BuiltInFake],
+) -> None:
+    server, _ = printer
+    batch = [
+        {"jsonrpc": "2.0", "method": "printer.info", "id": 0},
+        {"jsonrpc": "2.0", "method": "no.such.method", "id": 1},
+        {"jsonrpc": "2.0", "method": "printer.info", "params": [1], "id": 2},
+        {"jsonrpc": "2.0", "method": "server.connection.identify", "id": 3},
+        {"jsonrpc": "2.0", "method": "printer.info"},  # a notification: no answer
+    ]
+    with server.client() as http:
+        answers = http.post("/server/jsonrpc", json=batch).json()
+        garbage = http.post("/server/jsonrpc", content=b"{not json").json()
+    assert [a["id"] for a in answers] == [0, 1, 2, 3]
+    assert answers[0]["result"]["state"] == "ready"
+    assert [a["error"]["code"] for a in answers[1:]] == [-32601, -32602, 400]
+    assert garbage == {
+        "jsonrpc": "2.0",
+        "error": {"code": -32700, "message": "Parse error"},
+        "id": None,
+    }

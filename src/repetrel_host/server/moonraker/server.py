@@ -73,14 +73,16 @@ async def server_config(call: Call) -> dict[str, Any]:
 @method("/server/connection/identify", "POST", http=False)
 async def identify(call: Call) -> dict[str, int]:
     connection = call.connection
-    assert connection is not None  # a websocket's only
+    if connection is None:
+        raise RpcError(400, "the websocket's only: it names the websocket's client")
     connection.client = {key: call.get(key) for key in ("client_name", "version", "type", "url")}
     return {"connection_id": connection.id}
 
 
 @method("/server/websocket/id", http=False)
 async def websocket_id(call: Call) -> dict[str, int]:
-    assert call.connection is not None
+    if call.connection is None:
+        raise RpcError(400, "the websocket's only: it names the websocket's client")
     return {"websocket_id": call.connection.id}
 
 

@@ -96,6 +96,12 @@ async def _http(request: Request, rest: str) -> Response:
     if "printer" in request.path_params:  # /printers/NAME/server/info
         path = "/" + path.split("/", 3)[3]
     verb = request.method
+    if (path, verb) == ("/server/jsonrpc", "POST"):  # JSON-RPC over HTTP
+        try:
+            service = _service(face, request.path_params.get("printer"))
+        except rpc.RpcError as exc:
+            return error_body(exc.status, exc.message)
+        return JSONResponse(await answer_rpc(face, service, user, await request.body()))
     found = rpc.METHODS.by_route.get((path, verb))
     if found is None:
         known = any(p == path for p, _ in rpc.METHODS.by_route)
@@ -128,6 +134,57 @@ async def _body(request: Request) -> dict[str, Any]:
         form = await request.form()
         return {k: v for k, v in form.multi_items() if isinstance(v, (str, UploadFile))}
     return {}
+
+
+async def answer_rpc(
+    face: MoonrakerFace,
+    service: PrinterService,
+    user: str | None,
+    text: str | bytes,
+    connection: Connection | None = None,
+) -> Any:
+    """The answer to a JSON-RPC request (or batch) ``text``: a response, a list of them, or
+    None for a notification."""
+    try:
+        request = json.loads(text)
+    except ValueError:
+        return _error(None, -32700, "Parse error")
+    if isinstance(request, list):
+        answers = [await _one(face, service, user, r, connection) for r in request]
+        return [a for a in answers if a is not None]
+    return await _one(face, service, user, request, connection)
+
+
+async def _one(
+    face: MoonrakerFace,
+    service: PrinterService,
+    user: str | None,
+    request: Any,
+    connection: Connection | None,
+) -> dict[str, Any] | None:
+    if not isinstance(request, dict) or request.get("jsonrpc") != "2.0":
+        return _error(None, -32600, "Invalid Request")
+    ident = request.get("id")
+    name = request.get("method")
+    params = request.get("params", {})
+    if not isinstance(name, str):
+        return _error(ident, -32600, "Invalid Request")
+    if not isinstance(params, dict):
+        return _error(ident, -32602, "Invalid params:")
+    found = rpc.METHODS.by_name.get(name)
+    if found is None:
+        return _error(ident, -32601, "Method not found") if "id" in request else None
+    call = rpc.Call(face, service, user, dict(params), connection)
+    try:
+        result = await rpc.call(found, call)
+    except rpc.RpcError as exc:
+        return _error(ident, exc.code, exc.message)
+    except Exception as exc:  # a bug: said, and the socket goes on
+        log.exception("moonraker %s failed", name)
+        return _error(ident, 500, f"{type(exc).__name__}: {exc}")
+    if "id" not in request:
+        return None  # a notification from the client: no answer
+    return {"jsonrpc": "2.0", "result": result, "id": ident}
 
 
 # --- the websocket -------------------------------------------------------------------------
@@ -198,43 +255,9 @@ class Connection:
     # --- requests --------------------------------------------------------------------
 
     async def _answer(self, text: str) -> None:
-        try:
-            request = json.loads(text)
-        except ValueError:
-            self._put(_error(None, -32700, "Parse error"))
-            return
-        if isinstance(request, list):
-            answers = [await self._one(r) for r in request]
-            self._put([a for a in answers if a is not None])
-        else:
-            answer = await self._one(request)
-            if answer is not None:
-                self._put(answer)
-
-    async def _one(self, request: Any) -> dict[str, Any] | None:
-        if not isinstance(request, dict) or request.get("jsonrpc") != "2.0":
-            return _error(None, -32600, "Invalid Request")
-        ident = request.get("id")
-        name = request.get("method")
-        params = request.get("params", {})
-        if not isinstance(name, str):
-            return _error(ident, -32600, "Invalid Request")
-        if not isinstance(params, dict):
-            return _error(ident, -32602, "Invalid params:")
-        found = rpc.METHODS.by_name.get(name)
-        if found is None:
-            return _error(ident, -32601, "Method not found") if "id" in request else None
-        call = rpc.Call(self.face, self.service, self.user, dict(params), self)
-        try:
-            result = await rpc.call(found, call)
-        except rpc.RpcError as exc:
-            return _error(ident, exc.code, exc.message)
-        except Exception as exc:  # a bug: said, and the socket goes on
-            log.exception("moonraker %s failed", name)
-            return _error(ident, 500, f"{type(exc).__name__}: {exc}")
-        if "id" not in request:
-            return None  # a notification from the client: no answer
-        return {"jsonrpc": "2.0", "result": result, "id": ident}
+        answer = await answer_rpc(self.face, self.service, self.user, text, self)
+        if answer is not None:
+            self._put(answer)
 
     # --- subscriptions ----------------------------------------------------------------
 
