@@ -15,7 +15,7 @@ from typing import Any
 import repetrel_host as rh
 from repetrel_host.server import jobs, uploads
 from repetrel_host.server.moonraker.objects import heater_names, klippy_state, state_message
-from repetrel_host.server.moonraker.rpc import Call, RpcError, method
+from repetrel_host.server.moonraker.rpc import Call, Handler, RpcError, method
 from repetrel_host.server.printers.heaters import heaters
 from repetrel_host.server.printers.service import PrinterService, Refused
 
@@ -109,22 +109,18 @@ async def print_start(call: Call) -> str:
     return "ok"
 
 
-@method("/printer/print/pause", "POST")
-async def print_pause(call: Call) -> str:
-    await _control(call.service, "pause")
-    return "ok"
+def _print_action(action: str) -> Handler:
+    """``printer.print.pause``/``resume``/``cancel``: the server's own action."""
+
+    async def handler(call: Call) -> str:
+        await _control(call.service, action)
+        return "ok"
+
+    return handler
 
 
-@method("/printer/print/resume", "POST")
-async def print_resume(call: Call) -> str:
-    await _control(call.service, "resume")
-    return "ok"
-
-
-@method("/printer/print/cancel", "POST")
-async def print_cancel(call: Call) -> str:
-    await _control(call.service, "cancel")
-    return "ok"
+for _action in ("pause", "resume", "cancel"):
+    method(f"/printer/print/{_action}", "POST")(_print_action(_action))
 
 
 @method("/printer/emergency_stop", "POST")
