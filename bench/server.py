@@ -10,6 +10,7 @@ process's user + system time while the jobs stream, over all their lines).
 
     .venv/bin/python bench/server.py [--profile uart|usb] [--printers 4] [--quick]
     .venv/bin/python bench/server.py --socket-clients 10 [--repeat 5] [--job-times 5]
+    .venv/bin/python bench/server.py --socket-clients 10 --moonraker [--repeat 5] [--job-times 5]
 
 Jobs are queued while the printers are held, then released together, so the CPU counted
 is the streaming's (the uploads' checks come before).
@@ -19,6 +20,8 @@ is the streaming's (the uploads' checks come before).
 without any, alternated ``--repeat`` times; it prints each run and the medians' ratio.
 ``--job-times K`` makes each job the profile's K times over: a run that is mostly
 streaming, not a job's start and end (each sends every client its state changes and events).
+``--moonraker``: the clients are Moonraker's websockets instead, each subscribed to every
+printer object as Mainsail subscribes.
 """
 
 from __future__ import annotations
@@ -77,7 +80,13 @@ def free_port() -> int:
 
 
 def run(
-    profile: Profile, count: int, job: Path, lines: int, folder: Path, socket_clients: int = 0
+    profile: Profile,
+    count: int,
+    job: Path,
+    lines: int,
+    folder: Path,
+    socket_clients: int = 0,
+    moonraker: bool = False,
 ) -> Run:
     fakes = [start_fake(profile, folder, f"{profile.name}-{count}-{i}") for i in range(count)]
     window = dict(zip(profile.options[::2], profile.options[1::2], strict=True))
@@ -122,6 +131,7 @@ def run(
                 [
                     sys.executable,
                     str(script),
+                    *(["--moonraker"] if moonraker else []),
                     f"127.0.0.1:{port}",
                     KEY,
                     str(socket_clients),
@@ -169,14 +179,25 @@ def run(
 
 
 def with_sockets(
-    profiles: list[str], printers: int, clients: int, repeat: int, quick: bool, times: int
+    profiles: list[str],
+    printers: int,
+    clients: int,
+    repeat: int,
+    quick: bool,
+    times: int,
+    moonraker: bool = False,
 ) -> None:
     """Runs without socket clients and with ``clients`` on each printer, alternated; each
     printer's job is the profile's ``times`` over (a longer run: the streaming's cost,
     less the start's and end's)."""
+    # The kinds of message counted: OctoPrint's currents and events, or Moonraker's status
+    # updates and process statistics.
+    kinds = (
+        ("notify_status_update", "notify_proc_stat_update") if moonraker else ("current", "event")
+    )
     print(
         "| link | printers | socket clients | run | lines/s (mean of printers) "
-        "| server CPU µs/line | messages | currents | events | clients' CPU µs/line |"
+        f"| server CPU µs/line | messages | {kinds[0]} | {kinds[1]} | clients' CPU µs/line |"
     )
     print("|---|---|---|---|---|---|---|---|---|---|")
     for profile in (p for p in PROFILES if p.name in profiles):
@@ -191,7 +212,7 @@ def with_sockets(
                 job, lines = longer, lines * times
             for number in range(repeat):
                 for count in (0, clients):
-                    result = run(profile, printers, job, lines, folder, count)
+                    result = run(profile, printers, job, lines, folder, count, moonraker)
                     runs[count].append(result)
                     got = result.sockets
                     rate = statistics.mean(result.rates)
@@ -199,7 +220,7 @@ def with_sockets(
                     print(
                         f"| {profile.name} | {printers} | {count} | {number + 1} | {rate:,.0f} "
                         f"| {result.cpu_per_line * 1e6:.2f} | {got.get('messages', 0)} "
-                        f"| {got.get('current', 0)} | {got.get('event', 0)} "
+                        f"| {got.get(kinds[0], 0)} | {got.get(kinds[1], 0)} "
                         f"| {readers:.2f} |",
                         flush=True,
                     )
@@ -225,13 +246,22 @@ def main() -> int:
     )
     parser.add_argument("--repeat", type=int, default=3, help="runs of each (--socket-clients)")
     parser.add_argument(
+        "--moonraker", action="store_true", help="the clients on Moonraker's websocket"
+    )
+    parser.add_argument(
         "--job-times", type=int, default=1, help="each job the profile's this many times over"
     )
     args = parser.parse_args()
     if args.socket_clients:
         profiles = args.profile or ["uart", "usb"]
         with_sockets(
-            profiles, args.printers, args.socket_clients, args.repeat, args.quick, args.job_times
+            profiles,
+            args.printers,
+            args.socket_clients,
+            args.repeat,
+            args.quick,
+            args.job_times,
+            args.moonraker,
         )
         return 0
     print(

@@ -9,10 +9,15 @@ messages and skips their bodies, and answers the server's pings (a websocket tha
 is closed): no library's frame parsing, no decoding, no JSON.
 
     python bench/socket_clients.py HOST:PORT KEY CLIENTS PRINTER...
+    python bench/socket_clients.py --moonraker HOST:PORT KEY CLIENTS PRINTER...
 
 Prints ``ready`` once every client has its history; on SIGTERM (or SIGINT) prints what
 they received as JSON (messages, bytes, and each kind: connected, history, current, event)
 and exits.
+
+``--moonraker``: Moonraker's websocket (``/printers/NAME/websocket`` with the key), each
+client subscribed to every object as Mainsail subscribes; the kinds are the notifications'
+methods, ``history`` the subscription's answer.
 """
 
 from __future__ import annotations
@@ -50,13 +55,24 @@ def client_frame(opcode: int, payload: bytes) -> bytes:
     return head + mask + bytes(b ^ mask[i % 4] for i, b in enumerate(payload))
 
 
+# Mainsail subscribes to every object its printer lists (these, on the server's printers).
+MOONRAKER_OBJECTS = (
+    "webhooks print_stats virtual_sdcard display_status pause_resume idle_timeout toolhead "
+    "gcode_move motion_report fan heaters configfile system_stats extruder heater_bed"
+).split()
+
+
 class Reader(asyncio.Protocol):
-    def __init__(self, host: str, path: str, auth: str, counts: Counter[str]) -> None:
+    def __init__(
+        self, host: str, path: str, auth: str, counts: Counter[str], key: str | None = None
+    ) -> None:
+        header = f"X-Api-Key: {key}\r\n" if key is not None else ""
         self.request = (
-            f"GET {path} HTTP/1.1\r\nHost: {host}\r\nUpgrade: websocket\r\n"
+            f"GET {path} HTTP/1.1\r\nHost: {host}\r\nUpgrade: websocket\r\n{header}"
             f"Connection: Upgrade\r\nSec-WebSocket-Key: {base64.b64encode(os.urandom(16)).decode()}"
             "\r\nSec-WebSocket-Version: 13\r\n\r\n"
         ).encode()
+        self.moonraker = key is not None
         self.auth = auth
         self.counts = counts
         self.buffer = bytearray()
@@ -83,7 +99,15 @@ class Reader(asyncio.Protocol):
                 return
             del buffer[: end + 4]
             self.open = True
-            for message in ({"auth": self.auth}, {"throttle": 1}):
+            if self.moonraker:
+                subscribe = "printer.objects.subscribe"
+                params = {"objects": dict.fromkeys(MOONRAKER_OBJECTS)}
+                messages: list[object] = [
+                    {"jsonrpc": "2.0", "method": subscribe, "params": params, "id": 1}
+                ]
+            else:
+                messages = [{"auth": self.auth}, {"throttle": 1}]
+            for message in messages:
                 self.transport.write(client_frame(1, json.dumps(message).encode()))
         counts, position, size = self.counts, 0, len(buffer)
         while size - position >= 2:
@@ -100,8 +124,15 @@ class Reader(asyncio.Protocol):
                 break
             body = position + head
             if opcode == 1:
-                start = bytes(buffer[body + 2 : body + 20])  # {"current":...
-                kind = start[: start.find(b'"')].decode()
+                if self.moonraker:  # {"jsonrpc": "2.0", "method": "notify_...", or a result
+                    start = bytes(buffer[body : body + 80])
+                    named = start.find(b'"method": "')
+                    kind = "history"
+                    if named >= 0:
+                        kind = start[named + 11 :].split(b'"', 1)[0].decode()
+                else:
+                    start = bytes(buffer[body + 2 : body + 20])  # {"current":...
+                    kind = start[: start.find(b'"')].decode()
                 counts["messages"] += 1
                 counts["bytes"] += length
                 counts[kind] += 1
@@ -112,17 +143,21 @@ class Reader(asyncio.Protocol):
 
 
 async def main() -> int:
-    address, key, per_printer, *printers = sys.argv[1:]
+    arguments = sys.argv[1:]
+    moonraker = arguments[0] == "--moonraker"
+    address, key, per_printer, *printers = arguments[moonraker:]
     host, port = address.rsplit(":", 1)
-    auth = passive_login(address, key)
+    auth = "" if moonraker else passive_login(address, key)
     counts: Counter[str] = Counter()
     loop = asyncio.get_running_loop()
     readers: list[Reader] = []
     for printer in printers:
         for _ in range(int(per_printer)):
-            path = f"/printers/{printer}/sockjs/websocket"
+            path = f"/printers/{printer}/{'websocket' if moonraker else 'sockjs/websocket'}"
             _, reader = await loop.create_connection(
-                lambda path=path: Reader(address, path, auth, counts), host, int(port)
+                lambda path=path: Reader(address, path, auth, counts, key if moonraker else None),
+                host,
+                int(port),
             )
             readers.append(reader)
     while counts["history"] < len(readers):
