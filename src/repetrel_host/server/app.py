@@ -35,7 +35,7 @@ from starlette.exceptions import HTTPException
 import repetrel_host as rh
 from repetrel_host.server import native
 from repetrel_host.server.auth import RequestGuard
-from repetrel_host.server.moonraker import MoonrakerFace
+from repetrel_host.server.moonraker import make_face
 from repetrel_host.server.moonraker import router as moonraker_router
 from repetrel_host.server.mqtt.bridge import MqttBridge, MqttSettings
 from repetrel_host.server.octoprint import appkeys, rest, sockjs
@@ -62,7 +62,7 @@ def create_app(server: PrintServer, mqtt: MqttSettings | None = None) -> FastAPI
     """The app of ``server``: its APIs and page; with ``mqtt``, its bridge to that broker."""
     _long_part_headers()
     push = Push(server)
-    moonraker = MoonrakerFace(server)
+    moonraker = make_face(server)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:

@@ -28,11 +28,12 @@ from fastapi.responses import (
 )
 from pydantic import BaseModel, Field
 
+from repetrel_host.server import folders as shared_folders
 from repetrel_host.server import jobs, store, timelapse, uploads
 from repetrel_host.server.access import OWNER
 from repetrel_host.server.auth import user_of
 from repetrel_host.server.events import AppKeyEvent
-from repetrel_host.server.octoprint import appkeys, files
+from repetrel_host.server.octoprint import appkeys
 from repetrel_host.server.print_server import PrintServer, answered, server_of
 from repetrel_host.server.printers.forecast import iso
 from repetrel_host.server.printers.heaters import heaters
@@ -261,7 +262,7 @@ def router() -> APIRouter:
     async def make_folder(request: Request, folder: Folder) -> dict[str, str]:
         server = server_of(request)
         parent, _, name = folder.path.strip("/").rpartition("/")
-        made = files.make_folder(server, parent, name)
+        made = shared_folders.make_folder(server, parent, name)
         uploads.file_changed(server, made, "added", "add", folder=True)
         return {"path": made.relative_to(server.files).as_posix()}
 
@@ -272,7 +273,7 @@ def router() -> APIRouter:
         path = server.files / uploads.safe_folder(location)
         if not path.is_dir() or path == server.files:
             raise HTTPException(404, f"no folder '{location}'")
-        files.delete_folder(server, location)
+        shared_folders.delete_folder(server, location)
         uploads.file_changed(server, path, "removed", "remove", folder=True)
         return Response(status_code=204)
 

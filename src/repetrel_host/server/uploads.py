@@ -14,7 +14,8 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import quote
 
-from fastapi import HTTPException, UploadFile
+from fastapi import HTTPException
+from starlette.datastructures import UploadFile  # FastAPI's, and a form's as Starlette reads it
 
 import repetrel_host as rh
 from repetrel_host.gcode.analysis import Analysis, FileSummary, analyse

@@ -110,6 +110,9 @@ class Table:
 
     by_name: dict[str, Method] = field(default_factory=dict)
     by_route: dict[tuple[str, str], Method] = field(default_factory=dict)
+    # Paths with a file's path after them (``/server/files/gcodes/...``): the rest of the
+    # path is the call's ``path`` argument, its root first ("gcodes/a.gcode").
+    by_prefix: dict[tuple[str, str], Method] = field(default_factory=dict)
 
     def add(
         self,
@@ -128,14 +131,31 @@ class Table:
                 method = Method(called, path, verb, handler, websocket, http)
                 if websocket:
                     self.by_name.setdefault(called, method)
-                if http:
+                if http and path.endswith("/"):
+                    self.by_prefix[(path, verb)] = method
+                elif http:
                     self.by_route[(path, verb)] = method
             return handler
 
         return register
 
-    def paths(self) -> set[str]:
-        return {path for path, _ in self.by_route}
+    def route(self, path: str, verb: str) -> tuple[Method | None, dict[str, str]]:
+        """The method of ``path`` and ``verb`` over HTTP, and the arguments its path gives;
+        (None, {}) when there is none."""
+        found = self.by_route.get((path, verb))
+        if found is not None:
+            return found, {}
+        for (prefix, method_verb), method in self.by_prefix.items():
+            if verb == method_verb and path.startswith(prefix) and len(path) > len(prefix):
+                root = prefix.rstrip("/").rpartition("/")[2]
+                return method, {"path": f"{root}/{path[len(prefix) :]}"}
+        return None, {}
+
+    def knows(self, path: str) -> bool:
+        """Some verb of ``path`` is a method (another verb is 405, not 404)."""
+        return any(p == path for p, _ in self.by_route) or any(
+            path.startswith(p) for p, _ in self.by_prefix
+        )
 
 
 METHODS = Table()

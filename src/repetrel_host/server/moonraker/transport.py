@@ -102,13 +102,14 @@ async def _http(request: Request, rest: str) -> Response:
         except rpc.RpcError as exc:
             return error_body(exc.status, exc.message)
         return JSONResponse(await answer_rpc(face, service, user, await request.body()))
-    found = rpc.METHODS.by_route.get((path, verb))
+    found, given = rpc.METHODS.route(path, verb)
     if found is None:
-        known = any(p == path for p, _ in rpc.METHODS.by_route)
+        known = rpc.METHODS.knows(path)
         return error_body(405, "Method Not Allowed") if known else error_body(404, "Not Found")
     try:
         args = rpc.query_args(_query(request.scope))
         args.update(await _body(request))
+        args.update(given)
         service = _service(face, request.path_params.get("printer"))
         call = rpc.Call(face, service, user, args, base_url=str(request.base_url))
         result = await rpc.call(found, call)

@@ -1,0 +1,196 @@
+"""Moonraker's files, history and job queue, for real: klipperctl (HTTP) and moonraker-api
+(the websocket) against a hyrel-server process with the fake controller; what they did read
+back from the server's own API and the fake's log."""
+
+from __future__ import annotations
+
+import asyncio
+import shutil
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+from moonraker_api import MoonrakerClient
+
+from repetrel_host.fakes.fake_controller import BuiltInFake
+from tests.server.test_moonraker import Heard, klipperctl, until
+from tests.support.helpers import MARLIN_SAFE_STOP, executed
+from tests.support.paths import DATA
+from tests.support.server import KEY, Server, gcode, wait_for
+
+pytestmark = pytest.mark.timeout(120)
+
+
+@pytest.fixture
+def slow(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
+) -> tuple[Server, BuiltInFake]:
+    fake = bench("--move-time", "0.004")
+    server = servers({"bench": fake.port})
+    with server.client() as http:
+        wait_for(lambda: http.get("/v1/printers/bench").json()["state"] == "ready")
+    return server, fake
+
+
+def print_state(server: Server) -> str:
+    state: str = klipperctl(server, "--json", "printer", "query", "print_stats")["print_stats"][
+        "state"
+    ]
+    return state
+
+
+def test_a_file_uploaded_listed_described_and_downloaded(
+    slow: tuple[Server, BuiltInFake], tmp_path: Path
+) -> None:
+    server, _ = slow
+    cone = tmp_path / "cone.gcode"
+    shutil.copy(DATA / "cone-prusaslicer.gcode", cone)
+    klipperctl(server, "files", "upload", str(cone), "--path", "parts", "--no-progress")
+    listed = klipperctl(server, "--json", "files", "list")
+    assert [(f["path"], f["size"]) for f in listed] == [("parts/cone.gcode", cone.stat().st_size)]
+    info = klipperctl(server, "--json", "files", "info", "parts/cone.gcode")
+    assert info["slicer"] == "PrusaSlicer" and info["slicer_version"].startswith("2.")
+    assert info["layer_count"] > 10 and info["estimated_time"] > 60
+    assert info["filament_total"] > 0 and info["object_height"] > 0
+    with server.client() as http:
+        got = http.get("/server/files/gcodes/parts/cone.gcode")
+        assert got.status_code == 200 and got.content == cone.read_bytes()
+        # The server's own API lists the same file, in the same folder.
+        assert "parts/cone.gcode" in [f["path"] for f in http.get("/v1/files").json()]
+        missing = http.get("/server/files/metadata", params={"filename": "nothing.gcode"})
+        assert missing.status_code == 404
+        other_root = http.get("/server/files/list", params={"root": "config"})
+        assert other_root.status_code == 400
+        directory = http.get("/server/files/directory", params={"path": "gcodes/parts"}).json()
+        assert [f["filename"] for f in directory["result"]["files"]] == ["cone.gcode"]
+        gone = http.delete("/server/files/gcodes/parts/cone.gcode")
+        assert gone.json()["result"]["action"] == "delete_file"
+        assert http.get("/v1/files").json() == []
+
+
+def test_an_upload_answers_as_moonraker_and_print_true_starts_it(
+    slow: tuple[Server, BuiltInFake],
+) -> None:
+    server, fake = slow
+    with server.client() as http:
+        answer = http.post(
+            "/server/files/upload",
+            files={"file": ("long.gcode", gcode(20000))},
+            data={"root": "gcodes", "print": "true"},
+        )
+        assert answer.status_code == 201, answer.text
+        body = answer.json()
+        assert "result" not in body and body["print_started"] is True
+        assert body["item"]["path"] == "long.gcode" and body["item"]["root"] == "gcodes"
+        assert answer.headers["location"].endswith("/server/files/gcodes/long.gcode")
+        wait_for(lambda: print_state(server) == "printing", what="printing")
+        bad = http.post(
+            "/server/files/upload", files={"file": ("x.gcode", "G1 X1\n")}, data={"root": "config"}
+        )
+        assert bad.status_code == 400
+    klipperctl(server, "print", "pause")
+    wait_for(lambda: print_state(server) == "paused", what="paused")
+    klipperctl(server, "print", "resume")
+    wait_for(lambda: print_state(server) == "printing", what="printing again")
+    klipperctl(server, "print", "cancel", "--yes")
+    wait_for(lambda: print_state(server) == "cancelled", what="cancelled")
+    fake.request("status")
+    ran = executed(fake.log_path)
+    assert ran[-len(MARLIN_SAFE_STOP) :] == MARLIN_SAFE_STOP and len(ran) < 20000
+    history = klipperctl(server, "--json", "history", "list")
+    assert [(j["filename"], j["status"]) for j in history] == [("long.gcode", "cancelled")]
+    totals = klipperctl(server, "--json", "history", "totals")
+    assert totals["total_jobs"] == 1 and totals["longest_job"] > 0
+    with server.client() as http:
+        job = http.get("/server/history/job", params={"uid": history[0]["job_id"]}).json()
+        assert job["result"]["job"]["status"] == "cancelled"
+        assert http.get("/server/history/job", params={"uid": "FFFFFF"}).status_code == 404
+
+
+def test_the_job_queue_is_the_servers_queue(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server], tmp_path: Path
+) -> None:
+    fake = bench()
+    server = servers({"bench": fake.port})
+    heard = Heard()
+    with server.client() as http:
+        wait_for(lambda: http.get("/v1/printers/bench").json()["state"] == "ready")
+        for name in ("a.gcode", "b.gcode"):
+            assert http.post("/v1/files", files={"file": (name, gcode(50))}).status_code == 201
+
+    async def run() -> None:
+        moonraker = MoonrakerClient(heard, "127.0.0.1", server.port, api_key=KEY)
+        assert await moonraker.connect()
+        try:
+            await moonraker.call_method("server.job_queue.pause")
+            klipperctl(server, "queue", "add", "a.gcode", "b.gcode")
+            status = await moonraker.call_method("server.job_queue.status")
+            assert status["queue_state"] == "paused"
+            assert [j["filename"] for j in status["queued_jobs"]] == ["a.gcode", "b.gcode"]
+            second = status["queued_jobs"][1]["job_id"]
+            await moonraker.call_method("server.job_queue.jump", job_id=second)
+            status = await moonraker.call_method("server.job_queue.status")
+            assert [j["filename"] for j in status["queued_jobs"]] == ["b.gcode", "a.gcode"]
+            await until(
+                lambda: any(m == "notify_job_queue_changed" for m, _ in heard.notifications),
+                "the queue's notification",
+            )
+
+            def finished() -> list[Any]:
+                return [
+                    d[0]["job"]["filename"]
+                    for m, d in heard.notifications
+                    if m == "notify_history_changed" and d[0]["action"] == "finished"
+                ]
+
+            # Each job ends with its part on the bed: the queue holds until started again.
+            for done in (["b.gcode"], ["b.gcode", "a.gcode"]):
+                klipperctl(server, "queue", "start")
+                await until(lambda done=done: finished() == done, f"{done} finished", 60)
+                await until(
+                    lambda: (
+                        klipperctl(server, "--json", "queue", "status")["queue_state"] == "paused"
+                    ),
+                    "held after the job",
+                )
+        finally:
+            await moonraker.disconnect()
+
+    asyncio.run(run())
+    with server.client() as http:
+        ended = [(j["name"], j["state"]) for j in http.get("/v1/printers/bench/jobs").json()]
+    assert ended == [("b.gcode", "completed"), ("a.gcode", "completed")]  # by id, newest first
+
+
+def test_a_websocket_is_told_of_files_added_and_removed(
+    slow: tuple[Server, BuiltInFake],
+) -> None:
+    server, _ = slow
+    heard = Heard()
+
+    async def run() -> list[dict[str, Any]]:
+        moonraker = MoonrakerClient(heard, "127.0.0.1", server.port, api_key=KEY)
+        assert await moonraker.connect()
+        try:
+            async with httpx.AsyncClient(base_url=server.url, headers={"X-Api-Key": KEY}) as http:
+                made = await http.post(
+                    "/server/files/upload", files={"file": ("n.gcode", "G1 X1\n")}
+                )
+                assert made.status_code == 201
+                await http.delete("/server/files/gcodes/n.gcode")
+
+            def changes() -> list[dict[str, Any]]:
+                return [d[0] for m, d in heard.notifications if m == "notify_filelist_changed"]
+
+            await until(lambda: len(changes()) >= 2, "two file notifications")
+            return changes()
+        finally:
+            await moonraker.disconnect()
+
+    changes = asyncio.run(run())
+    assert [(c["action"], c["item"]["path"]) for c in changes] == [
+        ("create_file", "n.gcode"),
+        ("delete_file", "n.gcode"),
+    ]
