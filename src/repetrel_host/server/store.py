@@ -60,6 +60,12 @@ CREATE TABLE IF NOT EXISTS heaters (
     printer TEXT PRIMARY KEY,
     heaters TEXT NOT NULL
 );
+-- What clients keep on the server (Moonraker's database: Mainsail's and Fluidd's settings),
+-- a namespace a JSON object.
+CREATE TABLE IF NOT EXISTS client_data (
+    namespace TEXT PRIMARY KEY,
+    value TEXT NOT NULL
+);
 """
 # Columns added since the first schema, added to an older data folder's table as it opens.
 _ADDED_COLUMNS = {
@@ -477,6 +483,31 @@ class Store:
         row = self._db.execute("SELECT original FROM uploads WHERE path = ?", (path,))
         found = row.fetchone()
         return str(found[0]) if found is not None else None
+
+    def client_namespaces(self) -> list[str]:
+        """The namespaces clients keep data in, by name."""
+        rows = self._db.execute("SELECT namespace FROM client_data ORDER BY namespace")
+        return [str(row[0]) for row in rows]
+
+    def client_data(self, namespace: str) -> dict[str, Any] | None:
+        """What clients keep in ``namespace``; None when it does not exist."""
+        row = self._db.execute(
+            "SELECT value FROM client_data WHERE namespace = ?", (namespace,)
+        ).fetchone()
+        value: dict[str, Any] | None = json.loads(row[0]) if row is not None else None
+        return value
+
+    def keep_client_data(self, namespace: str, value: dict[str, Any] | None) -> None:
+        """``namespace`` holds ``value`` from now on (None: the namespace is gone)."""
+        with self._transaction() as db:
+            if value is None:
+                db.execute("DELETE FROM client_data WHERE namespace = ?", (namespace,))
+                return
+            db.execute(
+                "INSERT INTO client_data (namespace, value) VALUES (?, ?) ON CONFLICT"
+                " (namespace) DO UPDATE SET value = excluded.value",
+                (namespace, json.dumps(value)),
+            )
 
     def keep_heaters(self, printer: str, heaters: list[Heater]) -> None:
         """The heaters that may be on at ``printer`` now (kept across restarts)."""

@@ -54,9 +54,10 @@ class Call:
         """The argument ``name``, else ``default``."""
         return self.args.get(name, default)
 
-    def required(self, name: str) -> Any:
-        """The argument ``name``; 400 "No data for argument: name" when it is missing."""
-        if name not in self.args or self.args[name] is None:
+    def required(self, name: str, null: bool = False) -> Any:
+        """The argument ``name``; 400 "No data for argument: name" when it is missing (or
+        null, unless ``null`` allows it)."""
+        if name not in self.args or (self.args[name] is None and not null):
             raise RpcError(400, f"No data for argument: {name}")
         return self.args[name]
 

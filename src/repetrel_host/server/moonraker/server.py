@@ -32,6 +32,8 @@ COMPONENTS = [
     "history",
     "webcam",
     "authorization",
+    "update_manager",
+    "announcements",
 ]
 TEMPERATURE_STORE = 1200  # samples of each heater, a second apart
 
@@ -167,6 +169,55 @@ async def machine_proc_stats(call: Call) -> dict[str, Any]:
         "system_uptime": uptime(),
         "websocket_connections": len(call.face.connections),
     }
+
+
+@method("/server/webcams/list")
+async def webcams(call: Call) -> dict[str, Any]:
+    """The printer's camera, where it has one: its latest snapshot (no stream)."""
+    service = call.service
+    if service.camera is None:
+        return {"webcams": []}
+    snapshot = f"/v1/printers/{service.name}/snapshots/latest"
+    return {
+        "webcams": [
+            {
+                "name": service.name,
+                "location": "printer",
+                "service": "mjpegstreamer-adaptive",
+                "enabled": True,
+                "icon": "mdiWebcam",
+                "target_fps": 1,
+                "target_fps_idle": 1,
+                "stream_url": "",
+                "snapshot_url": snapshot,
+                "flip_horizontal": False,
+                "flip_vertical": False,
+                "rotation": 0,
+                "aspect_ratio": "4:3",
+                "extra_data": {},
+                "source": "config",
+                "uid": f"repetrel-{service.name}",
+            }
+        ]
+    }
+
+
+@method("/machine/update/status")
+@method("/machine/update/refresh", "POST")
+async def update_status(call: Call) -> dict[str, Any]:
+    """Nothing to update from here: the server is updated with pip, not by a client."""
+    return {
+        "busy": False,
+        "github_rate_limit": None,
+        "github_requests_remaining": None,
+        "github_limit_reset_time": None,
+        "version_info": {},
+    }
+
+
+@method("/server/announcements/list")
+async def announcements(call: Call) -> dict[str, Any]:
+    return {"entries": [], "feeds": []}
 
 
 @method("/access/oneshot_token")
