@@ -21,7 +21,7 @@ from moonraker_api.websockets.websocketclient import ClientNotAuthenticatedError
 
 from repetrel_host.fakes.fake_controller import BuiltInFake
 from tests.support.helpers import MARLIN_SAFE_STOP, executed
-from tests.support.server import KEY, Server, gcode, server_config, wait_for
+from tests.support.server import KEY, Server, free_port, gcode, server_config, wait_for
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -281,12 +281,14 @@ def test_a_trusted_network_needs_no_key_and_a_bad_one_is_one_sentence(
         f'moonraker_trusted_clients = ["127.0.0.0/8"]\n[printers]\nbench = "{fake.port}"\n'
     )
     server = servers({}, "--config", str(config))
+    with server.client() as http:
+        wait_for(lambda: http.get("/v1/printers/bench").json()["state"] == "ready")
 
     async def run() -> None:
         moonraker = MoonrakerClient(Heard(), "127.0.0.1", server.port)  # no key
         assert await moonraker.connect()
         try:
-            assert (await moonraker.get_host_info())["state"] in ("ready", "startup")
+            assert (await moonraker.get_host_info())["state"] == "ready"
         finally:
             await moonraker.disconnect()
 
@@ -406,3 +408,48 @@ def test_json_rpc_over_http_takes_a_batch_and_id_0_and_says_each_error(
         "error": {"code": -32700, "message": "Parse error"},
         "id": None,
     }
+
+
+def test_a_printers_own_port_is_that_printers_face_and_a_taken_one_is_one_sentence(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server], tmp_path: Path
+) -> None:
+    left, right = bench(), bench()
+    own = free_port()
+    config = server_config(
+        tmp_path, left={"port": left.port}, right={"port": right.port, "moonraker_port": own}
+    )
+    server = servers({}, "--config", str(config))
+    with server.client() as http:
+        for name in ("left", "right"):
+            wait_for(lambda n=name: http.get(f"/v1/printers/{n}").json()["state"] == "ready")
+
+    async def run() -> None:
+        moonraker = MoonrakerClient(Heard(), "127.0.0.1", own, api_key=KEY)  # a host and port
+        assert await moonraker.connect()
+        try:
+            assert await moonraker.call_method("printer.gcode.script", script="M104 S120") == "ok"
+        finally:
+            await moonraker.disconnect()
+
+    asyncio.run(run())
+    assert targets(right)["T"] == 120 and targets(left)["T"] == 0
+    # Taken: by the server itself (another data folder, the same printer's port), or the bind.
+    for bind in ("127.0.0.1:0", f"127.0.0.1:{own}"):
+        done = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "repetrel_host.server.main",
+                "--config",
+                str(config),
+                "--data-dir",
+                str(tmp_path / "second"),
+                "--bind",
+                bind,
+            ],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+        assert done.returncode == 2 and "Traceback" not in done.stderr
+        assert f"moonraker_port {own}" in done.stderr or f"{own} (printer right's" in done.stderr

@@ -149,6 +149,28 @@ def _printer(request: Request, printer: Annotated[str, Path()]) -> None:
     server_of(request).service(printer)
 
 
+class PrinterPorts:
+    """A printer's own port (its ``moonraker_port``): a request that came to it is that
+    printer's, as if it named ``/printers/NAME`` (for clients that take only a host and a
+    port: Home Assistant's Moonraker integration, KlipperScreen)."""
+
+    def __init__(self, app: Any, ports: dict[int, str]) -> None:
+        self.app = app
+        self.ports = ports
+
+    async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
+        server = scope.get("server")
+        name = self.ports.get(server[1]) if server and scope["type"] != "lifespan" else None
+        if name is not None and not scope["path"].startswith(("/printers/", "/static/")):
+            prefix = f"/printers/{name}"
+            scope = {
+                **scope,
+                "path": prefix + scope["path"],
+                "raw_path": prefix.encode() + scope.get("raw_path", scope["path"].encode()),
+            }
+        await self.app(scope, receive, send)
+
+
 class SingleSlashes:
     """``//api/printer/bed`` is ``/api/printer/bed`` (Home Assistant's client joins its
     base URL and paths with one slash too many), as OctoPrint's server takes it."""

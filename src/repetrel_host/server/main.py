@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import fcntl
 import logging
+import os
 import signal
+import socket
 import sys
 from pathlib import Path
 from typing import Annotated
@@ -30,6 +32,7 @@ from repetrel_host.server.settings import (
     farm_to_join,
     load_api_key,
     load_settings,
+    moonraker_ports,
     mqtt_settings,
     parse_address,
 )
@@ -145,10 +148,19 @@ def serve(
         fail(f"cannot use the data folder {settings.data_dir}: {exc.strerror}")
         raise  # not reached
     farm_settings = farm_to_join(settings, host, port)
+    # Bound before anything starts: a port in use is one sentence, not a server half up.
+    ports = moonraker_ports(settings)
+    sockets = [listen(host, port, "--bind")] + [
+        listen(host, own, f"printer {name}'s moonraker_port") for own, name in ports.items()
+    ]
+    where = logging.getLogger("repetrel_host.server")
+    where.info("listening on http://%s:%d", host, port)
+    for own, name in ports.items():
+        where.info("printer %s: Moonraker's clients on http://%s:%d too", name, host, own)
 
     import uvicorn
 
-    from repetrel_host.server.app import PrintServer, create_app
+    from repetrel_host.server.app import PrinterPorts, PrintServer, create_app
 
     printers = {
         name: PrinterConfig(entry)
@@ -175,8 +187,9 @@ def serve(
     # SIGHUP (the terminal or ssh session it was started in, gone) would end it on the
     # spot, heaters on: it stops as SIGTERM does, with the printers' safe stop.
     signal.signal(signal.SIGHUP, lambda *_: signal.raise_signal(signal.SIGTERM))
-    uvicorn.run(
-        create_app(server, mqtt_settings(settings)),
+    served = create_app(server, mqtt_settings(settings))
+    listening = uvicorn.Config(
+        PrinterPorts(served, ports) if ports else served,
         host=host,
         port=port,
         log_level="info",
@@ -193,6 +206,18 @@ def serve(
         ws_ping_interval=10.0,
         ws_ping_timeout=10.0,
     )
+    uvicorn.Server(listening).run(sockets=sockets)
+
+
+def listen(host: str, port: int, what: str) -> socket.socket:
+    """A socket listening on ``host``:``port``; one sentence and exit 2 when it cannot."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    try:
+        return socket.create_server((host, port), family=family, backlog=2048)
+    except OSError as exc:
+        reason = os.strerror(exc.errno) if exc.errno else str(exc)
+        fail(f"cannot listen on {host}:{port} ({what}): {reason}")
+        raise  # not reached
 
 
 keys = typer.Typer(

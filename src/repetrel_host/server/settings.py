@@ -47,6 +47,8 @@ class PrinterEntry(BaseModel):
     layer_snapshots: bool = True  # with a camera, a snapshot at every M790 (new layer)
     snapshots_kept: int = Field(default=500, ge=1)
     tags: list[str] = []  # in a farm: what jobs may ask of it (tag=abs)
+    # A port of its own for Moonraker's clients that take only a host and port.
+    moonraker_port: int | None = Field(default=None, ge=1, le=65535)
 
 
 class Preset(BaseModel):
@@ -170,7 +172,32 @@ def load_settings(
             fail(f"printer name '{name}': use letters, digits, '-' and '_'")
     if settings.farm is not None:
         _check_farm_url(settings.farm)
+    _check_moonraker_ports(settings)
     return settings
+
+
+def moonraker_ports(settings: ServerSettings) -> dict[int, str]:
+    """The printers that have a port of their own for Moonraker's clients: port: name."""
+    return {
+        entry.moonraker_port: name
+        for name, entry in settings.printers.items()
+        if isinstance(entry, PrinterEntry) and entry.moonraker_port is not None
+    }
+
+
+def _check_moonraker_ports(settings: ServerSettings) -> None:
+    """Each moonraker_port is a printer's own: not the server's, not another's."""
+    seen: dict[int, str] = {}
+    _, _, bound = settings.bind.rpartition(":")
+    for name, entry in settings.printers.items():
+        port = entry.moonraker_port if isinstance(entry, PrinterEntry) else None
+        if port is None:
+            continue
+        if str(port) == bound:
+            fail(f"printer {name}: moonraker_port {port} is the server's own port (bind)")
+        if port in seen:
+            fail(f"printer {name}: moonraker_port {port} is printer {seen[port]}'s own too")
+        seen[port] = name
 
 
 def _check_farm_url(url: str) -> None:

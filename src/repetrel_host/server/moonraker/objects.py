@@ -37,8 +37,10 @@ _ZEROS = [0.0, 0.0, 0.0, 0.0]
 
 
 def klippy_state(service: PrinterService) -> str:
-    """``ready``, ``startup`` (connecting) or ``shutdown`` (the controller's link is lost
-    or closed)."""
+    """``ready``, ``startup`` (connecting, or the server starting) or ``shutdown`` (the
+    controller's link is lost or closed)."""
+    if service.printer is None:
+        return "startup"
     return _KLIPPY.get(service.state, "shutdown")
 
 

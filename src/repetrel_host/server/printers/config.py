@@ -39,6 +39,7 @@ class PrinterConfig:
     layer_snapshots: bool = True  # with a camera: a snapshot at every M790
     snapshots_kept: int = 500
     tags: tuple[str, ...] = ()  # in a farm: what jobs may ask of it (tag=abs)
+    moonraker_port: int | None = None  # its own port for Moonraker's clients
 
     def connect(
         self,
