@@ -267,9 +267,9 @@ def test_klippys_state_follows_the_link_through_a_firmware_restart(
 
     asyncio.run(run())
     methods = [m for m, _ in heard.notifications if m.startswith("notify_klippy")]
-    assert methods[:2] == ["notify_klippy_shutdown", "notify_klippy_ready"]
+    assert methods[:2] == ["notify_klippy_disconnected", "notify_klippy_ready"]  # as a restart
     states = [s["webhooks"]["state"] for s in heard.statuses() if "webhooks" in s]
-    assert states[0] == "shutdown" and states[-1] == "ready"  # "startup" may come between
+    assert states[0] == "disconnected" and states[-1] == "ready"  # "startup" may come between
 
 
 def test_a_trusted_network_needs_no_key_and_a_bad_one_is_one_sentence(
@@ -453,3 +453,57 @@ def test_a_printers_own_port_is_that_printers_face_and_a_taken_one_is_one_senten
         )
         assert done.returncode == 2 and "Traceback" not in done.stderr
         assert f"moonraker_port {own}" in done.stderr or f"{own} (printer right's" in done.stderr
+
+
+def test_a_port_closed_on_purpose_is_klippy_disconnected_until_a_firmware_restart(
+    printer: tuple[Server, BuiltInFake],
+) -> None:
+    server, _ = printer
+    heard = Heard()
+
+    async def run() -> None:
+        moonraker = client(server, heard)
+        assert await moonraker.connect()
+        try:
+            async with httpx.AsyncClient(base_url=server.url, headers={"X-Api-Key": KEY}) as http:
+                closed = await http.post("/api/connection", json={"command": "disconnect"})
+                assert closed.status_code == 204
+            await until(lambda: ("notify_klippy_disconnected", None) in heard.notifications, "told")
+            info = await moonraker.get_server_info()
+            assert info["klippy_state"] == "disconnected" and info["klippy_connected"] is False
+            assert await moonraker.call_method("printer.firmware_restart") == "ok"
+            await until(lambda: ("notify_klippy_ready", None) in heard.notifications, "ready")
+            assert await moonraker.get_klipper_status() == "ready"
+        finally:
+            await moonraker.disconnect()
+
+    asyncio.run(run())
+
+
+def test_a_lost_link_is_klippy_shutdown_with_the_reason_then_ready_again(
+    printer: tuple[Server, BuiltInFake],
+) -> None:
+    server, fake = printer
+    heard = Heard()
+
+    async def run() -> None:
+        moonraker = client(server, heard)
+        assert await moonraker.connect()
+        try:
+            await moonraker.call_method("printer.objects.subscribe", objects={"webhooks": None})
+            assert fake.request("link_drop 2")["ok"]  # unplugged for 2 s, then back
+            await until(lambda: ("notify_klippy_shutdown", None) in heard.notifications, "shutdown")
+            await until(
+                lambda: [
+                    s for s in heard.statuses() if s.get("webhooks", {}).get("state") == "ready"
+                ],
+                "ready again",
+            )
+        finally:
+            await moonraker.disconnect()
+
+    asyncio.run(run())
+    assert ("notify_klippy_ready", None) in heard.notifications
+    said = [s["webhooks"] for s in heard.statuses() if "webhooks" in s]
+    assert said[0]["state"] == "shutdown" and said[0]["state_message"]
+    assert said[-1] == {"state": "ready", "state_message": "Printer is ready"}

@@ -12,7 +12,7 @@ from collections.abc import Callable
 from typing import Any, Protocol
 
 from repetrel_host.server.events import PrinterMessage, ServerEvent
-from repetrel_host.server.moonraker.host import own_memory
+from repetrel_host.server.moonraker.host import Usage, own_memory
 from repetrel_host.server.moonraker.objects import Objects
 from repetrel_host.server.print_server import PrintServer
 
@@ -52,6 +52,8 @@ class MoonrakerFace:
         self.tokens: dict[str, tuple[str | None, float]] = {}
         self.listeners: list[Callable[[ServerEvent], None]] = []
         self.started = time.time()
+        self.usage = Usage()
+        self._stats: tuple[float, dict[str, Any]] = (0.0, {})  # the last, and when
         self._task: asyncio.Task[None] | None = None
 
     # --- the server's events ----------------------------------------------------------
@@ -120,10 +122,15 @@ class MoonrakerFace:
 
 def proc_stats(face: MoonrakerFace) -> dict[str, Any]:
     """Moonraker's process statistics (``notify_proc_stat_update``, ``machine.proc_stats``'s
-    latest sample)."""
+    latest sample): made once a second, whoever asks."""
+    made, stats = face._stats
+    now = time.monotonic()
+    if now - made < 0.9:
+        return {**stats, "websocket_connections": len(face.connections)}
     usage = os.times()
     busy = (usage.user + usage.system) / max(time.time() - face.started, 1)
-    return {
+    cpus, network = face.usage.sample()
+    stats = {
         "moonraker_stats": {
             "time": time.time(),
             "cpu_usage": round(100 * busy, 2),
@@ -131,7 +138,9 @@ def proc_stats(face: MoonrakerFace) -> dict[str, Any]:
             "mem_units": "kB",
         },
         "cpu_temp": None,
-        "network": {},
-        "system_cpu_usage": {},
+        "network": network,
+        "system_cpu_usage": cpus,
         "websocket_connections": len(face.connections),
     }
+    face._stats = (now, stats)
+    return stats

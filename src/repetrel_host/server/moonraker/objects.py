@@ -17,14 +17,15 @@ from repetrel_host.server.printers.heaters import heaters
 from repetrel_host.server.printers.service import PrinterService
 from repetrel_host.server.store import JobState
 
-# The session's states as Klippy's: ready, startup, shutdown (what a lost link is to Klipper).
+# The session's states as Klippy's: ready, startup, shutdown (what a lost link is to
+# Klipper), disconnected (the port closed on purpose: no Klippy to talk to).
 _KLIPPY = {
     "ready": "ready",
     "printing": "ready",
     "paused": "ready",
     "connecting": "startup",
     "disconnected": "shutdown",
-    "closed": "shutdown",
+    "closed": "disconnected",
 }
 # How the server's ended jobs are to print_stats.
 _ENDED = {
@@ -37,8 +38,8 @@ _ZEROS = [0.0, 0.0, 0.0, 0.0]
 
 
 def klippy_state(service: PrinterService) -> str:
-    """``ready``, ``startup`` (connecting, or the server starting) or ``shutdown`` (the
-    controller's link is lost or closed)."""
+    """``ready``, ``startup`` (connecting, or the server starting), ``shutdown`` (the
+    controller's link is lost) or ``disconnected`` (its port was closed on purpose)."""
     if service.printer is None:
         return "startup"
     return _KLIPPY.get(service.state, "shutdown")

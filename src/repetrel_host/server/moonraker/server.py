@@ -12,7 +12,7 @@ from typing import Any
 
 import repetrel_host as rh
 from repetrel_host.server.moonraker.face import GCODE_STORE, proc_stats
-from repetrel_host.server.moonraker.host import meminfo, uptime
+from repetrel_host.server.moonraker.host import interfaces, meminfo, uptime
 from repetrel_host.server.moonraker.objects import heater_names, klippy_state
 from repetrel_host.server.moonraker.rpc import Call, RpcError, method
 
@@ -42,7 +42,7 @@ TEMPERATURE_STORE = 1200  # samples of each heater, a second apart
 async def server_info(call: Call) -> dict[str, Any]:
     state = klippy_state(call.service)
     return {
-        "klippy_connected": True,
+        "klippy_connected": state != "disconnected",
         "klippy_state": state,
         "components": COMPONENTS,
         "failed_components": [],
@@ -139,13 +139,16 @@ async def system_info(call: Call) -> dict[str, Any]:
                 "version_parts": {"major": "", "minor": "", "build_number": ""},
                 "like": "",
                 "codename": "",
+                "release_info": {},
+                "kernel_version": platform.release(),
             },
             "available_services": [],
             "instance_ids": {"moonraker": "repetrel-host", "klipper": call.service.name},
             "service_state": {},
             "virtualization": {"virt_type": "none", "virt_identifier": "none"},
-            "network": {},
+            "network": interfaces(),
             "canbus": {},
+            "provider": "none",
             "hostname": socket.gethostname(),
             "software": f"repetrel-host {rh.__version__}",
         }
@@ -159,8 +162,8 @@ async def machine_proc_stats(call: Call) -> dict[str, Any]:
         "moonraker_stats": [now["moonraker_stats"]],
         "throttled_state": None,
         "cpu_temp": None,
-        "network": {},
-        "system_cpu_usage": {},
+        "network": now["network"],
+        "system_cpu_usage": now["system_cpu_usage"],
         "system_memory": {
             "total": meminfo("MemTotal"),
             "available": meminfo("MemAvailable"),

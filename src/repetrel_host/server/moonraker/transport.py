@@ -275,10 +275,8 @@ class Connection:
             state = klippy_state(self.service)
             if state != self.klippy:
                 self.klippy = state
-                if state == "ready":
-                    self.send_later("notify_klippy_ready")
-                elif state == "shutdown":
-                    self.send_later("notify_klippy_shutdown")
+                if state in ("ready", "shutdown", "disconnected"):
+                    self.send_later(f"notify_klippy_{state}")
         self._changed.set()
 
     def _changes(self) -> dict[str, dict[str, Any]]:

@@ -1,0 +1,170 @@
+"""A small fake Klippy for a real Moonraker to talk to (the reference test): Klippy's API
+server on a unix socket, JSON messages each ended by 0x03, answering what Moonraker asks as
+it starts (info, list_endpoints, the objects, G-code help, subscriptions) with an idle
+Klipper printer's status.
+
+    python tests/support/fake_klippy.py SOCKET_PATH
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import sys
+import time
+from typing import Any
+
+ENDPOINTS = [
+    "info",
+    "list_endpoints",
+    "emergency_stop",
+    "objects/list",
+    "objects/query",
+    "objects/subscribe",
+    "gcode/script",
+    "gcode/help",
+    "gcode/subscribe_output",
+    "pause_resume/pause",
+    "pause_resume/resume",
+    "pause_resume/cancel",
+    "register_remote_method",
+]
+ZEROS = [0.0, 0.0, 0.0, 0.0]
+# An idle Klipper printer's objects (Klipper's status reference).
+STATUS: dict[str, dict[str, Any]] = {
+    "webhooks": {"state": "ready", "state_message": "Printer is ready"},
+    "print_stats": {
+        "filename": "",
+        "total_duration": 0.0,
+        "print_duration": 0.0,
+        "filament_used": 0.0,
+        "state": "standby",
+        "message": "",
+        "info": {"total_layer": None, "current_layer": None},
+    },
+    "virtual_sdcard": {
+        "file_path": None,
+        "progress": 0.0,
+        "is_active": False,
+        "file_position": 0,
+        "file_size": 0,
+    },
+    "display_status": {"message": None, "progress": 0.0},
+    "pause_resume": {"is_paused": False},
+    "idle_timeout": {"state": "Idle", "printing_time": 0.0},
+    "toolhead": {
+        "homed_axes": "",
+        "axis_minimum": ZEROS,
+        "axis_maximum": [200.0, 200.0, 200.0, 0.0],
+        "print_time": 0.0,
+        "stalls": 0,
+        "estimated_print_time": 0.0,
+        "extruder": "extruder",
+        "position": ZEROS,
+        "max_velocity": 300.0,
+        "max_accel": 3000.0,
+        "minimum_cruise_ratio": 0.5,
+        "square_corner_velocity": 5.0,
+    },
+    "gcode_move": {
+        "speed_factor": 1.0,
+        "speed": 1500.0,
+        "extrude_factor": 1.0,
+        "absolute_coordinates": True,
+        "absolute_extrude": True,
+        "homing_origin": ZEROS,
+        "position": ZEROS,
+        "gcode_position": ZEROS,
+    },
+    "extruder": {
+        "temperature": 21.0,
+        "target": 0.0,
+        "power": 0.0,
+        "can_extrude": False,
+        "pressure_advance": 0.0,
+        "smooth_time": 0.04,
+    },
+    "heater_bed": {"temperature": 21.0, "target": 0.0, "power": 0.0},
+    "fan": {"speed": 0.0, "rpm": None},
+    "heaters": {
+        "available_heaters": ["heater_bed", "extruder"],
+        "available_sensors": ["heater_bed", "extruder"],
+        "available_monitors": [],
+    },
+}
+
+
+def answer(method: str, params: dict[str, Any], gcodes: str) -> Any:
+    if method == "info":
+        return {
+            "state": "ready",
+            "state_message": "Printer is ready",
+            "hostname": "fake-klippy",
+            "software_version": "v0.12.0-fake",
+            "cpu_info": "fake",
+            # Not a real folder: Moonraker refuses writes below Klipper's own path.
+            "klipper_path": "/nonexistent/klipper",
+            "python_path": sys.executable,
+            "log_file": "/nonexistent/klippy.log",
+            "config_file": "/nonexistent/printer.cfg",
+            "process_id": os.getpid(),
+            "user_id": os.getuid(),
+            "group_id": os.getgid(),
+        }
+    if method == "list_endpoints":
+        return {"endpoints": ENDPOINTS}
+    if method == "objects/list":
+        return {"objects": [*STATUS, "configfile"]}
+    if method in ("objects/query", "objects/subscribe"):
+        status = {**STATUS, "configfile": configfile(gcodes)}
+        wanted = params.get("objects", {})
+        found = {
+            name: {k: v for k, v in status[name].items() if fields is None or k in fields}
+            for name, fields in wanted.items()
+            if name in status
+        }
+        return {"eventtime": time.monotonic(), "status": found}
+    if method == "gcode/help":
+        return {"G28": "Home", "M104": "Set the extruder's temperature"}
+    return {}
+
+
+def configfile(gcodes: str) -> dict[str, Any]:
+    sections = {
+        "printer": {"kinematics": "cartesian"},
+        "virtual_sdcard": {"path": gcodes},
+        "extruder": {},
+        "heater_bed": {},
+        "pause_resume": {},
+        "display_status": {},
+    }
+    return {
+        "config": sections,
+        "settings": sections,
+        "warnings": [],
+        "save_config_pending": False,
+        "save_config_pending_items": {},
+    }
+
+
+async def main(path: str, gcodes: str) -> None:
+    async def serve(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        try:
+            while True:
+                request = json.loads((await reader.readuntil(b"\x03"))[:-1])
+                result = answer(request.get("method", ""), request.get("params", {}), gcodes)
+                reply = {"id": request.get("id"), "result": result}
+                writer.write(json.dumps(reply).encode() + b"\x03")
+                await writer.drain()
+        except (asyncio.IncompleteReadError, ConnectionError):
+            pass
+
+    server = await asyncio.start_unix_server(serve, path)
+    print("ready", flush=True)
+    async with server:
+        await server.serve_forever()
+
+
+if __name__ == "__main__":
+    asyncio.run(main(sys.argv[1], sys.argv[2]))
