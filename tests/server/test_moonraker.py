@@ -10,7 +10,8 @@ import asyncio
 import json
 import subprocess
 import sys
-from collections.abc import Callable
+from collections.abc import AsyncIterator, Callable
+from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import Any
 
@@ -44,6 +45,16 @@ class Heard(MoonrakerListener):
 
 def client(server: Server, listener: MoonrakerListener, key: str = KEY) -> MoonrakerClient:
     return MoonrakerClient(listener, "127.0.0.1", server.port, api_key=key)
+
+
+@asynccontextmanager
+async def connected(moonraker: MoonrakerClient) -> AsyncIterator[MoonrakerClient]:
+    """``moonraker`` connected (its websocket's upgrade answered), disconnected after."""
+    assert await moonraker.connect()
+    try:
+        yield moonraker
+    finally:
+        await moonraker.disconnect()
 
 
 async def until(condition: Callable[[], Any], what: str, timeout: float = 15) -> Any:
@@ -87,9 +98,7 @@ def test_home_assistants_library_connects_with_the_key_and_reads_the_printer(
     server, _ = printer
 
     async def run() -> None:
-        moonraker = client(server, Heard())
-        assert await moonraker.connect()
-        try:
+        async with connected(client(server, Heard())) as moonraker:
             assert await moonraker.get_klipper_status() == "ready"
             info = await moonraker.get_server_info()
             assert info["klippy_connected"] and not info["missing_klippy_requirements"]
@@ -101,8 +110,6 @@ def test_home_assistants_library_connects_with_the_key_and_reads_the_printer(
             assert unknown["error"]["code"] == -32601
             missing = await moonraker.call_method("printer.gcode.script")
             assert missing["error"]["message"] == "No data for argument: script"
-        finally:
-            await moonraker.disconnect()
         with pytest.raises(ClientNotAuthenticatedError):
             await client(server, Heard(), key="wrong").connect()
 
@@ -116,9 +123,7 @@ def test_a_subscription_carries_only_what_changed_and_gcode_sets_the_fakes_heate
     heard = Heard()
 
     async def run() -> None:
-        moonraker = client(server, heard)
-        assert await moonraker.connect()
-        try:
+        async with connected(client(server, heard)) as moonraker:
             first = await moonraker.call_method(
                 "printer.objects.subscribe",
                 objects={"extruder": ["target", "temperature"], "print_stats": None},
@@ -137,8 +142,6 @@ def test_a_subscription_carries_only_what_changed_and_gcode_sets_the_fakes_heate
                 "printer.gcode.script", script="SET_HEATER_TEMPERATURE HEATER=extruder TARGET=95"
             )
             assert said == "ok"
-        finally:
-            await moonraker.disconnect()
         # Every notification is JSON-RPC's, and the stats keep the socket fed.
         assert any(m == "notify_proc_stat_update" for m, _ in heard.notifications)
         assert ("notify_gcode_response", ["ok"]) in heard.notifications
@@ -251,9 +254,7 @@ def test_klippys_state_follows_the_link_through_a_firmware_restart(
     heard = Heard()
 
     async def run() -> None:
-        moonraker = client(server, heard)
-        assert await moonraker.connect()
-        try:
+        async with connected(client(server, heard)) as moonraker:
             await moonraker.call_method("printer.objects.subscribe", objects={"webhooks": None})
             assert await moonraker.call_method("printer.firmware_restart") == "ok"
             await until(
@@ -262,8 +263,6 @@ def test_klippys_state_follows_the_link_through_a_firmware_restart(
                 ),
                 "ready again",
             )
-        finally:
-            await moonraker.disconnect()
 
     asyncio.run(run())
     methods = [m for m, _ in heard.notifications if m.startswith("notify_klippy")]
@@ -285,12 +284,9 @@ def test_a_trusted_network_needs_no_key_and_a_bad_one_is_one_sentence(
         wait_for(lambda: http.get("/v1/printers/bench").json()["state"] == "ready")
 
     async def run() -> None:
-        moonraker = MoonrakerClient(Heard(), "127.0.0.1", server.port)  # no key
-        assert await moonraker.connect()
-        try:
+        no_key = MoonrakerClient(Heard(), "127.0.0.1", server.port)
+        async with connected(no_key) as moonraker:
             assert (await moonraker.get_host_info())["state"] == "ready"
-        finally:
-            await moonraker.disconnect()
 
     asyncio.run(run())
     assert httpx.get(f"{server.url}/server/info").status_code == 200
@@ -347,14 +343,12 @@ def test_each_printer_has_its_own_face_under_its_name(
             wait_for(lambda n=name: http.get(f"/v1/printers/{n}").json()["state"] == "ready")
 
     async def run() -> None:
-        moonraker = MoonrakerClient(
-            Heard(), "127.0.0.1", server.port, route_prefix="printers/right", api_key=KEY
-        )
-        assert await moonraker.connect()
-        try:
+        async with connected(
+            MoonrakerClient(
+                Heard(), "127.0.0.1", server.port, route_prefix="printers/right", api_key=KEY
+            )
+        ) as moonraker:
             assert await moonraker.call_method("printer.gcode.script", script="M104 S120") == "ok"
-        finally:
-            await moonraker.disconnect()
 
     asyncio.run(run())
     klipperctl(server, "printer", "gcode", "M140 S40", url=f"{server.url}/printers/left")
@@ -424,12 +418,9 @@ def test_a_printers_own_port_is_that_printers_face_and_a_taken_one_is_one_senten
             wait_for(lambda n=name: http.get(f"/v1/printers/{n}").json()["state"] == "ready")
 
     async def run() -> None:
-        moonraker = MoonrakerClient(Heard(), "127.0.0.1", own, api_key=KEY)  # a host and port
-        assert await moonraker.connect()
-        try:
+        by_port = MoonrakerClient(Heard(), "127.0.0.1", own, api_key=KEY)  # a host and port
+        async with connected(by_port) as moonraker:
             assert await moonraker.call_method("printer.gcode.script", script="M104 S120") == "ok"
-        finally:
-            await moonraker.disconnect()
 
     asyncio.run(run())
     assert targets(right)["T"] == 120 and targets(left)["T"] == 0
@@ -462,9 +453,7 @@ def test_a_port_closed_on_purpose_is_klippy_disconnected_until_a_firmware_restar
     heard = Heard()
 
     async def run() -> None:
-        moonraker = client(server, heard)
-        assert await moonraker.connect()
-        try:
+        async with connected(client(server, heard)) as moonraker:
             async with httpx.AsyncClient(base_url=server.url, headers={"X-Api-Key": KEY}) as http:
                 closed = await http.post("/api/connection", json={"command": "disconnect"})
                 assert closed.status_code == 204
@@ -474,8 +463,6 @@ def test_a_port_closed_on_purpose_is_klippy_disconnected_until_a_firmware_restar
             assert await moonraker.call_method("printer.firmware_restart") == "ok"
             await until(lambda: ("notify_klippy_ready", None) in heard.notifications, "ready")
             assert await moonraker.get_klipper_status() == "ready"
-        finally:
-            await moonraker.disconnect()
 
     asyncio.run(run())
 
@@ -487,9 +474,7 @@ def test_a_lost_link_is_klippy_shutdown_with_the_reason_then_ready_again(
     heard = Heard()
 
     async def run() -> None:
-        moonraker = client(server, heard)
-        assert await moonraker.connect()
-        try:
+        async with connected(client(server, heard)) as moonraker:
             await moonraker.call_method("printer.objects.subscribe", objects={"webhooks": None})
             assert fake.request("link_drop 2")["ok"]  # unplugged for 2 s, then back
             await until(lambda: ("notify_klippy_shutdown", None) in heard.notifications, "shutdown")
@@ -499,8 +484,6 @@ def test_a_lost_link_is_klippy_shutdown_with_the_reason_then_ready_again(
                 ],
                 "ready again",
             )
-        finally:
-            await moonraker.disconnect()
 
     asyncio.run(run())
     assert ("notify_klippy_ready", None) in heard.notifications

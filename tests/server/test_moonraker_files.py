@@ -15,7 +15,7 @@ import pytest
 from moonraker_api import MoonrakerClient
 
 from repetrel_host.fakes.fake_controller import BuiltInFake
-from tests.server.test_moonraker import Heard, klipperctl, until
+from tests.server.test_moonraker import Heard, connected, klipperctl, until
 from tests.support.helpers import MARLIN_SAFE_STOP, executed
 from tests.support.paths import DATA
 from tests.support.server import KEY, Server, gcode, wait_for
@@ -121,9 +121,9 @@ def test_the_job_queue_is_the_servers_queue(
             assert http.post("/v1/files", files={"file": (name, gcode(50))}).status_code == 201
 
     async def run() -> None:
-        moonraker = MoonrakerClient(heard, "127.0.0.1", server.port, api_key=KEY)
-        assert await moonraker.connect()
-        try:
+        async with connected(
+            MoonrakerClient(heard, "127.0.0.1", server.port, api_key=KEY)
+        ) as moonraker:
             await moonraker.call_method("server.job_queue.pause")
             klipperctl(server, "queue", "add", "a.gcode", "b.gcode")
             status = await moonraker.call_method("server.job_queue.status")
@@ -155,8 +155,6 @@ def test_the_job_queue_is_the_servers_queue(
                     ),
                     "held after the job",
                 )
-        finally:
-            await moonraker.disconnect()
 
     asyncio.run(run())
     with server.client() as http:
@@ -171,9 +169,7 @@ def test_a_websocket_is_told_of_files_added_and_removed(
     heard = Heard()
 
     async def run() -> list[dict[str, Any]]:
-        moonraker = MoonrakerClient(heard, "127.0.0.1", server.port, api_key=KEY)
-        assert await moonraker.connect()
-        try:
+        async with connected(MoonrakerClient(heard, "127.0.0.1", server.port, api_key=KEY)):
             async with httpx.AsyncClient(base_url=server.url, headers={"X-Api-Key": KEY}) as http:
                 made = await http.post(
                     "/server/files/upload", files={"file": ("n.gcode", "G1 X1\n")}
@@ -186,8 +182,6 @@ def test_a_websocket_is_told_of_files_added_and_removed(
 
             await until(lambda: len(changes()) >= 2, "two file notifications")
             return changes()
-        finally:
-            await moonraker.disconnect()
 
     changes = asyncio.run(run())
     assert [(c["action"], c["item"]["path"]) for c in changes] == [
