@@ -230,9 +230,9 @@ async def oneshot_token(call: Call) -> str:
 
 @method("/access/user", "GET", name="access.get_user")
 async def get_user(call: Call) -> dict[str, Any]:
-    if call.user is None:
-        raise RpcError(401, "Unauthorized")
-    return {"username": call.user, "source": "moonraker", "created_on": call.face.started}
+    """The key's user; a trusted network's caller is Moonraker's trusted user."""
+    name = call.user if call.user is not None else "_TRUSTED_USER_"
+    return {"username": name, "source": "moonraker", "created_on": call.face.started}
 
 
 @method("/access/info")
@@ -241,5 +241,5 @@ async def access_info(call: Call) -> dict[str, Any]:
         "default_source": "moonraker",
         "available_sources": ["moonraker"],
         "login_required": False,
-        "trusted": False,
+        "trusted": call.user is None,  # it came in by its network, not a key
     }

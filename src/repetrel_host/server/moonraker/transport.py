@@ -48,8 +48,10 @@ def _service(face: MoonrakerFace, printer: str | None) -> PrinterService:
 
 def who(face: MoonrakerFace, scope: Any) -> tuple[bool, str | None]:
     """(whether the request may use the API, who made it): the server's keys (header,
-    ``Authorization: Bearer``), a one-shot ``?token=``; an unknown token is ignored,
-    as Moonraker does (KlipperScreen sends ``token=False``)."""
+    ``Authorization: Bearer``), a trusted network, a one-shot ``?token=``; an unknown
+    token is ignored, as Moonraker does (KlipperScreen sends ``token=False``). The
+    server's open reads (``public_read``) do not open this face: a read here (a one-shot
+    token, a websocket) leads to everything."""
     user, _ = identify(face.server, scope)
     if user is not None:
         return True, user
@@ -61,7 +63,7 @@ def who(face: MoonrakerFace, scope: Any) -> tuple[bool, str | None]:
             valid, owner = face.redeem(value)
             if valid:
                 return True, owner
-    return face.server.access.public_read and scope.get("method", "GET") == "GET", None
+    return False, None
 
 
 def face_of(request: Request | WebSocket) -> MoonrakerFace:
@@ -224,7 +226,7 @@ class Connection:
         self.subscribed: dict[str, list[str] | None] = {}
         self.sent: dict[str, dict[str, Any]] = {}  # the subscribed objects, as last sent
         self.klippy = klippy_state(service)
-        self._outbox: asyncio.Queue[str | None] = asyncio.Queue(OUTBOX)
+        self._outbox: asyncio.Queue[str] = asyncio.Queue(OUTBOX)
         self._changed = asyncio.Event()
         self._tasks: set[asyncio.Task[None]] = set()
 
@@ -328,10 +330,7 @@ class Connection:
 
     async def _write(self) -> None:
         while True:
-            text = await self._outbox.get()
-            if text is None:
-                return
-            await self.websocket.send_text(text)
+            await self.websocket.send_text(await self._outbox.get())
 
 
 _NOTHING = object()
