@@ -35,6 +35,10 @@ class RpcError(Exception):
         return {404: -32601, 401: -32602}.get(self.status, self.status)
 
 
+# A call without a valid key, token or trusted network (Moonraker's words).
+UNAUTHORIZED = RpcError(401, "Unauthorized")
+
+
 @dataclass
 class Call:
     """One call of a method: who made it, for which printer, with which arguments."""

@@ -71,7 +71,9 @@ def face_of(request: Request | WebSocket) -> MoonrakerFace:
     return face
 
 
-def error_body(status: int, message: str) -> JSONResponse:
+def error_body(refused: rpc.RpcError) -> JSONResponse:
+    """Moonraker's error answer: its status, and ``{"error": {"code", "message"}}``."""
+    status, message = refused.status, refused.message
     return JSONResponse({"error": {"code": status, "message": message, "traceback": ""}}, status)
 
 
@@ -93,7 +95,7 @@ async def _http(request: Request, rest: str) -> Response:
     face = face_of(request)
     allowed, user = who(face, request.scope)
     if not allowed:
-        return error_body(401, "Unauthorized")
+        return error_body(rpc.UNAUTHORIZED)
     path = request.url.path
     if "printer" in request.path_params:  # /printers/NAME/server/info
         path = "/" + path.split("/", 3)[3]
@@ -102,12 +104,15 @@ async def _http(request: Request, rest: str) -> Response:
         try:
             service = _service(face, request.path_params.get("printer"))
         except rpc.RpcError as exc:
-            return error_body(exc.status, exc.message)
+            return error_body(exc)
         return JSONResponse(await answer_rpc(face, service, user, await request.body()))
     found, given = rpc.METHODS.route(path, verb)
     if found is None:
         known = rpc.METHODS.knows(path)
-        return error_body(405, "Method Not Allowed") if known else error_body(404, "Not Found")
+        missing = (
+            rpc.RpcError(405, "Method Not Allowed") if known else rpc.RpcError(404, "Not Found")
+        )
+        return error_body(missing)
     try:
         args = rpc.query_args(_query(request.scope))
         args.update(await _body(request))
@@ -116,7 +121,7 @@ async def _http(request: Request, rest: str) -> Response:
         call = rpc.Call(face, service, user, args, base_url=str(request.base_url))
         result = await rpc.call(found, call)
     except rpc.RpcError as exc:
-        return error_body(exc.status, exc.message)
+        return error_body(exc)
     if isinstance(result, Response):
         return result  # an upload's 201, a file's bytes
     return JSONResponse({"result": result})
@@ -197,12 +202,12 @@ async def _websocket(websocket: WebSocket) -> None:
     face = face_of(websocket)
     allowed, user = who(face, websocket.scope)
     if not allowed:
-        await websocket.send_denial_response(error_body(401, "Unauthorized"))
+        await websocket.send_denial_response(error_body(rpc.UNAUTHORIZED))
         return
     try:
         service = _service(face, websocket.path_params.get("printer"))
     except rpc.RpcError as exc:
-        await websocket.send_denial_response(error_body(404, exc.message))
+        await websocket.send_denial_response(error_body(exc))
         return
     await websocket.accept()
     connection = Connection(face, websocket, service, user)
