@@ -187,6 +187,12 @@ def test_the_queue_is_reordered_by_dragging_and_a_job_cancelled(
             ids.append(made.json()["id"])
     browser.open(f"{two_printers.url}/printers/right")
     browser.wait(lambda: len(browser.all(".queue-row")) == 3, "the three queued jobs")
+    # Each file's print time is worked out once the queue is listed, and the rows listed
+    # again with it: the rows are not replaced after this.
+    browser.wait(
+        lambda: all(e.startswith("about") for e in browser.texts(".queue-estimate")),
+        "the estimates",
+    )
 
     def shown() -> list[int]:
         return [int(job or 0) for job in browser.attributes(".queue-row", "data-job")]

@@ -115,6 +115,14 @@ class Browser:
             )
         ).strip()
 
+    def texts(self, selector: str) -> list[str]:
+        """The text of every element ``selector`` finds, read at once."""
+        found: list[str] = self.driver.execute_script(
+            "return [...document.querySelectorAll(arguments[0])].map(e => e.innerText.trim())",
+            selector,
+        )
+        return found
+
     def attributes(self, selector: str, name: str) -> list[str | None]:
         """Attribute ``name`` of every element ``selector`` finds, read at once."""
         found: list[str | None] = self.driver.execute_script(

@@ -150,8 +150,8 @@ def serve(
     farm_settings = farm_to_join(settings, host, port)
     # Bound before anything starts: a port in use is one sentence, not a server half up.
     ports = moonraker_ports(settings)
-    sockets = [listen(host, port, "--bind")] + [
-        listen(host, own, f"printer {name}'s moonraker_port") for own, name in ports.items()
+    sockets = [bound(host, port, "--bind")] + [
+        bound(host, own, f"printer {name}'s moonraker_port") for own, name in ports.items()
     ]
     where = logging.getLogger("repetrel_host.server")
     where.info("listening on http://%s:%d", host, port)
@@ -209,12 +209,18 @@ def serve(
     uvicorn.Server(listening).run(sockets=sockets)
 
 
-def listen(host: str, port: int, what: str) -> socket.socket:
-    """A socket listening on ``host``:``port``; one sentence and exit 2 when it cannot."""
+def bound(host: str, port: int, what: str) -> socket.socket:
+    """A socket bound to ``host``:``port``, not listening yet: a client is refused until the
+    server serves (as before it was bound here), not kept waiting. One sentence and exit 2
+    when it cannot be bound."""
     family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    made = socket.socket(family, socket.SOCK_STREAM)
     try:
-        return socket.create_server((host, port), family=family, backlog=2048)
+        made.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        made.bind((host, port))
+        return made
     except OSError as exc:
+        made.close()
         reason = os.strerror(exc.errno) if exc.errno else str(exc)
         fail(f"cannot listen on {host}:{port} ({what}): {reason}")
         raise  # not reached

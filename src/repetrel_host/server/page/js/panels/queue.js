@@ -48,10 +48,11 @@ export function mount(body, ctx) {
     }
   }
 
-  /** Loads again soon (several events in a row make one listing). */
+  /** Loads again soon (several events in a row make one listing); not during a drag,
+   * which new rows would cut off: once it ends. */
   function later() {
     clearTimeout(timer);
-    timer = setTimeout(load, 150);
+    timer = setTimeout(() => (dragged === null ? load() : later()), 150);
   }
 
   function render() {
