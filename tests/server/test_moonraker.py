@@ -87,8 +87,7 @@ def printer(
 ) -> tuple[Server, BuiltInFake]:
     fake = bench()
     server = servers({"bench": fake.port})
-    with server.client() as http:
-        wait_for(lambda: http.get("/v1/printers/bench").json()["state"] == "ready")
+    server.wait_ready("bench")
     return server, fake
 
 
@@ -219,7 +218,7 @@ def test_a_web_interfaces_pause_resume_and_cancel_buttons_during_a_print(
     fake = bench("--move-time", "0.004")
     server = servers({"bench": fake.port})
     with server.client() as http:
-        wait_for(lambda: http.get("/v1/printers/bench").json()["state"] == "ready")
+        server.wait_ready("bench")
         job = http.post("/v1/printers/bench/jobs", files={"file": ("long.gcode", gcode(20000))})
         assert job.status_code == 201
 
@@ -280,8 +279,7 @@ def test_a_trusted_network_needs_no_key_and_a_bad_one_is_one_sentence(
         f'moonraker_trusted_clients = ["127.0.0.0/8"]\n[printers]\nbench = "{fake.port}"\n'
     )
     server = servers({}, "--config", str(config))
-    with server.client() as http:
-        wait_for(lambda: http.get("/v1/printers/bench").json()["state"] == "ready")
+    server.wait_ready("bench")
 
     async def run() -> None:
         no_key = MoonrakerClient(Heard(), "127.0.0.1", server.port)
@@ -316,7 +314,7 @@ def test_an_emergency_stop_during_a_print_halts_the_controller_and_says_why(
     fake = bench("--move-time", "0.004")
     server = servers({"bench": fake.port})
     with server.client() as http:
-        wait_for(lambda: http.get("/v1/printers/bench").json()["state"] == "ready")
+        server.wait_ready("bench")
         job = http.post("/v1/printers/bench/jobs", files={"file": ("a.gcode", gcode(20000))})
         assert job.status_code == 201
 
@@ -338,9 +336,7 @@ def test_each_printer_has_its_own_face_under_its_name(
 ) -> None:
     left, right = bench(), bench()
     server = servers({"left": left.port, "right": right.port})
-    with server.client() as http:
-        for name in ("left", "right"):
-            wait_for(lambda n=name: http.get(f"/v1/printers/{n}").json()["state"] == "ready")
+    server.wait_ready("left", "right")
 
     async def run() -> None:
         async with connected(
@@ -368,7 +364,7 @@ def test_a_hyrel_loadouts_heads_are_klippers_extruders_set_by_their_own_address(
     )
     server = servers({}, "--config", str(config))
     with server.client() as http:
-        wait_for(lambda: http.get("/v1/printers/hyrel").json()["state"] == "ready")
+        server.wait_ready("hyrel")
         heads = [h for h in http.get("/v1/printers/hyrel").json()["heaters"] if h["kind"] == "head"]
         objects = http.get("/printer/objects/list").json()["result"]["objects"]
         assert "extruder" in objects and "extruder1" in objects and "extruder2" not in objects
@@ -413,9 +409,7 @@ def test_a_printers_own_port_is_that_printers_face_and_a_taken_one_is_one_senten
         tmp_path, left={"port": left.port}, right={"port": right.port, "moonraker_port": own}
     )
     server = servers({}, "--config", str(config))
-    with server.client() as http:
-        for name in ("left", "right"):
-            wait_for(lambda n=name: http.get(f"/v1/printers/{n}").json()["state"] == "ready")
+    server.wait_ready("left", "right")
 
     async def run() -> None:
         by_port = MoonrakerClient(Heard(), "127.0.0.1", own, api_key=KEY)  # a host and port

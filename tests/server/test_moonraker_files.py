@@ -29,8 +29,7 @@ def slow(
 ) -> tuple[Server, BuiltInFake]:
     fake = bench("--move-time", "0.004")
     server = servers({"bench": fake.port})
-    with server.client() as http:
-        wait_for(lambda: http.get("/v1/printers/bench").json()["state"] == "ready")
+    server.wait_ready("bench")
     return server, fake
 
 
@@ -90,6 +89,15 @@ def test_an_upload_answers_as_moonraker_and_print_true_starts_it(
             "/server/files/upload", files={"file": ("x.gcode", "G1 X1\n")}, data={"root": "config"}
         )
         assert bad.status_code == 400
+        # A file that fails its check: refused, with its first error (the one message shown).
+        long_line = "G1 X1 " + "Y1 " * 40 + "\n"
+        refused = http.post("/server/files/upload", files={"file": ("overlong.gcode", long_line)})
+        assert refused.status_code == 400
+        said = refused.json()["error"]["message"]
+        assert said.startswith("overlong.gcode: refused (1 errors): error: overlong.gcode:1: "), (
+            said
+        )
+        assert "overlong.gcode" not in [f["path"] for f in http.get("/v1/files").json()]
     klipperctl(server, "print", "pause")
     wait_for(lambda: print_state(server) == "paused", what="paused")
     klipperctl(server, "print", "resume")
@@ -116,7 +124,7 @@ def test_the_job_queue_is_the_servers_queue(
     server = servers({"bench": fake.port})
     heard = Heard()
     with server.client() as http:
-        wait_for(lambda: http.get("/v1/printers/bench").json()["state"] == "ready")
+        server.wait_ready("bench")
         for name in ("a.gcode", "b.gcode"):
             assert http.post("/v1/files", files={"file": (name, gcode(50))}).status_code == 201
 

@@ -19,7 +19,7 @@ import httpx
 import pytest
 
 from repetrel_host.fakes.fake_controller import BuiltInFake
-from tests.support.server import KEY, Server, wait_for
+from tests.support.server import KEY, Server
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -76,8 +76,7 @@ async def connect(
 @pytest.fixture
 def printer(bench: Callable[..., BuiltInFake], servers: Callable[..., Server]) -> Server:
     server = servers({"bench": bench().port})
-    with server.client() as http:
-        wait_for(lambda: http.get("/v1/printers/bench").json()["state"] == "ready")
+    server.wait_ready("bench")
     return server
 
 

@@ -195,8 +195,7 @@ def ask(url: str, verb: str, path: str, args: dict[str, Any], key: str | None) -
 @pytest.fixture
 def ours(bench: Callable[..., BuiltInFake], servers: Callable[..., Server]) -> Server:
     server = servers({"bench": bench().port})
-    with server.client() as http:
-        wait_for(lambda: http.get("/v1/printers/bench").json()["state"] == "ready")
+    server.wait_ready("bench")
     return server
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import shutil
 import signal
@@ -60,6 +61,17 @@ class Server:
             except httpx.TransportError:
                 time.sleep(0.1)
         raise AssertionError(f"the server did not start: {self.stderr.read_text()}")
+
+    def wait_ready(self, *names: str) -> Server:
+        """Once each printer ``names`` is connected and ready."""
+        with self.client() as http:
+
+            def ready(name: str) -> bool:
+                return bool(http.get(f"/v1/printers/{name}").json()["state"] == "ready")
+
+            for name in names:
+                wait_for(functools.partial(ready, name), what=f"printer {name} ready")
+        return self
 
     def client(self, key: str | None = KEY) -> httpx.Client:
         headers = {"X-Api-Key": key} if key is not None else {}

@@ -40,6 +40,13 @@ def queue(
     return record
 
 
+def to_front(server: PrintServer, record: JobRecord) -> None:
+    """The queued job ``record`` goes first in its printer's queue."""
+    first = server.store.next_queued(record.printer)
+    if first is not None and first.id != record.id:
+        server.store.move(record.id, first.id)
+
+
 def recovery_line(path: Path, from_layer: int | None, from_line: int | None) -> int | None:
     """The source line a job recovered at ``from_layer`` (or ``from_line``) starts from
     (in a thread: it reads the file); 400 when the file has no such layer."""

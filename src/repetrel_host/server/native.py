@@ -218,10 +218,7 @@ def router() -> APIRouter:
             jobs.recovery_line, path, queued.from_layer, queued.from_line
         )
         findings, commands = await asyncio.to_thread(uploads.check, server, service.name, path)
-        errors = [f for f in findings if f.startswith("error")]
-        if errors:
-            refused = f"{path.name}: refused ({len(errors)} errors)"
-            raise HTTPException(400, {"error": refused, "findings": findings})
+        uploads.refuse_errors(path.name, findings)
         record = jobs.queue(server, service.name, path, commands, user_of(request), from_line)
         return {**record.as_json(), "findings": findings}
 

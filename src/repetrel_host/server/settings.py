@@ -176,23 +176,25 @@ def load_settings(
     return settings
 
 
-def moonraker_ports(settings: ServerSettings) -> dict[int, str]:
-    """The printers that have a port of their own for Moonraker's clients: port: name."""
-    return {
-        entry.moonraker_port: name
+def _own_ports(settings: ServerSettings) -> list[tuple[str, int]]:
+    """(printer, port) of each printer with a port of its own for Moonraker's clients."""
+    return [
+        (name, entry.moonraker_port)
         for name, entry in settings.printers.items()
         if isinstance(entry, PrinterEntry) and entry.moonraker_port is not None
-    }
+    ]
+
+
+def moonraker_ports(settings: ServerSettings) -> dict[int, str]:
+    """The printers that have a port of their own for Moonraker's clients: port: name."""
+    return {port: name for name, port in _own_ports(settings)}
 
 
 def _check_moonraker_ports(settings: ServerSettings) -> None:
     """Each moonraker_port is a printer's own: not the server's, not another's."""
     seen: dict[int, str] = {}
     _, _, bound = settings.bind.rpartition(":")
-    for name, entry in settings.printers.items():
-        port = entry.moonraker_port if isinstance(entry, PrinterEntry) else None
-        if port is None:
-            continue
+    for name, port in _own_ports(settings):
         if str(port) == bound:
             fail(f"printer {name}: moonraker_port {port} is the server's own port (bind)")
         if port in seen:

@@ -131,12 +131,17 @@ class JobRecord:
     synced_version: int = 0  # changes the farm was told
     pace: float | None = None  # actual over planned moving time, as it ran
 
+    @property
+    def location(self) -> str:
+        """Its file below the uploads, as ``/v1/files`` (and Moonraker's ``gcodes``) name it."""
+        return self.file.removeprefix("files/")
+
     def as_json(self) -> dict[str, object]:
         return {
             "id": self.id,
             "printer": self.printer,
             "name": self.name,
-            "path": self.file.removeprefix("files/"),  # the file's, as /v1/files names it
+            "path": self.location,
             "state": self.state.value,
             "submitted": self.submitted,
             "started": self.started,
@@ -497,12 +502,9 @@ class Store:
         value: dict[str, Any] | None = json.loads(row[0]) if row is not None else None
         return value
 
-    def keep_client_data(self, namespace: str, value: dict[str, Any] | None) -> None:
-        """``namespace`` holds ``value`` from now on (None: the namespace is gone)."""
+    def keep_client_data(self, namespace: str, value: dict[str, Any]) -> None:
+        """``namespace`` holds ``value`` from now on."""
         with self._transaction() as db:
-            if value is None:
-                db.execute("DELETE FROM client_data WHERE namespace = ?", (namespace,))
-                return
             db.execute(
                 "INSERT INTO client_data (namespace, value) VALUES (?, ?) ON CONFLICT"
                 " (namespace) DO UPDATE SET value = excluded.value",

@@ -120,11 +120,7 @@ async def save_upload(
         # printer's stream) up.
         findings, commands = await asyncio.to_thread(check, server, printer, partial)
         findings = [f.replace(partial.name, name) for f in findings]
-        errors = [f for f in findings if f.startswith("error")]
-        if errors:
-            raise HTTPException(
-                400, {"error": f"{name}: refused ({len(errors)} errors)", "findings": findings}
-            )
+        refuse_errors(name, findings)
         # Analysed now, in a thread (OctoPrint's gcodeAnalysis): a listing need not read it.
         summary = await asyncio.to_thread(_analysed, partial)
         made_from = stamp(partial)
@@ -260,6 +256,15 @@ def file_changed(
     (add, copy, move, remove): on the server's events (OctoPrint's FileAdded...)."""
     where = path.relative_to(server.files).as_posix()
     server.events.publish(FileChanged(what, where, path.name, folder, operation))
+
+
+def refuse_errors(name: str, findings: list[str]) -> None:
+    """400 with the job lint's ``findings`` when they hold errors: file ``name`` is refused."""
+    errors = [f for f in findings if f.startswith("error")]
+    if errors:
+        raise HTTPException(
+            400, {"error": f"{name}: refused ({len(errors)} errors)", "findings": findings}
+        )
 
 
 def check(server: PrintServer, printer: str, path: Path) -> tuple[list[str], int]:

@@ -117,30 +117,29 @@ class MoonrakerFace:
             return False, None
         return True, kept[0]
 
-    # --- calls -------------------------------------------------------------------------
+    # --- statistics -----------------------------------------------------------------
 
-
-def proc_stats(face: MoonrakerFace) -> dict[str, Any]:
-    """Moonraker's process statistics (``notify_proc_stat_update``, ``machine.proc_stats``'s
-    latest sample): made once a second, whoever asks."""
-    made, stats = face._stats
-    now = time.monotonic()
-    if now - made < 0.9:
-        return {**stats, "websocket_connections": len(face.connections)}
-    usage = os.times()
-    busy = (usage.user + usage.system) / max(time.time() - face.started, 1)
-    cpus, network = face.usage.sample()
-    stats = {
-        "moonraker_stats": {
-            "time": time.time(),
-            "cpu_usage": round(100 * busy, 2),
-            "memory": own_memory(),
-            "mem_units": "kB",
-        },
-        "cpu_temp": None,
-        "network": network,
-        "system_cpu_usage": cpus,
-        "websocket_connections": len(face.connections),
-    }
-    face._stats = (now, stats)
-    return stats
+    def proc_stats(self) -> dict[str, Any]:
+        """Moonraker's process statistics (``notify_proc_stat_update``, ``machine.proc_stats``'s
+        latest sample): made once a second, whoever asks."""
+        made, stats = self._stats
+        now = time.monotonic()
+        if now - made < 0.9:
+            return {**stats, "websocket_connections": len(self.connections)}
+        usage = os.times()
+        busy = (usage.user + usage.system) / max(time.time() - self.started, 1)
+        cpus, network = self.usage.sample()
+        stats = {
+            "moonraker_stats": {
+                "time": time.time(),
+                "cpu_usage": round(100 * busy, 2),
+                "memory": own_memory(),
+                "mem_units": "kB",
+            },
+            "cpu_temp": None,
+            "network": network,
+            "system_cpu_usage": cpus,
+            "websocket_connections": len(self.connections),
+        }
+        self._stats = (now, stats)
+        return stats

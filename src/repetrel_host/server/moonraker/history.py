@@ -55,7 +55,7 @@ def history_job(service: PrinterService, record: JobRecord) -> dict[str, Any]:
         "exists": (service.data_dir / record.file).is_file(),
         "end_time": end,
         "filament_used": _filament(record),
-        "filename": record.file.removeprefix("files/"),
+        "filename": record.location,
         "metadata": {},
         "print_duration": round(duration, 3),
         "status": _STATUS.get(record.state, "in_progress"),
@@ -118,7 +118,7 @@ def queue_status(service: PrinterService) -> dict[str, Any]:
     now = time.time()
     queued = [
         {
-            "filename": record.file.removeprefix("files/"),
+            "filename": record.location,
             "job_id": job_uid(record),
             "time_added": record.submitted,
             "time_in_queue": round(now - record.submitted, 3),
@@ -147,9 +147,7 @@ async def post_job(call: Call) -> dict[str, Any]:
             await service.cancel(record.id)
     for path in paths:
         findings, commands = await asyncio.to_thread(uploads.check, server, service.name, path)
-        errors = [f for f in findings if f.startswith("error")]
-        if errors:
-            raise RpcError(400, f"{path.name}: refused ({len(errors)} errors): {errors[0]}")
+        uploads.refuse_errors(path.name, findings)
         jobs.queue(server, service.name, path, commands, call.user)
     return queue_status(service)
 
@@ -189,11 +187,9 @@ async def start_queue(call: Call) -> dict[str, Any]:
 @method("/server/job_queue/jump", "POST")
 async def jump(call: Call) -> dict[str, Any]:
     record = _record_of(call, call.string("job_id"))
-    first = call.server.store.next_queued(call.service.name)
     if record.state is not JobState.QUEUED:
         raise RpcError(400, f"Job {job_uid(record)} is not queued")
-    if first is not None and first.id != record.id:
-        call.server.store.move(record.id, first.id)
+    jobs.to_front(call.server, record)
     return queue_status(call.service)
 
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
 from repetrel_host.server.moonraker.host import meminfo
@@ -90,9 +90,9 @@ def _shown_state(service: PrinterService) -> str:
     return "standby"
 
 
-def _location(service: PrinterService, file: str) -> str:
-    """A job's file as Moonraker names it: its path below the gcodes root."""
-    return file.removeprefix("files/")
+def _completed(service: PrinterService) -> bool:
+    """The job shown is the last one, and it completed."""
+    return service.running is None and service.finished_state is JobState.COMPLETED
 
 
 class Objects:
@@ -145,13 +145,14 @@ class Objects:
     def print_stats(self) -> dict[str, Any]:
         service = self.service
         shown = service.running or service.finished
+        state = _shown_state(service)
         stats: dict[str, Any] = {
             "filename": "",
             "total_duration": 0.0,
             "print_duration": 0.0,
             "filament_used": 0.0,
-            "state": _shown_state(service),
-            "message": service.last_error if _shown_state(service) == "error" else "",
+            "state": state,
+            "message": service.last_error if state == "error" else "",
             "info": {"total_layer": None, "current_layer": None},
         }
         if shown is None:
@@ -163,11 +164,10 @@ class Objects:
         used = 0.0
         if shown.summary is not None and shown.summary.filament:
             whole = sum(tool.length for tool in shown.summary.filament.values())
-            done = service.finished_state is JobState.COMPLETED and service.running is None
-            used = whole * (1.0 if done else shown.fraction)
+            used = whole * (1.0 if _completed(service) else shown.fraction)
         layers = len(shown.layers)
         stats.update(
-            filename=_location(service, record.file),
+            filename=record.location,
             total_duration=round(duration, 3),
             print_duration=round(duration, 3),
             filament_used=round(used, 2),
@@ -176,7 +176,7 @@ class Objects:
                 "current_layer": min(shown.layer, layers) if layers else None,
             },
         )
-        if stats["state"] == "error":  # why, as the job's record says it once ended
+        if state == "error":  # why, as the job's record says it once ended
             ended_record = service.store.job(record.id)
             stats["message"] = (ended_record.error if ended_record else None) or stats["message"]
         return stats
@@ -192,7 +192,7 @@ class Objects:
                 "file_position": 0,
                 "file_size": 0,
             }
-        done = service.running is None and service.finished_state is JobState.COMPLETED
+        done = _completed(service)
         return {
             "file_path": str(service.data_dir / shown.record.file),
             "progress": round(1.0 if done else shown.fraction, 4),
@@ -297,10 +297,8 @@ class Objects:
     def _heater(
         self, name: str, sensor: str, readings: dict[str, tuple[float, float | None]]
     ) -> dict[str, Any]:
-        reading = readings.get(sensor)
-        if reading is None and sensor == "T0":
-            reading = readings.get("T")  # a single hotend reported as T
-        actual, target = reading if reading is not None else (0.0, 0.0)
+        found = reading(readings, sensor)
+        actual, target = found if found is not None else (0.0, 0.0)
         values: dict[str, Any] = {
             "temperature": round(actual, 2),
             "target": float(target or 0.0),
@@ -309,6 +307,15 @@ class Objects:
         if name.startswith("extruder"):
             values.update(can_extrude=True, pressure_advance=0.0, smooth_time=0.04)
         return values
+
+
+def reading(
+    readings: Mapping[str, tuple[float, float | None]], sensor: str
+) -> tuple[float, float | None] | None:
+    """``sensor``'s (temperature, target) in a report; T0's is T's where one hotend is
+    reported as T."""
+    found = readings.get(sensor)
+    return readings.get("T") if found is None and sensor == "T0" else found
 
 
 def pick(values: dict[str, Any], fields: Iterable[str]) -> dict[str, Any]:

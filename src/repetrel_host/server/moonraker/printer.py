@@ -154,14 +154,9 @@ async def start_print(call: Call, filename: str) -> None:
     except Exception:
         raise RpcError(400, f"File not found: {filename}") from None
     findings, commands = await asyncio.to_thread(uploads.check, server, service.name, path)
-    errors = [f for f in findings if f.startswith("error")]
-    if errors:
-        raise RpcError(400, f"{path.name}: refused ({len(errors)} errors): {errors[0]}")
-    record = jobs.queue(server, service.name, path, commands, call.user)
+    uploads.refuse_errors(path.name, findings)
     # First in the queue: it is the print asked for now.
-    first = server.store.next_queued(service.name)
-    if first is not None and first.id != record.id:
-        server.store.move(record.id, first.id)
+    jobs.to_front(server, jobs.queue(server, service.name, path, commands, call.user))
 
 
 async def _control(service: PrinterService, action: str) -> None:

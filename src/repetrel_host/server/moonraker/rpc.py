@@ -72,16 +72,15 @@ class Call:
         return value
 
     def integer(self, name: str, default: int) -> int:
-        value = self.args.get(name, default)
-        try:
-            return int(value)
-        except (TypeError, ValueError):
-            raise RpcError(400, f"Invalid value for argument {name}: {value!r}") from None
+        return int(self._number(name, default, int))
 
     def number(self, name: str, default: float) -> float:
+        return self._number(name, default, float)
+
+    def _number(self, name: str, default: float, kind: Callable[[Any], float]) -> float:
         value = self.args.get(name, default)
         try:
-            return float(value)
+            return kind(value)
         except (TypeError, ValueError):
             raise RpcError(400, f"Invalid value for argument {name}: {value!r}") from None
 
@@ -99,25 +98,15 @@ class Call:
 Handler = Callable[[Call], Awaitable[Any]]
 
 
-@dataclass(frozen=True)
-class Method:
-    name: str
-    path: str
-    verb: str
-    handler: Handler
-    websocket: bool = True  # an upload is HTTP's only
-    http: bool = True  # a subscription is the websocket's only
-
-
 @dataclass
 class Table:
-    """Every method, by its JSON-RPC name and by its HTTP path and verb."""
+    """Every method's handler, by its JSON-RPC name and by its HTTP path and verb."""
 
-    by_name: dict[str, Method] = field(default_factory=dict)
-    by_route: dict[tuple[str, str], Method] = field(default_factory=dict)
+    by_name: dict[str, Handler] = field(default_factory=dict)
+    by_route: dict[tuple[str, str], Handler] = field(default_factory=dict)
     # Paths with a file's path after them (``/server/files/gcodes/...``): the rest of the
     # path is the call's ``path`` argument, its root first ("gcodes/a.gcode").
-    by_prefix: dict[tuple[str, str], Method] = field(default_factory=dict)
+    by_prefix: dict[tuple[str, str], Handler] = field(default_factory=dict)
 
     def add(
         self,
@@ -128,32 +117,32 @@ class Table:
         http: bool = True,
     ) -> Callable[[Handler], Handler]:
         """A handler for ``path`` with ``verbs`` (GET when none): named from the path, or
-        ``name``."""
+        ``name``; on the websocket unless not ``websocket`` (an upload is HTTP's only), over
+        HTTP unless not ``http`` (a subscription is the websocket's only)."""
 
         def register(handler: Handler) -> Handler:
+            called = name or path.strip("/").replace("/", ".")
+            if websocket:
+                self.by_name.setdefault(called, handler)
             for verb in verbs or ("GET",):
-                called = name or path.strip("/").replace("/", ".")
-                method = Method(called, path, verb, handler, websocket, http)
-                if websocket:
-                    self.by_name.setdefault(called, method)
                 if http and path.endswith("/"):
-                    self.by_prefix[(path, verb)] = method
+                    self.by_prefix[(path, verb)] = handler
                 elif http:
-                    self.by_route[(path, verb)] = method
+                    self.by_route[(path, verb)] = handler
             return handler
 
         return register
 
-    def route(self, path: str, verb: str) -> tuple[Method | None, dict[str, str]]:
+    def route(self, path: str, verb: str) -> tuple[Handler | None, dict[str, str]]:
         """The method of ``path`` and ``verb`` over HTTP, and the arguments its path gives;
         (None, {}) when there is none."""
         found = self.by_route.get((path, verb))
         if found is not None:
             return found, {}
-        for (prefix, method_verb), method in self.by_prefix.items():
+        for (prefix, method_verb), handler in self.by_prefix.items():
             if verb == method_verb and path.startswith(prefix) and len(path) > len(prefix):
                 root = prefix.rstrip("/").rpartition("/")[2]
-                return method, {"path": f"{root}/{path[len(prefix) :]}"}
+                return handler, {"path": f"{root}/{path[len(prefix) :]}"}
         return None, {}
 
     def knows(self, path: str) -> bool:
@@ -167,19 +156,21 @@ METHODS = Table()
 method = METHODS.add
 
 
-async def call(method: Method, call: Call) -> Any:
-    """``method`` run for ``call``: the printer's refusals and the API's errors as
+async def call(handler: Handler, call: Call) -> Any:
+    """``handler`` run for ``call``: the printer's refusals and the API's errors as
     :class:`RpcError`."""
     args = {k: v for k, v in call.args.items() if k not in EXCLUDED}
     call.args = args
     try:
-        return await method.handler(call)
+        return await handler(call)
     except Refused as exc:
         raise RpcError(exc.status, str(exc)) from None
     except HTTPException as exc:  # a helper shared with the other faces
-        detail = exc.detail
-        text = detail.get("error", detail) if isinstance(detail, dict) else detail
-        raise RpcError(exc.status_code, str(text)) from None
+        detail = exc.detail if isinstance(exc.detail, dict) else {"error": exc.detail}
+        text = str(detail.get("error", detail))
+        # A refused file: its first error quoted too (one message is all a client shows).
+        errors: list[str] = [f for f in detail.get("findings", ()) if f.startswith("error")]
+        raise RpcError(exc.status_code, f"{text}: {errors[0]}" if errors else text) from None
 
 
 def query_args(items: list[tuple[str, str]]) -> dict[str, Any]:

@@ -11,9 +11,9 @@ import sys
 from typing import Any
 
 import repetrel_host as rh
-from repetrel_host.server.moonraker.face import GCODE_STORE, proc_stats
+from repetrel_host.server.moonraker.face import GCODE_STORE
 from repetrel_host.server.moonraker.host import interfaces, meminfo, uptime
-from repetrel_host.server.moonraker.objects import heater_names, klippy_state
+from repetrel_host.server.moonraker.objects import heater_names, klippy_state, reading
 from repetrel_host.server.moonraker.rpc import Call, RpcError, method
 
 MOONRAKER_VERSION = "0.11.0"  # the release whose API this face follows
@@ -98,10 +98,10 @@ async def temperature_store(call: Call) -> dict[str, Any]:
     }
     for _, readings in list(service.temperature_history)[-TEMPERATURE_STORE:]:
         for name, sensor in names.items():
-            reading = readings.get(sensor) or (readings.get("T") if sensor == "T0" else None)
-            if reading is None:
+            found = reading(readings, sensor)
+            if found is None:
                 continue
-            actual, target = reading
+            actual, target = found
             store[name]["temperatures"].append(round(actual, 2))
             store[name]["targets"].append(float(target or 0.0))
             store[name]["powers"].append(0.0)
@@ -157,7 +157,7 @@ async def system_info(call: Call) -> dict[str, Any]:
 
 @method("/machine/proc_stats")
 async def machine_proc_stats(call: Call) -> dict[str, Any]:
-    now = proc_stats(call.face)
+    now = call.face.proc_stats()
     return {
         "moonraker_stats": [now["moonraker_stats"]],
         "throttled_state": None,

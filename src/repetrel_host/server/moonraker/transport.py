@@ -23,7 +23,7 @@ from starlette.datastructures import UploadFile
 from repetrel_host.server.auth import identify
 from repetrel_host.server.events import PrinterState, ServerEvent
 from repetrel_host.server.moonraker import rpc
-from repetrel_host.server.moonraker.face import MoonrakerFace, proc_stats
+from repetrel_host.server.moonraker.face import MoonrakerFace
 from repetrel_host.server.moonraker.objects import klippy_state
 from repetrel_host.server.printers.service import PrinterService
 
@@ -314,7 +314,7 @@ class Connection:
             now = time.monotonic()
             if now >= next_stat:
                 next_stat = now + PROC_STAT_EVERY
-                self.send_later("notify_proc_stat_update", [proc_stats(self.face)])
+                self.send_later("notify_proc_stat_update", [self.face.proc_stats()])
             await asyncio.sleep(STATUS_EVERY)
 
     # --- sending ----------------------------------------------------------------------

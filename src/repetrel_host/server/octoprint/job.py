@@ -100,8 +100,5 @@ async def _restart(server: PrintServer, service: PrinterService, user: str | Non
     path = service.data_dir / running.record.file
     await answered(service.control("cancel"))
     _, commands = await asyncio.to_thread(uploads.check, server, service.name, path)
-    record = jobs.queue(server, service.name, path, commands, user)
-    first = server.store.next_queued(service.name)
-    if first is not None and first.id != record.id:
-        server.store.move(record.id, first.id)
+    jobs.to_front(server, jobs.queue(server, service.name, path, commands, user))
     service.release()
