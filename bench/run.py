@@ -46,6 +46,7 @@ class Profile:
     lines: int  # job lines streamed on this profile (the link's speed sets the run time)
     options: tuple[str, ...] = ()  # hyrel-send options for buffered mode on this link
     fake_options: tuple[str, ...] = ()
+    hosts: tuple[str, ...] = ("ours-buffered",)  # with fake_options: the hosts compared
 
 
 PROFILES = (
@@ -55,6 +56,19 @@ PROFILES = (
     # than the controller's 128 bytes, enough to cover the round trip.
     Profile(
         "usb", 1_000_000, 0.001, "block", 128, 20_066, ("--rx-buffer", "4096", "--max-lines", "96")
+    ),
+    # Marlin's planner full of moves that take their planned time (a twentieth of it): a
+    # controller silent for as long as its moves run, as a printer is.
+    Profile(
+        "uart+planner",
+        11_520,
+        0.002,
+        "drop",
+        128,
+        3_000,
+        (),
+        ("--time-scale", "20"),
+        ("ours-buffered", "ours-unbuffered", "printcore"),
     ),
 )
 
@@ -71,6 +85,7 @@ class Result:
     dropped: int
     starved: float
     exact: bool
+    errors: int  # error lines the controller answered (a healthy link draws none)
 
     @property
     def rate(self) -> float:
@@ -151,6 +166,7 @@ def run_host(
     commands: list[str],
     folder: Path,
     history: bool = False,
+    host_path: str | None = None,
 ) -> Result:
     tag = f"{profile.name}-{host}"
     fake, port = start_fake(profile, folder, tag, HYREL_FAKE if host == "ours-hyrel" else ())
@@ -166,7 +182,10 @@ def run_host(
             argv = [sys.executable, str(PEER), "ours", port, str(job), "--flow", flow, *options]
         if history and host.startswith("ours"):  # the stream kept, as hyrel-send does by default
             argv += ["--history", str(folder / f"history-{tag}")]
-        done = subprocess.run(argv, capture_output=True, text=True, timeout=3600)
+        env = dict(os.environ)
+        if host_path:  # the host from another tree; the fake stays this one's
+            env["PYTHONPATH"] = os.pathsep.join(filter(None, [host_path, env.get("PYTHONPATH")]))
+        done = subprocess.run(argv, capture_output=True, text=True, timeout=3600, env=env)
     finally:
         stop_fake(fake)
     report_line = [line for line in done.stdout.splitlines() if line.startswith("PEER ")]
@@ -192,6 +211,7 @@ def run_host(
         dropped=stats["bytes_dropped"],
         starved=stats["starved"],
         exact=job_executed == job_commands,
+        errors=stats["errors"],
     )
 
 
@@ -253,7 +273,7 @@ def print_table(results: list[Result]) -> None:
     unbuffered = {r.profile.name: r for r in results if r.host == "ours-unbuffered"}
     header = (
         "| host | link | lines | lines/s | % of wire | % of 1/RTT | CPU µs/line | peak RSS MB "
-        "| x printcore | x unbuffered | dropped B | starved s | exactly once |"
+        "| x printcore | x unbuffered | dropped B | starved s | errors /10k lines | exactly once |"
     )
     print(header)
     print("|" + "---|" * (header.count("|") - 1))
@@ -267,7 +287,7 @@ def print_table(results: list[Result]) -> None:
             f"{100 * r.wire_share:.1f} | {100 * r.round_trip_share():.1f} | "
             f"{1e6 * r.cpu_seconds / r.lines:.1f} | {r.peak_rss_bytes / 2**20:.0f} | "
             f"{versus_peer} | {versus_slow} | {r.dropped} | {r.starved:.2f} | "
-            f"{'yes' if r.exact else 'NO'} |"
+            f"{r.errors * 10_000 / r.lines:.1f} | {'yes' if r.exact else 'NO'} |"
         )
 
 
@@ -295,6 +315,12 @@ def main() -> int:
         help="our hosts keep the print history (the stream and its records), as hyrel-send "
         "does by default; without it they run with --no-history",
     )
+    parser.add_argument(
+        "--host-path",
+        metavar="DIR",
+        help="run our hosts from the package in DIR (another tree's src/), against this "
+        "tree's fake: a before-and-after on the same controller",
+    )
     args = parser.parse_args()
     try:
         import printrun.printcore  # noqa: F401
@@ -312,13 +338,15 @@ def main() -> int:
                 continue
             lines = min(profile.lines, 300 if args.quick else profile.lines)
             job, commands = job_file(lines, folder)
-            hosts = ["ours-buffered"]
-            if not profile.fake_options:  # the variants compare ours with ours
+            hosts = list(profile.hosts)
+            if not profile.fake_options:
                 hosts += ["ours-unbuffered", "ours-hyrel", "printcore", "ideal"]
             for host in hosts:
                 if args.host and host not in args.host:
                     continue
-                results.append(run_host(host, profile, job, commands, folder, args.history))
+                results.append(
+                    run_host(host, profile, job, commands, folder, args.history, args.host_path)
+                )
                 print(
                     f"  {results[-1].host} on {profile.name}: {results[-1].rate:,.0f} lines/s",
                     file=sys.stderr,

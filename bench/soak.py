@@ -18,16 +18,18 @@ the job stops, naming it (tests/protocol/test_hyrel_dialect.py); it is no part o
   the stall figure is exact and the run is deterministic (same seed, same numbers).
 - ``pty`` runs ``hyrel-send`` against ``hyrel-fake-controller`` as real processes.
 
-Printed per flow mode: lines, resend requests, stalls recovered by a ping, faults
+Printed per flow mode: lines, resend requests, stalls recovered by a probe, faults
 injected, time clean and noisy, the mean stall per lost or garbled ok ((noisy - clean)
-/ (dropped oks + garbled replies)), CPU seconds, and the verdict: the controller's
-executed log equals the job, nothing lost, nothing repeated, order kept.
+/ (dropped oks + garbled replies)), the errors the controller answered on the clean link
+per 10,000 lines (a healthy link draws none), CPU seconds, and the verdict: the
+controller's executed log equals the job, nothing lost, nothing repeated, order kept.
 """
 
 from __future__ import annotations
 
 import argparse
 import itertools
+import json
 import re
 import resource
 import subprocess
@@ -38,7 +40,7 @@ from pathlib import Path
 
 from repetrel_host.fakes.fake_controller import BuiltInFake
 from repetrel_host.fakes.hyrel_simulator import HyrelControllerSimulator
-from repetrel_host.fakes.simulator import ControllerSettings, Faults
+from repetrel_host.fakes.settings import ControllerSettings, Faults
 from repetrel_host.protocol.dialects.hyrel import HyrelDialect
 from repetrel_host.protocol.flow import FlowControl, FlowMode
 from repetrel_host.session.job import Job
@@ -90,10 +92,11 @@ def memory_run(
             latency=latency, faults=Faults.parse(faults), rx_buffer=rx_buffer
         )
         result = run_loopback(commands, flow, settings, record=False)
-        executed = result.executed
+        executed = [c for c in result.executed if c != "M105"]  # the host's probes
     stats, counts = result.host.stats, result.controller.counts
     return {
         "seconds": result.seconds,
+        "errors": result.controller.link.errors,
         "exact": result.failure is None and executed == commands,
         "failure": result.failure.reason if result.failure else "",
         "resends": stats.resend_requests,
@@ -122,10 +125,11 @@ def pty_run(
         job = Path(folder) / "soak.gcode"
         job.write_text("\n".join(commands) + "\n")
         log = Path(folder) / "executed.log"
+        stats = Path(folder) / "stats.json"
         fake = BuiltInFake(
             log,
             ["--latency", str(latency), "--faults", faults, "--rx-buffer", fake_buffer,
-             "--protocol", protocol],
+             "--protocol", protocol, "--stats", str(stats)],
         )  # fmt: skip
         fake.start()
         started, wall = cpu_seconds(), time.monotonic()
@@ -138,6 +142,7 @@ def pty_run(
             )  # fmt: skip
         finally:
             fake.stop()
+        errors = json.loads(stats.read_text())["errors"] if stats.exists() else -1
         seconds = time.monotonic() - wall
         # The host's own commands, not the job's (the cone has none of them): its line-number
         # syncs, who are you, and the status line's temperatures (an M155 or M105 polls).
@@ -147,6 +152,7 @@ def pty_run(
     summary = re.search(r"(\d+) resend requests", result.stdout)
     return {
         "seconds": seconds,
+        "errors": errors,
         "exact": result.returncode == 0 and done == commands,
         "failure": result.stderr.strip()[-200:],
         "resends": int(summary.group(1)) if summary else -1,
@@ -185,7 +191,8 @@ def main() -> int:
     print(f"noise: {noisy_faults}")
     header = (
         f"{'mode':<11}{'lines':>10}{'resends':>9}{'stalls':>8}{'lost oks':>9}"
-        f"{'clean s':>10}{'noisy s':>10}{'stall/ok s':>11}{'cpu s':>8}  verdict"
+        f"{'clean s':>10}{'noisy s':>10}{'stall/ok s':>11}{'clean err/10k':>14}{'cpu s':>8}"
+        "  verdict"
     )
     print(header)
     verdicts = []
@@ -195,13 +202,15 @@ def main() -> int:
         lost = int(noisy["lost_oks"])  # type: ignore[call-overload]
         extra = float(noisy["seconds"]) - float(clean["seconds"])  # type: ignore[arg-type]
         stall = f"{extra / lost:.3f}" if lost > 0 else "-"
+        errors = int(clean["errors"])  # type: ignore[call-overload]
+        per_10k = f"{errors * 10_000 / args.lines:.2f}" if errors >= 0 else "-"
         exact = bool(clean["exact"]) and bool(noisy["exact"])
         verdicts.append(exact)
         verdict = "exactly once" if exact else f"FAILED {noisy['failure'] or clean['failure']}"
         print(
             f"{mode.value:<11}{args.lines:>10,}{noisy['resends']:>9}{noisy['stalls']:>8}"
             f"{lost:>9}{float(clean['seconds']):>10.1f}{float(noisy['seconds']):>10.1f}"  # type: ignore[arg-type]
-            f"{stall:>11}{float(noisy['cpu']):>8.1f}  {verdict}"  # type: ignore[arg-type]
+            f"{stall:>11}{per_10k:>14}{float(noisy['cpu']):>8.1f}  {verdict}"  # type: ignore[arg-type]
         )
     return 0 if all(verdicts) else 1
 

@@ -49,9 +49,13 @@ def test_speed_bench_prints_every_figure_against_printcore() -> None:
         for host in ("ours-buffered", "ours-unbuffered", "ours-hyrel", "printcore", "ideal"):
             assert (host, link) in hosts
     assert ("ours-buffered", "uart+advanced_ok") in hosts
+    for host in ("ours-buffered", "ours-unbuffered", "printcore"):  # moves that take time
+        assert (host, "uart+planner") in hosts
     for row in table:
         figures = dict(zip(header, row, strict=True))
         assert figures["exactly once"] == "yes"
+        if figures["host"].startswith("ours"):  # a healthy link draws no error
+            assert figures["errors /10k lines"] == "0.0"
         assert float(figures["lines/s"].replace(",", "")) > 0
         assert float(figures["CPU µs/line"]) > 0 and float(figures["peak RSS MB"]) > 0
         if figures["link"].startswith("uart"):

@@ -49,7 +49,7 @@ def test_fake_controller_help_shows_every_default() -> None:
         elif line.strip():
             blocks[name] += " " + line.strip()
     del blocks["-h"]
-    assert len(blocks) == 25  # every option of build_parser
+    assert len(blocks) == 27  # every option of build_parser
     missing = [name for name, block in blocks.items() if "(default" not in block]
     assert missing == []
     assert "--move-time SECONDS time a move takes (default: 0, at once)" in blocks["--move-time"]

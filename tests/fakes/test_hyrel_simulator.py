@@ -19,7 +19,7 @@ from repetrel_host.fakes.hyrel_simulator import (
     RESTART_REPLY,
     HyrelControllerSimulator,
 )
-from repetrel_host.fakes.simulator import ControllerSettings, Faults
+from repetrel_host.fakes.settings import ControllerSettings, Faults
 from repetrel_host.protocol.hyrel import NOTICED, Control, HostReceiver, frame, mark_urgent
 from repetrel_host.protocol.reports import ReportReader
 
@@ -192,8 +192,8 @@ def test_acks_lost_on_the_way_and_faults_that_are_marlins_refused() -> None:
     assert 25 < controller.counts.dropped_oks < 75 and len(controller.executed) == 100
     with pytest.raises(ValueError, match="'spurious_resend' is not a fault of Hyrel's link: it"):
         controller.control("set spurious_resend=0.1", 1.0)
-    with pytest.raises(ValueError, match="'busy_interval' is not a fault of Hyrel's link"):
-        HyrelControllerSimulator(ControllerSettings(faults=Faults(busy_interval=2)))
+    with pytest.raises(ValueError, match="'flush_on_error' is not a fault of Hyrel's link"):
+        HyrelControllerSimulator(ControllerSettings(faults=Faults(flush_on_error=False)))
     with pytest.raises(ValueError, match="ACKs sent twice cannot be told from two"):
         HyrelControllerSimulator(ControllerSettings(faults=Faults(duplicate_ok=0.01)))
 

@@ -18,7 +18,8 @@ import pytest
 
 from repetrel_host.fakes.fake_controller import BuiltInFake
 from repetrel_host.fakes.hyrel_simulator import HyrelControllerSimulator
-from repetrel_host.fakes.simulator import ControllerSettings, ControllerSimulator, Overflow
+from repetrel_host.fakes.settings import ControllerSettings, Overflow
+from repetrel_host.fakes.simulator import ControllerSimulator
 from repetrel_host.gcode.estimate import DEFAULT_LIMITS, Estimator
 from repetrel_host.protocol.hyrel import Control, HostReceiver, frame
 

@@ -2,7 +2,8 @@
 
 import pytest
 
-from repetrel_host.fakes.simulator import ControllerSettings, ControllerSimulator, Overflow
+from repetrel_host.fakes.settings import ControllerSettings, Overflow
+from repetrel_host.fakes.simulator import ControllerSimulator
 from repetrel_host.protocol.framing import frame
 
 
@@ -44,7 +45,7 @@ def test_unbuffered_command_waits_for_the_planner_to_drain() -> None:
     sim.advance(0.99)
     assert sim.take_output(0.99) == b""
     sim.advance(1.25)  # moves end at 1.0, the dwell lasts 0.25 s
-    assert sim.take_output(1.25) == b"ok\nok T:21.0 /0.0 B:21.0 /0.0 @:0 B@:0\n"
+    assert sim.take_output(1.25) == b"ok\nok T:21.00 /0.00 B:21.00 /0.00 @:0 B@:0\n"
     assert sim.executed[-2:] == ["G4 P250", "M105"]
 
 

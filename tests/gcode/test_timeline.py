@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 import repetrel_host as rh
-from repetrel_host.fakes.simulator import ControllerSettings
+from repetrel_host.fakes.settings import ControllerSettings
 from repetrel_host.gcode.estimate import HeatWait
 from repetrel_host.gcode.timeline import MOST_POINTS, TimeLeft, Timeline, learned_pace
 from tests.support.helpers import job_file, run

@@ -11,7 +11,8 @@ from hypothesis import strategies as st
 
 from repetrel_host.errors import ControllerError
 from repetrel_host.fakes.hyrel_simulator import HyrelControllerSimulator
-from repetrel_host.fakes.simulator import ControllerSettings, ControllerSimulator, Faults
+from repetrel_host.fakes.settings import ControllerSettings, Faults
+from repetrel_host.fakes.simulator import ControllerSimulator
 from repetrel_host.protocol.dialects.hyrel import (
     ANSWER_AT_ONCE,
     KEEPALIVE,
@@ -56,9 +57,10 @@ def test_a_job_streams_exactly_once_within_the_controllers_headroom() -> None:
     # Among the lines, the host's M115s: one among every 16 of the first (the controller's
     # 8 KB go before an answer says how fast lines run), then one among every 256 (they
     # run in half a second), and the one after the end.
-    assert [c for c in result.executed if c != "M115"] == commands
+    assert result.executed == commands
     first = 8192 // len("N1 G1 X0 Y0\n") // SYNC_EVERY_MIN
-    assert 5000 // SYNC_EVERY + 1 < result.executed.count("M115") <= 5000 // SYNC_EVERY + first
+    syncs = result.controller.executed.count("M115")
+    assert 5000 // SYNC_EVERY + 1 < syncs <= 5000 // SYNC_EVERY + first
     link = result.controller.link
     assert link.bytes_dropped == 0
     assert result.acknowledged == list(range(5000))
@@ -159,7 +161,9 @@ def test_a_jobs_own_m115_does_not_end_it_early() -> None:
     commands = ["G28", "M115", "G4 S20", "G1 X1", "M104 S0"]
     result = stream(commands)
     summary = result.run.summary
-    assert result.executed == [*commands, "M115"] and summary is not None
+    # The job's M115 ran, and the host's after the last line.
+    assert result.executed == commands and summary is not None
+    assert result.controller.executed == [*commands, "M115"]
     assert summary.seconds >= 20  # the dwell ran before the job was done
 
 
@@ -417,7 +421,7 @@ def test_lost_acks_and_garbled_replies_still_run_every_line_exactly_once(seed: i
     faults = Faults(drop_ok=0.1, garble=0.02, seed=seed)
     result = stream(NOISY_JOB, move_time=0.001, latency=0.001, bandwidth=11_520, faults=faults)
     assert result.failure is None and result.run.outcome is Outcome.COMPLETED
-    assert [c for c in result.executed if c != "M115"] == NOISY_JOB
+    assert result.executed == NOISY_JOB
     controller = result.controller
     assert controller.link.bytes_dropped == 0  # the window kept the buffer from overflowing
     assert controller.counts.dropped_oks > 20 and controller.counts.garbled_replies > 0
@@ -447,7 +451,7 @@ def test_a_line_refused_for_its_checksum_is_named_and_the_controller_aborts() ->
     assert "the last line the controller acknowledged is job:" in str(error)
     # In order without it, and not far past it: the abort came within a round trip (and
     # dropped what the controller held, lines before it in its command slots too).
-    executed = [c for c in result.executed if c != "M115"]  # the syncs ran too
+    executed = result.executed
     assert executed == [c for c in commands if c != "G1 X199"][: len(executed)]
     assert 150 < len(executed) <= 199 + 20
 

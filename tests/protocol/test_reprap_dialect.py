@@ -7,7 +7,7 @@ import pytest
 from repetrel_host.errors import UsageError
 from repetrel_host.protocol import replies
 from repetrel_host.protocol.controller import Accepted, ControllerProtocol
-from repetrel_host.protocol.dialects.reprap import UNBUFFERED_GRACE, RepRapDialect
+from repetrel_host.protocol.dialects.reprap import UNBUFFERED_GRACE, RepRapDialect, RepRapPhase
 from repetrel_host.protocol.dialects.reprap_greeting import (
     HELLO_ATTEMPTS,
     HELLO_TIMEOUT,
@@ -356,9 +356,10 @@ def test_renumbers_with_m110_once_the_controller_confirmed_everything() -> None:
 
 
 def test_a_lost_ok_costs_one_retransmission_timeout_and_a_ping() -> None:
+    # (Commands that take no time: nothing explains a silence after them.)
     host = greeted(FlowControl(FlowMode.UNBUFFERED))
-    host.send("G1 X1", 0)
-    host.send("G1 X2", 1)
+    host.send("M106 S1", 0)
+    host.send("M106 S2", 1)
     host.data_to_send(1.0)
     host.receive_data(b"ok\n", 1.002)
     host.data_to_send(1.002)
@@ -553,81 +554,53 @@ def test_a_late_answer_to_an_earlier_greeting_is_not_taken_for_the_last() -> Non
     assert host.data_to_send(2.2) == frame(2, "G28")
 
 
-# --- the greeting's check, and controllers that count lines their own way -------------
+# --- the usual probe: a numbered M105 that runs --------------------------------------
 
-GAP = b"N2 M105*37\n"  # line 1 left out on purpose
-OCTOPRINT_TEMPERATURES = b"ok T:21.30 /0.00 B:21.30 /0.00 @:64\n"
+TEMPERATURES = b"ok T:21.00 /0.00 B:21.00 /0.00 @:0 B@:0\n"  # Marlin's answer to M105
 
 
-def test_the_greeting_checks_that_a_bad_checksum_names_the_missing_line() -> None:
+def test_the_greeting_is_m110_and_a_probe_that_runs() -> None:
     host = RepRapDialect()
     host.start(0.0)
-    # M110, then a line with a gap: its refusal confirms the reset, and starts the check.
-    assert host.data_to_send(0.0) == HELLO + GAP
-    host.receive_data(b"ok\n", 0.0)
-    host.receive_data(
-        b"Error:Line Number is not Last Line Number+1, Last Line: 0\nResend: 1\nok\n", 0.0
-    )
-    assert host.data_to_send(0.0) == ping(1)  # a consistent controller asks for 1 again
-    host.receive_data(ping_reply(1), 0.0)
-    assert ControllerReady(ProbeKind.CHECKSUM) in events(host)
-    host.send("G28", 0)
-    assert host.data_to_send(0.0) == b"N1 G28*18\n"
-
-
-def test_a_controller_counting_every_valid_line_is_probed_with_m105_lines() -> None:
-    # OctoPrint's virtual printer: a bad checksum draws "Resend:" for a count of every
-    # line with a valid checksum, and it takes that line for received.
-    host = RepRapDialect()
-    host.start(0.0)
-    assert host.data_to_send(0.0) == HELLO + GAP
-    host.receive_data(b"ok\nError: expected line 1 got 2\nResend:1\nok\n", 0.0)
-    assert host.data_to_send(0.0) == ping(1)
-    host.receive_data(b"Error: Missing checksum\nResend:2\nok\n", 0.0)  # never sent
-    notices = [e for e in events(host) if isinstance(e, Notice)]
-    assert len(notices) == 1 and "M105" in notices[0].text
-    # Renumbered, and confirmed by a probe that runs.
-    assert host.data_to_send(0.0) == frame(1, "M110 N1") + frame(2, "M105")
-    host.receive_data(b"ok\n" + OCTOPRINT_TEMPERATURES, 0.0)
+    # A real line that Marlin takes once it holds line 0 (the M110), and answers with the
+    # temperatures: no error, whatever the controller held before.
+    assert host.data_to_send(0.0) == HELLO + b"N1 M105*38\n"
+    host.receive_data(b"ok\n" + TEMPERATURES, 0.002)
     assert ControllerReady(ProbeKind.COMMAND) in events(host)
     host.send("G28", 0)
-    host.send("G1 X1", 1)
-    host.request_sync()
-    assert host.data_to_send(0.0) == frame(3, "G28") + frame(4, "G1 X1")
-    host.receive_data(b"ok\nok\n", 0.0)
-    assert not host.is_done
-    assert host.data_to_send(0.0) == frame(5, "M105")
-    host.receive_data(OCTOPRINT_TEMPERATURES, 0.0)
-    assert host.is_done
-    assert acked(host) == [3, 4]  # the probes are the host's own lines
+    assert host.data_to_send(0.002) == b"N2 G28*17\n"
 
 
-def test_a_controller_counting_every_valid_line_gets_at_most_64_bytes_in_flight() -> None:
-    # OctoPrint's virtual printer reads a 64-byte buffer; a write that does not fit holds
-    # the lock its error replies need, so with more in flight each error stalls it 10 s.
-    host = RepRapDialect(FlowControl(FlowMode.BUFFERED, rx_buffer=4096, max_lines=96))
+def test_a_controller_whose_m105_answer_says_nothing_is_probed_with_checksums() -> None:
+    host = RepRapDialect()
     host.start(0.0)
-    assert host.data_to_send(0.0) == HELLO + GAP
-    host.receive_data(b"ok\nError: expected line 1 got 2\nResend:1\nok\n", 0.0)
-    assert host.data_to_send(0.0) == ping(1)
-    host.receive_data(b"Error: Missing checksum\nResend:2\nok\n", 0.0)
-    assert host.data_to_send(0.0) == frame(1, "M110 N1") + frame(2, "M105")
-    host.receive_data(b"ok\n" + OCTOPRINT_TEMPERATURES, 0.0)
-    assert any(isinstance(e, Notice) and "64 bytes" in e.text for e in events(host))
-    for i in range(10):
-        host.send(f"G1 X{i}.123 Y{i}.456 E{i}.789", i)  # 31-32 bytes framed
-    assert host.data_to_send(0.0) == frame(3, "G1 X0.123 Y0.456 E0.789") + frame(
-        4, "G1 X1.123 Y1.456 E1.789"
-    )
-    host.receive_data(b"ok\n", 0.001)
-    assert host.data_to_send(0.001) == frame(5, "G1 X2.123 Y2.456 E2.789")
+    assert host.data_to_send(0.0) == HELLO + b"N1 M105*38\n"
+    # Its temperatures on a line of their own: the probe's answer is a plain ok.
+    host.receive_data(b"ok\nT:21.0 /0.0\nok\n", 0.002)
+    notices = [e for e in events(host) if isinstance(e, Notice)]
+    assert len(notices) == 1 and "plain ok" in notices[0].text
+    assert host.data_to_send(0.002) == frame(1, "M110 N1") + ping(2)
+    host.receive_data(b"ok\n" + ping_reply(2), 0.004)
+    assert ControllerReady(ProbeKind.CHECKSUM) in events(host)
+
+
+def test_an_answer_before_the_m110s_ok_does_not_end_the_greeting() -> None:
+    # Replies come in order: the M110's ok before the probe's answer. An "ok T:" first is
+    # an earlier one said twice; taken, it would number lines the controller never reset.
+    host = RepRapDialect()
+    host.start(0.0)
+    host.data_to_send(0.0)
+    host.receive_data(TEMPERATURES, 0.001)
+    assert host.phase is RepRapPhase.GREETING and not events(host)
+    host.receive_data(b"ok\n" + TEMPERATURES, 0.003)
+    assert ControllerReady(ProbeKind.COMMAND) in events(host)
 
 
 def command_probing() -> RepRapDialect:
     host = RepRapDialect(FlowControl(FlowMode.UNBUFFERED), probe=ProbeKind.COMMAND)
     host.start(0.0)
     assert host.data_to_send(0.0) == HELLO + frame(1, "M105")
-    host.receive_data(b"ok\n" + OCTOPRINT_TEMPERATURES, 0.001)
+    host.receive_data(b"ok\n" + TEMPERATURES, 0.001)
     assert ControllerReady(ProbeKind.COMMAND) in events(host)
     return host
 
@@ -641,7 +614,10 @@ def test_only_an_ok_with_temperatures_answers_a_command_probe() -> None:
     assert host.data_to_send(0.011) == frame(3, "M105")
     host.receive_data(b"ok\n", 0.012)  # a duplicated ok: not the probe's answer
     assert not host.is_done
-    host.receive_data(OCTOPRINT_TEMPERATURES, 0.013)
+    host.receive_data(TEMPERATURES, 0.013)
+    # One answer could be an earlier M105's said twice: a second probe, then done.
+    assert not host.is_done and host.data_to_send(0.013) == frame(4, "M105")
+    host.receive_data(TEMPERATURES, 0.015)
     assert host.is_done
 
 
@@ -654,7 +630,7 @@ def test_a_command_probe_answer_is_found_behind_lost_oks() -> None:
     assert deadline is not None
     host.handle_timeout(deadline)
     assert host.data_to_send(deadline) == frame(3, "M105")
-    host.receive_data(OCTOPRINT_TEMPERATURES, deadline + 0.002)
+    host.receive_data(TEMPERATURES, deadline + 0.002)
     assert acked(host) == [2]
     host.send("G1 X2", 1)
     assert host.data_to_send(deadline + 0.002) == frame(4, "G1 X2")
@@ -747,55 +723,91 @@ def test_a_probe_after_a_stall_never_repeats_the_greetings_probe() -> None:
     assert sent == [ping(6)] * 3
 
 
-def test_the_refusals_of_a_command_probes_copies_send_nothing_again() -> None:
-    # The probe went three times while the controller heated; the first copy ran, the
-    # two others draw a refusal each, asking for the line after it. By then the host
-    # sent the next lines: obeying would send again lines the controller holds.
-    host = RepRapDialect(FlowControl(FlowMode.BUFFERED), probe=ProbeKind.COMMAND)
-    host.start(0.0)
-    assert host.data_to_send(0.0) == HELLO + frame(1, "M105")
-    host.receive_data(b"ok\n" + OCTOPRINT_TEMPERATURES, 0.001)
-    host.send("M109 S200", 0)
-    assert host.data_to_send(0.01) == frame(2, "M109 S200")
-    now, sent = 0.01, []
-    while len(sent) < 3:
-        deadline = host.next_deadline()
-        assert deadline is not None
-        now = deadline
-        host.handle_timeout(now)
-        sent.append(host.data_to_send(now))
-    assert sent == [frame(3, "M105")] * 3
-    assert now >= 40.0  # a copy every 20 s while the command runs, not more
-    now += 1.0
-    host.receive_data(b"ok\n" + OCTOPRINT_TEMPERATURES, now)
-    host.send("G1 X1", 1)
-    host.send("G1 X2", 2)
-    assert host.data_to_send(now) == frame(4, "G1 X1") + frame(5, "G1 X2")
-    refusal = b"Error: expected line 4 got 3\nResend:4\nok\n"
-    host.receive_data(refusal * 2, now + 0.002)
-    assert host.data_to_send(now + 0.002) == b""
-    host.receive_data(b"ok\nok\n", now + 0.004)
-    assert acked(host) == [2, 4, 5]
-    host.request_sync()
-    assert host.data_to_send(now + 0.004) == frame(6, "M105")
+def advance(host: RepRapDialect, until: float) -> bytes:
+    """Every timeout due up to ``until``, handled; what the host sent for them."""
+    sent = b""
+    while (deadline := host.next_deadline()) is not None and deadline <= until:
+        host.handle_timeout(deadline)
+        sent += host.data_to_send(deadline)
+    return sent
 
 
-def test_a_command_probe_that_gets_no_answer_goes_again_not_a_new_one() -> None:
-    # A controller busy heating (M190) answers nothing for a while: probes must not pile
-    # up in its buffer, each a line that runs.
+def test_a_heat_wait_whose_reports_say_it_heats_draws_no_probe() -> None:
+    # Marlin's M190 answers once the bed is there, and reports the temperatures every
+    # second meanwhile: the host reads them, and asks nothing.
     host = command_probing()
     host.send("M190 S60", 0)
     host.request_sync()
     assert host.data_to_send(0.01) == frame(2, "M190 S60")
-    sent = []
-    now = 0.01
-    for _ in range(6):
-        deadline = host.next_deadline()
-        assert deadline is not None and deadline > now
-        now = deadline
+    now, bed = 0.01, 21.0
+    while bed < 60.0:
+        now += 1.0
+        bed = min(60.0, bed + 0.5)
+        host.receive_data(f" T:21.00 /0.00 B:{bed:.2f} /60.00 @:0 B@:0 W:?\n".encode(), now)
+        assert advance(host, now) == b""
+    host.receive_data(b"ok\n", now + 8.0)  # its residency over
+    assert host.data_to_send(now + 8.0) == frame(3, "M105")  # the sync's probes, and only
+    host.receive_data(TEMPERATURES, now + 8.01)
+    assert host.data_to_send(now + 8.01) == frame(4, "M105")
+    host.receive_data(TEMPERATURES, now + 8.02)
+    assert host.is_done and host.stats.pings == 3  # the greeting's, the sync's two
+
+
+def test_a_heat_wait_long_at_its_target_without_an_ok_is_probed() -> None:
+    host = command_probing()
+    host.send("M109 S200", 0)
+    assert host.data_to_send(0.01) == frame(2, "M109 S200")
+    now, sent = 0.01, b""
+    while not sent:  # its ok was lost: the reports say the hotend is there, for long
+        now += 1.0
+        host.receive_data(b" T:200.00 /200.00 B:21.00 /0.00 @:0 B@:0\n", now)
+        sent = advance(host, now)
+    assert sent == frame(3, "M105") and 30.0 < now < 60.0
+    host.receive_data(TEMPERATURES, now + 0.01)
+    assert acked(host) == [2]
+
+
+def test_a_probe_unanswered_is_followed_by_the_next_line_not_a_copy() -> None:
+    # Marlin 2.1 drops a copy of the line it took last without a word: after a probe
+    # whose answer was lost, a new one, numbered next, which it takes and answers.
+    host = command_probing()
+    host.send("G1 X1", 0)
+    host.request_sync()
+    assert host.data_to_send(0.01) == frame(2, "G1 X1")
+    host.receive_data(b"ok\n", 0.012)
+    assert host.data_to_send(0.012) == frame(3, "M105")
+    now, sent = 0.012, b""
+    while not sent:  # its answer is lost
+        now = host.next_deadline() or now
         host.handle_timeout(now)
-        sent.append(host.data_to_send(now))
-    assert sent == [frame(3, "M105")] * 6
-    assert now >= 5.0  # a command that waits for the machine holds the probes back
-    host.receive_data(b"ok\n" + OCTOPRINT_TEMPERATURES, now + 0.01)
+        sent = host.data_to_send(now)
+    assert sent == frame(4, "M105")
+    host.receive_data(TEMPERATURES, now + 0.01)
+    assert host.data_to_send(now + 0.01) == frame(5, "M105")  # the sync's second
+    host.receive_data(TEMPERATURES, now + 0.02)
     assert host.is_done
+
+
+def test_a_probe_given_up_that_answers_late_confirms_no_line_of_the_callers() -> None:
+    host = command_probing()
+    host.send("G4 S1", 0)
+    host.request_sync()
+    assert host.data_to_send(0.01) == frame(2, "G4 S1")
+    host.receive_data(b"ok\n", 1.02)
+    assert host.data_to_send(1.02) == frame(3, "M105")
+    now, sent = 1.02, b""
+    while not sent:  # the controller is slower than anything says
+        now = host.next_deadline() or now
+        host.handle_timeout(now)
+        sent = host.data_to_send(now)
+    assert sent == frame(4, "M105")
+    host.receive_data(TEMPERATURES, now + 0.01)  # probe 3's answer, taken as probe 4's
+    assert host.data_to_send(now + 0.01) == frame(5, "M105")  # the sync's second
+    host.receive_data(TEMPERATURES, now + 0.02)  # probe 4's own, taken as probe 5's
+    assert host.is_done
+    host.send("G1 X1", 1)
+    assert host.data_to_send(now + 0.02) == frame(6, "G1 X1")
+    host.receive_data(TEMPERATURES, now + 0.021)  # probe 5's own: not line 6's ok
+    assert acked(host) == [2]
+    host.receive_data(b"ok\n", now + 0.022)
+    assert acked(host) == [6]

@@ -16,7 +16,9 @@ from repetrel_host.fakes.fake_controller import BuiltInFake
 from tests.support.helpers import CONE, executed, hyrel_send, job_commands
 
 NOISE = "corrupt=0.02 garble=0.01 drop_ok=0.01 duplicate_ok=0.01 spurious_resend=0.005"
-MARLIN = "flush_on_error=1 drop_duplicates=1 resend_without_ok=1 busy_interval=2"
+# Another firmware: a line error keeps the receive buffer, its resend request comes
+# without its ok, a resent copy is refused. (NOISE alone is on Marlin 2.1's ways.)
+OLD_MARLIN = "flush_on_error=0 drop_duplicates=0 resend_without_ok=1"
 # OctoPrint's virtual printer: its answer to a bad checksum counts every valid line it got,
 # it asks for accepted lines again, and drops some with only an error line.
 OCTOPRINT = "counted_resend=1 spurious_resend=0.005 drop_with_error=0.005"
@@ -29,9 +31,9 @@ OCTOPRINT = "counted_resend=1 spurious_resend=0.005 drop_with_error=0.005"
     ("flow", "faults"),
     [
         ("buffered", f"{NOISE} seed=1"),
-        ("buffered", f"{NOISE} {MARLIN} seed=2"),
+        ("buffered", f"{NOISE} {OLD_MARLIN} seed=2"),
         ("unbuffered", f"{NOISE} seed=3"),
-        ("unbuffered", f"{NOISE} {MARLIN} seed=4"),
+        ("unbuffered", f"{NOISE} {OLD_MARLIN} seed=4"),
     ],
 )
 def test_noisy_link_executes_every_line_exactly_once(
@@ -57,10 +59,8 @@ def test_a_controller_counting_lines_its_own_way_runs_every_line_once(
     assert result.returncode == 0, result.stderr
     # Its probes are numbered M105 lines that run (the job has none), and M115 asks who
     # the controller is; the job ran exactly once.
-    host = ("M105", "M115", "M155 S2")  # its probes and syncs, temperature reports asked
-    ran = [c for c in log.read_text().splitlines() if c not in host]
-    assert [c for c in ran if not c.startswith("M110")] == job_commands(CONE)
-    assert "probing with numbered M105 lines" in result.stdout
+    assert executed(log) == job_commands(CONE)
+    assert "M105" in log.read_text().splitlines()
 
 
 # Hyrel's own link: ACK bytes lost, replies garbled (its answers and notices among them).

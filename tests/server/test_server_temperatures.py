@@ -7,6 +7,7 @@ in order, whatever polls went between them."""
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -85,6 +86,9 @@ def test_a_heated_job_shows_the_controllers_temperatures_though_it_was_slow_to_s
         )
         record = client.get(f"/v1/jobs/{job_id}").json()
         assert record["lines"] == len(HEAT + MOVES) and record["error"] is None
+        time.sleep(2.0)  # the server's polls of an idle printer
+        # A healthy link draws no error: not the greeting, the job, its end, nor the polls.
+        assert fake.request("status")["errors"] == 0
     fake.request("status")  # the log is complete
     assert fake.log_path is not None
     ran = fake.log_path.read_text().splitlines()

@@ -45,10 +45,10 @@ def test_loadout_job_runs_header_then_job_and_history_is_the_wire(tmp_path: Path
     assert result.returncode == 0, result.stderr
     assert executed(log) == dry_run(EXAMPLE, TWO_HEADS)
     (history_file,) = history.glob("*-square-tube.gcode")
-    # The job's stream, from its first line to the probe that confirmed its last, as the
-    # fake received it after the session's greeting, M115 and M155 (temperature reports).
+    # The job's stream, from its first line to the probes that confirmed its last, as the
+    # fake received it after the session's greeting (M110 and a probe), M115 and M155.
     assert received.read_bytes().endswith(history_file.read_bytes())
-    assert history_file.read_bytes().startswith(b"N3 M6 T1 O2 X0 Y0 Z0*117\n")
+    assert history_file.read_bytes().startswith(b"N4 M6 T1 O2 X0 Y0 Z0*114\n")
     assert str(history_file) in result.stdout
 
 

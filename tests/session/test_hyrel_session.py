@@ -16,7 +16,7 @@ import pytest
 
 import repetrel_host as rh
 from repetrel_host.fakes.hyrel_simulator import HyrelControllerSimulator, Metrics
-from repetrel_host.fakes.simulator import ControllerSettings
+from repetrel_host.fakes.settings import ControllerSettings
 from tests.support.helpers import HYREL_SAFE_STOP
 
 pytestmark = pytest.mark.timeout(60)

@@ -215,7 +215,7 @@ def test_a_controller_that_never_says_who_it_is_gets_a_safe_stop_for_either_firm
     import asyncio
 
     import repetrel_host as rh
-    from repetrel_host.fakes.simulator import ControllerSettings
+    from repetrel_host.fakes.settings import ControllerSettings
     from repetrel_host.session import identify
 
     monkeypatch.setattr(identify, "FIRMWARE_PATIENCE", 0.2)
@@ -240,7 +240,7 @@ def test_a_pause_that_comes_as_the_job_ends_says_so(tmp_path: Path) -> None:
     import asyncio
 
     import repetrel_host as rh
-    from repetrel_host.fakes.simulator import ControllerSettings
+    from repetrel_host.fakes.settings import ControllerSettings
 
     async def scenario(path: Path) -> None:
         settings = ControllerSettings(latency=0.01)

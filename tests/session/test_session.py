@@ -5,15 +5,17 @@ backend)."""
 from __future__ import annotations
 
 import asyncio
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import pytest
 
 import repetrel_host as rh
-from repetrel_host.fakes.simulator import ControllerSettings, ControllerSimulator, Faults
+from repetrel_host.fakes.settings import ControllerSettings, Faults
+from repetrel_host.fakes.simulator import ControllerSimulator
 from repetrel_host.links import SimLink
+from repetrel_host.pytest_plugin.facade import callers_commands
 from repetrel_host.session import identify
 from tests.support.helpers import (
     EXAMPLE,
@@ -22,7 +24,6 @@ from tests.support.helpers import (
     job_commands,
     job_file,
     run,
-    without_greetings,
 )
 
 pytestmark = pytest.mark.timeout(60)
@@ -37,10 +38,13 @@ class Rig:
     protocol: str = "reprap"
     move_time: float = 0.0
     faults: str = ""
+    # Each line the session sent, as it first went: (command, the host's own).
+    sent: list[tuple[str, bool]] = field(default_factory=list)
 
     def connect(self, **options: Any) -> Any:
         options.setdefault("poll_interval", None)
         options["protocol"] = self.protocol
+        options["line_tap"] = self.note
         if self.kind == "sim":
             settings = ControllerSettings(
                 latency=0.0005,
@@ -54,6 +58,10 @@ class Rig:
         if self.faults:
             args += ["--faults", self.faults]
         return rh.connect("fake", fake_log=self.log, fake_args=args, **options)
+
+    def note(self, command: str, own: bool) -> None:
+        """The session's line tap: what it sent, its own lines told apart."""
+        self.sent.append((command, own))
 
     @property
     def hyrel(self) -> bool:
@@ -82,11 +90,9 @@ class Rig:
         return self.log.read_text().splitlines() if self.log.exists() else []
 
     def executed(self, printer: rh.Printer) -> list[str]:
-        """What the controller executed, without the session's greeting and M115."""
-        commands = self.everything_executed(printer)
-        if self.hyrel:  # the session's M115s: who are you, and has every line run?
-            return [c for c in commands if c != "M115"]
-        return without_greetings(commands)
+        """What the controller executed, without the session's own lines (its greeting, its
+        probes and syncs, M115)."""
+        return callers_commands(self.everything_executed(printer), self.sent)
 
 
 @pytest.fixture(
@@ -131,19 +137,22 @@ def test_connect_greets_and_asks_who_the_controller_is(rig: Rig) -> None:
                     "MACHINE_TYPE:HYREL_HYDRA HYREL_PROTOCOL:1"
                 ]
             else:
-                assert printer.probe is rh.ProbeKind.CHECKSUM
+                assert printer.probe is rh.ProbeKind.COMMAND
                 assert printer.firmware.name.startswith("repetrel-host fake controller")
                 assert printer.firmware.can("AUTOREPORT_TEMP")
                 assert reply.lines[0].startswith("FIRMWARE_NAME:repetrel-host fake controller")
                 assert reply.lines[1:] == ["Cap:AUTOREPORT_TEMP:1", "Cap:EMERGENCY_PARSER:1"]
             reply = await printer.command("M105")
-            # (On Hyrel's link a status report the host asked for may come with it.)
-            assert "T:21.0 /0.0 B:21.0 /0.0 @:0 B@:0" in temperatures(reply)
+            # (On Hyrel's link a status report the host asked for may come with it.) Marlin
+            # reports hundredths, this fake of Hyrel's tenths.
+            tenths = "T:21.0 /0.0 B:21.0 /0.0" if rig.hyrel else "T:21.00 /0.00 B:21.00 /0.00"
+            assert f"{tenths} @:0 B@:0" in temperatures(reply)
             assert printer.temperatures["T"] == (21.0, 0.0)
             reply = await printer.command("M104 S200 ; a comment is fine")
             # On Hyrel's link the reply is complete once it ran: its notice is in it.
             assert reply.lines == ([">MC:M104: S200:"] if rig.hyrel else [])
-            assert "T:200.0 /200.0" in temperatures(await printer.command("M105"))
+            heated = "T:200.0 /200.0" if rig.hyrel else "T:200.00 /200.00"
+            assert heated in temperatures(await printer.command("M105"))
         assert printer.state is rh.State.CLOSED
 
     run(scenario)
@@ -215,12 +224,12 @@ def test_two_jobs_on_one_connection_run_exactly_once(rig: Rig, tmp_path: Path) -
 
     run(scenario)
     # No second greeting: the line numbers went on counting (after the RepRap link's last
-    # probe, which takes no number; after Hyrel's last M115, which does, and what control
-    # bytes followed it: a status request).
+    # probe, a numbered M105; after Hyrel's last M115, and what control bytes followed it:
+    # a status request).
     first_wire = (tmp_path / "first.gcode").read_bytes()
     second_wire = (tmp_path / "second.gcode").read_bytes()
     lines = [line for line in first_wire.splitlines() if line.strip(b"\x01\x05\x0e")]
-    last = lines[-1 if rig.hyrel else -2]
+    last = lines[-1]
     number = int(last.split()[0][1:])
     assert second_wire.startswith(f"N{number + 1} G1 X0 Y0{'' if rig.hyrel else '*'}".encode())
 
@@ -431,7 +440,9 @@ def test_m108_goes_out_at_once_and_ends_a_heat_wait(protocol: str) -> None:
 
     async def scenario() -> None:
         settings = ControllerSettings(heat_rate=1.0, rx_buffer=8192)  # 229 s to 250 degrees
-        connecting = rh.connect("sim", sim=settings, poll_interval=None, protocol=protocol)
+        connecting = rh.connect(
+            "sim", sim=settings, poll_interval=None, protocol=protocol, line_tap=rig.note
+        )
         async with connecting as printer:
             heating = asyncio.create_task(printer.command("M109 S250"))
             await asyncio.sleep(0.2)
@@ -666,13 +677,16 @@ def test_a_pyserial_url_reaches_a_controller_over_tcp() -> None:
 
         server = await loop.create_server(Serve, "127.0.0.1", 0)
         port = server.sockets[0].getsockname()[1]
-        async with rh.connect(f"socket://127.0.0.1:{port}", poll_interval=None) as printer:
+        sent: list[tuple[str, bool]] = []
+        url = f"socket://127.0.0.1:{port}"
+        async with rh.connect(
+            url, poll_interval=None, line_tap=lambda *s: sent.append(s)
+        ) as printer:
             assert printer.firmware is not None
             summary = await (await printer.print(EXAMPLE, history=False)).wait()
             assert summary.lines == len(job_commands(EXAMPLE))
         server.close()
-        ran = [c for c in simulator.executed if not c.startswith("M110")]
-        assert ran == ["M115", *job_commands(EXAMPLE)]
+        assert callers_commands(simulator.executed, sent) == job_commands(EXAMPLE)
 
     run(scenario)
 

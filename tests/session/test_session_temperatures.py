@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 import repetrel_host as rh
-from repetrel_host.fakes.simulator import ControllerSettings, Faults
+from repetrel_host.fakes.settings import ControllerSettings, Faults
 from repetrel_host.links import SimLink
 from repetrel_host.session import identify
 from tests.support.helpers import MARLIN_SAFE_STOP, job_file, run

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 import repetrel_host as rh
-from repetrel_host.fakes.simulator import ControllerSettings
+from repetrel_host.fakes.settings import ControllerSettings
 from tests.support.helpers import job_file, run
 
 pytestmark = pytest.mark.timeout(60)

@@ -37,10 +37,14 @@ def executed(log: Path) -> list[str]:
 
 def without_greetings(executed: Iterable[str]) -> list[str]:
     """Executed commands without the host's own lines: M110, the M115 a session asks right
-    after it (who are you?) and the M155 that may follow (report temperatures)."""
+    after it (who are you?) and the M155 that may follow (report temperatures), and M105:
+    the host's probes are numbered M105 lines that run (a test that sends M105 itself
+    reads the log whole)."""
     commands: list[str] = []
     after = ""  # the host's greeting line just before
     for command in executed:
+        if command == "M105":
+            continue
         if command.startswith("M110"):
             after = "M110"
         elif after == "M110" and command == "M115":

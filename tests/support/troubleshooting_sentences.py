@@ -57,6 +57,8 @@ SINK_CALLS: dict[str, int | None] = {
 SINK_FUNCTIONS = {
     ("server/settings.py", "fail", 0),  # "hyrel-server: ..." on stderr, exit 2
     ("server/main.py", "fail", 0),  # the same, imported
+    # The RepRap dialect's failure, defined with the reading of replies (reprap_replies).
+    ("protocol/dialects/reprap.py", "_fail", 1),
 }
 # Third-party exception classes whose message a user reads.
 FOREIGN_ERRORS = {"HTTPException": 1, "UsageError": 0, "BadParameter": 0}

@@ -155,11 +155,11 @@ def _announce(console: Out, printer: Printer, plan: JobPlan) -> None:
             f"{printer.link.device}.",
             markup=False,
         )
-    if printer.probe is ProbeKind.COMMAND:
+    if printer.probe is ProbeKind.CHECKSUM:
         console.print(
-            "The controller's answer to a bad checksum names a line it never got: "
-            "probing with numbered M105 lines (they run; they are harmless), and, as "
-            "OctoPrint's virtual printer, at most 64 bytes in flight."
+            "The controller answers M105 with a plain ok: where the host must ask which "
+            "lines it holds, it sends a line whose checksum is wrong on purpose, and the "
+            "controller answers each with an error."
         )
     elif printer.probe is ProbeKind.ANSWER:
         console.print(

@@ -38,12 +38,8 @@ from repetrel_host.errors import LinkError
 from repetrel_host.fakes.hyrel_simulator import RX_BUFFER as HYREL_RX_BUFFER
 from repetrel_host.fakes.hyrel_simulator import HyrelControllerSimulator
 from repetrel_host.fakes.hyrel_simulator import check_faults as check_hyrel_faults
-from repetrel_host.fakes.simulator import (
-    ControllerSettings,
-    ControllerSimulator,
-    Faults,
-    Overflow,
-)
+from repetrel_host.fakes.settings import KEEPALIVE_INTERVAL, ControllerSettings, Faults, Overflow
+from repetrel_host.fakes.simulator import ControllerSimulator
 
 READ_SIZE = 4096
 # Starting Python and the fake takes well under a second; leave room for a slow CI.
@@ -233,6 +229,7 @@ class PtyController:
             "faults": dataclasses.asdict(simulator.faults),
             "counts": dataclasses.asdict(simulator.counts),
             "commands": simulator.link.commands,
+            "errors": simulator.link.errors,
             "hung": simulator.hung,
         }
 
@@ -369,6 +366,22 @@ def build_parser() -> argparse.ArgumentParser:
         "wait (default: targets are reached at once)",
     )
     parser.add_argument(
+        "--residency",
+        type=float,
+        default=0.0,
+        metavar="SECONDS",
+        help="a heat wait holds this long once its heater is at the target, its reports "
+        "counting down W: (Marlin's TEMP_RESIDENCY_TIME, 10 there) (default: 0)",
+    )
+    parser.add_argument(
+        "--keepalive",
+        type=float,
+        default=KEEPALIVE_INTERVAL,
+        metavar="SECONDS",
+        help="'echo:busy: processing' this often while a command holds the queue, heat waits "
+        "aside (Marlin's host keepalive; M113 changes it); 0: never",
+    )
+    parser.add_argument(
         "--extruders",
         type=int,
         default=1,
@@ -421,8 +434,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--faults",
         default="",
         help="faults to inject, e.g. 'corrupt=0.02 garble=0.01 drop_ok=0.01 duplicate_ok=0.01 "
-        "spurious_resend=0.005 resend_without_ok=1 flush_on_error=1 drop_duplicates=1 "
-        "busy_interval=2 seed=7'; and two controllers' ways: counted_resend=1 (OctoPrint's "
+        "spurious_resend=0.005 seed=7'; older firmwares' ways: resend_without_ok=1, "
+        "flush_on_error=0 (a line error keeps the receive buffer), drop_duplicates=0 (a resent "
+        "copy of the last line is refused, not dropped); two controllers' ways: "
+        "counted_resend=1 (OctoPrint's "
         "virtual printer's answer to a bad checksum) and drop_with_error=0.01 (lines dropped "
         "with only an error line); with --protocol hyrel: corrupt, garble, drop_ok (ACK "
         "bytes lost), identity_twice=0.1 (M115s answered twice) and unasked_identity=1 (the "
@@ -434,8 +449,11 @@ def build_parser() -> argparse.ArgumentParser:
 def settings_from_args(args: argparse.Namespace) -> ControllerSettings:
     if args.rx_buffer is None:
         args.rx_buffer = HYREL_RX_BUFFER if args.protocol == "hyrel" else 128
-    if args.identify_time < 0:
-        raise SystemExit("hyrel-fake-controller: --identify-time must not be negative")
+    if args.identify_time < 0 or args.residency < 0 or args.keepalive < 0:
+        raise SystemExit(
+            "hyrel-fake-controller: --identify-time, --residency and --keepalive must not be "
+            "negative"
+        )
     if args.time_scale is not None and args.move_time:
         raise SystemExit(
             "hyrel-fake-controller: --time-scale and --move-time each say how long a move "
@@ -469,6 +487,8 @@ def settings_from_args(args: argparse.Namespace) -> ControllerSettings:
         banner=not args.no_banner and args.protocol != "hyrel",  # "start" is Marlin's
         advanced_ok=args.advanced_ok,
         heat_rate=args.heat_rate,
+        residency=args.residency,
+        keepalive=args.keepalive or None,
         faults=faults,
         extruders=args.extruders,
         extruder_count=not args.no_extruder_count,

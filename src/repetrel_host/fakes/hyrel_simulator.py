@@ -38,15 +38,10 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Callable
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 
-from repetrel_host.fakes.simulator import (
-    T_WORD,
-    ControllerSettings,
-    ControllerSimulator,
-    Faults,
-    QueuedCommand,
-)
+from repetrel_host.fakes.settings import ControllerSettings, Faults
+from repetrel_host.fakes.simulator import T_WORD, ControllerSimulator, QueuedCommand
 from repetrel_host.gcode.commands import command_word
 from repetrel_host.protocol.hyrel import NOTICED, Control, read_line
 
@@ -166,6 +161,11 @@ class HyrelControllerSimulator(ControllerSimulator):
     as the firmware has them unless a test wants them smaller."""
 
     HYREL_CODE_CHART = True
+    # What the notes say nothing of, kept as this fake always had it: a heat wait starts
+    # once the moves before it ran, and says nothing while it waits; reports in tenths.
+    HEAT_WAIT_AT_ONCE = False
+    WAIT_REPORTS = False
+    TEMPERATURE_DECIMALS = 1
 
     def __init__(
         self,
@@ -187,6 +187,8 @@ class HyrelControllerSimulator(ControllerSimulator):
         self.urgent_newest_first = False  # urgent lines run newest first (urgent_order)
         self._heard_at: float | None = None  # the host's last byte (armed by the first)
         settings = settings or ControllerSettings(rx_buffer=RX_BUFFER, banner=False)
+        if settings.keepalive is not None:  # Marlin's busy lines: not this link's
+            settings = replace(settings, keepalive=None)
         check_faults(settings.faults)
         super().__init__(settings, now=now, on_execute=on_execute)
 

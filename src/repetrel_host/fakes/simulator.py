@@ -6,7 +6,14 @@ each way), the receive buffer in bytes (dropping bytes on overflow like a UART,
 or pushing back like USB), the command slots, the planner, and how long each
 command takes: a fixed time per move, or (``time_scale``) the time the firmware's
 planner would give it, scaled. It acknowledges a buffered command once it is planned, an
-unbuffered one once the planner drained and the command finished.
+unbuffered one once it finished (G4, G28, M400 once the planner drained; a heat wait
+while the moves before it still run, as Marlin's M109 does).
+
+What it writes is Marlin 2.1's (docs/fake-controller.md): its error and ``Resend:``
+strings, every line error answered by emptying the receive buffer, ``echo:busy:
+processing`` every 2 s while a command holds the queue, a temperature report every second
+of a heat wait (with ``W:``, the residency left), M155's reports. It counts every error
+line it writes (``link.errors``): a host that keeps a healthy link healthy draws none.
 
 Faults (:class:`Faults`) are seeded and reproducible. They can also be switched
 while running by a line of the job: ``!!DEBUG:set corrupt=0.02 drop_ok=0.01``,
@@ -21,12 +28,18 @@ import random
 import re
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field, fields, replace
-from enum import Enum
+from dataclasses import dataclass, replace
 
 from repetrel_host.fakes.planned import PlannedTimes
+from repetrel_host.fakes.settings import (
+    ControllerSettings,
+    FaultCounts,
+    Faults,
+    LinkCounters,
+    Overflow,
+)
 from repetrel_host.gcode.commands import command_word, is_unbuffered
-from repetrel_host.gcode.estimate import DEFAULT_LIMITS, Limits
+from repetrel_host.gcode.estimate import DEFAULT_LIMITS
 from repetrel_host.protocol.controller import Accepted, ControllerProtocol, Rejected
 
 _MOVES = frozenset({"G0", "G1", "G2", "G3", "G5"})
@@ -51,142 +64,11 @@ M115_REPLY = (
 )
 KILLED = b"Error:Printer halted. kill() called!\n"
 DEBUG_PREFIX = "!!DEBUG:"
+WAIT_REPORT_INTERVAL = 1.0  # Marlin's heat wait prints the temperatures every second
+_ERROR_PREFIXES = (b"Error", b">ER:")  # Marlin's error lines, and Hyrel's
 # What a host's session sends before a job: the greeting and its question "who are you?".
 _SESSION_WORDS = frozenset({"M110", "M115"})
 MAX_CMD_SIZE = 96  # Marlin's line buffer
-
-
-class Overflow(Enum):
-    """What the receive buffer does with bytes that do not fit."""
-
-    DROP = "drop"  # a UART: the bytes are lost
-    BLOCK = "block"  # USB: the sender is held back
-
-
-@dataclass(frozen=True, slots=True)
-class Faults:
-    """What goes wrong, and how often (shares between 0 and 1)."""
-
-    corrupt: float = 0.0  # received lines with one byte changed (the newline too)
-    garble: float = 0.0  # reply lines with one byte changed
-    drop_ok: float = 0.0  # oks never sent
-    duplicate_ok: float = 0.0  # oks sent twice
-    spurious_resend: float = 0.0  # accepted lines answered "Resend: <that line>" and ok
-    resend_without_ok: bool = False  # line errors end without their ok (some Marlin 2.0.x)
-    flush_on_error: bool = False  # a line error empties the receive buffer (Marlin)
-    drop_duplicates: bool = False  # a resent line already accepted gets no reply (newer Marlin)
-    # OctoPrint's virtual printer: a bad checksum draws "Resend:" for a count of every
-    # valid line received (resent ones included), and no error states "Last Line".
-    counted_resend: bool = False
-    # Lines dropped with only "Error: No Line Number with checksum, Last Line: <n>":
-    # no resend request, no ok.
-    drop_with_error: float = 0.0
-    busy_interval: float | None = None  # "echo:busy: processing" while a command blocks
-    # Hyrel's link: M115s answered twice (the identity line said again at once), and G4
-    # dwells followed by the identity unasked, quoted in an info line (">IN: FIRMWARE_...").
-    identity_twice: float = 0.0
-    unasked_identity: float = 0.0
-    seed: int = 0
-
-    @classmethod
-    def parse(cls, text: str, base: Faults | None = None) -> Faults:
-        """``corrupt=0.02 flush_on_error=1 ...`` over ``base``; ValueError on a bad name."""
-        values: dict[str, object] = {}
-        kinds = {f.name: f.type for f in fields(cls)}
-        for item in text.split():
-            name, _, raw = item.partition("=")
-            if name not in kinds:
-                raise ValueError(f"unknown fault '{name}' (known: {', '.join(kinds)})")
-            kind = str(kinds[name])
-            try:
-                if "bool" in kind:
-                    values[name] = raw.lower() in ("1", "true", "yes", "on", "")
-                elif name == "seed":
-                    values[name] = int(raw)
-                elif name == "busy_interval":
-                    values[name] = float(raw) if raw else None
-                else:
-                    values[name] = float(raw)
-            except ValueError:
-                raise ValueError(f"{name}: '{raw}' is not a number") from None
-        return replace(base or cls(), **values)  # type: ignore[arg-type]
-
-
-@dataclass(frozen=True, slots=True)
-class ControllerSettings:
-    """The simulated controller and link. Times in seconds, sizes in bytes."""
-
-    bandwidth: float | None = None  # bytes per second each way; None: unlimited
-    latency: float = 0.0  # one-way delay of the link
-    rx_buffer: int = 128  # receive buffer; a ring buffer of N bytes holds N - 1
-    overflow: Overflow = Overflow.DROP
-    slots: int = 4  # command slots (Marlin's BUFSIZE)
-    planner: int = 16  # planner blocks
-    move_time: float = 0.0  # how long one move takes to execute
-    # Moves take the time the firmware's planner gives them (as repetrel_host.gcode.estimate
-    # plans them), divided by this: at 100 an hour's print runs in 36 s. Dwells (G4) are
-    # part of the plan and scaled too; heat waits keep heat_rate's time. None: move_time.
-    time_scale: float | None = None
-    # The planner's limits with time_scale, before the job's own M201-M205 lines change
-    # them (as a firmware's configuration); None: Marlin's defaults.
-    limits: Limits | None = None
-    command_time: float = 0.0  # how long any other command takes
-    banner: bool = True  # say "start" at boot
-    advanced_ok: bool = False  # ADVANCED_OK: "ok N<last line> P<planner free> B<slots free>"
-    # Degrees per second a heater moves toward its target (M109/M190 wait that long);
-    # None: temperatures reach their targets at once.
-    heat_rate: float | None = None
-    faults: Faults = field(default_factory=Faults)
-    extruders: int = 1  # hotends T0..T<n-1> (Marlin's EXTRUDER_COUNT)
-    extruder_count: bool = True  # M115 says EXTRUDER_COUNT (some firmwares do not)
-    chamber: bool = False  # a heated chamber (M141, M191; C: in reports)
-    # Marlin's EMERGENCY_PARSER: M108, M112 and M410 act as they arrive, ahead of the
-    # queue (M108's line still runs in its turn, and draws its ok). Without it they run
-    # in their turn, like any line: M108 cannot end the heat wait it queues behind.
-    emergency_parser: bool = True
-    # Marlin's AUTOREPORT_TEMP: M155 S<n> reports temperatures every n seconds. Without it
-    # M115 says Cap:AUTOREPORT_TEMP:0 and M155 is an unknown command: a host must poll.
-    autoreport: bool = True
-    # The first M115 after a start (or a reset) takes this long to run, holding the queue
-    # behind it: a controller slow to say who it is (busy at boot, a loaded host's fake).
-    identify_time: float = 0.0
-
-    def __post_init__(self) -> None:
-        if self.time_scale is not None and not self.time_scale > 0:
-            raise ValueError("time_scale must be above zero")
-        if self.time_scale is not None and self.move_time:
-            raise ValueError("time_scale and move_time each say how long a move takes: give one")
-
-
-@dataclass(slots=True)
-class FaultCounts:
-    corrupted_lines: int = 0
-    garbled_replies: int = 0
-    dropped_oks: int = 0
-    duplicated_oks: int = 0
-    spurious_resends: int = 0
-    flushed_bytes: int = 0
-    dropped_with_error: int = 0
-
-
-@dataclass(slots=True)
-class LinkCounters:
-    """What the link and the firmware saw, for benchmarks (times in the simulator's clock)."""
-
-    bytes_received: int = 0  # bytes that reached the receive buffer (or were dropped there)
-    bytes_dropped: int = 0  # lost to a full receive buffer
-    peak_rx_buffer: int = 0  # most bytes waiting in the receive buffer at once
-    peak_slots: int = 0  # most command slots in use at once
-    commands: int = 0  # commands accepted into the command slots
-    first_command_at: float | None = None  # the host's greeting, M110
-    first_job_command_at: float | None = None  # the first command that is not M110 or M115
-    last_command_at: float | None = None
-    # bytes_received when those two commands were accepted: the job's own bytes between.
-    bytes_at_first_job_command: int = 0
-    bytes_at_last_command: int = 0
-    # Time with nothing to execute (slots, planner and the command in hand all done)
-    # that ended because a new command arrived: the controller waited for the host.
-    starved: float = 0.0
 
 
 @dataclass(slots=True)
@@ -205,6 +87,11 @@ class ControllerSimulator:
     """Feed bytes with :meth:`receive`, run with :meth:`advance`, read :meth:`take_output`."""
 
     HYREL_CODE_CHART = False  # its moves planned as Hyrel's firmware runs them (time_scale)
+    # Marlin's M109/M190/M191 wait for the heater at once, while the moves before them run
+    # on; False: only once the planner drained, as G4 and M400 do.
+    HEAT_WAIT_AT_ONCE = True
+    TEMPERATURE_DECIMALS = 2  # Marlin reports "T:21.00 /0.00"
+    WAIT_REPORTS = True  # a heat wait reports the temperatures every second
 
     def __init__(
         self,
@@ -219,6 +106,8 @@ class ControllerSimulator:
         self.protocol = self._new_protocol()
         self.executed: list[str] = []
         self._on_execute = on_execute or self.executed.append
+        # With the default log: each command's line number (None: unnumbered), in step.
+        self.executed_numbers: list[int | None] | None = None if on_execute else []
         self.counts = FaultCounts()
         self.hung = False
         self.link_drop_requested: float | None = None  # seconds, for the pty pump
@@ -244,7 +133,10 @@ class ControllerSimulator:
         self._planner_end = now
         self._busy_until = now
         self._last_step = now
-        self._next_busy = now
+        self._keepalive = self.settings.keepalive  # M113 S<n> changes it
+        self._next_busy: float | None = None  # the next busy line, while a command holds on
+        self._reached_at: float | None = None  # the heat wait in hand reached its target then
+        self._next_wait_report = now
         self._outbound: deque[tuple[float, bytes]] = deque()
         self._out_wire_free = now
         bandwidth = self.settings.bandwidth
@@ -355,8 +247,10 @@ class ControllerSimulator:
                 times.append(self._planner[0])
             elif is_unbuffered(head.text) and not head.started and self._planner:
                 times.append(self._planner_end)
-            if self.faults.busy_interval and self._blocked():
+            if self._next_busy is not None:
                 times.append(self._next_busy)
+            if self.WAIT_REPORTS and self._heat_waiting():
+                times.append(self._next_wait_report)
         if self._untimed:
             times.append(self._planner_end)  # idle then: the moves waiting get their times
         return min(times) if times else None
@@ -368,12 +262,25 @@ class ControllerSimulator:
         """The queue waits whatever it holds (a Hyrel pause byte); never on Marlin."""
         return False
 
-    def _blocked(self) -> bool:
-        """The oldest command is waiting (for the planner or for itself to finish)."""
-        if not self._queue:
+    def _holds_queue(self) -> bool:
+        """The oldest command holds the queue (a move waiting for the planner, a command
+        waiting for the moves or for itself to finish), a heat wait aside: Marlin's busy
+        state, in which it says ``busy: processing`` now and then."""
+        if not self._queue or self._holding():
             return False
         head = self._queue[0]
-        return self._busy_until > self._last_step or (head.word in _MOVES and self._planner_full())
+        if head.started:
+            return self._busy_until > self._last_step and not self._heat_waiting()
+        if head.word in _MOVES:
+            return self._planner_full()
+        return is_unbuffered(head.text) and bool(self._planner or self._untimed)
+
+    def _heat_waiting(self) -> bool:
+        """The oldest command is a heat wait under way (M109, M190, M191)."""
+        if not self._queue or self._busy_until <= self._last_step:
+            return False
+        head = self._queue[0]
+        return head.started and _HEATERS.get(head.word, ("", False))[1]
 
     def _step(self, now: float) -> None:
         self._last_step = now
@@ -394,10 +301,31 @@ class ControllerSimulator:
         if self._report_every is not None and now >= self._next_report:
             self._reply(b" " + self._temperatures(now).encode() + b"\n", now)
             self._next_report = now + self._report_every
-        interval = self.faults.busy_interval
-        if interval and self._blocked() and now >= self._next_busy:
+        self._keep_alive(now)
+        if self.WAIT_REPORTS and self._heat_waiting() and now >= self._next_wait_report:
+            self._next_wait_report = now + WAIT_REPORT_INTERVAL
+            self._reply(f" {self._temperatures(now)}{self._residency_left(now)}\n".encode(), now)
+
+    def _keep_alive(self, now: float) -> None:
+        """Marlin's host keepalive: the first busy line once a command held the queue for the
+        interval, then one each interval, while it holds it."""
+        interval = self._keepalive
+        if not interval or not self._holds_queue():
+            self._next_busy = None
+        elif self._next_busy is None:
+            self._next_busy = now + interval
+        elif now >= self._next_busy:
             self._reply(b"echo:busy: processing\n", now)
             self._next_busy = now + interval
+
+    def _residency_left(self, now: float) -> str:
+        """A heat wait report's `` W:``: ``?`` until the target is reached, then the whole
+        seconds of residency left; nothing without a residency."""
+        if not self.settings.residency:
+            return ""
+        if self._reached_at is None or now < self._reached_at:
+            return " W:?"
+        return f" W:{max(0, int(self._busy_until - now))}"
 
     def _rx_free(self) -> int:
         """Free receive buffer; a UART delivers into a full one too (and loses bytes)."""
@@ -422,14 +350,17 @@ class ControllerSimulator:
 
     def _arrived(self, data: bytes, now: float) -> None:
         """Bytes that reached the receive buffer."""
-        # Marlin's emergency parser acts on these as the bytes arrive; M108's line then
-        # goes on into the buffer, to run in its turn (as a no-op) and draw its ok.
+        # Marlin's emergency parser acts on these as the bytes arrive; M108's and M410's
+        # lines then go on into the buffer, to run in their turn and draw their ok.
         if self.settings.emergency_parser:
-            if data.lstrip().startswith(b"M112"):
+            head = data.lstrip()
+            if head.startswith(b"M112"):
                 self._kill(now)
                 return
-            if data.lstrip().startswith(b"M108"):
+            if head.startswith(b"M108"):
                 self._break_heat_wait(now)
+            elif head.startswith(b"M410"):
+                self._quick_stop(now)
         self._buffer(data)
 
     def _buffer(self, data: bytes) -> None:
@@ -520,12 +451,15 @@ class ControllerSimulator:
                 self._planner_end = start + self.settings.move_time
                 self._planner.append(self._planner_end)
         elif is_unbuffered(command.text) and not command.started:
-            if self._planner or self._untimed:
+            heat_wait = _HEATERS.get(command.word, ("", False))[1]
+            if (self._planner or self._untimed) and not (heat_wait and self.HEAT_WAIT_AT_ONCE):
                 return False  # wait until every planned move is done
             command.started = True
+            self._reached_at = None
             self._busy_until = now + self._duration(command)
+            if heat_wait:
+                self._next_wait_report = now  # Marlin's first report comes at once
             if self._busy_until > now:
-                self._next_busy = now + (self.faults.busy_interval or 0)
                 return False
         elif command.word == "M115" and not command.started and self._identify_slowly:
             command.started = True
@@ -538,9 +472,14 @@ class ControllerSimulator:
             return False
         self._queue.popleft()
         self._idle_from = now
-        self._on_execute(command.text)
+        self._log_execution(command.text, command.number)
         self._answer(command, now)
         return True
+
+    def _log_execution(self, text: str, number: int | None) -> None:
+        self._on_execute(text)
+        if self.executed_numbers is not None:
+            self.executed_numbers.append(number)
 
     def _plan(self, command: QueuedCommand) -> None:
         """With time_scale: a command entering the queue goes to the planned times (its
@@ -575,7 +514,10 @@ class ControllerSimulator:
         heater = _HEATERS.get(command.word)
         if heater is not None and heater[1]:
             name = self._heater_for(heater[0], command, self._last_step)
-            return 0.0 if name is None else self._set_target(name, command.text, self._last_step)
+            if name is None:
+                return 0.0
+            now = self._last_step
+            return self._wait_for(self._set_target(name, command.text, now), now)
         if command.word == "G4":
             match = _DWELL.search(command.text[2:])
             if match is not None:
@@ -584,6 +526,12 @@ class ControllerSimulator:
                 return seconds / (self.settings.time_scale or 1.0)  # part of the plan
             return 0.0
         return self.settings.command_time
+
+    def _wait_for(self, reach: float, now: float) -> float:
+        """A heat wait's length from ``now``: until its heater reaches the target (``reach``
+        seconds), then the residency."""
+        self._reached_at = now + reach
+        return reach + self.settings.residency
 
     def _set_heater(self, command: QueuedCommand, now: float) -> None:
         """M104, M140 and M141 set their heater's target as they run (M109, M190 and M191
@@ -639,6 +587,10 @@ class ControllerSimulator:
             seconds = float(match.group(1)) if match else 0.0
             self._report_every = seconds if seconds > 0 else None
             self._next_report = now + seconds
+        elif word == "M113" and self.settings.keepalive is not None:
+            match = _S_VALUE.search(command.text)
+            if match is not None:  # the busy lines' interval; 0: none
+                self._keepalive = float(match.group(1)) or None
         if command.number is not None and self._chance(self.faults.spurious_resend):
             self.counts.spurious_resends += 1
             self._reply(f"Resend: {command.number}\n".encode(), now)
@@ -679,7 +631,7 @@ class ControllerSimulator:
                 # The wait under way lasts as long as the new rate takes to its target.
                 waited = self._heater_for(heater[0], head, now)
                 left = self._set_target(waited, head.text, now) if waited else 0.0
-                self._busy_until = now + left
+                self._busy_until = now + self._wait_for(left, now)
         else:
             raise ValueError(
                 f"unknown control '{verb}' (known: set, reset, hang, link_drop, heat_rate)"
@@ -726,14 +678,18 @@ class ControllerSimulator:
         hotend by its index where there are several."""
         active = "T" if self.tool == 0 else f"T{self.tool}"
         hotend, bed = self._heat(active, now), self._heat("B", now)
-        text = f"T:{hotend[0]:.1f} /{hotend[1]:.1f} B:{bed[0]:.1f} /{bed[1]:.1f}"
+        places = self.TEMPERATURE_DECIMALS
+
+        def reading(name: str, current: float, target: float) -> str:
+            return f"{name}:{current:.{places}f} /{target:.{places}f}"
+
+        text = f"{reading('T', *hotend[:2])} {reading('B', *bed[:2])}"
         if "C" in self.heaters:
-            chamber = self._heat("C", now)
-            text += f" C:{chamber[0]:.1f} /{chamber[1]:.1f}"
+            text += " " + reading("C", *self._heat("C", now)[:2])
         if self.settings.extruders > 1:
             for index in range(self.settings.extruders):
                 current, target, _ = self._heat("T" if index == 0 else f"T{index}", now)
-                text += f" T{index}:{current:.1f} /{target:.1f}"
+                text += " " + reading(f"T{index}", current, target)
         return text + " @:0 B@:0"
 
     def _break_heat_wait(self, now: float) -> None:
@@ -742,9 +698,14 @@ class ControllerSimulator:
         if head is not None and head.started and _HEATERS.get(head.word, ("", False))[1]:
             self._busy_until = min(self._busy_until, now)
 
+    def _quick_stop(self, now: float) -> None:
+        """M410: the moves in the planner are dropped, the motion stops where it is."""
+        self._drop_moves()
+        self._planner_end = now
+
     def _kill(self, now: float) -> None:
         """M112: Marlin's kill(): heaters off, nothing more until a reset."""
-        self._on_execute("M112")
+        self._log_execution("M112", None)
         for heater in self.heaters.values():
             heater[1] = 0.0
         self._queue.clear()
@@ -786,6 +747,8 @@ class ControllerSimulator:
             self._reply(line, now)
 
     def _reply(self, data: bytes, now: float) -> None:
+        if data.startswith(_ERROR_PREFIXES):  # each error is written on its own
+            self.link.errors += 1
         if self.faults.garble > 0:
             data = b"".join(self._maybe_garble(line) for line in data.splitlines(keepends=True))
         start = max(now, self._out_wire_free)

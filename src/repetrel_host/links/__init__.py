@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
 
 if TYPE_CHECKING:
-    from repetrel_host.fakes.simulator import ControllerSettings
+    from repetrel_host.fakes.settings import ControllerSettings
 
 FAKE_PORT = "fake"
 SIM_PORT = "sim"

@@ -14,7 +14,8 @@ from collections.abc import Callable
 from repetrel_host.errors import LinkError
 from repetrel_host.fakes.hyrel_simulator import RX_BUFFER as HYREL_RX_BUFFER
 from repetrel_host.fakes.hyrel_simulator import HyrelControllerSimulator
-from repetrel_host.fakes.simulator import ControllerSettings, ControllerSimulator
+from repetrel_host.fakes.settings import ControllerSettings
+from repetrel_host.fakes.simulator import ControllerSimulator
 
 
 class SimController:

@@ -47,9 +47,10 @@ class Dialect(Protocol):
     # reached the wire, for a killed host's progress record.
     last_sent: object | None
     # Called once for each line as it first goes on the wire, in wire order: its command,
-    # its tag, and whether it is the dialect's own (a greeting, a probe, a sync); None: not
-    # called. For tests that tell the host's own lines from the caller's in what ran.
-    on_first_send: Callable[[str, object, bool], None] | None
+    # its tag, whether it is the dialect's own (a greeting, a probe, a sync), and its line
+    # number (None: unnumbered); None: not called. For tests that tell the host's own lines
+    # from the caller's in what ran.
+    on_first_send: Callable[[str, object, bool, int | None], None] | None
 
     def start(self, now: float) -> None:
         """Greet the controller: the first bytes to send set up the numbering."""

@@ -24,14 +24,14 @@ class FailureKind(Enum):
 class ProbeKind(Enum):
     """How the host asks the controller which lines it holds."""
 
-    # N<n> M105 S<k>*9999: a checksum that never fits, so it never runs; a
-    # Marlin-style controller answers "Last Line: n-1 / Resend: n" when it holds
-    # every line before it.
-    CHECKSUM = "checksum"
     # N<n> M105*<cs>: a real, harmless line, accepted only once every line before
-    # it was; its "ok T:..." says so. For controllers whose answer to a bad
-    # checksum does not name the line they expect (found at the greeting).
+    # it was; its "ok T:..." says so. It draws no error from the firmware.
     COMMAND = "command"
+    # N<n> M105 S<k>*9999: a checksum that never fits, so it never runs; a
+    # Marlin-style controller answers "Last Line: n-1 / Resend: n" (an error) when it
+    # holds every line before it. For controllers whose ok for M105 says nothing (found
+    # at the greeting).
+    CHECKSUM = "checksum"
     # M115, which the controller answers as it runs it, once every line before it ran:
     # for links that have no way to ask for a line again (Hyrel's own).
     ANSWER = "answer"
@@ -43,7 +43,7 @@ class ControllerReady:
     numbering agrees. ``identity``: what it said of itself then, where the link has that
     (Hyrel's ``>Hy: ...``)."""
 
-    probe: ProbeKind = ProbeKind.CHECKSUM
+    probe: ProbeKind = ProbeKind.COMMAND
     identity: str = ""
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import contextlib
 import time
 from collections import deque
-from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
@@ -288,18 +288,7 @@ class HyrelController:
         jobs' lines (a job's header, its safe stop), without the host's own lines (the
         greeting, temperature polls, the syncs of Hyrel's link): :attr:`all_executed`
         has those too."""
-        # The n-th time the fake ran a command is the n-th time the session sent that
-        # command, which the session's tap says was its own or not. (A line lost to a
-        # fault or an abort shifts that count: read all_executed then.)
-        owners: dict[str, deque[bool]] = {}
-        for command, own in list(self._sent):
-            owners.setdefault(command, deque()).append(own)
-        ran = []
-        for command in self.all_executed:
-            sent = owners.get(command)
-            if not (sent and sent.popleft()):
-                ran.append(command)
-        return ran
+        return callers_commands(self.all_executed, self._sent)
 
     @property
     def all_executed(self) -> list[str]:
@@ -323,7 +312,7 @@ class HyrelController:
         """Switch faults from now on: ``"corrupt=0.02 drop_ok=0.05 seed=3"`` (the fake's
         ``--faults``: corrupt, garble, drop_ok, duplicate_ok, spurious_resend,
         resend_without_ok, flush_on_error, drop_duplicates, counted_resend,
-        drop_with_error, busy_interval, seed)."""
+        drop_with_error, seed)."""
         self._request("fault injection", f"set {faults}")
 
     def set_heat_rate(self, degrees_per_second: float | None) -> None:
@@ -342,3 +331,20 @@ class HyrelController:
     def unplug(self, seconds: float = 1.0) -> None:
         """Pull the cable: the pty vanishes, and comes back at the same path after ``seconds``."""
         self._request("an unplug", f"link_drop {seconds}")
+
+
+def callers_commands(executed: Iterable[str], sent: Iterable[tuple[str, bool]]) -> list[str]:
+    """What a controller ran (``executed``, its log) without the host's own lines, told by
+    what the session sent (``sent``: each line as it first went, and whether it was the
+    host's own, as :meth:`repetrel_host.Printer.tap_lines` tells them): the n-th time the
+    controller ran a command is the n-th time the session sent it. (A line lost to a fault
+    or an abort shifts that count: read the whole log then.)"""
+    owners: dict[str, deque[bool]] = {}
+    for command, own in list(sent):
+        owners.setdefault(command, deque()).append(own)
+    ran = []
+    for command in executed:
+        owner = owners.get(command)
+        if not (owner and owner.popleft()):
+            ran.append(command)
+    return ran

@@ -27,7 +27,7 @@ from repetrel_host.session.printer import Printer, open_printer
 from repetrel_host.session.settings import POLL_INTERVAL, RECONNECT_WAIT, SessionSettings
 
 if TYPE_CHECKING:
-    from repetrel_host.fakes.simulator import ControllerSettings
+    from repetrel_host.fakes.settings import ControllerSettings
 
 
 class _Connect:

@@ -11,7 +11,8 @@ from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 
 from repetrel_host.fakes.hyrel_simulator import HyrelControllerSimulator
-from repetrel_host.fakes.simulator import ControllerSettings, ControllerSimulator, Faults
+from repetrel_host.fakes.settings import ControllerSettings, Faults
+from repetrel_host.fakes.simulator import ControllerSimulator
 from repetrel_host.protocol.dialect import Dialect
 from repetrel_host.protocol.dialects import create_dialect
 from repetrel_host.protocol.dialects.reprap import RepRapDialect
@@ -27,7 +28,7 @@ _STUCK_LIMIT = 10_000  # steps of simulated time that get nowhere
 
 @dataclass
 class LoopbackResult:
-    executed: list[str]  # what the controller executed, host M110 lines left out
+    executed: list[str]  # what the controller executed, the host's own lines left out
     acknowledged: list[int]  # indexes (from 0) of acknowledged commands, in order
     failure: DialectFailed | None
     seconds: float  # simulated time
@@ -79,6 +80,10 @@ def run_loopback(
         else RepRapDialect(flow, line_number_limit=line_number_limit, probe=probe)
     )
     controller = controller or ControllerSimulator(settings)
+    # Each line as it first went: (command, the host's own, its number).
+    sends: list[tuple[str, bool, int | None]] = []
+    if record:
+        host.on_first_send = lambda command, _tag, own, number: sends.append((command, own, number))
     recorder = _Recorder(record)
     pump = Pump(host, recorder)
     run = JobRun(job_lines(commands))
@@ -102,7 +107,36 @@ def run_loopback(
         if stuck > _STUCK_LIMIT:
             raise AssertionError(f"no progress at t={now}: a deadline that nothing moves")
     executed = [c for c in controller.executed if not c.startswith("M110")]
+    if record:
+        assert controller.executed_numbers is not None
+        executed = _callers_lines(controller.executed, controller.executed_numbers, sends)
     return LoopbackResult(executed, recorder.indexes, recorder.failure, now, host, controller, run)
+
+
+def _callers_lines(
+    executed: list[str], numbers: list[int | None], sends: list[tuple[str, bool, int | None]]
+) -> list[str]:
+    """What the controller ran (with each line's number), without the host's own lines: its
+    M110s, and its probes (a numbered M105 runs), told apart from the caller's by their
+    numbers. The controller runs lines in the order they first went (where they ran at
+    all: a greeting given up, a job stopped); where it ran something that never went,
+    that stays, for a test to see."""
+    sent = [item for item in sends if not item[0].startswith("M110")]
+    callers: list[str] = []
+    position = 0
+    for command, number in zip(executed, numbers, strict=True):
+        if command.startswith("M110"):
+            continue
+        index = position
+        while index < len(sent) and sent[index][::2] != (command, number):
+            index += 1
+        if index < len(sent):
+            if not sent[index][1]:
+                callers.append(command)
+            position = index + 1
+        else:
+            callers.append(command)
+    return callers
 
 
 # Heavy random noise, as the property test in tests/protocol/test_loopback.py and

@@ -242,7 +242,7 @@ class Printer:
             pump.dialect.on_first_send = self._first_send
         return lambda: self._line_taps.remove(callback)
 
-    def _first_send(self, command: str, tag: object, own: bool) -> None:
+    def _first_send(self, command: str, tag: object, own: bool, _number: int | None) -> None:
         own = own or (isinstance(tag, PendingCommand) and tag.own)
         for tap in self._line_taps:
             tap(command, own)

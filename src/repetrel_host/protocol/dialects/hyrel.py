@@ -212,7 +212,7 @@ class HyrelDialect:
         self._unran: deque[_Sent] = deque()  # the caller's plain lines not known to have run
         self.last_ran: object | None = None  # the tag of the last of them known to have run
         self.last_sent: object | None = None  # the tag of the caller's last line transmitted
-        self.on_first_send: Callable[[str, object, bool], None] | None = None
+        self.on_first_send: Callable[[str, object, bool, int | None], None] | None = None
         # Noticed M-codes not known to have run: a notice may name one. (Few: an answer
         # confirms them all, and one comes every SYNC_EVERY lines at most.)
         self._mcodes: deque[_Sent] = deque()
@@ -470,7 +470,7 @@ class HyrelDialect:
         self._seq = seq = self._seq + 1
         sent = _Sent(number, command, word, tag, len(wire), seq, host_line, confirm)
         if self.on_first_send is not None:  # an urgent line is the caller's (M112, a stop)
-            self.on_first_send(command, tag, host_line and not urgent)
+            self.on_first_send(command, tag, host_line and not urgent, number)
         received = not self._in_flight  # every line before this one
         if received:  # the first line waiting: its ACK is due from now
             self._last_progress_at = self._acked_at = now

@@ -1,8 +1,8 @@
-"""The RepRap dialect's greeting: M110, the check of how the controller counts lines, retries.
+"""The RepRap dialect's greeting: M110 and the probe behind it, retries.
 
 The greeting resets the line numbering (``Nk M110 Nk``, attempt ``k`` from 0) and probes
-behind it; before any job line it also checks, once per connection, how the controller
-names a line it never got (see :mod:`~repetrel_host.protocol.dialects.reprap`). This holds
+behind it (``N<k+1> M105``, which draws no error from any firmware); the probe's answer
+says the numbering took (see :mod:`~repetrel_host.protocol.dialects.reprap`). This holds
 the greeting's own state (its attempts, whether the controller was heard, whether it was
 greeted) and its decisions; the dialect sends the lines and reads the replies.
 """
@@ -31,48 +31,26 @@ HELLO_ATTEMPTS = 3
 # to the greeting get lost or garbled on a noisy link, and a renumbering mid-job: each lost
 # answer costs a timeout, and giving up stops a job that could go on.
 NOISY_HELLO_ATTEMPTS = 10
-# The gap line of the greeting's check, sent again when it arrived corrupted.
-GAP_CHECK_ATTEMPTS = 3
-# The controller that the greeting's check finds counting lines its own way is OctoPrint's
-# virtual printer (the only one known to). Its receive buffer holds 64 bytes, and a write
-# that does not fit waits for room while holding the lock its error replies need: with more
-# than 64 bytes in flight, each error it reports (its simulated ones, the refusals of lines
-# in flight behind them) stalls it for its 10 s write timeout, or several.
-VIRTUAL_PRINTER_RX_BUFFER = 64
 
 
-class CheckVerdict(Enum):
-    """What the probe after the gap line says of how the controller counts lines."""
+class RepRapPhase(Enum):
+    """Where the RepRap dialect stands."""
 
-    CONSISTENT = "consistent"  # it asked for the same line both times
-    OWN_COUNT = "own count"  # it named a line it never got, and took it for received
-    GARBLED = "garbled"  # a garbled answer: no verdict
-
-
-def check_verdict(number: int, expected: int, checksum_error: bool) -> CheckVerdict:
-    """The check's probe drew a request for line ``number`` (``expected``: the next new
-    number), after a checksum error or not."""
-    if number == expected + 1 and checksum_error:
-        return CheckVerdict.OWN_COUNT
-    if number != expected or not checksum_error:
-        return CheckVerdict.GARBLED
-    return CheckVerdict.CONSISTENT
+    IDLE = "idle"  # start() not called yet
+    GREETING = "greeting"  # M110 and a probe in flight: numbering being (re)set
+    RUNNING = "running"
+    FAILED = "failed"
 
 
 class Greeting:
-    """The greeting's attempts, and what it learnt of the controller.
+    """The greeting's attempts, and whether the controller answered."""
 
-    ``check_due``: the greeting's check is still to be made (once per connection).
-    """
-
-    def __init__(self, check_due: bool) -> None:
-        self.check_due = check_due
+    def __init__(self) -> None:
         self.heard = False  # a reply of the controller's came (not noise): it is there
         self.greeted = False
         self.started_at = 0.0
         self._attempts = 0
         self._unanswered = 0  # timeouts of this greeting (HELLO_ATTEMPTS)
-        self._gap_attempts = 0
 
     def begin(self) -> None:
         """A new greeting (the first, or a renumbering): its attempts count from 0."""
@@ -108,15 +86,6 @@ class Greeting:
 
     def _allowed(self) -> int:
         return NOISY_HELLO_ATTEMPTS if self.greeted or self.heard else HELLO_ATTEMPTS
-
-    def gap_line_garbled(self) -> bool:
-        """The gap line arrived corrupted: True to send it once more, else the check is
-        given up with no verdict."""
-        self._gap_attempts += 1
-        if self._gap_attempts < GAP_CHECK_ATTEMPTS:
-            return True
-        self.check_due = False
-        return False
 
     def finished(self, probe: ProbeKind) -> ControllerReady | None:
         """The numbering took: the event to tell the first time, else None."""

@@ -1,7 +1,8 @@
 """The RepRap dialect's probes: how one is written, and the one in flight.
 
 A probe asks where the controller stands (see :mod:`~repetrel_host.protocol.dialects.reprap`):
-a checksum probe is a line that never runs, a command probe a numbered M105 that runs once.
+a command probe is a numbered M105 that runs once, a checksum probe (for a controller whose
+ok for M105 says nothing) a line that never runs.
 """
 
 from __future__ import annotations
@@ -30,18 +31,20 @@ def ping_wire(number: int) -> bytes:
 class Probing:
     """The probe in flight, if any, and how many went unanswered."""
 
-    __slots__ = ("attempt", "copies", "current", "kind", "unanswered")
+    __slots__ = ("current", "kind", "stray", "unanswered")
 
     def __init__(self, kind: ProbeKind) -> None:
         self.kind = kind
         self.current: Transmission | None = None
-        self.attempt = 0  # probes sent since one was last answered
-        self.unanswered = 0  # timeouts in a row while a long command runs
-        self.copies = 0  # a command probe's line sent again, since one was last answered
+        self.unanswered = 0  # timeouts in a row
+        # Answers of M105s no longer counted on the wire that may still come (a probe given
+        # up for another, an M105 whose place a plain ok took): each an "ok T:..." that
+        # confirms no line.
+        self.stray = 0
 
     def answered(self) -> None:
         self.current = None
-        self.attempt = self.unanswered = self.copies = 0
+        self.unanswered = 0
 
     def superseded(self) -> None:
         """A resend request answers a probe too: its line is now just a stale transmission."""
