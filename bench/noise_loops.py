@@ -14,27 +14,14 @@ a line), and the first few.
 from __future__ import annotations
 
 import argparse
-import random
 import time
 
-from repetrel_host.protocol.flow import FlowMode
-from repetrel_host.session.loopback import (
-    NOISE_COMMANDS,
-    NOISE_FAULTS,
-    NOISE_RATES,
-    run_noisy_job,
-)
+from repetrel_host.session.loopback import run_noise_case
 
 
 def one_job(case: int) -> str | None:
     """None when the job ran exactly once to a confirmed end, else what happened."""
-    rng = random.Random(case)
-    commands = [rng.choice(NOISE_COMMANDS) for _ in range(rng.randint(1, 150))]
-    mode = rng.choice(list(FlowMode))
-    rates = [rng.choice(NOISE_RATES) for _ in NOISE_FAULTS]
-    marlin = (rng.random() < 0.5, rng.random() < 0.5, rng.random() < 0.5)
-    rx_buffer, limit = rng.randint(40, 256), rng.randint(5, 500)
-    result = run_noisy_job(commands, mode, rates, marlin, rng.randint(0, 65536), rx_buffer, limit)
+    commands, result = run_noise_case(case)
     if result.failure is not None:
         return result.failure.reason
     if result.executed != commands or not result.host.is_done:

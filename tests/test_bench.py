@@ -178,16 +178,16 @@ def test_estimate_bench_prints_each_files_figures_beside_the_slicers() -> None:
 TIME_LEFT = Path(__file__).parent.parent / "bench" / "time_left.py"
 
 
-@pytest.mark.timeout(150)
+@pytest.mark.timeout(200)
 def test_time_left_bench_finds_the_remainder_and_each_printers_pace() -> None:
     """The time left's plumbing against the fake whose moves take their planned time (the
-    cone's first two layers at x12): the plan made as the job starts, the line the
+    cone's first four layers at x12): the plan made as the job starts, the line the
     controller runs, the run's pace, the pace the next job starts from. The bench's own
     figures come within 2 or 3 %; the bounds here are looser, since a loaded machine's fake
     strays from its plan, but plumbing gone wrong (a wrong line, a lost pace, the
     controller's lead not counted) is off by 20 % or more."""
-    command = [sys.executable, str(TIME_LEFT), "--layers", "2", "--runs", "1"]
-    result = subprocess.run(command, capture_output=True, text=True, timeout=140)
+    command = [sys.executable, str(TIME_LEFT), "--layers", "4", "--runs", "1"]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=190)
     assert result.returncode == 0, result.stderr
     lines = result.stdout.splitlines()[2:]  # below the header and its rule
     rows = {row[0].strip("| "): row[2:] for row in (line.split(" | ") for line in lines)}
@@ -202,5 +202,8 @@ def test_time_left_bench_finds_the_remainder_and_each_printers_pace() -> None:
         start, measured = paces[name]
         assert float(cells[0]) == pytest.approx(start, rel=0.05), name
         errors = [float(cell.rstrip("%")) for cell in cells[1:5]]
-        assert all(abs(error) <= 10 for error in errors[1:]), (name, errors)  # 25 to 75 %
+        # 25 to 75 %; a pace not known is the plan's until its run is watched (from 30
+        # planned seconds in, a quarter of this job): 9 % short at 25 %, learned by 50 %.
+        watched = errors[2:] if name == "10 % slower, pace unknown" else errors[1:]
+        assert all(abs(error) <= 10 for error in watched), (name, errors)
         assert float(cells[5].rstrip(" |")) == pytest.approx(measured, rel=0.05), name

@@ -228,9 +228,10 @@ def test_sync_fixtures_command_print_and_drive_the_fake(pytester: pytest.Pyteste
             assert hyrel_printer.session.probe is rh.ProbeKind.COMMAND
 
         def test_unplug_and_reconnect(hyrel_printer, hyrel_controller):
+            events = hyrel_printer.events(timeout=10)
+            states = [next(events).state]  # subscribed (the current state first), then unplug
             hyrel_controller.unplug(0.5)
-            states = []
-            for event in hyrel_printer.events(timeout=10):
+            for event in events:
                 if isinstance(event, rh.StateChanged):
                     states.append(event.state)
                     if event.state is rh.State.READY and len(states) > 1:

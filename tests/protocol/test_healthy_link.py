@@ -84,3 +84,33 @@ def test_a_silence_nothing_explains_costs_a_probe_that_runs_not_an_error() -> No
     assert 1 <= result.host.stats.stalls_recovered <= 2
     probes = result.controller.executed.count("M105")
     assert probes == result.host.stats.pings
+
+
+class LosesTheHeatWaitsOk(ControllerSimulator):
+    """Its first heat wait's ok is lost on the way (its reports are not)."""
+
+    lost = False
+
+    def _answer(self, command: QueuedCommand, now: float) -> None:
+        if command.word == "M109" and not self.lost:
+            self.lost = True
+            self._set_heater(command, now)
+            return
+        super()._answer(command, now)
+
+
+@pytest.mark.parametrize("residency", [0.0, 5.0])
+def test_a_heat_waits_lost_ok_is_suspected_once_its_reports_say_it_is_over(
+    residency: float,
+) -> None:
+    # The hotend is there at once. Marlin's heat wait still reports at once (with "W:5",
+    # five seconds of residency left, where it has one) and then its ok: lost here. Its
+    # reports tell when the wait ends; a heat wait heard nothing of is given 30 s.
+    settings = ControllerSettings(bandwidth=11_520, latency=0.002, residency=residency)
+    commands = ["M109 S200", "G1 X10 F600"]
+    flow = FlowControl(FlowMode.UNBUFFERED)
+    result = run_loopback(commands, flow, controller=LosesTheHeatWaitsOk(settings))
+    assert result.failure is None and result.executed == commands
+    assert result.controller.link.errors == 0
+    assert result.host.stats.stalls_recovered == 1
+    assert residency < result.seconds < residency + 10  # its reports' word, a report's gap

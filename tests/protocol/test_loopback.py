@@ -12,6 +12,7 @@ from repetrel_host.session.loopback import (
     NOISE_FAULTS,
     NOISE_RATES,
     run_loopback,
+    run_noise_case,
     run_noisy_job,
     wire_preview,
 )
@@ -101,6 +102,20 @@ def test_the_framed_preview_is_the_clean_wire() -> None:
     # the job, and the two probes that confirm it (one answer said twice cannot pass for
     # both). XOR checksums worked by hand: "N1 M105" is 0x4E^0x31^0x20^0x4D^0x31^0x30^0x35.
     assert wire == (b"N0 M110 N0*125\nN1 M105*38\nN2 G28*17\nN3 G1 X1*98\nN4 M105*35\nN5 M105*34\n")
+
+
+@pytest.mark.parametrize("case", [1171, 1229, 1276, 3003])
+def test_refusals_queued_behind_a_slow_reply_link_end(case: int) -> None:
+    """Jobs drawn as ``bench/noise_loops.py`` draws its case ``case`` (buffered, 15 % of
+    oks said twice, a 20 kB/s link on which each refusal takes 3.5 ms to come back). The
+    refusals of lines sent before a resend queue up behind each other; those of the line
+    asked for (not only of the last line sent again) within a round trip are older answers,
+    and each ignored one is an echo counted off. They used to end in "asked for line N 10
+    times in a row", or in a silence once the request after the echoes went unheard."""
+    commands, result = run_noise_case(case)
+    assert result.failure is None
+    assert result.executed == commands
+    assert result.host.is_done
 
 
 @settings(max_examples=60, deadline=None)

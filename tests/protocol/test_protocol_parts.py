@@ -129,6 +129,18 @@ def test_resend_guard_counts_echoes_rounds_and_unheld_requests() -> None:
     assert guard.rounds(7) == 1  # a new run of requests after progress
 
 
+def test_a_request_for_any_line_just_sent_again_is_an_older_answer() -> None:
+    guard = ResendGuard()
+    for number in (7, 8, 9):  # a request for 7 obeyed: 7 and the lines after it went again
+        guard.sent_again(number, now=1.0)
+    assert guard.just_sent_again(7, now=1.01, round_trip=0.025)  # the line asked for too
+    assert guard.just_sent_again(9, now=1.01, round_trip=0.025)
+    assert not guard.just_sent_again(10, now=1.01, round_trip=0.025)
+    guard.progress(7)
+    assert not guard.just_sent_again(7, now=1.01, round_trip=0.025)
+    assert guard.just_sent_again(8, now=1.01, round_trip=0.025)
+
+
 # --- the pump over a scripted Marlin ---------------------------------------------------
 
 

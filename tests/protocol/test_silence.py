@@ -1,9 +1,12 @@
 """What explains a silence: the moves' planned time, dwells, heat waits, busy lines, and the
 pace and margin learnt from the controller's own answers."""
 
+import math
+
 import pytest
 
 from repetrel_host.gcode.estimate import Estimator
+from repetrel_host.protocol.reports import residency_left
 from repetrel_host.protocol.silence import (
     BUSY_GAPS,
     BUSY_INTERVAL,
@@ -80,11 +83,36 @@ def test_a_heat_wait_is_explained_while_its_reports_say_the_heater_is_getting_th
         now = float(second)
         silence.temperatures({"B": (60.0, 60.0)}, now)
     assert silence.explained_until(0.0, now) < now
-    # A hotend's heat-up does not explain a bed's wait.
+    # A hotend's heat-up does not explain a bed's wait: its bed there all along and no
+    # residency said, the wait was over at once (its ok due within a report's gap).
     other = Silence()
     other.sent("M190 S60")
     other.temperatures({"T": (100.0, 200.0), "B": (60.0, 60.0)}, 100.0)
-    assert other.explained_until(0.0, 100.0) == pytest.approx(HEAT_SETTLE * MARGIN)
+    assert other.explained_until(0.0, 100.0) == pytest.approx(REPORT_GAP)
+
+
+def test_a_heat_wait_at_its_target_holds_what_its_residency_says_and_no_longer() -> None:
+    assert residency_left(" T:200.00 /200.00 B:21.00 /0.00 @:0 B@:0 W:9") == 9.0
+    assert residency_left(" T:150.00 /200.00 B:21.00 /0.00 @:0 B@:0 W:?") == math.inf
+    assert residency_left(" T:200.00 /200.00 B:21.00 /0.00 @:0 B@:0") is None
+    # Marlin reports at once: "W:9", nine seconds more.
+    settling = Silence()
+    settling.sent("M109 S200")
+    settling.temperatures({"T": (200.0, 200.0)}, 1.0, residency=9.0)
+    until = settling.explained_until(0.0, 2.0)
+    assert until == pytest.approx(1.0 + 9.0 + REPORT_GAP)
+    # "W:?": its heater is not there yet, the wait holds on while the reports come.
+    heating = Silence()
+    heating.sent("M109 S200")
+    heating.temperatures({"T": (150.0, 200.0)}, 1.0, residency=math.inf)
+    assert heating.explained_until(0.0, 2.0) >= HEAT_SETTLE
+    # Its heater there already and no residency said (Marlin built without one): its one
+    # report at once, then its ok; a lost ok is suspected a report's gap later, not after
+    # the half minute a heat wait is given when nothing is heard.
+    there = Silence()
+    there.sent("M109 S200")
+    there.temperatures({"T": (200.0, 200.0)}, 0.01)
+    assert there.explained_until(0.0, 1.0) == pytest.approx(REPORT_GAP)
 
 
 def test_a_heat_wait_whose_reports_stopped_is_explained_no_longer_than_its_settling() -> None:
@@ -92,7 +120,7 @@ def test_a_heat_wait_whose_reports_stopped_is_explained_no_longer_than_its_settl
     silence.sent("M109 S200")
     silence.temperatures({"T": (100.0, 200.0)}, 1.0)
     until = silence.explained_until(0.0, 60.0)
-    assert until == pytest.approx(max(HEAT_SETTLE, 1.0 + REPORT_GAP) * MARGIN)
+    assert until == pytest.approx(max(HEAT_SETTLE, 1.0 + REPORT_GAP))
 
 
 def test_busy_lines_explain_two_intervals_each() -> None:
@@ -100,9 +128,9 @@ def test_busy_lines_explain_two_intervals_each() -> None:
     silence.sent("G28")
     silence.busy(10.0)
     until = silence.explained_until(0.0, 11.0)
-    assert until == pytest.approx(max(10.0 + BUSY_GAPS * BUSY_INTERVAL, UNBUFFERED_GRACE) * MARGIN)
+    assert until == pytest.approx(max(10.0 + BUSY_GAPS * BUSY_INTERVAL, UNBUFFERED_GRACE))
     silence.busy(15.0)  # every 5 s (M113 S5): two of them say so
-    assert silence.explained_until(0.0, 16.0) == pytest.approx((15.0 + BUSY_GAPS * 5.0) * MARGIN)
+    assert silence.explained_until(0.0, 16.0) == pytest.approx(15.0 + BUSY_GAPS * 5.0)
 
 
 def test_a_needless_probe_widens_the_margin_and_a_needed_one_does_not() -> None:

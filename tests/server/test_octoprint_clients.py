@@ -33,6 +33,13 @@ def octoprint_cli(config: Path, *args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run(command, capture_output=True, text=True, timeout=60)
 
 
+def analysed(
+    info: subprocess.CompletedProcess[str],
+) -> subprocess.CompletedProcess[str] | None:
+    """octoprint-cli's file info once it shows the file's estimate (None before)."""
+    return info if "Estimated Print Time" in info.stdout else None
+
+
 def cli_config(tmp_path: Path, server: Server) -> Path:
     config = tmp_path / "octoprint-cli.ini"
     config.write_text(
@@ -74,7 +81,12 @@ def test_octoprint_cli_status_files_print_temp_and_connection(
     assert "Free space" in listed.stdout
     in_folder = octoprint_cli(config, "files", "list", "-p", "sub")
     assert in_folder.returncode == 0 and "cone.gcode" in in_folder.stdout, in_folder
-    info = octoprint_cli(config, "files", "info", "sub/cone.gcode")
+    # The estimate is worked out once a listing showed the file (as OctoPrint analyses an
+    # upload in the background): asked again until it is there.
+    info = wait_for(
+        lambda: analysed(octoprint_cli(config, "files", "info", "sub/cone.gcode")),
+        what="cone.gcode's estimate",
+    )
     assert info.returncode == 0, info
     assert "Path: sub/cone.gcode" in info.stdout and "Type: machinecode" in info.stdout
     # The time from the moves, as octoprint-cli writes it (PrusaSlicer's 12m 33s is beside it).
@@ -82,7 +94,10 @@ def test_octoprint_cli_status_files_print_temp_and_connection(
     assert f"Estimated Print Time: {planned}\n" in info.stdout
     assert "Successful Prints: 0" in info.stdout
     # A file with moves and no time comment has an estimate all the same.
-    bare = octoprint_cli(config, "files", "info", "part.gcode")
+    bare = wait_for(
+        lambda: analysed(octoprint_cli(config, "files", "info", "part.gcode")),
+        what="part.gcode's estimate",
+    )
     assert bare.returncode == 0 and "Estimated Print Time: 0:00:" in bare.stdout, bare
 
     temp = octoprint_cli(config, "temp", "extruder", "205")

@@ -52,9 +52,11 @@ class TwoPrinters:
     url: str
 
     def executed(self, printer: str) -> list[str]:
+        """What ``printer``'s fake ran but the host's probes (M105 lines: the page's tests
+        never send one themselves)."""
         log = self.fakes[printer].log_path
         assert log is not None
-        return [line for line in log.read_text().splitlines() if line]
+        return [line for line in log.read_text().splitlines() if line and line != "M105"]
 
 
 @pytest.fixture

@@ -303,8 +303,11 @@ class ControllerSimulator:
             self._next_report = now + self._report_every
         self._keep_alive(now)
         if self.WAIT_REPORTS and self._heat_waiting() and now >= self._next_wait_report:
-            self._next_wait_report = now + WAIT_REPORT_INTERVAL
-            self._reply(f" {self._temperatures(now)}{self._residency_left(now)}\n".encode(), now)
+            self._wait_report(now)
+
+    def _wait_report(self, now: float) -> None:
+        self._next_wait_report = now + WAIT_REPORT_INTERVAL
+        self._reply(f" {self._temperatures(now)}{self._residency_left(now)}\n".encode(), now)
 
     def _keep_alive(self, now: float) -> None:
         """Marlin's host keepalive: the first busy line once a command held the queue for the
@@ -457,8 +460,9 @@ class ControllerSimulator:
             command.started = True
             self._reached_at = None
             self._busy_until = now + self._duration(command)
-            if heat_wait:
-                self._next_wait_report = now  # Marlin's first report comes at once
+            if heat_wait and self.WAIT_REPORTS:
+                # Marlin's first report comes at once, its heater there already or not.
+                self._wait_report(now)
             if self._busy_until > now:
                 return False
         elif command.word == "M115" and not command.started and self._identify_slowly:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass, field
 
@@ -9,6 +10,9 @@ from dataclasses import dataclass, field
 # Hyrel status report ">ST: T:..."): it starts with a reading.
 _REPORT = re.compile(r"^\s*(?:ok\s+|>[A-Z]{2}:\s*)?[TBC]\d*:\s*-?\d")
 _READING = re.compile(r"(?<![\w@])([TBC]\d*):\s*(-?\d+(?:\.\d+)?)(?:\s*/\s*(-?\d+(?:\.\d+)?))?")
+# A heat wait's report on Marlin built with a residency: " W:?" until its heater is in the
+# window, then " W:<seconds it still holds>".
+_RESIDENCY = re.compile(r"\sW:(\?|\d+)")
 # "FIRMWARE_NAME:Marlin 2.1.2 (Jan 1 2024) SOURCE_CODE_URL:... PROTOCOL_VERSION:1.0 ..."
 _FIELD = re.compile(r"(?:^|\s)([A-Z][A-Z0-9_]+):")
 _CAPABILITY = re.compile(r"^Cap:([A-Z0-9_]+):\s*([01])\s*$")
@@ -23,6 +27,15 @@ def parse_temperatures(text: str) -> dict[str, tuple[float, float | None]]:
     for sensor, current, target in _READING.findall(text):
         readings[sensor] = (float(current), float(target) if target else None)
     return readings
+
+
+def residency_left(text: str) -> float | None:
+    """A heat wait report's ``W:``: the seconds the wait still holds (inf for ``W:?``, its
+    heater not there yet); None when the report says none."""
+    match = _RESIDENCY.search(text)
+    if match is None:
+        return None
+    return math.inf if match.group(1) == "?" else float(match.group(1))
 
 
 @dataclass(frozen=True, slots=True)

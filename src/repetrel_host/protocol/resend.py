@@ -22,8 +22,7 @@ class ResendGuard:
         "_loop_count",
         "_loop_number",
         "_loop_sent_again",
-        "_resent_at",
-        "_resent_number",
+        "_resent",
         "_unheld",
         "echoes",
         "target",
@@ -36,8 +35,7 @@ class ResendGuard:
         self._loop_count = 0
         self._loop_sent_again = False
         self._unheld: dict[int, int] = {}
-        self._resent_number = -1  # the line last sent again for a request, and when
-        self._resent_at = 0.0
+        self._resent: dict[int, float] = {}  # lines sent again, and when (until progress)
 
     def expect_echoes(self, number: int, count: int) -> None:
         self.target = number
@@ -68,21 +66,22 @@ class ResendGuard:
     def sent_again(self, number: int, now: float) -> None:
         if number == self._loop_number:
             self._loop_sent_again = True
-        self._resent_number, self._resent_at = number, now
+        self._resent[number] = now
 
     def just_sent_again(self, number: int, now: float, round_trip: float) -> bool:
         """A request for a line that went out again less than a round trip ago cannot be
         about that transmission: it is one more answer to an older one, still queued
         behind the replies a slow link carries. Obeying it would add another refusal to
         that queue, and another request, without end."""
-        return number == self._resent_number and now - self._resent_at < round_trip
+        resent_at = self._resent.get(number)
+        return resent_at is not None and now - resent_at < round_trip
 
     def progress(self, number: int) -> None:
         """Line ``number`` was acknowledged: only requests repeated without progress count."""
         if number > self._loop_number:
             self._loop_count = 0
-        if number >= self._resent_number:
-            self._resent_number = -1
+        if self._resent:
+            self._resent = {n: at for n, at in self._resent.items() if n > number}
         if self._unheld:
             self._unheld.clear()
 

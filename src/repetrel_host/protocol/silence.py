@@ -13,8 +13,11 @@ the lines as they were sent, lazily: only when a silence needs explaining are th
 sent since fed to it, so a link whose controller answers at once never pays for it. It is
 scaled by the *pace* the controller keeps (its acknowledgements against the plan: a
 printer slower than Marlin's defaults, a fake that runs its moves a hundred times faster),
-and the whole explanation by a *margin* that grows each time the silence after a probe
-ends with the very ``ok`` that was suspected lost (the probe was needless).
+and what the plan timed by a *margin* that grows each time the silence after a probe ends
+with the very ``ok`` that was suspected lost (the probe was needless). What the plan cannot
+time has bounds of its own, not stretched: a heat wait holds while its reports say so (the
+residency their ``W:`` counts down, or until its heaters got there), a command that holds
+the queue a few seconds, or as long as its busy lines keep coming.
 """
 
 from __future__ import annotations
@@ -123,6 +126,7 @@ class Silence:
         self._busy_at: float | None = None  # the last busy line since the last ok
         self._busy_interval = BUSY_INTERVAL
         self._report_at: float | None = None
+        self._residency: tuple[float, float] | None = None  # a heat wait report's W:, when
         self._off_target: dict[str, float] = {}  # heater: when last seen off its target
 
     # --- what happened --------------------------------------------------------------
@@ -156,9 +160,18 @@ class Silence:
             self._busy_interval = min(max(now - self._busy_at, 0.1), MAX_BUSY_INTERVAL)
         self._busy_at = now
 
-    def temperatures(self, readings: dict[str, tuple[float, float | None]], now: float) -> None:
-        """A temperature report (an auto-report, a heat wait's, an M105's answer)."""
+    def temperatures(
+        self,
+        readings: dict[str, tuple[float, float | None]],
+        now: float,
+        residency: float | None = None,
+    ) -> None:
+        """A temperature report (an auto-report, a heat wait's, an M105's answer);
+        ``residency``: the seconds a heat wait's report says it still holds (its ``W:``;
+        inf for ``W:?``), None when it says none."""
         self._report_at = now
+        if residency is not None:
+            self._residency = (now, residency)
         off = self._off_target
         for name, (current, target) in readings.items():
             if target and abs(current - target) > HEAT_WINDOW:
@@ -183,37 +196,64 @@ class Silence:
         explains it."""
         until = since
         if self._acked < self._sent:
-            until = max(until, self._awaited(since, now))
+            planned, more = self._awaited(since, now)
+            until = since + self.margin * (planned - since) + more
         if self._busy_at is not None:
             until = max(until, self._busy_at + BUSY_GAPS * self._busy_interval)
-        return since + self.margin * (until - since)
+        return until
 
-    def _awaited(self, since: float, now: float) -> float:
-        """When the oldest line not acknowledged is due, at the latest."""
+    def _awaited(self, since: float, now: float) -> tuple[float, float]:
+        """When the oldest line not acknowledged is due, at the latest: the time the plan
+        gives (the margin stretches it) and the seconds a wait the plan cannot time holds
+        after that, at most (a bound of its own)."""
         self._catch_up()
         index = self._acked
         if index < self._base:  # more in flight than the estimate keeps
-            return since
+            return since, 0.0
         kind = self._kinds[index - self._base]
         pace, drain, next_end = self._motion(since)
         if kind == _Kind.MOVE:
-            return next_end  # once the block in hand ends, there is room for it
+            return next_end, 0.0  # once the block in hand ends, there is room for it
         if kind == _Kind.ARC:  # its pieces go in as the planner's blocks end
-            return next_end + pace * self._seconds[index - self._base]
+            return next_end + pace * self._seconds[index - self._base], 0.0
         if kind == _Kind.OTHER:
-            return since
+            return since, 0.0
         start = max(drain, since)
         if kind == _Kind.DWELL:  # a dwell's time is the clock's, whatever the pace
-            return start + self._seconds[index - self._base]
+            return start + self._seconds[index - self._base], 0.0
         if kind == _Kind.DRAIN:
-            return start
+            return start, 0.0
         if kind == _Kind.HOLD:
-            return start + UNBUFFERED_GRACE
+            return start, UNBUFFERED_GRACE
         until = start + HEAT_SETTLE
-        if self._heating(self._commands[index - self._first_kept()], now):
-            assert self._report_at is not None
-            until = max(until, self._report_at + REPORT_GAP)
-        return until
+        command = self._commands[index - self._first_kept()]
+        heard, residency = self._report_at, self._residency
+        if heard is not None and heard >= since:
+            # Reports since the silence began (Marlin's heat wait reports at once, then each
+            # second) tell how long it holds: the residency its W: says, or, no W: said and
+            # its heaters there, nothing more once they got there.
+            told = residency is not None and residency[0] >= since
+            reached = self._reached(command)
+            if told and residency is not None and residency[1] != math.inf:
+                until = residency[0] + residency[1] + REPORT_GAP
+            elif not told and reached is not None:
+                until = max(since, reached) + REPORT_GAP
+        if self._heating(command, now):
+            assert heard is not None
+            until = max(until, heard + REPORT_GAP)
+        return start, max(0.0, until - start)
+
+    def _reached(self, command: str) -> float | None:
+        """When the heaters ``command`` (a heat wait) waits for were last seen off their
+        targets (-inf: never); None while the latest report shows one off."""
+        letters = _WAITS_FOR[command_word(command)]
+        last = -math.inf
+        for name, seen in self._off_target.items():
+            if name[0] in letters:
+                if seen == self._report_at:
+                    return None
+                last = max(last, seen)
+        return last
 
     def _heating(self, command: str, now: float) -> bool:
         """A recent report shows a heater that ``command`` (a heat wait) waits for still off

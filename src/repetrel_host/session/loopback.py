@@ -7,6 +7,7 @@ preview (``hyrel-send --dry-run --framed``) is the same exchange without faults.
 
 from __future__ import annotations
 
+import random
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 
@@ -179,6 +180,19 @@ def run_noisy_job(
         line_number_limit=line_number_limit,
         time_limit=1200.0,
     )
+
+
+def run_noise_case(case: int) -> tuple[list[str], LoopbackResult]:
+    """Case ``case`` of ``bench/noise_loops.py``'s random jobs (its draws seeded by the
+    number): the job's commands, and how it ran under :func:`run_noisy_job`."""
+    rng = random.Random(case)
+    commands = [rng.choice(NOISE_COMMANDS) for _ in range(rng.randint(1, 150))]
+    mode = rng.choice(list(FlowMode))
+    rates = [rng.choice(NOISE_RATES) for _ in NOISE_FAULTS]
+    marlin = (rng.random() < 0.5, rng.random() < 0.5, rng.random() < 0.5)
+    rx_buffer, limit = rng.randint(40, 256), rng.randint(5, 500)
+    seed = rng.randint(0, 65536)
+    return commands, run_noisy_job(commands, mode, rates, marlin, seed, rx_buffer, limit)
 
 
 def wire_preview(

@@ -493,8 +493,6 @@ class RepRapDialect(RepRapReplies):
             history.append(line)
             self._candidate = None
         history.cursor = line.number + 1
-        if not line.is_host_line:
-            self._sync_answers = 0
         retransmitted = line.transmitted
         if retransmitted:
             self.stats.retransmissions += 1
@@ -507,6 +505,7 @@ class RepRapDialect(RepRapReplies):
                 self.stats.lines_sent += 1
                 self.last_sent = line.tag
                 self._silence.sent(line.command)
+                self._sync_answers = 0
         self._push(Transmission(line, line.wire, now, line.number, retransmitted=retransmitted))
 
     def _send_probe(self, now: float) -> None:

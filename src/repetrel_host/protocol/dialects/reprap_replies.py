@@ -31,7 +31,7 @@ from repetrel_host.protocol.events import (
 )
 from repetrel_host.protocol.flow import FlowControl, FlowMode
 from repetrel_host.protocol.history import History, Line
-from repetrel_host.protocol.reports import parse_temperatures
+from repetrel_host.protocol.reports import parse_temperatures, residency_left
 from repetrel_host.protocol.resend import RESEND_LOOP_LIMIT, ResendGuard
 from repetrel_host.protocol.rtt import RoundTrip
 from repetrel_host.protocol.silence import Silence
@@ -45,6 +45,13 @@ SUSPECT_ERROR_LINES = 2
 # Warn once when more than this share of lines needed resending (after enough lines).
 RESEND_WARNING_RATIO = 0.10
 RESEND_WARNING_AFTER = 100
+# OctoPrint's virtual printer (its M115: "FIRMWARE_NAME:Virtual Marlin 1.0 ...") reads a
+# 64-byte receive buffer, and a write that does not fit waits for room while holding the
+# lock its error replies need: with more than 64 bytes in flight, each error it reports (its
+# simulated ones, the refusals of lines in flight behind them) stalls it for its 10 s write
+# timeout, or several.
+VIRTUAL_PRINTER = "FIRMWARE_NAME:Virtual Marlin"
+VIRTUAL_PRINTER_RX_BUFFER = 64
 
 
 class RepRapReplies:
@@ -158,7 +165,9 @@ class RepRapReplies:
             elif isinstance(reply, replies.OtherReply):
                 readings = parse_temperatures(text)
                 if readings:  # an auto-report, a heat wait's
-                    self._silence.temperatures(readings, now)
+                    self._silence.temperatures(readings, now, residency_left(text))
+                elif text.startswith(VIRTUAL_PRINTER):
+                    self._keep_within(VIRTUAL_PRINTER_RX_BUFFER)
             self._events.append(ControllerMessage(reply, text))
 
     def _handle_ok(self, reply: replies.Ok, now: float) -> None:
@@ -200,8 +209,13 @@ class RepRapReplies:
         # A plain ok taken for the caller's M105, whose answers carry temperatures (one of
         # its own lost, or one said twice): the M105's answer may still come, and must not
         # confirm what follows it.
-        owed = not readings and not line.is_host_line and _is_probe_command(transmission)
-        if owed and self._probing.kind is ProbeKind.COMMAND:
+        if (
+            not readings
+            and line.command.startswith("M105")  # (a cheap test first: on every ok)
+            and not line.is_host_line
+            and self._probing.kind is ProbeKind.COMMAND
+            and _is_probe_command(transmission)
+        ):
             self._probing.stray += 1
         # Karn: no samples from retransmissions. Nor from the time a command took to run: an
         # unbuffered command's ok comes once the machine finished it (a heat-up: minutes),
@@ -221,6 +235,17 @@ class RepRapReplies:
         if line.is_host_line:
             return  # the probe behind an M110 confirms the reset
         self._acknowledge(line, now, reply.data)
+
+    def _keep_within(self, rx_buffer: int) -> None:
+        """OctoPrint's virtual printer said who it is: no more than its buffer in flight."""
+        if self._window.byte_limit > rx_buffer:
+            self._window.limit_bytes(rx_buffer)
+            self._events.append(
+                Notice(
+                    "the controller is OctoPrint's virtual printer: at most "
+                    f"{self._window.byte_limit} bytes in flight, as its receive buffer holds"
+                )
+            )
 
     def _set_aside_stray(self) -> bool:
         """The caller's M105 whose place a plain ok took may still answer: an answer is
@@ -305,9 +330,11 @@ class RepRapReplies:
             return
         if self._guard.just_sent_again(number, now, self._rtt.rto):
             # An answer to an older transmission (a stale one, if one is still held): the
-            # line's new transmission stays in flight, its own answer still to come.
+            # line's new transmission stays in flight, its own answer still to come. It is
+            # one of the echoes expected, too: counted off, the request after them obeyed.
             if window.in_flight and window.in_flight[0].stale:
                 window.pop_oldest()
+                self._guard.is_echo(number)
             self.stats.ignored_resend_requests += 1
             return
         # An error, its resend request and (on most firmwares) an ok answer one
@@ -464,6 +491,7 @@ class RepRapReplies:
         cause = any(t.number == number and t.line is not None for t in window.in_flight)
         self._guard.expect_echoes(number, len(window.in_flight) - cause if expect_echoes else 0)
         window.mark_stale(now + self._rtt.rto)
+        self._sync_answers = 0  # lines go again: what the probes said is to be said again
 
     def _fail_suspect(self) -> None:
         assert self._suspect_error is not None
