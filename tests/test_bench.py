@@ -101,7 +101,8 @@ def test_analysis_bench_memory_grows_with_the_layers_not_the_file() -> None:
     small, big = rows
     assert int(big["layers"].replace(",", "")) == 20 * int(small["layers"])
     growth = [float(row["growth MB"]) for row in rows]
-    assert growth[1] <= 3 * max(growth[0], 1.0), growth
+    # The smaller's growth moves between 2 and 3 MB from run to run (the allocator's own).
+    assert growth[1] <= 3 * max(growth[0], 3.0), growth
     assert growth[1] < float(big["size MB"].replace(",", "")) / 4, growth
 
 
