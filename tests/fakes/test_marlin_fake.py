@@ -8,18 +8,7 @@ heat wait's `` T:... W:?``."""
 from repetrel_host.fakes.settings import ControllerSettings
 from repetrel_host.fakes.simulator import ControllerSimulator
 from repetrel_host.protocol.framing import frame
-
-
-def wire(*commands: str, first: int = 1) -> bytes:
-    return b"".join(frame(first + i, c) for i, c in enumerate(commands))
-
-
-def started(settings: ControllerSettings) -> ControllerSimulator:
-    sim = ControllerSimulator(settings)
-    sim.receive(frame(0, "M110 N0"), 0.0)
-    sim.advance(0.0)
-    assert sim.take_output(0.0) == b"start\nok\n"
-    return sim
+from tests.support.simulated import started, wire
 
 
 def run(sim: ControllerSimulator, until: float, step: float = 0.05) -> bytes:
