@@ -1,6 +1,7 @@
-"""SIGTERM and SIGHUP stop a run as Ctrl-C does (issue 35): hyrel-send and its console send
-the safe stop (a second signal abandons it, and says so), whether a terminal is left or not,
-and exit with 128 + the signal. Read at the fake: its heater targets and executed log."""
+"""SIGTERM, SIGHUP and SIGQUIT stop a run as Ctrl-C does (issues 35 and 48): hyrel-send and
+its console send the safe stop (a second signal abandons it, and says so), whether a terminal
+is left or not, and exit with 128 + the signal. Read at the fake: its heater targets and
+executed log."""
 
 from __future__ import annotations
 
@@ -29,7 +30,7 @@ JOB = "M140 S60\nM104 T0 S200\nM104 T1 S210\nT1\n" + "".join(
     f"G1 X{i % 50} F600\n" for i in range(3000)
 )
 ALL_OFF = {"T": 0.0, "T1": 0.0, "B": 0.0}
-SIGNALS = [signal.SIGTERM, signal.SIGHUP]
+SIGNALS = [signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT]
 
 
 def fake_args(protocol: str, *more: str) -> list[str]:
@@ -204,8 +205,14 @@ def screen_printing(job: Path, port: str, home: Path) -> Iterator[Screen]:
 
 @pytest.mark.parametrize(
     ("signum", "protocol"),
-    [(signal.SIGTERM, "reprap"), (signal.SIGHUP, "reprap"), (signal.SIGTERM, "hyrel")],
-    ids=["SIGTERM-reprap", "SIGHUP-reprap", "SIGTERM-hyrel"],
+    [
+        (signal.SIGTERM, "reprap"),
+        (signal.SIGHUP, "reprap"),
+        (signal.SIGTERM, "hyrel"),
+        (signal.SIGQUIT, "reprap"),
+        (signal.SIGQUIT, "hyrel"),
+    ],
+    ids=["SIGTERM-reprap", "SIGHUP-reprap", "SIGTERM-hyrel", "SIGQUIT-reprap", "SIGQUIT-hyrel"],
 )
 def test_a_signal_stops_the_consoles_job_with_its_safe_stop(
     tmp_path: Path, signum: signal.Signals, protocol: str

@@ -34,6 +34,7 @@ from repetrel_host.cli.actions import (
     summary_text,
 )
 from repetrel_host.cli.exit_codes import EXIT_NOT_SAFE, EXIT_OK
+from repetrel_host.cli.heat_ledger import HeatLedger
 from repetrel_host.cli.stop_signals import StopSignals, exit_code_of_stop, stopping_text
 from repetrel_host.config import UserConfig
 from repetrel_host.errors import HostError, JobError, SafeStopError, UsageError
@@ -143,6 +144,10 @@ async def _run(options: ConsoleOptions, user: UserConfig) -> int:
     port = resolve_port(options.port, user)
     # On stderr, before the console's own lines: a port that does not answer is no silence.
     connecting = Connecting(lambda text: print(text, file=sys.stderr, flush=True))
+    ledger = HeatLedger(port)
+    owed = ledger.owed()
+    if owed is not None:
+        print(f"{owed[1]}.", file=sys.stderr, flush=True)
     connecting.start(port, link.baud)
     printer = await connect(
         port,
@@ -158,13 +163,16 @@ async def _run(options: ConsoleOptions, user: UserConfig) -> int:
         poll_while_printing=True,  # the status line's temperatures during a !print too
         fake_log=options.fake_log,
         on_event=connecting,
+        owe_safe_stop=owed[0] if owed is not None else None,
     )
     connecting.connected = True  # from now on, the session's events say it (_watch_printer)
+    ledger.keep(printer)
     console = PrinterConsole(printer, user, options)
     try:
         code = await (console.interactive() if sys.stdin.isatty() else console.piped())
     finally:
         await console.close()
+        ledger.closed(printer)
     # Left with the machine maybe not safe (a second stop signal, a lost link): say so
     # in the exit code too, whatever ended the console.
     return EXIT_NOT_SAFE if console.left_unsafe else code

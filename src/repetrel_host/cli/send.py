@@ -25,6 +25,7 @@ from repetrel_host.cli.actions import (
     summary_text,
 )
 from repetrel_host.cli.exit_codes import EXIT_OK
+from repetrel_host.cli.heat_ledger import HeatLedger
 from repetrel_host.cli.offline import check_job
 from repetrel_host.cli.out import Out
 from repetrel_host.cli.stop_signals import StopSignals, exit_code_of_stop, stopping_text
@@ -105,6 +106,10 @@ async def send_job(
         console.print(f"{chosen_because}.", markup=False)
     # On stderr, as the failure's sentence: stdout holds the run's own story.
     connecting = Connecting(lambda text: errors.print(text, markup=False))
+    ledger = HeatLedger(port)
+    owed = ledger.owed()
+    if owed is not None:
+        errors.print(f"{owed[1]}.", markup=False)
     connecting.start(port, link.baud)
     printer = await connect(
         port,
@@ -121,8 +126,10 @@ async def send_job(
         reply_timeout=options.reply_timeout,
         fake_log=options.fake_log,
         on_event=connecting,
+        owe_safe_stop=owed[0] if owed is not None else None,
     )
     connecting.connected = True
+    ledger.keep(printer)
     try:
         plan = _plan_for(printer, plan, user, errors, options.force)
         job, estimate = await _stream(console, errors, printer, plan, user, options)
@@ -132,6 +139,7 @@ async def send_job(
         raise
     finally:
         await printer.close()
+        ledger.closed(printer)
     summary = await job.wait()
     _print_summary(console, summary, plan, job.where(), estimate)
     if summary.outcome is not Outcome.COMPLETED:

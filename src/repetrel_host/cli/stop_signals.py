@@ -1,9 +1,9 @@
 """The signals that end a run from outside, for hyrel-send and its console alike.
 
-Ctrl-C (SIGINT), SIGTERM (systemd, ``kill``) and SIGHUP (a closed terminal, a dropped ssh
-session) each mean the same: stop the job with its safe stop; a second one abandons it. A
-run stopped so exits with 128 + the first signal's number, as shells report a signal
-(130, 143, 129), once the safe stop is confirmed.
+Ctrl-C (SIGINT), SIGTERM (systemd, ``kill``), SIGHUP (a closed terminal, a dropped ssh
+session) and SIGQUIT (Ctrl-\\) each mean the same: stop the job with its safe stop; a second
+one abandons it. A run stopped so exits with 128 + the first signal's number, as shells
+report a signal (130, 143, 129, 131), once the safe stop is confirmed.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import signal
 from collections.abc import Callable
 from types import FrameType
 
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT)
 received: list[int] = []  # the stop signals this process received, in order
 
 
@@ -58,7 +58,7 @@ class StopSignals:
 
 
 def interrupt_on_stop_signals() -> None:
-    """Outside a run's own handling (before streaming begins), SIGTERM and SIGHUP raise
+    """Outside a run's own handling (before streaming begins), SIGTERM, SIGHUP and SIGQUIT raise
     KeyboardInterrupt as Ctrl-C does, instead of ending the process on the spot; the
     signal is kept in :data:`received`, for the exit code."""
 
@@ -66,7 +66,7 @@ def interrupt_on_stop_signals() -> None:
         received.append(signum)
         raise KeyboardInterrupt
 
-    for signum in (signal.SIGTERM, signal.SIGHUP):
+    for signum in STOP_SIGNALS[1:]:
         signal.signal(signum, handler)
 
 

@@ -209,10 +209,21 @@ class HyrelControllerSimulator(ControllerSimulator):
     def _arrived(self, data: bytes, now: float) -> None:
         self._heard_at = now
         if not _CONTROL_BYTES.isdisjoint(data):
-            for byte in data:
+            # In the order they came: an abort drops what was received before it, not
+            # what comes after it.
+            start = 0
+            for at, byte in enumerate(data):
                 if byte in _CONTROL_BYTES:
+                    self._received(data[start:at], now)
                     self._act(Control(byte), now)
-            data = bytes(byte for byte in data if byte not in _CONTROL_BYTES)
+                    start = at + 1
+            data = data[start:]
+        self._received(data, now)
+
+    def _received(self, data: bytes, now: float) -> None:
+        """Bytes between control bytes: lines, or part of one."""
+        if not data:
+            return
         self.owed_acks += data.count(b"\n")
         if data.startswith(b"\x09") and data.endswith(b"\n"):
             # An urgent line (lines arrive one by one): ahead of the buffer and the queue.
@@ -337,14 +348,14 @@ class HyrelControllerSimulator(ControllerSimulator):
             self.tool = int(word[1:])
         if metrics is not None:
             metrics.set_mode(word, command.text)
-        if word == "M112":  # halts as Marlin's does (the notes say nothing of Hyrel's)
-            for heater in self.heaters.values():
-                heater[1] = 0.0
+        if word == "M112":
+            # The notes say nothing of what Hyrel's M112 does: this fake does the least a
+            # host may count on. It drops what it holds and goes on answering, its heaters
+            # as they were (a host must turn them off itself).
             self._queue.clear()
             self._drop_moves()
             self._rx.clear()
-            self._reply(b">ER: halted (M112): every heater off\n", now)
-            self.hung = True
+            self._reply(b">ER: M112: emergency stop: queued lines and moves dropped\n", now)
         elif word == "M105":
             self._reply(f">ST: {self._temperatures(now)}\n".encode(), now)
         elif word == "M115":

@@ -118,8 +118,7 @@ class ControllerSimulator:
         self._line = bytearray()  # the line being read out of the receive buffer
         self._queue: deque[QueuedCommand] = deque()
         self._planner: deque[float] = deque()  # finish time of each planned move
-        # With time_scale: the moves in the planner still waiting for their planned time
-        # (their numbers in self._planned), after those in self._planner.
+        # With time_scale: planned moves waiting for their time (numbers in self._planned).
         self._untimed: deque[int] = deque()
         self._planned = (
             PlannedTimes(
@@ -719,6 +718,7 @@ class ControllerSimulator:
         self.hung = True
 
     def _reboot(self, now: float) -> None:
+        self.hung = False  # a halt (M112's kill) lasts until a reset
         self.protocol = self._new_protocol()
         for heater in self.heaters.values():  # a reset turns every heater off
             heater[1] = 0.0

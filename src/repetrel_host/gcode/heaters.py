@@ -163,6 +163,13 @@ def turns_off(command: str) -> bool:
     return word in HEATING and _word_value(command, "S") == 0
 
 
+def off_lines(commands: list[str]) -> list[str]:
+    """The lines of a safe stop that only turn something off (heaters, fans, a laser): what
+    is owed after an emergency stop, whose controller may not have turned them off (no move:
+    the machine may have lost its position)."""
+    return [command for command in commands if turns_off(command)]
+
+
 def _first_move(commands: list[str]) -> int:
     """Where the first move or mode change is (G91, G0...), else the end."""
     return next((i for i, c in enumerate(commands) if c[:1] in "Gg"), len(commands))

@@ -37,6 +37,8 @@ from repetrel_host.server.settings import (
     parse_address,
 )
 
+# A stop that left a printer's safe stop owed (EX_TEMPFAIL: start it again to send it).
+EXIT_SAFE_STOP_OWED = 75
 app = typer.Typer(add_completion=False, pretty_exceptions_enable=False, rich_markup_mode=None)
 
 
@@ -98,6 +100,13 @@ def serve(
             "request needs the key or an app key, as on OctoPrint.",
         ),
     ] = False,
+    stop_timeout: Annotated[
+        float | None,
+        typer.Option(
+            help="Seconds a stop (SIGTERM) waits for a printing machine's safe stop (default "
+            "30); a stop left owed exits 75, and the next start sends it first.",
+        ),
+    ] = None,
     farm: Annotated[
         str | None,
         typer.Option(
@@ -131,6 +140,7 @@ def serve(
         automatic_transition,
         public_read,
         (farm, node_name, node_url),
+        stop_timeout,
     )
     host, port = parse_address(settings.bind, "--bind", example=DEFAULT_BIND)
     logging.basicConfig(
@@ -178,15 +188,31 @@ def serve(
         trusted=settings.moonraker_trusted_clients,
         presets={name: p.model_dump() for name, p in settings.presets.items()},
         farm=farm_settings,
+        stop_timeout=settings.stop_timeout,
     )
+
     # uvicorn shuts down gracefully on SIGTERM and SIGINT, then raises the signal again
     # with the handlers found before it started: these, so that a stop asked for exits
-    # 0 (130 for Ctrl-C) once the printers are safe, not as if killed.
-    signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
-    signal.signal(signal.SIGINT, lambda *_: sys.exit(130))
-    # SIGHUP (the terminal or ssh session it was started in, gone) would end it on the
-    # spot, heaters on: it stops as SIGTERM does, with the printers' safe stop.
-    signal.signal(signal.SIGHUP, lambda *_: signal.raise_signal(signal.SIGTERM))
+    # 0 (130 for Ctrl-C) once the printers are safe, not as if killed; and 75 when a safe
+    # stop was left owed, so that systemd's Restart=on-failure starts the server again,
+    # which sends it first.
+    def stopped(code: int) -> None:
+        if server.left_owing:
+            logging.getLogger("repetrel_host.server").error(
+                "exiting with %d: the safe stop of printer %s is owed (it goes first at the "
+                "next start)",
+                EXIT_SAFE_STOP_OWED,
+                ", ".join(server.left_owing),
+            )
+            sys.exit(EXIT_SAFE_STOP_OWED)
+        sys.exit(code)
+
+    signal.signal(signal.SIGTERM, lambda *_: stopped(0))
+    signal.signal(signal.SIGINT, lambda *_: stopped(130))
+    # SIGHUP (the terminal or ssh session it was started in, gone) and SIGQUIT (Ctrl-\)
+    # would end it on the spot, heaters on: they stop it as SIGTERM does.
+    for signum in (signal.SIGHUP, signal.SIGQUIT):
+        signal.signal(signum, lambda *_: signal.raise_signal(signal.SIGTERM))
     served = create_app(server, mqtt_settings(settings))
     listening = uvicorn.Config(
         PrinterPorts(served, ports) if ports else served,

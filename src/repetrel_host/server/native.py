@@ -60,6 +60,7 @@ def _printer_json(service: PrinterService) -> dict[str, Any]:
         "since": service.state_since,  # in that state since (seconds since the epoch)
         "reason": service.state_reason or service.last_error or None,  # why, if said
         "held": service.held,
+        "hold_reason": service.hold_reason,  # why the queue waits for a release
         "error": service.last_error or None,
         "firmware": printer.firmware.name if printer and printer.firmware else None,
         "protocol": printer.settings.protocol if printer else None,  # the link's: reprap, hyrel

@@ -20,8 +20,8 @@ from repetrel_host.server.access import Access
 from repetrel_host.server.analyses import Analyses
 from repetrel_host.server.events import EventHub, FileChanged, JobChanged
 from repetrel_host.server.printers.config import PrinterConfig
-from repetrel_host.server.printers.service import PrinterService, Refused
-from repetrel_host.server.store import JobState, Store
+from repetrel_host.server.printers.service import SAFE_STOP_TIMEOUT, PrinterService, Refused
+from repetrel_host.server.store import Store
 
 if TYPE_CHECKING:
     from repetrel_host.server.farm.node import FarmNode, FarmSettings
@@ -47,6 +47,7 @@ class PrintServer:
         trusted: Sequence[IPv4Network | IPv6Network] = (),
         presets: dict[str, dict[str, float | None]] | None = None,
         farm: FarmSettings | None = None,
+        stop_timeout: float = SAFE_STOP_TIMEOUT,
     ) -> None:
         self.data_dir = data_dir
         self.files = data_dir / "files"
@@ -68,6 +69,9 @@ class PrintServer:
         }
         for service in self.services.values():
             service.automatic_transition = automatic_transition
+            service.stop_timeout = stop_timeout
+        # The printers whose safe stop a stop left owed (the exit code says so).
+        self.left_owing: list[str] = []
         self.default = next(iter(self.services))
         # In a farm, the printers' jobs come from its shared queue too (farm/node.py).
         self.farm: FarmNode | None = None
@@ -84,6 +88,11 @@ class PrintServer:
                 record.printer,
                 record.last_line,
             )
+            # Nothing starts by itself after it: its part may be on the bed.
+            if record.printer in self.services:
+                self.services[record.printer].hold(
+                    f"job {record.id} was interrupted: its part may be on the bed"
+                )
         for service in self.services.values():
             owing = self.store.owing(service.name)
             if owing:  # interrupted, or ended without its safe stop confirmed (connect sends it)
@@ -93,16 +102,12 @@ class PrintServer:
                     service.name,
                     ", ".join(map(str, owing)),
                 )
-        # After an interrupted job nothing starts by itself: a part may be on the bed.
-        for service in self.services.values():
-            last = self.store.last_started(service.name)
-            if last is not None and last.state is JobState.INTERRUPTED:
-                service.held = True
+            if service.hold_reason is not None:  # kept from before the restart
                 log.warning(
-                    "printer %s: the queue is held after interrupted job %d "
-                    "(POST /v1/printers/%s/release, or OctoPrint's job start, releases it)",
+                    "printer %s: the queue is held (%s): POST /v1/printers/%s/release, or "
+                    "OctoPrint's job start, releases it",
                     service.name,
-                    last.id,
+                    service.hold_reason,
                     service.name,
                 )
 
@@ -116,6 +121,7 @@ class PrintServer:
         """Every printer stopped (a running job with its safe stop), then the farm's part;
         the store stays open for what reports their ends (:meth:`close` after)."""
         await asyncio.gather(*(service.stop() for service in self.services.values()))
+        self.left_owing = [name for name in self.services if self.store.owing(name)]
         if self.farm is not None:  # after the printers: their jobs' ends are reported
             await self.farm.stop()
 

@@ -81,6 +81,9 @@ class ServerSettings(BaseModel):
     max_upload_mb: int = Field(default=1024, gt=0)
     automatic_transition: bool = False  # start the next job by itself after one ends
     public_read: bool = False  # reads without a key (OctoPrint asks for one on every request)
+    # How long a stop (SIGTERM) waits for a printing machine's safe stop before it leaves
+    # it owed (and exits 75, for systemd to start the server again to send it).
+    stop_timeout: float = Field(default=30.0, gt=0, le=3600)
     # Moonraker's face lets these networks in without a key (its trusted_clients).
     moonraker_trusted_clients: list[IPvAnyNetwork] = []
     mqtt: str | None = None  # HOST[:PORT] of a broker
@@ -114,6 +117,7 @@ def load_settings(
     automatic_transition: bool,
     public_read: bool = False,
     farm: tuple[str | None, str | None, str | None] = (None, None, None),
+    stop_timeout: float | None = None,
 ) -> ServerSettings:
     """The settings of the TOML file ``config``, with the options given over them."""
     values: dict[str, object] = {}
@@ -145,6 +149,7 @@ def load_settings(
         "mqtt_discovery": False if mqtt[4] else None,
         "automatic_transition": automatic_transition or None,
         "public_read": public_read or None,
+        "stop_timeout": stop_timeout,
         "farm": farm[0],
         "node_name": farm[1],
         "node_url": farm[2],

@@ -60,6 +60,13 @@ CREATE TABLE IF NOT EXISTS heaters (
     printer TEXT PRIMARY KEY,
     heaters TEXT NOT NULL
 );
+-- Printers whose queue waits for a release (a part may be on the bed), with why and since
+-- when: kept across restarts and a kill -9, as the owed safe stop is.
+CREATE TABLE IF NOT EXISTS holds (
+    printer TEXT PRIMARY KEY,
+    reason TEXT NOT NULL,
+    since REAL NOT NULL
+);
 -- What clients keep on the server (Moonraker's database: Mainsail's and Fluidd's settings),
 -- a namespace a JSON object.
 CREATE TABLE IF NOT EXISTS client_data (
@@ -531,6 +538,26 @@ class Store:
             Heater(kind, index, float(target), command)
             for kind, index, target, command in json.loads(found[0])
         ]
+
+    def hold(self, printer: str, reason: str) -> None:
+        """``printer``'s queue waits for a release, for ``reason`` (kept across restarts)."""
+        with self._transaction() as db:
+            db.execute(
+                "INSERT INTO holds (printer, reason, since) VALUES (?, ?, ?) ON CONFLICT"
+                " (printer) DO UPDATE SET reason = excluded.reason, since = excluded.since",
+                (printer, reason, time.time()),
+            )
+
+    def release(self, printer: str) -> None:
+        """``printer``'s queue runs again."""
+        with self._transaction() as db:
+            db.execute("DELETE FROM holds WHERE printer = ?", (printer,))
+
+    def hold_reason(self, printer: str) -> str | None:
+        """Why ``printer``'s queue is held; None when it is not."""
+        row = self._db.execute("SELECT reason FROM holds WHERE printer = ?", (printer,))
+        found = row.fetchone()
+        return str(found[0]) if found is not None else None
 
     def safe_stop_sent(self, printer: str) -> list[int]:
         """The safe stop the printer was owed went (and was confirmed); returns those jobs."""

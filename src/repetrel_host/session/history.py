@@ -232,18 +232,24 @@ def this_host() -> str:
 def is_alive(progress: RunProgress) -> bool | None:
     """Whether the process streaming the run is still there; None when that cannot be
     told from here (another machine's)."""
-    if progress.host != this_host():
+    return process_alive(progress.host, progress.pid, progress.process)
+
+
+def process_alive(host: str, pid: int, process: str) -> bool | None:
+    """Whether process ``pid`` of ``host`` (its :func:`process_identity` ``process``) is
+    still there; None when that cannot be told from here (another machine's)."""
+    if host != this_host():
         return None
     try:
-        os.kill(progress.pid, 0)
+        os.kill(pid, 0)
     except ProcessLookupError:
         return False
     except PermissionError:
         pass  # another user's process: there
     except OSError:
         return None
-    identity = process_identity(progress.pid)
-    return not (progress.process and identity and identity != progress.process)
+    identity = process_identity(pid)
+    return not (process and identity and identity != process)
 
 
 class ProgressKeeper:

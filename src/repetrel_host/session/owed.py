@@ -13,6 +13,7 @@ import contextlib
 from collections.abc import Callable
 
 from repetrel_host.errors import HostError, SafeStopError
+from repetrel_host.gcode.heaters import off_lines
 from repetrel_host.session.print_job import PrintJob
 from repetrel_host.session.pump import JobRun, Outcome, Summary
 
@@ -42,9 +43,11 @@ class OwedSafeStop:
             self.commands = safe_stop
             self.whole = False
 
-    def forgive(self) -> None:
-        """Nothing is owed any more (the controller halted: its heaters are off)."""
-        self.commands = []
+    def after_emergency(self, safe_stop: list[str]) -> None:
+        """An emergency stop went: what a controller does then is its own (Marlin halts
+        with its heaters off until a reset; Hyrel's documents say nothing), so the safe
+        stop's heater-off lines are owed, and nothing else (no move)."""
+        self.commands = off_lines(safe_stop)
         self.whole = False
 
     def confirmed(self, command: str) -> None:

@@ -377,18 +377,19 @@ class Printer:
         self._wire.drive()
 
     def emergency_stop(self) -> None:
-        """M112 at once, unnumbered: the controller halts (its heaters off) until reset; a
-        job ends with a ControllerError, and no safe stop is owed."""
-        self._urgent("M112")
-        self._owed.forgive()  # the controller halted: its heaters are off
+        """M112 at once, unnumbered: a job ends with a ControllerError. Then the safe
+        stop's heater-off lines go, once the controller answers again (Marlin's halts
+        until a reset; Hyrel's documents do not say what its M112 does)."""
         pump = self._wire.pump
-        if pump is not None:
+        if pump is not None:  # the job ends first: not a line of it may follow the M112
             error = ControllerError(
-                "stopped by an emergency stop (M112): the controller halted (heaters off) "
-                "and needs a reset"
+                "stopped by an emergency stop (M112): the controller may need a reset; its "
+                "heaters are turned off once it answers again"
             )
             pump.emergency_stop(self._loop.time(), error)
-            self._wire.drive()
+        self._urgent("M112")
+        self._owed.after_emergency(self.safe_stop)
+        self._spawn(self._send_owed_safe_stop())  # a halted one fails it: at the greeting
 
     # --- jobs -------------------------------------------------------------------
 

@@ -38,7 +38,13 @@ from repetrel_host.errors import (
     UsageError,
 )
 from repetrel_host.gcode.commands import command_word
-from repetrel_host.gcode.heaters import WAITS, HeaterLog, complete_safe_stop, turns_off
+from repetrel_host.gcode.heaters import (
+    WAITS,
+    HeaterLog,
+    complete_safe_stop,
+    off_lines,
+    turns_off,
+)
 from repetrel_host.protocol import replies
 from repetrel_host.protocol.dialect import Dialect
 from repetrel_host.protocol.events import (
@@ -177,7 +183,7 @@ class JobRun:
         self.broke_at = 0.0
         self.held_by: JobLine | None = None  # the wait told as holding the stop up
         self.cancelled_stop = False  # stopped without an error, then the stream failed
-        self.emergency = False  # ended by M112: the controller halted, heaters off
+        self.emergency = False  # ended by M112: only its heater-off lines are owed
         # Progress: the job line with the highest index acknowledged so far.
         self.lines = 0
         self.offset = 0
@@ -207,9 +213,10 @@ class JobRun:
     def owed_safe_stop(self) -> list[str]:
         """What of the safe stop the controller must still be sent, should this stream end
         now: the lines it did not confirm, but for a move already on the wire (it may
-        have run: a second lift would lift twice). None after an emergency stop."""
+        have run: a second lift would lift twice). After an emergency stop, its heater-off
+        lines (:func:`off_lines`)."""
         if self.emergency:
-            return []
+            return off_lines(self.safe_stop)
         if not self.safe_stop_queued:
             return list(self.safe_stop)
         unsent = [id(line) for line in self.safe_stop_unsent]
@@ -430,8 +437,8 @@ class Pump:
             self._finish(run, error, now)
 
     def emergency_stop(self, now: float, error: HostError) -> None:
-        """M112 went: the controller halted (its heaters off, say the firmwares): the job
-        ends with ``error``, and no safe stop is owed."""
+        """M112 went: the job ends with ``error``; only the safe stop's heater-off lines
+        are owed (the controller's own stop is its own)."""
         run = self.run
         if run is not None:
             run.emergency = True

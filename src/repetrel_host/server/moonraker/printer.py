@@ -91,10 +91,12 @@ async def objects_subscribe(call: Call) -> dict[str, Any]:
 
 @method("/printer/gcode/script", "POST")
 async def gcode_script(call: Call) -> str:
-    script = call.string("script")
-    for line in script.splitlines():
-        if line.strip():
-            await run_line(call, line.strip())
+    lines = [line.strip() for line in call.string("script").splitlines() if line.strip()]
+    if await call.service.emergency_first(lines):
+        call.face.gcode_command(call.service.name, "M112")
+        return "ok"
+    for line in lines:
+        await run_line(call, line)
     return "ok"
 
 

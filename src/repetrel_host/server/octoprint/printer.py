@@ -195,7 +195,8 @@ def router() -> APIRouter:
         lines = [line.strip() for line in lines if line.strip()]
         if not lines:
             raise HTTPException(400, "Need one of 'command', 'commands' or 'script'")
-        await _send(service, lines)
+        if not await answered(service.emergency_first(lines)):
+            await _send(service, lines)
         return Response(status_code=204)
 
     @router.get("/printer/command/custom")

@@ -14,7 +14,7 @@ import contextlib
 import logging
 import time
 from collections import deque
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -22,6 +22,7 @@ from typing import Any
 import repetrel_host as rh
 from repetrel_host.config import Loadout, UserConfig
 from repetrel_host.gcode.analysis import FileSummary
+from repetrel_host.gcode.commands import command_word
 from repetrel_host.gcode.lint import Finding
 from repetrel_host.gcode.timeline import learned_pace
 from repetrel_host.server.analyses import Analyses
@@ -101,7 +102,9 @@ class PrinterService:
         self.analyses = analyses or Analyses(data_dir / "analysis", data_dir)
         self.printer: rh.Printer | None = None
         self.running: Running | None = None
-        self.held = False  # the queue waits for a release (after an interrupted job)
+        # Why the queue waits for a release (a part may be on the bed), kept in the store
+        # across restarts; None while it runs.
+        self.hold_reason: str | None = store.hold_reason(name)
         self.selected: Path | None = None  # OctoPrint's selected file, started by "start"
         # The last job, kept after it ended (OctoPrint shows its file and final progress
         # until another file is selected), with how and when it ended.
@@ -128,9 +131,13 @@ class PrinterService:
         self._wake = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
         self._stopping = False
+        self.stop_timeout = SAFE_STOP_TIMEOUT  # how long stop() waits for a safe stop
         self._paused = False
         self._forwarding: asyncio.Task[None] | None = None
         self._connecting: asyncio.Task[None] | None = None
+        # The session that owes the store's owed safe stop: only its own confirmation
+        # settles it (another session confirmed nothing of it).
+        self._owed_by: rh.Printer | None = None
         self._starting: int | None = None  # the job being started
         self._cancel_starting = False
         self._ended = asyncio.Event()  # a job ended and was recorded
@@ -161,9 +168,11 @@ class PrinterService:
         if running is not None and not running.job.done:
             if not running.job.stopping:
                 running.job.stop(rh.JobError(SERVER_STOPPED))
-            if not await self._ending(SAFE_STOP_TIMEOUT):
-                # Held up (a heat wait nothing breaks, a silent controller): the server does
-                # not wait for it. The job is recorded so, and its safe stop owed.
+            # Held up (a heat wait nothing breaks): it goes once the wait ends, so the whole
+            # stop timeout is given to it.
+            if not await self._ending(self.stop_timeout, held_up_too=True):
+                # Still held up (a long heat wait, a silent controller): the server does not
+                # wait for it. The job is recorded so, and its safe stop owed.
                 log.warning("printer %s: leaving the safe stop unconfirmed", self.name)
                 running.job.stop()
                 with contextlib.suppress(rh.HostError, TimeoutError):
@@ -192,7 +201,9 @@ class PrinterService:
     # --- the loop -------------------------------------------------------------------
 
     async def _run(self) -> None:
-        await self._connect()
+        self.connect()
+        assert self._connecting is not None
+        await self._connecting
         while not self._stopping:
             try:
                 await self._next()
@@ -205,11 +216,12 @@ class PrinterService:
         printer = self.printer
         assert printer is not None
         if (
-            printer.state is rh.State.READY
+            printer is self._owed_by
+            and printer.state is rh.State.READY
             and not printer.owed_safe_stop
             and self.store.owing(self.name)
         ):
-            self._sent()  # the session sent it, once the printer answered
+            self._sent()  # the session that owed it sent it, once the printer answered
         record = None
         if printer.state is rh.State.READY and not self.held:
             record = await self.queue.take(self.name)
@@ -229,6 +241,7 @@ class PrinterService:
             owed = self.store.heaters(self.name) if self.store.owing(self.name) else None
             try:
                 self.printer = await self.config.connect(self.user, self._heard, owed)
+                self._owed_by = self.printer if owed is not None else None
             except rh.HostError as exc:
                 if str(exc) != self.last_error:
                     log.warning("printer %s: %s (trying again)", self.name, exc)
@@ -253,14 +266,16 @@ class PrinterService:
             where = f"{event.port} at {event.baud} baud"
             log.log(level, "printer %s: %s: %s", self.name, where, event.text)
 
-    async def _ending(self, patience: float) -> bool:
+    async def _ending(self, patience: float, held_up_too: bool = False) -> bool:
         """Wait until the running job ended, for at most ``patience`` seconds, or until its
-        safe stop is said to be held up; True when it ended."""
+        safe stop is said to be held up (unless ``held_up_too``); True when it ended."""
         running = self.running
         if running is None:
             return True
         ending: asyncio.Future[Any] = asyncio.ensure_future(running.job.wait())
-        held: asyncio.Future[Any] = asyncio.ensure_future(self._held.wait())
+        held: asyncio.Future[Any] = asyncio.ensure_future(
+            asyncio.Event().wait() if held_up_too else self._held.wait()
+        )
         try:
             await asyncio.wait([ending, held], timeout=patience, return_when="FIRST_COMPLETED")
         finally:
@@ -285,6 +300,7 @@ class PrinterService:
 
     def _sent(self) -> None:
         """The safe stop the printer was owed went: its jobs' records say so."""
+        self._owed_by = None
         for job_id in self.store.safe_stop_sent(self.name):
             log.info("printer %s: job %d's safe stop went", self.name, job_id)
             self.job_changed(job_id)
@@ -387,12 +403,13 @@ class PrinterService:
             # Owed to the printer's next contact, whatever the job is recorded as (and
             # after a restart too): the session sends it once the printer answers.
             self.store.owe_safe_stop(record.id)
+            self._owed_by = printer
             log.warning("printer %s: job %d's safe stop is owed", self.name, record.id)
         why = f": {error}" if error else ""
         log.info("printer %s: job %d %s%s", self.name, record.id, state, why)
         if not self.automatic_transition:
             # The part is still on the bed: the next job waits for someone to say so.
-            self.held = True
+            self.hold(f"job {record.id} {state}: its part may still be on the bed")
         self.job_changed(record.id)
         self._state_changed()
         self._ended.set()
@@ -615,14 +632,22 @@ class PrinterService:
         self._print_time = (key, time.monotonic(), seconds)
         return seconds
 
-    def hold(self) -> None:
-        """Start no more jobs (the running one goes on) until :meth:`release`."""
-        self.held = True
+    @property
+    def held(self) -> bool:
+        """The queue waits for a release."""
+        return self.hold_reason is not None
+
+    def hold(self, reason: str = "held on request") -> None:
+        """Start no more jobs (the running one goes on) until :meth:`release`; the hold
+        outlives a restart and a kill -9."""
+        self.store.hold(self.name, reason)
+        self.hold_reason = reason
         self._state_changed()
 
     def release(self) -> None:
         """Let the queue run again (after an interrupted job was looked at)."""
-        self.held = False
+        self.store.release(self.name)
+        self.hold_reason = None
         self.wake()
         self._state_changed()
 
@@ -668,7 +693,10 @@ class PrinterService:
         self._state_changed()
 
     def connect(self) -> None:
-        """Open the port again after :meth:`disconnect` (in the background, as OctoPrint)."""
+        """Open the port (at start, and again after :meth:`disconnect`, as OctoPrint's
+        connect) in the background. One connect loop per printer: a second one would race
+        the running session's own reconnect for the port, and a session that took it would
+        owe nothing the job's session owes."""
         printer = self.printer
         if printer is not None and printer.state is not rh.State.CLOSED:
             return
@@ -688,6 +716,16 @@ class PrinterService:
             raise Refused(f"printer {self.name}: {exc}") from None
         except TimeoutError:
             raise Refused(f"{line}: no reply within {COMMAND_TIMEOUT:.0f} s", 504) from None
+
+    async def emergency_first(self, lines: Sequence[str]) -> bool:
+        """An emergency line goes whatever surrounds it: when one of ``lines`` is M112, the
+        emergency stop goes now, and True: nothing else of them goes (no move after an
+        emergency stop; the session turns the heaters off itself)."""
+        if not any(command_word(line.strip().upper()) == "M112" for line in lines):
+            return False
+        log.warning("printer %s: emergency stop (M112)", self.name)
+        await self.command("M112")
+        return True
 
     async def cancel(self, job_id: int | None = None) -> bool:
         """Cancel the running job (``job_id``, or whichever runs) with its safe stop first,

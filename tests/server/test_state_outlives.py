@@ -1,0 +1,142 @@
+"""What must outlive a server process (issue 48): one connect loop per printer, a safe stop
+a stop could not finish left owed and said by the exit code, and the "part on the bed" hold
+kept across SIGTERM and ``kill -9``. A real server on the pty fake, read at the fake: its
+heater targets and executed log, not the server's account."""
+
+from __future__ import annotations
+
+import signal
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+
+from repetrel_host.fakes.fake_controller import BuiltInFake
+from tests.support.helpers import TWO_HOTENDS, executed
+from tests.support.helpers import heater_targets as targets
+from tests.support.server import Server, job_state, server_config, wait_for
+
+pytestmark = pytest.mark.timeout(150)
+HEATING = "M140 S60\nM104 T0 S200\nM104 T1 S210\nT1\n"
+MOVES = "".join(f"G1 X{i % 50} F600\n" for i in range(3000))
+ALL_OFF = {"T": 0.0, "T1": 0.0, "B": 0.0}
+EXIT_SAFE_STOP_OWED = 75
+
+
+def ran(fake: BuiltInFake, command: str) -> bool:
+    fake.request("status")  # the log is flushed before the answer
+    return command in executed(fake.log_path)
+
+
+def queue(client: httpx.Client, text: str, name: str = "two.gcode") -> int:
+    answer = client.post("/v1/printers/bench/jobs", files={"file": (name, text)})
+    assert answer.status_code == 201, answer.text
+    return int(answer.json()["id"])
+
+
+def printer(client: httpx.Client) -> dict[str, Any]:
+    answer: dict[str, Any] = client.get("/v1/printers/bench").json()
+    return answer
+
+
+@pytest.mark.parametrize("protocol", ["reprap", "hyrel"])
+def test_a_connect_asked_for_while_offline_starts_no_second_connect_loop(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server], tmp_path: Path, protocol: str
+) -> None:
+    """OctoPrint's connect and Moonraker's restart while the port is away join the one
+    connect loop: nothing else takes the port, so the job's session sends its own safe
+    stop after a lost link, and the record says so only once it went."""
+    fake = bench("--protocol", protocol, *TWO_HOTENDS, "--move-time", "0.01")
+    assert fake.request("link_drop 3")["ok"]
+    config = server_config(tmp_path, bench={"port": fake.port, "protocol": protocol})
+    server = servers({}, "--config", str(config))
+    with server.client() as client:
+        for _ in range(3):
+            connect = client.post("/api/connection", json={"command": "connect"})
+            assert connect.status_code == 204, connect.text
+        server.wait_ready("bench")
+        job = queue(client, HEATING + MOVES)
+        wait_for(lambda: ran(fake, "G1 X20 F600"), what="the moves")
+        assert fake.request("link_drop 2")["ok"]
+        wait_for(lambda: job_state(client, job)["state"] != "printing", 60, "the job's end")
+        wait_for(lambda: targets(fake) == ALL_OFF, what=f"every heater off: {targets(fake)}")
+        record = job_state(client, job)
+    log = server.stderr.read_text()
+    assert "the port is busy" not in log, log
+    assert log.count("connected on") == 1, log
+    assert record["safe_stop"] != "owed", record
+
+
+@pytest.mark.parametrize("protocol", ["reprap", "hyrel"])
+def test_the_hold_after_a_job_outlives_sigterm_and_kill_9(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server], tmp_path: Path, protocol: str
+) -> None:
+    fake = bench("--protocol", protocol)
+    config = server_config(tmp_path, bench={"port": fake.port, "protocol": protocol})
+    server = servers({}, "--config", str(config))
+    with server.client() as client:
+        first = queue(client, "G1 X1 F600\nG1 X2 F600\n", "first.gcode")
+        wait_for(lambda: job_state(client, first)["state"] == "completed", what="the first job")
+        held = printer(client)
+        assert held["held"] and f"job {first} completed" in held["hold_reason"], held
+    for signum in (signal.SIGTERM, signal.SIGKILL):
+        server.stop(signum)
+        server = servers({}, "--config", str(config)).wait_ready("bench")
+        with server.client() as client:
+            after = printer(client)
+            assert after["held"] and after["hold_reason"] == held["hold_reason"], (signum, after)
+    with server.client() as client:
+        second = queue(client, "G1 X7 F600\n", "second.gcode")
+        time.sleep(2)  # it would have started by now
+        assert job_state(client, second)["state"] == "queued"
+        assert not ran(fake, "G1 X7 F600")  # nothing printed onto the last part
+        assert client.post("/v1/printers/bench/release").status_code == 204
+        wait_for(lambda: job_state(client, second)["state"] == "completed", what="the release")
+        assert ran(fake, "G1 X7 F600")
+    server.stop(signal.SIGKILL)
+    server = servers({}, "--config", str(config)).wait_ready("bench")
+    with server.client() as client:  # held again by the second job, not by the first
+        assert f"job {second} completed" in printer(client)["hold_reason"]
+
+
+def test_a_stop_held_up_by_a_heat_wait_exits_75_and_the_next_start_sends_the_safe_stop(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server], tmp_path: Path
+) -> None:
+    """No emergency parser: nothing breaks the M190 before the bed is there. The stop waits
+    --stop-timeout, leaves the safe stop owed, says so and exits 75 (systemd's
+    Restart=on-failure starts it again); the next start sends it."""
+    fake = bench("--heat-rate", "1", "--no-emergency-parser")
+    config = server_config(tmp_path, bench={"port": fake.port})
+    server = servers({}, "--config", str(config), "--stop-timeout", "2")
+    with server.client() as client:
+        job = queue(client, "M104 S200\nM140 S60\nM190 S60\n" + MOVES)
+        wait_for(lambda: ran(fake, "M140 S60"), what="the heat wait")
+    assert server.stop(signal.SIGTERM) == EXIT_SAFE_STOP_OWED
+    log = server.stderr.read_text()
+    assert "exiting with 75: the safe stop of printer bench is owed" in log, log
+    assert targets(fake)["T"] == 200.0  # still on: the stop did not go
+    restarted = servers({}, "--config", str(config))
+    with restarted.client() as client:
+        wait_for(lambda: targets(fake) == {"T": 0.0, "B": 0.0}, 90, "the owed safe stop")
+        wait_for(lambda: job_state(client, job)["safe_stop"] == "sent", what="its record")
+        assert printer(client)["held"]  # the interrupted job's part may be on the bed
+    assert restarted.stop(signal.SIGTERM) == 0
+
+
+def test_a_stop_timeout_long_enough_finishes_the_safe_stop_behind_a_heat_wait(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server], tmp_path: Path
+) -> None:
+    fake = bench("--heat-rate", "10", "--no-emergency-parser")
+    config = server_config(tmp_path, bench={"port": fake.port})
+    server = servers({}, "--config", str(config), "--stop-timeout", "60")
+    with server.client() as client:
+        job = queue(client, "M104 S200\nM140 S60\nM190 S60\n" + MOVES)
+        wait_for(lambda: ran(fake, "M140 S60"), what="the heat wait")
+    assert server.stop(signal.SIGTERM) == 0
+    assert targets(fake) == {"T": 0.0, "B": 0.0}
+    restarted = servers({}, "--config", str(config))
+    with restarted.client() as client:
+        assert job_state(client, job)["safe_stop"] is None
