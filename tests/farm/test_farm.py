@@ -143,9 +143,16 @@ def test_a_node_killed_mid_job_leaves_it_interrupted_and_rejoins(
 ) -> None:
     pla = loadout(tmp_path, "pla", (1, "MK1-250", "PLA"))
     start_node(farm, "a", {"a1": {"loadout": pla}}, fake_args=("--move-time", "0.004"))
-    start_node(farm, "b", {"b1": {"loadout": pla}})
-    answer = farm.submit("b", part("500", moves=3000, unique=True), "long.gcode", "printer=a1")
-    (long_job,) = answer.json()["jobs"]
+    b = start_node(farm, "b", {"b1": {"loadout": pla}})
+    source = tmp_path / "long.gcode"
+    source.write_bytes(part("500", moves=3000, unique=True))
+    # Followed from a terminal, through node b: told when a is lost, not "printing".
+    follower = subprocess.Popen(
+        [sys.executable, "-m", "repetrel_host.cli", str(source), "--server", b.server.url,
+         "--api-key", KEY, "--farm", "--require", "printer=a1"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+    long_job = 1  # the farm's first
     farm.wait(lambda: _printing(farm, long_job), what="the long job to stream on a1")
     farm.nodes["a"].server.stop(signal.SIGKILL)
     others = [
@@ -157,7 +164,17 @@ def test_a_node_killed_mid_job_leaves_it_interrupted_and_rejoins(
         what="the long job to be interrupted",
     )
     assert "node a stopped answering" in interrupted["error"]
-    assert interrupted["last_line"] > 50
+    assert interrupted["last_line"] > 50 and interrupted["expected_end"] is None
+    try:
+        followed, _ = follower.communicate(timeout=30)
+    finally:
+        follower.kill()
+    assert follower.returncode == 4, followed  # a controller error's: it did not complete
+    assert (
+        "farm job 1 was interrupted: node a stopped answering (its lease ran out): the job "
+        "was streaming there; the part may be on its bed"
+    ) in followed
+    assert "--farm --resume 1" in followed.splitlines()[-1]
     farm.wait(lambda: all(farm.jobs()[j]["state"] == "completed" for j in others))
     assert where_ran(farm, "500") == [("a", "a1")]
     for n in range(3):
@@ -172,6 +189,13 @@ def test_a_node_killed_mid_job_leaves_it_interrupted_and_rejoins(
     assert job["state"] == "interrupted" and "server ended" in job["error"]
     assert job["last_line"] >= interrupted["last_line"]
     assert job["resume_from_line"] == job["last_line"] + 1
+    # Its owed safe stop went once a1 answered: the farm's record says so, as a's log does.
+    job = farm.wait(lambda: (j := farm.jobs()[long_job])["safe_stop"] == "sent" and j)
+    assert job["error"] == (
+        "the server ended while the job was streaming (its safe stop went once the printer "
+        "answered again)"
+    )
+    assert f"job {job['local_id']}'s safe stop went" in node.server.stderr.read_text()
     with node.client() as client:
         assert client.get("/v1/printers/a1").json()["held"] is True
         local = client.get(f"/v1/jobs/{job['local_id']}").json()
@@ -197,6 +221,22 @@ def test_a_node_killed_mid_job_leaves_it_interrupted_and_rejoins(
     assert "completed on a1 at node a" in went_on.stdout
     rest = max(farm.jobs())
     assert farm.jobs()[rest]["resumes"] == long_job and farm.jobs()[rest]["from_line"] == line
+    # The rest's lines are what it printed of its own: all of them.
+    assert farm.jobs()[rest]["lines"] == farm.jobs()[rest]["total_lines"] == 3003 - line
+    # Resumed: not offered again, and refused in a sentence if asked.
+    resumed = farm.jobs()[long_job]
+    assert (resumed["state"], resumed["resumed_by"], resumed["resume_command"]) == (
+        "resumed",
+        rest,
+        None,
+    )
+    again = hyrel_send("--server", node.server.url, "--api-key", KEY, "--farm",
+                       "--resume", str(long_job))  # fmt: skip
+    assert again.returncode != 0 and "Traceback" not in again.stderr
+    assert (
+        f"farm job {long_job} was resumed already, as farm job {rest}: that job prints its "
+        "rest (resume that one if it did not complete) (HTTP 409)"
+    ) in again.stderr
     moves = [entry for entry in node.ran("a1") if " Y500 " in entry]
     expected = [f"G1 X{i * 0.1:.1f} Y500 F6000" for i in range(line - 3, 3000)]
     assert moves[-len(expected) :] == expected
@@ -300,7 +340,7 @@ def test_hyrel_send_and_a_slicers_upload_feed_the_farm_and_a_held_printer_waits(
     assert "cube.gcode: queued in the farm as job 1 (material=PLA)" in sent.stdout
     assert "farm job 1 (cube.gcode): printing on a1 at node a" in sent.stdout
     assert "farm job 1: 32 lines (to line 32)" in sent.stdout
-    assert {"kind": "job", "jobs": [1], "queued": True, "type": "farm"} in told
+    assert {"kind": "job", "jobs": [1], "queued": True, "state": "queued", "type": "farm"} in told
     # The part is on a1's bed: a slicer's "Upload and Print" waits in the farm's queue.
     octoprint = httpx.Client(base_url=f"{url}/farm", headers={"X-Api-Key": KEY}, timeout=30)
     with octoprint:

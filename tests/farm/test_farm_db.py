@@ -143,7 +143,7 @@ async def test_an_estimate_is_told_and_a_recovered_job_starts_with_the_whole_fil
     assert await db.report(claim["id"], claim["fence"], fields, T)
     assert (await db.job(claim["id"], T))["expected_end"] is None
     # Its rest: the whole file's estimate until the rest is planned.
-    rest = await db.recover(claim["id"], 2, T)
+    rest = await db.recover(claim["id"], 2, 1, T)
     recovered = await db.job(rest, T)
     assert (recovered["estimated_time"], recovered["estimate_of"]) == (2520.0, "file")
     await db.estimated([rest], 1200.0, "rest", T)
@@ -225,3 +225,99 @@ async def test_an_older_schema_is_migrated_once_in_order(farm_db: str) -> None:
         }
     assert versions == list(range(1, len(MIGRATIONS) + 1))
     assert {"from_line", "resumes", "estimated_time", "estimate_of", "expected_end"} <= columns
+
+
+def done(state: str, **more: Any) -> dict[str, Any]:
+    """A node's report of a job (its record's fields)."""
+    return {
+        "state": state, "lines": 1, "last_line": 1, "started": 1.0, "ended": 2.0,
+        "error": None, "report": None, "filament": None, "safe_stop": None, "local_id": 1,
+        **more,
+    }  # fmt: skip
+
+
+async def test_a_lost_lease_is_told_with_its_state_and_ends_the_expected_end(
+    db: FarmDB, tmp_path: Path
+) -> None:
+    printers = {"p": caps("p", "a")}
+    a = await node(db, "a", printers, lease=1)
+    b = await node(db, "b", {"q": caps("q", "b")})
+    (job,) = await queue(db, tmp_path, 1)
+    claim = await db.claim(a, "p", printers["p"], T)
+    assert claim is not None and await db.start(job, claim["fence"], T)
+    printing = done("printing", ended=None, expected_end=2_000_000_000.0)
+    assert await db.report(job, claim["fence"], printing, T)
+    assert (await db.job(job, T))["expected_end"] == 2_000_000_000.0
+    await asyncio.sleep(1.5)
+    listener = await db.listen()
+    async with listener:
+        await db.heartbeat(b, 30, T)
+        told = [json.loads(n.payload) async for n in listener.notifies(timeout=1.0)]
+    said = next(m for m in told if m.get("job") == job)
+    assert said["state"] == "interrupted" and "node a stopped answering" in said["error"]
+    ended = await db.job(job, T)
+    assert ended["state"] == "interrupted" and ended["expected_end"] is None
+
+
+async def test_a_job_is_resumed_once_even_by_two_at_once(db: FarmDB, tmp_path: Path) -> None:
+    from repetrel_host.server.farm.states import Refused
+
+    printers = {"p": caps("p", "a")}
+    a = await node(db, "a", printers)
+    (job,) = await queue(db, tmp_path, 1)
+    claim = await db.claim(a, "p", printers["p"], T)
+    assert claim is not None and await db.start(job, claim["fence"], T)
+    assert await db.report(job, claim["fence"], done("interrupted"), T)
+    both = await asyncio.gather(
+        db.recover(job, 2, 1, T), db.recover(job, 2, 1, T), return_exceptions=True
+    )
+    made = [answer for answer in both if isinstance(answer, int)]
+    refused = [answer for answer in both if isinstance(answer, Refused)]
+    assert len(made) == 1 and len(refused) == 1, both
+    rest = made[0]
+    assert str(refused[0]) == (
+        f"farm job {job} was resumed already, as farm job {rest}: that job prints its rest "
+        "(resume that one if it did not complete)"
+    )
+    resumed = await db.job(job, T)
+    assert (resumed["state"], resumed["resumed_by"]) == ("resumed", rest)
+    assert (await db.job(rest, T))["total_lines"] == 1  # the rest's lines, not the file's
+    # Its node's later word that it ended (its record, after a restart) keeps "resumed",
+    # and what it says of the safe stop is taken.
+    went = "the server ended while the job was streaming (its safe stop went once ...)"
+    assert await db.report(
+        job, claim["fence"], done("interrupted", error=went, safe_stop="sent"), T
+    )
+    after = await db.job(job, T)
+    assert (after["state"], after["safe_stop"], after["error"]) == ("resumed", "sent", went)
+    with pytest.raises(Refused, match="resumed already"):
+        await db.recover(job, 2, 1, T)
+    with psycopg.connect(db.url) as connection, pytest.raises(psycopg.errors.CheckViolation):
+        connection.execute("UPDATE jobs SET state = 'resuming' WHERE id = %s", (job,))
+
+
+async def test_a_resumed_job_whose_node_went_on_cancels_its_queued_rest(
+    db: FarmDB, tmp_path: Path
+) -> None:
+    """A node cut from the database, not stopped: the farm took its job for interrupted and
+    someone resumed it; the node comes back saying it completed. Its rest must not print
+    on the finished part."""
+    printers = {"p": caps("p", "a")}
+    a = await node(db, "a", printers, lease=1)
+    b = await node(db, "b", {"q": caps("q", "b")})
+    (job,) = await queue(db, tmp_path, 1)
+    claim = await db.claim(a, "p", printers["p"], T)
+    assert claim is not None and await db.start(job, claim["fence"], T)
+    await asyncio.sleep(1.5)
+    assert [row["id"] for row in await db.heartbeat(b, 30, T)] == [job]
+    rest = await db.recover(job, 2, 1, T)
+    assert await db.report(job, claim["fence"], done("completed"), T)
+    completed, cancelled = await db.job(job, T), await db.job(rest, T)
+    assert (completed["state"], completed["resumed_by"]) == ("completed", None)
+    assert cancelled["state"] == "cancelled"
+    assert cancelled["error"] == (
+        f"farm job {job} went on at its node after all (completed): its rest is not needed"
+    )
+    # A completed job stays completed whatever comes after.
+    assert await db.report(job, claim["fence"], done("interrupted"), T)
+    assert (await db.job(job, T))["state"] == "completed"

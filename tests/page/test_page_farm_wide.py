@@ -93,6 +93,11 @@ def test_the_page_shows_every_node_and_sends_a_file_to_the_farm(
         "the rest of the job queued",
     )
     assert rest["from_line"] == farm.jobs()[cut]["last_line"] + 1
+    # Resumed: the page offers it no more (the farm would refuse a second rest).
+    row = f'.farm-jobs tr[data-job="{cut}"]'
+    browser.wait(lambda: browser.attributes(row, "data-state") == ["resumed"], "resumed")
+    assert not browser.all(f"{row} button.resume")
+    assert browser.text(f"{row} .resumed-as") == f"rest: job {rest['id']}"
     farm.wait(lambda: farm.jobs()[rest["id"]]["state"] == "completed", what="the rest")
     assert farm.jobs()[rest["id"]]["printer"] == "a2"
     SCREENSHOTS.mkdir(exist_ok=True)

@@ -246,7 +246,8 @@ def test_kill_9_mid_job_keeps_the_queue_and_marks_the_job_interrupted(
     with restarted.client() as client:
         record = job_state(client, first_id)
         assert record["state"] == "interrupted"
-        assert "its safe stop was not sent" in record["error"]
+        # Not sent as the server ended; sent once the printer answered (maybe by now).
+        assert record["error"].startswith("the server ended while the job was streaming")
         # Acknowledged through at least the line on record: it did run.
         assert 200 < record["last_line"] <= len(ran)
         assert job_state(client, second_id)["state"] == "queued"
@@ -255,6 +256,9 @@ def test_kill_9_mid_job_keeps_the_queue_and_marks_the_job_interrupted(
         # The interrupted job's safe stop goes first, then nothing starts by itself.
         wait_for(lambda: executed(fake.log_path)[-7:] == MARLIN_SAFE_STOP, what="the safe stop")
         time.sleep(1.0)
+        assert (
+            "its safe stop went once the printer answered" in job_state(client, first_id)["error"]
+        )
         assert job_state(client, second_id)["state"] == "queued"
         assert client.post("/v1/printers/bench/release").status_code == 204
         wait_for(lambda: job_state(client, second_id)["state"] == "completed", what="job 2")

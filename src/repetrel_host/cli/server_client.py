@@ -287,7 +287,9 @@ def farm_follow(
 ) -> int:
     """Follow farm jobs to their ends through the farm's events (subscribed to before
     they were submitted: nothing is missed, and each change comes in the order it was
-    made), telling each change of state; hyrel-send's exit code (the worst of theirs)."""
+    made, with the job's new state), telling each change of state; hyrel-send's exit code
+    (the worst of theirs). A job interrupted (its node lost) ends the following, saying
+    why and how to go on with it."""
     shown: dict[int, str] = {}
     codes: dict[int, int] = {}
     hinted: set[int] = set()
@@ -302,10 +304,20 @@ def farm_follow(
             show(f"farm job {job_id} ({job['name']}): {state}{where}")
         if state in ENDED:
             line = f"farm job {job_id}: {job['lines']} lines (to line {job['last_line']})"
-            show(f"{line}: {job['error']}" if job["error"] else line)
+            if state == "interrupted":  # its node stopped, or stopped answering: say why
+                show(f"farm job {job_id} was interrupted: {job['error'] or 'its node stopped'}")
+                show(line)
+            else:
+                show(f"{line}: {job['error']}" if job["error"] else line)
             if job["resume_command"]:
                 show(f"farm job {job_id}: to go on with it: {job['resume_command']}")
             codes[job_id] = ENDED[state]
+            if job.get("safe_stop") == "owed":
+                show(
+                    f"not safe: farm job {job_id}'s safe stop was not confirmed; its node "
+                    "sends it as soon as the printer answers"
+                )
+                codes[job_id] = EXIT_NOT_SAFE
         elif state == "queued" and job_id not in hinted:
             hint = _waiting_hint(client, job_id)  # its printers all held or offline
             if hint:

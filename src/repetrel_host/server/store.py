@@ -26,6 +26,11 @@ from repetrel_host.protocol.reports import JobReport
 
 PROGRESS_INTERVAL = 0.5  # seconds between progress records of a streaming job
 CRASHED = "the server ended while the job was streaming (its safe stop was not sent)"
+# The same job's error once its owed safe stop went: the record says what is true now.
+CRASHED_SENT = (
+    "the server ended while the job was streaming (its safe stop went once the printer "
+    "answered again)"
+)
 REPORT_END = "End M773"  # the report's last line but its stars: it came whole
 
 _SCHEMA = """
@@ -560,13 +565,15 @@ class Store:
         return str(found[0]) if found is not None else None
 
     def safe_stop_sent(self, printer: str) -> list[int]:
-        """The safe stop the printer was owed went (and was confirmed); returns those jobs."""
+        """The safe stop the printer was owed went (and was confirmed); returns those jobs.
+        An error that said it was not sent says it went now (a farm reports the record)."""
         owed = self.owing(printer)
         with self._transaction() as db:
             db.execute(
-                "UPDATE jobs SET safe_stop = ?, version = version + 1 WHERE printer = ?"
-                " AND safe_stop = ?",
-                (SENT, printer, OWED),
+                "UPDATE jobs SET safe_stop = ?, version = version + 1,"
+                " error = CASE WHEN error = ? THEN ? ELSE error END"
+                " WHERE printer = ? AND safe_stop = ?",
+                (SENT, CRASHED, CRASHED_SENT, printer, OWED),
             )
         return owed
 

@@ -25,10 +25,11 @@ import repetrel_host as rh
 from repetrel_host.config import UserConfig
 from repetrel_host.gcode.lint import Severity
 from repetrel_host.server.auth import user_of
-from repetrel_host.server.farm import needs
+from repetrel_host.server.farm import needs, states
 from repetrel_host.server.farm.node import FILE_TIMEOUT, TIMEOUT, FarmNode
 from repetrel_host.server.print_server import PrintServer, server_of
 from repetrel_host.server.uploads import receive, safe_file_name
+from repetrel_host.session.job import Job, JobLine
 from repetrel_host.session.planning import JobRequest, layer_line, plan_job
 from repetrel_host.session.workers import in_worker
 
@@ -68,7 +69,8 @@ async def _asked(call: Any, timeout: float = TIMEOUT) -> Any:
 def job_json(job: dict[str, Any], nodes: dict[str, dict[str, Any]], here: str) -> dict[str, Any]:
     """A farm job as the API shows it (``here``: this node's URL, for its recovery command)."""
     node = nodes.get(job["node"] or "")
-    recoverable = job["state"] in ("interrupted", "failed", "cancelled") and job["last_line"] > 0
+    # A resumed job is not offered again: its rest is queued (or printed) as resumed_by.
+    recoverable = job["state"] in states.RESUMABLE and job["last_line"] > 0
     shown = {key: value for key, value in job.items() if key not in ("fence", "refused")}
     return {
         **shown,
@@ -126,6 +128,11 @@ def free_at(printer: dict[str, Any], job: dict[str, Any] | None) -> float | None
     if printer["lost"] or printer["state"] != "printing" or job is None:
         return None
     return job["expected_end"] if job["state"] == "printing" else None
+
+
+def rest_lines(path: Path, line: int) -> int:
+    """The lines a job from ``line`` of ``path`` sends (in a thread: it reads the file)."""
+    return sum(isinstance(item, JobLine) for item in Job(path).items(start=line))
 
 
 def _plan_elsewhere(path: Path, printer: dict[str, Any], user: UserConfig) -> Any:
@@ -305,22 +312,30 @@ def router() -> APIRouter:
         found = await _asked(farm.db.job(job_id, TIMEOUT))
         if found is None:
             raise HTTPException(404, f"the farm has no job {job_id}")
+        if found["state"] not in states.RESUMABLE:  # said before any file is fetched
+            refusal = states.resume_refusal(job_id, found["state"], found["resumed_by"])
+            raise HTTPException(409, refusal)
+        if wanted.from_layer is not None and wanted.from_line is not None:
+            raise HTTPException(400, "from_layer and from_line both say where: give one")
         line = wanted.from_line or found["last_line"] + 1
-        if wanted.from_layer is not None:
-            if wanted.from_line is not None:
-                raise HTTPException(400, "from_layer and from_line both say where: give one")
-            path = farm.cache_path(found["file"], found["name"])
+        path = farm.cache_path(found["file"], found["name"])
+        # The rest's lines to send: those after the ones acknowledged, or counted in the file
+        # from the line asked for (a resumed job's "lines a/b" are of what it prints).
+        rest = max(found["total_lines"] - found["lines"], 0)
+        if wanted.from_layer is not None or wanted.from_line is not None or path.exists():
             if not path.exists():
                 await _asked(farm.db.fetch_file(found["file"], path, TIMEOUT), FILE_TIMEOUT)
             try:
-                line = await asyncio.to_thread(layer_line, path, wanted.from_layer)
-            except rh.UsageError as exc:
+                if wanted.from_layer is not None:
+                    line = await asyncio.to_thread(layer_line, path, wanted.from_layer)
+                rest = await asyncio.to_thread(rest_lines, path, line)
+            except rh.HostError as exc:
                 raise HTTPException(400, str(exc)) from None
         try:
-            made = await _asked(farm.db.recover(job_id, line, TIMEOUT))
+            made = await _asked(farm.db.recover(job_id, line, rest, TIMEOUT))
         except LookupError as exc:
             raise HTTPException(404, str(exc)) from None
-        except ValueError as exc:
+        except ValueError as exc:  # resumed meanwhile (states.Refused), or never printed
             raise HTTPException(409, str(exc)) from None
         log.info("farm: job %d recovered from line %d as job %d", job_id, line, made)
         # Its estimate is the whole file's (copied) until the rest is planned: here, when

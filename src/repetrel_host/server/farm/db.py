@@ -7,7 +7,10 @@ psycopg 3: one library for the async server and for the synchronous tests and be
 
 Every method is one transaction. A change that others should see sends a notification on
 the channel ``farm`` in the same transaction (delivered when it commits): ``{"kind":
-"job"|"node"|"printer"|"cancel", ...}``.
+"job"|"node"|"printer"|"cancel", ...}``. Every change of a job's state goes through
+:meth:`FarmDB._move`, checked against the table of states.py and guarded on the state it
+was in (two people resuming one job: one wins, the other is refused), and its notification
+carries the new state (``{"kind": "job", "job": 12, "state": "interrupted"}``).
 
 A job's estimate (``estimated_time``: planned seconds) is filled after its submit, once the
 node that received the file has planned it (``{"kind": "job", "jobs": [...], "estimated":
@@ -29,7 +32,9 @@ from psycopg.rows import dict_row
 from psycopg.types.json import Jsonb
 from psycopg_pool import AsyncConnectionPool
 
+from repetrel_host.server.farm import states
 from repetrel_host.server.farm.schema import migrate
+from repetrel_host.server.farm.states import Refused
 
 CHANNEL = "farm"
 CHUNK = 1 << 20  # a file goes in and out a megabyte at a time: never whole in memory
@@ -44,12 +49,12 @@ CONNECTION: dict[str, Any] = {
     "tcp_user_timeout": 8000,  # ms
     "application_name": "hyrel-server",
 }
-ACTIVE = ("claimed", "printing", "paused")
+ACTIVE = states.ACTIVE
 
 _JOB = """
     id, name, file, needs, priority, state, submitted_by, total_lines, node::text AS node,
     printer, fence, refused, lines, last_line, error, report, filament, safe_stop, local_id,
-    from_line, resumes, estimated_time, estimate_of,
+    from_line, resumes, resumed_by, estimated_time, estimate_of,
     extract(epoch FROM expected_end)::float8 AS expected_end,
     extract(epoch FROM submitted)::float8 AS submitted,
     extract(epoch FROM claimed)::float8 AS claimed,
@@ -114,6 +119,44 @@ class FarmDB:
     async def _notify(self, db: Any, message: dict[str, Any]) -> None:
         await db.execute("SELECT pg_notify(%s, %s)", (CHANNEL, json.dumps(message)))
 
+    async def _move(
+        self,
+        db: Any,
+        job: int,
+        was: str,
+        to: str,
+        sets: str = "",
+        params: dict[str, Any] | None = None,
+        told: dict[str, Any] | None = None,
+    ) -> dict[str, Any] | None:
+        """The one way a job's state changes: from ``was`` to ``to`` (Refused when the
+        table does not allow it), with more ``sets`` (SQL, its ``params`` by name), only
+        while the job is still ``was`` (and, given ``params["fence"]``, still that claim).
+        A job not printing has no expected end. The job as it is now; None when it was no
+        longer ``was``. A new state is notified, with ``told`` besides."""
+        if not states.allowed(was, to):
+            raise Refused(f"farm job {job} is {was}: it cannot become {to}")
+        values = {**(params or {}), "job": job, "was": was, "to": to}
+        query = "UPDATE jobs SET state = %(to)s, updated = now()"
+        if to != states.PRINTING:
+            query += ", expected_end = NULL"
+        if sets:
+            query += f", {sets}"
+        query += " WHERE id = %(job)s AND state = %(was)s"
+        if "fence" in values:
+            query += " AND fence = %(fence)s"
+        row = await (await db.execute(f"{query} RETURNING {_JOB}", values)).fetchone()
+        if row is not None and was != to:
+            await self._notify(db, {"kind": "job", "job": job, "state": to, **(told or {})})
+        return dict(row) if row is not None else None
+
+    async def _locked(self, db: Any, job: int) -> dict[str, Any] | None:
+        """The job, locked until the transaction ends (its state cannot change meanwhile)."""
+        row = await (
+            await db.execute(f"SELECT {_JOB} FROM jobs WHERE id = %s FOR UPDATE", (job,))
+        ).fetchone()
+        return dict(row) if row is not None else None
+
     # --- nodes and printers ----------------------------------------------------------
 
     async def register(
@@ -173,23 +216,33 @@ class FarmDB:
                     f"node {gone['name']} stopped answering (its lease ran out): the job was "
                     "streaming there; the part may be on its bed"
                 )
-                rows = await (
+                held = await (
                     await db.execute(
-                        "UPDATE jobs SET state = 'interrupted', ended = now(), updated = now(),"
-                        " error = %s WHERE node = %s AND state IN ('printing', 'paused')"
-                        " RETURNING id, printer, last_line",
-                        (why, gone["id"]),
+                        f"SELECT {_JOB} FROM jobs WHERE node = %s AND state = ANY(%s)"
+                        " ORDER BY id FOR UPDATE",
+                        (gone["id"], list(ACTIVE)),
                     )
                 ).fetchall()
-                await db.execute(
-                    "UPDATE jobs SET state = 'queued', node = NULL, printer = NULL,"
-                    " claimed = NULL, updated = now() WHERE node = %s AND state = 'claimed'",
-                    (gone["id"],),
-                )
-                interrupted += rows
                 await self._notify(db, {"kind": "node", "node": gone["id"], "lost": True})
-                for row in rows:
-                    await self._notify(db, {"kind": "job", "job": row["id"]})
+                for job in held:
+                    if job["state"] == states.CLAIMED:  # never started: another may take it
+                        sets = "node = NULL, printer = NULL, claimed = NULL"
+                        queued = {"queued": True}
+                        await self._move(
+                            db, job["id"], job["state"], states.QUEUED, sets, None, queued
+                        )
+                        continue
+                    moved = await self._move(
+                        db,
+                        job["id"],
+                        job["state"],
+                        states.INTERRUPTED,
+                        "ended = now(), error = %(why)s",
+                        {"why": why},
+                        {"error": why},
+                    )
+                    if moved is not None:
+                        interrupted.append(moved)
             return interrupted
 
     async def printer_state(
@@ -298,7 +351,7 @@ class FarmDB:
                 )
                 row = await cursor.fetchone()
                 ids.append(row["id"])
-            await self._notify(db, {"kind": "job", "jobs": ids, "queued": True})
+            await self._notify(db, {"kind": "job", "jobs": ids, "queued": True, "state": "queued"})
             return ids
 
     async def claim(
@@ -314,47 +367,47 @@ class FarmDB:
             await db.execute("SET LOCAL enable_sort = off")
             await db.execute("SET LOCAL enable_bitmapscan = off")
             cursor = await db.execute(
-                "WITH chosen AS (SELECT id AS chosen FROM jobs WHERE state = 'queued'"
+                "SELECT id FROM jobs WHERE state = 'queued'"
                 " AND %(caps)s @> needs"
                 " AND NOT refused ? %(key)s"
                 " AND EXISTS (SELECT 1 FROM nodes WHERE id = %(node)s AND lost_at IS NULL"
                 "   AND lease_until > now())"
-                " ORDER BY priority DESC, id LIMIT 1 FOR UPDATE SKIP LOCKED)"
-                " UPDATE jobs SET state = 'claimed', node = %(node)s, printer = %(printer)s,"
-                " fence = nextval('fence'), claimed = now(), updated = now()"
-                f" FROM chosen WHERE jobs.id = chosen.chosen RETURNING {_JOB}",
-                {"caps": Jsonb(caps), "key": key, "node": node, "printer": printer},
+                " ORDER BY priority DESC, id LIMIT 1 FOR UPDATE SKIP LOCKED",
+                {"caps": Jsonb(caps), "key": key, "node": node},
             )
-            row = await cursor.fetchone()
-            if row is not None:
-                await self._notify(db, {"kind": "job", "job": row["id"], "state": "claimed"})
-            return dict(row) if row is not None else None
+            chosen = await cursor.fetchone()
+            if chosen is None:
+                return None
+            sets = (
+                "node = %(node)s, printer = %(printer)s, fence = nextval('fence'), claimed = now()"
+            )
+            params = {"node": node, "printer": printer}
+            return await self._move(db, chosen["id"], states.QUEUED, states.CLAIMED, sets, params)
 
     async def give_back(self, job: int, fence: int, key: str, why: str, timeout: float) -> None:
         """A claimed job this printer cannot print (its lint says why): queued again, and
         never offered to this printer again."""
         async with self._transaction(timeout) as db:
-            await db.execute(
-                "UPDATE jobs SET state = 'queued', node = NULL, printer = NULL, claimed = NULL,"
-                " refused = refused || jsonb_build_object(%s::text, %s::text), updated = now()"
-                " WHERE id = %s AND fence = %s AND state = 'claimed'",
-                (key, why, job, fence),
+            sets = (
+                "node = NULL, printer = NULL, claimed = NULL,"
+                " refused = refused || jsonb_build_object(%(key)s::text, %(why)s::text)"
             )
-            await self._notify(db, {"kind": "job", "job": job, "queued": True})
+            params = {"key": key, "why": why, "fence": fence}
+            await self._move(db, job, states.CLAIMED, states.QUEUED, sets, params, {"queued": True})
 
     async def start(self, job: int, fence: int, timeout: float) -> bool:
         """The claim still holds (its token is the job's): the job may stream."""
         async with self._transaction(timeout) as db:
-            cursor = await db.execute(
-                "UPDATE jobs SET state = 'printing', started = COALESCE(started, now()),"
-                " updated = now() WHERE id = %s AND fence = %s AND state IN ('claimed', 'printing')"
-                " RETURNING id",
-                (job, fence),
+            found = await self._locked(db, job)
+            if found is None or found["fence"] != fence:
+                return False
+            if found["state"] not in (states.CLAIMED, states.PRINTING):
+                return False  # given back, or lost with its node's lease
+            sets = "started = COALESCE(started, now())"
+            moved = await self._move(
+                db, job, found["state"], states.PRINTING, sets, {"fence": fence}
             )
-            started = await cursor.fetchone() is not None
-            if started:
-                await self._notify(db, {"kind": "job", "job": job, "state": "printing"})
-            return started
+            return moved is not None
 
     async def report(self, job: int, fence: int, fields: dict[str, Any], timeout: float) -> bool:
         """What the node streaming the job knows of it (its state, lines acknowledged, its
@@ -368,22 +421,51 @@ class FarmDB:
             "fence": fence,
         }
         async with self._transaction(timeout) as db:
-            cursor = await db.execute(
-                "UPDATE jobs SET state = %(state)s, lines = %(lines)s, last_line = %(last_line)s,"
-                " started = to_timestamp(%(started)s), ended = to_timestamp(%(ended)s),"
-                " error = %(error)s, report = %(report)s, filament = %(filament)s,"
-                " safe_stop = %(safe_stop)s, local_id = %(local_id)s,"
-                " expected_end = to_timestamp(%(expected_end)s), updated = now()"
-                " WHERE id = %(job)s AND fence = %(fence)s"
-                " RETURNING (SELECT state FROM jobs WHERE id = %(job)s) AS was",
-                values,
-            )
-            row = await cursor.fetchone()
+            found = await self._locked(db, job)
+            if found is None or found["fence"] != fence:
+                return False
+            was, reported = found["state"], fields["state"]
+            to = states.after_report(was, reported)
+            sets = ""
+            went_on = was == states.RESUMED and reported in states.WENT_ON
+            if went_on and await self._cancel_rest(db, found, reported):
+                to, sets = reported, "resumed_by = NULL, "
             # A new state is told; progress is not: every printing printer reports it each
             # second, and notifying commits take turns on one lock in PostgreSQL.
-            if row is not None and row["was"] != fields["state"]:
-                await self._notify(db, {"kind": "job", "job": job, "state": fields["state"]})
-            return row is not None
+            await self._move(
+                db,
+                job,
+                was,
+                to,
+                sets + "lines = %(lines)s, last_line = %(last_line)s,"
+                " started = to_timestamp(%(started)s), ended = to_timestamp(%(ended)s),"
+                " error = %(error)s, report = %(report)s, filament = %(filament)s,"
+                " safe_stop = %(safe_stop)s, local_id = %(local_id)s"
+                + (
+                    ", expected_end = to_timestamp(%(expected_end)s)"
+                    if to == states.PRINTING
+                    else ""
+                ),
+                values,
+            )
+            return True
+
+    async def _cancel_rest(self, db: Any, job: dict[str, Any], reported: str) -> bool:
+        """A resumed job's node says it went on (it was cut from the database, not
+        stopped): its rest, while still queued, is cancelled (printing it would print on a
+        finished part); True then. False when the rest is under way already."""
+        rest = await self._locked(db, job["resumed_by"])
+        if rest is None or rest["state"] != states.QUEUED:
+            return False
+        why = (
+            f"farm job {job['id']} went on at its node after all ({reported}): "
+            "its rest is not needed"
+        )
+        sets, told = "ended = now(), error = %(why)s", {"why": why}
+        await self._move(
+            db, rest["id"], states.QUEUED, states.CANCELLED, sets, told, {"error": why}
+        )
+        return True
 
     async def estimated(self, jobs: list[int], seconds: float, of: str, timeout: float) -> None:
         """The jobs' planned print time: ``of`` the whole ``file``, or the ``rest`` from
@@ -395,23 +477,25 @@ class FarmDB:
             )
             await self._notify(db, {"kind": "job", "jobs": jobs, "estimated": True})
 
-    async def recover(self, job: int, from_line: int, timeout: float) -> int:
-        """Queue the rest of an ended job from ``from_line``, for the printer that printed
-        it (its part is on that bed); the new job's number, its estimate the whole file's
-        until the rest is planned. ValueError (a sentence) when the job cannot be
-        recovered."""
+    async def recover(self, job: int, from_line: int, rest_lines: int, timeout: float) -> int:
+        """Queue the rest of an ended job from ``from_line`` (``rest_lines`` lines to
+        send), for the printer that printed it (its part is on that bed); the job becomes
+        ``resumed`` (once: a second resume is refused). The new job's number, its estimate
+        the whole file's until the rest is planned. ValueError (a sentence) when the job
+        cannot be recovered."""
         async with self._transaction(timeout) as db:
+            # Locked: of two resumes at once, the second sees the first's "resumed".
             row = await (
                 await db.execute(
                     "SELECT j.*, n.name AS node_name FROM jobs j LEFT JOIN nodes n"
-                    " ON n.id = j.node WHERE j.id = %s",
+                    " ON n.id = j.node WHERE j.id = %s FOR UPDATE OF j",
                     (job,),
                 )
             ).fetchone()
             if row is None:
                 raise LookupError(f"the farm has no job {job}")
-            if row["state"] not in ("interrupted", "failed", "cancelled"):
-                raise ValueError(f"farm job {job} is {row['state']}: nothing to resume")
+            if row["state"] not in states.RESUMABLE:
+                raise Refused(states.resume_refusal(job, row["state"], row["resumed_by"]))
             if row["printer"] is None or row["node_name"] is None:
                 raise ValueError(f"farm job {job} never ran on a printer: queue it again")
             pinned = {"names": [f"{row['node_name']}/{row['printer']}"]}
@@ -425,7 +509,7 @@ class FarmDB:
                     row["file"],
                     Jsonb(pinned),
                     row["priority"],
-                    row["total_lines"],
+                    rest_lines,
                     row["submitted_by"],
                     from_line,
                     job,
@@ -434,7 +518,13 @@ class FarmDB:
                 ),
             )
             made = (await cursor.fetchone())["id"]
-            await self._notify(db, {"kind": "job", "jobs": [made], "queued": True})
+            await self._notify(
+                db, {"kind": "job", "jobs": [made], "queued": True, "state": "queued"}
+            )
+            sets, params = "resumed_by = %(made)s", {"made": made}
+            await self._move(
+                db, job, row["state"], states.RESUMED, sets, params, {"resumed_by": made}
+            )
             return int(made)
 
     async def cancel(self, job: int, timeout: float) -> dict[str, Any] | None:
@@ -446,13 +536,8 @@ class FarmDB:
             ).fetchone()
             if row is None:
                 return None
-            if row["state"] == "queued":
-                await db.execute(
-                    "UPDATE jobs SET state = 'cancelled', ended = now(), updated = now()"
-                    " WHERE id = %s",
-                    (job,),
-                )
-                await self._notify(db, {"kind": "job", "job": job, "state": "cancelled"})
+            if row["state"] == states.QUEUED:
+                await self._move(db, job, states.QUEUED, states.CANCELLED, "ended = now()")
             elif row["state"] in ACTIVE:
                 await self._notify(db, {"kind": "cancel", "job": job, "node": row["node"]})
             return dict(row)

@@ -216,6 +216,9 @@ class FarmNode:
                         job["last_line"],
                     )
                 if not self.ready:
+                    # What its printers did goes first: a job the farm took for lost may
+                    # have gone on (and its rest, resumed meanwhile, must not print).
+                    await self._push_records()
                     back = self.away_since is not None
                     self.ready, self.away_since, delay = True, None, 1.0
                     self._dirty = set(self.services)

@@ -89,6 +89,13 @@ MIGRATIONS: list[str] = [
     ALTER TABLE jobs ADD COLUMN estimate_of text;   -- 'file' (the whole) or 'rest' (from from_line)
     ALTER TABLE jobs ADD COLUMN expected_end timestamptz;  -- a printing job's, as its node sees it
     """,
+    # 4: a job resumed once (its rest's number), and only the states states.py knows.
+    """
+    ALTER TABLE jobs ADD COLUMN resumed_by bigint;  -- the job that prints its rest
+    ALTER TABLE jobs ADD CONSTRAINT jobs_state CHECK (state IN ('queued', 'claimed',
+        'printing', 'paused', 'completed', 'cancelled', 'failed', 'interrupted', 'resumed'));
+    UPDATE jobs SET expected_end = NULL WHERE state <> 'printing';
+    """,
 ]
 
 

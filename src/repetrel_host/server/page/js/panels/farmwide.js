@@ -86,6 +86,9 @@ export async function mount(section, { say }) {
       let action = null;
       if (["queued", "claimed", "printing", "paused"].includes(job.state)) {
         action = h("button", { type: "button", class: "danger", onclick: () => cancelJob(job) }, "Cancel");
+      } else if (job.state === "resumed") {
+        // Resumed once: its rest is that job (the farm refuses a second resume).
+        action = h("span", { class: "resumed-as muted" }, `rest: job ${job.resumed_by}`);
       } else if (job.resume_from_line) {
         action = h(
           "button",
@@ -207,7 +210,7 @@ function about(seconds) {
 }
 
 function badge(state) {
-  return { queued: "wait", claimed: "busy", printing: "busy", paused: "paused", completed: "ok", cancelled: "offline" }[state] || "error";
+  return { queued: "wait", claimed: "busy", printing: "busy", paused: "paused", completed: "ok", cancelled: "offline", resumed: "offline" }[state] || "error";
 }
 
 function submitForm(say, done) {
