@@ -24,6 +24,7 @@ HEATING = "M140 S60\nM104 T0 S200\nM104 T1 S210\nT1\n"
 MOVES = "".join(f"G1 X{i % 50} F600\n" for i in range(3000))
 ALL_OFF = {"T": 0.0, "T1": 0.0, "B": 0.0}
 EXIT_SAFE_STOP_OWED = 75
+OFFLINE = 12  # seconds the link stays away in the "owing, offline" state
 
 
 def ran(fake: BuiltInFake, command: str) -> bool:
@@ -140,3 +141,62 @@ def test_a_stop_timeout_long_enough_finishes_the_safe_stop_behind_a_heat_wait(
     restarted = servers({}, "--config", str(config))
     with restarted.client() as client:
         assert job_state(client, job)["safe_stop"] is None
+
+
+def put_in(state: str, client: httpx.Client, fake: BuiltInFake) -> int | None:
+    """The printer brought to ``state``; its job's number, if one."""
+    if state == "idle":
+        return None
+    if state == "held":
+        job = queue(client, HEATING + "G1 X5 F600\n")
+        wait_for(lambda: job_state(client, job)["state"] == "completed", what="the job")
+        return job
+    job = queue(client, HEATING + MOVES)
+    wait_for(lambda: ran(fake, "G1 X20 F600"), what="the moves")
+    if state == "paused":
+        assert client.post("/v1/printers/bench/pause").status_code == 204
+        wait_for(lambda: job_state(client, job)["state"] == "paused", what="the pause")
+    elif state == "owing, offline":  # the link lost mid-job, and not back
+        # The fake answers no request while its pty is away: none goes till it is back.
+        assert fake.request(f"link_drop {OFFLINE}")["ok"]
+        wait_for(lambda: printer(client)["state"] != "printing", what="the lost link")
+    return job
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGKILL], ids=lambda s: s.name)
+@pytest.mark.parametrize("state", ["idle", "held", "printing", "paused", "owing, offline"])
+def test_a_restart_in_every_state_keeps_the_hold_and_the_owed_stop(
+    bench: Callable[..., BuiltInFake],
+    servers: Callable[..., Server],
+    tmp_path: Path,
+    state: str,
+    signum: signal.Signals,
+) -> None:
+    fake = bench(*TWO_HOTENDS, "--move-time", "0.01")
+    config = server_config(tmp_path, bench={"port": fake.port})
+    server = servers({}, "--config", str(config), "--stop-timeout", "3").wait_ready("bench")
+    with server.client() as client:
+        job = put_in(state, client, fake)
+    code = server.stop(signum)
+    if signum == signal.SIGTERM:  # 75 only when the stop was left owed
+        assert code == (EXIT_SAFE_STOP_OWED if state == "owing, offline" else 0), code
+    restarted = servers({}, "--config", str(config))
+    with restarted.client() as client:
+        if state == "owing, offline":  # its port is back (the symlink made again)
+            wait_for(lambda: Path(fake.port).exists(), OFFLINE + 10, "the port back")
+            time.sleep(0.5)
+        if state in ("printing", "paused", "owing, offline"):  # every heater off, once it can
+            wait_for(lambda: targets(fake) == ALL_OFF, 60, f"heaters off: {targets(fake)}")
+        if job is not None:
+            record = wait_for(
+                lambda: (found := job_state(client, job))["safe_stop"] != "owed" and found,
+                what="the record's safe stop",
+            )
+            assert record["state"] == ("completed" if state == "held" else "interrupted")
+        restarted.wait_ready("bench")
+        after = printer(client)
+        assert after["held"] is (state != "idle"), after  # a part may be on the bed
+        before = len(executed(fake.log_path))
+        time.sleep(1.5)  # nothing starts, nothing is sent again
+        fake.request("status")  # the log is flushed before the answer
+        assert not [c for c in executed(fake.log_path)[before:] if c.startswith("G")]
