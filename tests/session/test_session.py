@@ -413,7 +413,7 @@ def test_leaving_the_session_during_a_job_stops_it_safely_first(rig: Rig, tmp_pa
 
 def test_m112_goes_out_at_once_and_ends_the_job(rig: Rig, tmp_path: Path) -> None:
     rig.move_time = 0.003
-    commands = [f"G1 X{i % 100}" for i in range(2000)]
+    commands = ["M104 S200"] + [f"G1 X{i % 100}" for i in range(2000)]
 
     async def scenario() -> None:
         async with rig.connect(reconnect=False) as printer:
@@ -429,13 +429,15 @@ def test_m112_goes_out_at_once_and_ends_the_job(rig: Rig, tmp_path: Path) -> Non
                 executed = rig.executed(printer)
             # Within what was already in the controller's buffer, then no job line (on
             # Hyrel's link, the abort before it dropped what the buffer held): only the
-            # safe stop's heater-off lines, where the controller still answers (Hyrel's).
+            # safe stop's heater-off lines (a heater is on), where the controller still
+            # answers (Hyrel's).
             stopped = executed.index("M112")
             assert executed[:stopped] == commands[:stopped]
             assert stopped < 200
             await asyncio.sleep(0.5)
             after = rig.executed(printer)[stopped + 1 :]
-            assert after == ([] if rig.protocol == "reprap" else off_lines(rig.safe_stop))
+            offs = off_lines(printer.safe_stop)
+            assert offs and after == ([] if rig.protocol == "reprap" else offs)
 
     run(scenario)
 

@@ -377,9 +377,10 @@ class Printer:
         self._wire.drive()
 
     def emergency_stop(self) -> None:
-        """M112 at once, unnumbered: a job ends with a ControllerError. Then the safe
-        stop's heater-off lines go, once the controller answers again (Marlin's halts
-        until a reset; Hyrel's documents do not say what its M112 does)."""
+        """M112 at once, unnumbered: a job ends with a ControllerError. Then, where a
+        heater may be on, the safe stop's heater-off lines go once the controller answers
+        again (Marlin's halts until a reset; Hyrel's documents do not say what its M112
+        does)."""
         pump = self._wire.pump
         if pump is not None:  # the job ends first: not a line of it may follow the M112
             error = ControllerError(
@@ -388,7 +389,7 @@ class Printer:
             )
             pump.emergency_stop(self._loop.time(), error)
         self._urgent("M112")
-        self._owed.after_emergency(self.safe_stop)
+        self._owed.after_emergency(self.safe_stop if self.heaters_on() else [])
         self._spawn(self._send_owed_safe_stop())  # a halted one fails it: at the greeting
 
     # --- jobs -------------------------------------------------------------------

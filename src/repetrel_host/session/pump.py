@@ -38,13 +38,7 @@ from repetrel_host.errors import (
     UsageError,
 )
 from repetrel_host.gcode.commands import command_word
-from repetrel_host.gcode.heaters import (
-    WAITS,
-    HeaterLog,
-    complete_safe_stop,
-    off_lines,
-    turns_off,
-)
+from repetrel_host.gcode.heaters import WAITS, HeaterLog, complete_safe_stop, turns_off
 from repetrel_host.protocol import replies
 from repetrel_host.protocol.dialect import Dialect
 from repetrel_host.protocol.events import (
@@ -213,10 +207,10 @@ class JobRun:
     def owed_safe_stop(self) -> list[str]:
         """What of the safe stop the controller must still be sent, should this stream end
         now: the lines it did not confirm, but for a move already on the wire (it may
-        have run: a second lift would lift twice). After an emergency stop, its heater-off
-        lines (:func:`off_lines`)."""
+        have run: a second lift would lift twice). None after an emergency stop (the
+        session owes what it leaves: ``OwedSafeStop.after_emergency``)."""
         if self.emergency:
-            return off_lines(self.safe_stop)
+            return []
         if not self.safe_stop_queued:
             return list(self.safe_stop)
         unsent = [id(line) for line in self.safe_stop_unsent]
