@@ -260,7 +260,7 @@ async def test_a_lost_lease_is_told_with_its_state_and_ends_the_expected_end(
 
 
 async def test_a_job_is_resumed_once_even_by_two_at_once(db: FarmDB, tmp_path: Path) -> None:
-    from repetrel_host.server.farm.states import Refused
+    from repetrel_host.server.farm.states import MoveRefused
 
     printers = {"p": caps("p", "a")}
     a = await node(db, "a", printers)
@@ -272,7 +272,7 @@ async def test_a_job_is_resumed_once_even_by_two_at_once(db: FarmDB, tmp_path: P
         db.recover(job, 2, 1, T), db.recover(job, 2, 1, T), return_exceptions=True
     )
     made = [answer for answer in both if isinstance(answer, int)]
-    refused = [answer for answer in both if isinstance(answer, Refused)]
+    refused = [answer for answer in both if isinstance(answer, MoveRefused)]
     assert len(made) == 1 and len(refused) == 1, both
     rest = made[0]
     assert str(refused[0]) == (
@@ -290,7 +290,7 @@ async def test_a_job_is_resumed_once_even_by_two_at_once(db: FarmDB, tmp_path: P
     )
     after = await db.job(job, T)
     assert (after["state"], after["safe_stop"], after["error"]) == ("resumed", "sent", went)
-    with pytest.raises(Refused, match="resumed already"):
+    with pytest.raises(MoveRefused, match="resumed already"):
         await db.recover(job, 2, 1, T)
     with psycopg.connect(db.url) as connection, pytest.raises(psycopg.errors.CheckViolation):
         connection.execute("UPDATE jobs SET state = 'resuming' WHERE id = %s", (job,))

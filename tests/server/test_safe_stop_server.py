@@ -71,8 +71,13 @@ def test_a_restart_after_kill_9_turns_off_every_heater_the_job_turned_on(
 
 @pytest.mark.parametrize(
     ("signum", "protocol"),
-    [(signal.SIGTERM, "reprap"), (signal.SIGTERM, "hyrel"), (signal.SIGHUP, "reprap")],
-    ids=["SIGTERM-reprap", "SIGTERM-hyrel", "SIGHUP-reprap"],
+    [
+        (signal.SIGTERM, "reprap"),
+        (signal.SIGTERM, "hyrel"),
+        (signal.SIGHUP, "reprap"),
+        (signal.SIGQUIT, "hyrel"),
+    ],
+    ids=["SIGTERM-reprap", "SIGTERM-hyrel", "SIGHUP-reprap", "SIGQUIT-hyrel"],
 )
 def test_a_stop_signal_stops_the_servers_job_with_every_heater_off(
     bench: Callable[..., BuiltInFake],
@@ -81,8 +86,8 @@ def test_a_stop_signal_stops_the_servers_job_with_every_heater_off(
     signum: signal.Signals,
     protocol: str,
 ) -> None:
-    """SIGTERM (systemd) and SIGHUP (the terminal or ssh session it ran in, gone) stop the
-    server as Ctrl-C does: the job's safe stop, then exit 0 (a stop asked for)."""
+    """SIGTERM (systemd), SIGHUP (the terminal or ssh session it ran in, gone) and SIGQUIT
+    (Ctrl-\\) stop the server as Ctrl-C does: the job's safe stop, then exit 0."""
     fake = bench("--protocol", protocol, *TWO_HOTENDS, "--move-time", "0.01")
     config = server_config(tmp_path, bench={"port": fake.port, "protocol": protocol})
     server = servers({}, "--config", str(config))

@@ -58,6 +58,8 @@ def test_a_connect_asked_for_while_offline_starts_no_second_connect_loop(
         for _ in range(3):
             connect = client.post("/api/connection", json={"command": "connect"})
             assert connect.status_code == 204, connect.text
+            restart = client.post("/printer/firmware_restart")  # Moonraker's
+            assert restart.status_code == 200, restart.text
         server.wait_ready("bench")
         job = queue(client, HEATING + MOVES)
         wait_for(lambda: ran(fake, "G1 X20 F600"), what="the moves")

@@ -335,7 +335,7 @@ def router() -> APIRouter:
             made = await _asked(farm.db.recover(job_id, line, rest, TIMEOUT))
         except LookupError as exc:
             raise HTTPException(404, str(exc)) from None
-        except ValueError as exc:  # resumed meanwhile (states.Refused), or never printed
+        except ValueError as exc:  # resumed meanwhile (states.MoveRefused), or never printed
             raise HTTPException(409, str(exc)) from None
         log.info("farm: job %d recovered from line %d as job %d", job_id, line, made)
         # Its estimate is the whole file's (copied) until the rest is planned: here, when

@@ -34,7 +34,7 @@ from psycopg_pool import AsyncConnectionPool
 
 from repetrel_host.server.farm import states
 from repetrel_host.server.farm.schema import migrate
-from repetrel_host.server.farm.states import Refused
+from repetrel_host.server.farm.states import MoveRefused
 
 CHANNEL = "farm"
 CHUNK = 1 << 20  # a file goes in and out a megabyte at a time: never whole in memory
@@ -129,13 +129,13 @@ class FarmDB:
         params: dict[str, Any] | None = None,
         told: dict[str, Any] | None = None,
     ) -> dict[str, Any] | None:
-        """The one way a job's state changes: from ``was`` to ``to`` (Refused when the
+        """The one way a job's state changes: from ``was`` to ``to`` (MoveRefused when the
         table does not allow it), with more ``sets`` (SQL, its ``params`` by name), only
         while the job is still ``was`` (and, given ``params["fence"]``, still that claim).
         A job not printing has no expected end. The job as it is now; None when it was no
         longer ``was``. A new state is notified, with ``told`` besides."""
         if not states.allowed(was, to):
-            raise Refused(f"farm job {job} is {was}: it cannot become {to}")
+            raise MoveRefused(f"farm job {job} is {was}: it cannot become {to}")
         values = {**(params or {}), "job": job, "was": was, "to": to}
         query = "UPDATE jobs SET state = %(to)s, updated = now()"
         if to != states.PRINTING:
@@ -495,7 +495,7 @@ class FarmDB:
             if row is None:
                 raise LookupError(f"the farm has no job {job}")
             if row["state"] not in states.RESUMABLE:
-                raise Refused(states.resume_refusal(job, row["state"], row["resumed_by"]))
+                raise MoveRefused(states.resume_refusal(job, row["state"], row["resumed_by"]))
             if row["printer"] is None or row["node_name"] is None:
                 raise ValueError(f"farm job {job} never ran on a printer: queue it again")
             pinned = {"names": [f"{row['node_name']}/{row['printer']}"]}

@@ -38,7 +38,7 @@ MOVES: dict[str, frozenset[str]] = {
 }
 
 
-class Refused(ValueError):
+class MoveRefused(ValueError):
     """A move the job's state does not allow, in one sentence."""
 
 

@@ -407,9 +407,10 @@ class PrinterService:
             log.warning("printer %s: job %d's safe stop is owed", self.name, record.id)
         why = f": {error}" if error else ""
         log.info("printer %s: job %d %s%s", self.name, record.id, state, why)
-        if not self.automatic_transition:
-            # The part is still on the bed: the next job waits for someone to say so.
-            self.hold(f"job {record.id} {state}: its part may still be on the bed")
+        if not self.automatic_transition or state is JobState.INTERRUPTED:
+            # The part is still on the bed (an automatic bed change ran only if the job
+            # ended as written): the next job waits for someone to say so.
+            self._keep_hold(f"job {record.id} {state}: its part may still be on the bed")
         self.job_changed(record.id)
         self._state_changed()
         self._ended.set()
@@ -640,9 +641,13 @@ class PrinterService:
     def hold(self, reason: str = "held on request") -> None:
         """Start no more jobs (the running one goes on) until :meth:`release`; the hold
         outlives a restart and a kill -9."""
+        self._keep_hold(reason)
+        self._state_changed()
+
+    def _keep_hold(self, reason: str) -> None:
+        """The hold, kept in the store (told by the caller, once its job is told)."""
         self.store.hold(self.name, reason)
         self.hold_reason = reason
-        self._state_changed()
 
     def release(self) -> None:
         """Let the queue run again (after an interrupted job was looked at)."""
