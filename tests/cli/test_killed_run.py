@@ -74,13 +74,7 @@ def test_a_console_after_a_killed_run_turns_the_heaters_off_before_its_first_com
     log = tmp_path / "fake.log"
     with BuiltInFake(log, TWO_HOTENDS, control=True) as fake:
         killed_mid_job(fake, tmp_path, "reprap", console=False)
-        console = subprocess.run(
-            [sys.executable, "-m", "repetrel_host.cli", "--console", "--port", fake.port],
-            input="G1 X66 F600\n",
-            capture_output=True,
-            text=True,
-            timeout=60,
-        )
+        console = hyrel_send("--console", "--port", fake.port, input="G1 X66 F600\n", timeout=60)
         assert console.returncode == 0, console.stdout + console.stderr
         assert OWED in console.stderr
         assert targets(fake) == ALL_OFF
@@ -96,13 +90,8 @@ def test_a_run_that_ended_cleanly_or_left_a_heater_on_by_request_owes_nothing(
         job = tmp_path / "hot.gcode"
         job.write_text(HEATING + "G1 X5 F600\n")
         assert hyrel_send(str(job), "--port", fake.port).returncode == 0
-        console = subprocess.run(  # a heater left on at the console, on purpose
-            [sys.executable, "-m", "repetrel_host.cli", "--console", "--port", fake.port],
-            input="M104 T0 S180\n",
-            capture_output=True,
-            text=True,
-            timeout=60,
-        )
+        # A heater left on at the console, on purpose.
+        console = hyrel_send("--console", "--port", fake.port, input="M104 T0 S180\n", timeout=60)
         assert console.returncode == 0, console.stderr
         assert targets(fake)["T"] == 180.0
         after = tmp_path / "after.gcode"

@@ -236,15 +236,22 @@ def done(state: str, **more: Any) -> dict[str, Any]:
     }  # fmt: skip
 
 
-async def test_a_lost_lease_is_told_with_its_state_and_ends_the_expected_end(
-    db: FarmDB, tmp_path: Path
-) -> None:
+async def printing_on_a_short_lease(db: FarmDB, tmp_path: Path) -> tuple[str, int, dict[str, Any]]:
+    """A job printing on node a, whose lease is 1 s, beside node b (whose heartbeat ends
+    a's lease once it ran out): b, the job and its claim."""
     printers = {"p": caps("p", "a")}
     a = await node(db, "a", printers, lease=1)
     b = await node(db, "b", {"q": caps("q", "b")})
     (job,) = await queue(db, tmp_path, 1)
     claim = await db.claim(a, "p", printers["p"], T)
     assert claim is not None and await db.start(job, claim["fence"], T)
+    return b, job, claim
+
+
+async def test_a_lost_lease_is_told_with_its_state_and_ends_the_expected_end(
+    db: FarmDB, tmp_path: Path
+) -> None:
+    b, job, claim = await printing_on_a_short_lease(db, tmp_path)
     printing = done("printing", ended=None, expected_end=2_000_000_000.0)
     assert await db.report(job, claim["fence"], printing, T)
     assert (await db.job(job, T))["expected_end"] == 2_000_000_000.0
@@ -302,12 +309,7 @@ async def test_a_resumed_job_whose_node_went_on_cancels_its_queued_rest(
     """A node cut from the database, not stopped: the farm took its job for interrupted and
     someone resumed it; the node comes back saying it completed. Its rest must not print
     on the finished part."""
-    printers = {"p": caps("p", "a")}
-    a = await node(db, "a", printers, lease=1)
-    b = await node(db, "b", {"q": caps("q", "b")})
-    (job,) = await queue(db, tmp_path, 1)
-    claim = await db.claim(a, "p", printers["p"], T)
-    assert claim is not None and await db.start(job, claim["fence"], T)
+    b, job, claim = await printing_on_a_short_lease(db, tmp_path)
     await asyncio.sleep(1.5)
     assert [row["id"] for row in await db.heartbeat(b, 30, T)] == [job]
     rest = await db.recover(job, 2, 1, T)

@@ -105,18 +105,31 @@ def test_the_hold_after_a_job_outlives_sigterm_and_kill_9(
         assert f"job {second} completed" in printer(client)["hold_reason"]
 
 
+def in_a_heat_wait(
+    bench: Callable[..., BuiltInFake],
+    servers: Callable[..., Server],
+    tmp_path: Path,
+    heat_rate: float,
+    stop_timeout: float,
+) -> tuple[BuiltInFake, Path, Server, int]:
+    """A server whose job waits for its bed (M190) on a fake with no emergency parser
+    (nothing breaks the wait); the fake, the server's TOML file, the server, the job."""
+    fake = bench("--heat-rate", str(heat_rate), "--no-emergency-parser")
+    config = server_config(tmp_path, bench={"port": fake.port})
+    server = servers({}, "--config", str(config), "--stop-timeout", str(stop_timeout))
+    with server.client() as client:
+        job = queue(client, "M104 S200\nM140 S60\nM190 S60\n" + MOVES)
+        wait_for(lambda: ran(fake, "M140 S60"), what="the heat wait")
+    return fake, config, server, job
+
+
 def test_a_stop_held_up_by_a_heat_wait_exits_75_and_the_next_start_sends_the_safe_stop(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server], tmp_path: Path
 ) -> None:
     """No emergency parser: nothing breaks the M190 before the bed is there. The stop waits
     --stop-timeout, leaves the safe stop owed, says so and exits 75 (systemd's
     Restart=on-failure starts it again); the next start sends it."""
-    fake = bench("--heat-rate", "1", "--no-emergency-parser")
-    config = server_config(tmp_path, bench={"port": fake.port})
-    server = servers({}, "--config", str(config), "--stop-timeout", "2")
-    with server.client() as client:
-        job = queue(client, "M104 S200\nM140 S60\nM190 S60\n" + MOVES)
-        wait_for(lambda: ran(fake, "M140 S60"), what="the heat wait")
+    fake, config, server, job = in_a_heat_wait(bench, servers, tmp_path, 1, 2)
     assert server.stop(signal.SIGTERM) == EXIT_SAFE_STOP_OWED
     log = server.stderr.read_text()
     assert "exiting with 75: the safe stop of printer bench is owed" in log, log
@@ -132,12 +145,7 @@ def test_a_stop_held_up_by_a_heat_wait_exits_75_and_the_next_start_sends_the_saf
 def test_a_stop_timeout_long_enough_finishes_the_safe_stop_behind_a_heat_wait(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server], tmp_path: Path
 ) -> None:
-    fake = bench("--heat-rate", "10", "--no-emergency-parser")
-    config = server_config(tmp_path, bench={"port": fake.port})
-    server = servers({}, "--config", str(config), "--stop-timeout", "60")
-    with server.client() as client:
-        job = queue(client, "M104 S200\nM140 S60\nM190 S60\n" + MOVES)
-        wait_for(lambda: ran(fake, "M140 S60"), what="the heat wait")
+    fake, config, server, job = in_a_heat_wait(bench, servers, tmp_path, 10, 60)
     assert server.stop(signal.SIGTERM) == 0
     assert targets(fake) == {"T": 0.0, "B": 0.0}
     restarted = servers({}, "--config", str(config))

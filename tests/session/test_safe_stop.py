@@ -17,7 +17,14 @@ import pytest
 
 from repetrel_host.fakes.fake_controller import BuiltInFake
 from repetrel_host.session.job import Job
-from tests.support.helpers import DATA, HYREL_SAFE_STOP, MARLIN_SAFE_STOP, executed, wait_for_log
+from tests.support.helpers import (
+    DATA,
+    HYREL_SAFE_STOP,
+    MARLIN_SAFE_STOP,
+    executed,
+    hyrel_send,
+    wait_for_log,
+)
 from tests.support.helpers import heater_targets as targets
 
 pytestmark = pytest.mark.timeout(90)
@@ -196,13 +203,7 @@ def test_the_marlin_safe_stop_turns_off_every_hotend_the_job_heated(tmp_path: Pa
 
 def test_a_marlin_board_slow_to_answer_m115_is_known_as_marlin(tmp_path: Path) -> None:
     with BuiltInFake(tmp_path / "fake.log", ["--command-time", "1.5"]) as fake:
-        console = subprocess.run(
-            [sys.executable, "-m", "repetrel_host.cli", "--console", "--port", fake.port],
-            input="M105\n",
-            capture_output=True,
-            text=True,
-            timeout=60,
-        )
+        console = hyrel_send("--console", "--port", fake.port, input="M105\n", timeout=60)
     assert console.returncode == 0, console.stderr
     assert "machine profile marlin (from the firmware: repetrel-host fake" in console.stdout
     # The M115 answer is not taken for M105's reply.

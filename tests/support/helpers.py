@@ -58,9 +58,10 @@ def without_greetings(executed: Iterable[str]) -> list[str]:
 
 
 def hyrel_send(
-    *args: str, env: dict[str, str] | None = None, timeout: float = 90
+    *args: str, env: dict[str, str] | None = None, timeout: float = 90, input: str | None = None
 ) -> subprocess.CompletedProcess[str]:
-    """Run hyrel-send as a real process, without a HYREL_PORT unless ``env`` gives one."""
+    """Run hyrel-send as a real process, without a HYREL_PORT unless ``env`` gives one;
+    ``input``: what its standard input reads (the console's lines), else nothing."""
     environment = {k: v for k, v in os.environ.items() if k != "HYREL_PORT"}
     environment.update(env or {})
     return subprocess.run(
@@ -69,7 +70,8 @@ def hyrel_send(
         text=True,
         timeout=timeout,
         env=environment,
-        stdin=subprocess.DEVNULL,
+        input=input,
+        stdin=subprocess.DEVNULL if input is None else None,
     )
 
 

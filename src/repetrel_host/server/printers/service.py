@@ -273,11 +273,10 @@ class PrinterService:
         if running is None:
             return True
         ending: asyncio.Future[Any] = asyncio.ensure_future(running.job.wait())
-        held: asyncio.Future[Any] = asyncio.ensure_future(
-            asyncio.Event().wait() if held_up_too else self._held.wait()
-        )
+        held: asyncio.Future[Any] = asyncio.ensure_future(self._held.wait())
+        waits = [ending] if held_up_too else [ending, held]
         try:
-            await asyncio.wait([ending, held], timeout=patience, return_when="FIRST_COMPLETED")
+            await asyncio.wait(waits, timeout=patience, return_when="FIRST_COMPLETED")
         finally:
             held.cancel()
             if not ending.done():
