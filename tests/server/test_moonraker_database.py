@@ -14,10 +14,11 @@ from typing import Any
 
 import aiohttp
 import pytest
+from websockets.sync import client as ws_client
 
 from repetrel_host.fakes.fake_controller import BuiltInFake
 from tests.support.attack import streaming_beside
-from tests.support.server import KEY, Server, server_config
+from tests.support.server import KEY, Server, server_config, wait_for
 
 pytestmark = pytest.mark.timeout(240)
 
@@ -136,6 +137,44 @@ def test_a_flood_of_writes_over_http_json_rpc_costs_each_its_own_size(
         ).json()
         assert deleted[0]["result"]["value"] == VALUE
     each_costs_its_own_size(costs)
+
+
+def test_a_batch_past_its_bounds_is_refused_or_cut_in_a_sentence(
+    streaming: tuple[Server, BuiltInFake],
+) -> None:
+    """10,000 calls of gcode_store in one batch: refused whole, none run; answers past
+    4 MB: errors that say so, the batch answered."""
+    server, fake = streaming
+    store_flood = [call("server.gcode_store", i, count=1000) for i in range(10_000)]
+    big = "b" * 900_000
+    posts = [
+        call("server.database.post_item", i, namespace=f"big{i}", key="k", value=big)
+        for i in range(6)
+    ]
+    reads = [call("server.database.get_item", i, namespace=f"big{i}") for i in range(6)]
+
+    async def attack(socket: Socket) -> None:
+        refused = await socket.send(store_flood)
+        assert refused["error"]["code"] == -32600
+        assert refused["error"]["message"] == (
+            "Invalid Request: a batch of 10000 calls, at most 100"
+        )
+        for post in posts:  # one by one: their answers echo 0.9 MB each
+            assert "result" in await socket.send(post)
+        answers = await socket.send(reads)
+        kept = [a for a in answers if "result" in a]
+        assert len(answers) == 6 and len(kept) == 4  # 4 of 0.9 MB fit in 4 MB, not 5
+        assert answers[-1]["error"] == {
+            "code": 413,
+            "message": "the batch's answer would pass 4 MB: this call ran, its answer is left out",
+        }
+
+    with streaming_beside(server, fake):
+        asyncio.run(on_websocket(server, attack))
+        with server.client() as http:
+            refused = http.post("/server/jsonrpc", json=store_flood)
+            assert refused.status_code == 200  # JSON-RPC's answer, as Moonraker's HTTP gives it
+            assert refused.json()["error"]["code"] == -32600
 
 
 @pytest.fixture
@@ -295,3 +334,23 @@ def test_a_data_folder_of_an_earlier_version_keeps_its_namespaces(
     tables = sqlite3.connect(data / "jobs.sqlite").execute("SELECT name FROM sqlite_master")
     assert "client_data" not in {row[0] for row in tables}
     assert "left out" in server.stderr.read_text()
+
+
+def test_a_websocket_that_reads_none_of_its_big_answers_is_closed(server: Server) -> None:
+    """Its answers are kept unsent up to 32 MB, not without end: past that it is closed."""
+    big = "r" * 900_000
+    with server.client() as http:
+        stored = http.post(
+            "/server/database/item", json={"namespace": "r", "key": "k", "value": big}
+        )
+        assert stored.status_code == 200
+    url = server.url.replace("http", "ws") + "/websocket"
+    read = call("server.database.get_item", 0, namespace="r", key="k")
+    # A queue of one message: the client stops reading once it holds one.
+    with ws_client.connect(url, additional_headers={"X-Api-Key": KEY}, max_queue=1) as socket:
+        for _ in range(60):  # 54 MB of answers
+            socket.send(json.dumps(read))
+        wait_for(lambda: "reads nothing: closed" in server.stderr.read_text(), what="the close")
+    assert server.stderr.read_text().count("reads nothing: closed") == 1
+    with server.client() as http:
+        assert http.get("/server/database/list").json()["result"]["namespaces"] == ["r"]
