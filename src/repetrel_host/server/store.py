@@ -72,12 +72,8 @@ CREATE TABLE IF NOT EXISTS holds (
     reason TEXT NOT NULL,
     since REAL NOT NULL
 );
--- What clients keep on the server (Moonraker's database: Mainsail's and Fluidd's settings),
--- a namespace a JSON object.
-CREATE TABLE IF NOT EXISTS client_data (
-    namespace TEXT PRIMARY KEY,
-    value TEXT NOT NULL
-);
+-- (Moonraker's database was kept here, as client_data: moonraker/database_store.py moves it
+-- to a file of its own.)
 """
 # Columns added since the first schema, added to an older data folder's table as it opens.
 _ADDED_COLUMNS = {
@@ -500,28 +496,6 @@ class Store:
         row = self._db.execute("SELECT original FROM uploads WHERE path = ?", (path,))
         found = row.fetchone()
         return str(found[0]) if found is not None else None
-
-    def client_namespaces(self) -> list[str]:
-        """The namespaces clients keep data in, by name."""
-        rows = self._db.execute("SELECT namespace FROM client_data ORDER BY namespace")
-        return [str(row[0]) for row in rows]
-
-    def client_data(self, namespace: str) -> dict[str, Any] | None:
-        """What clients keep in ``namespace``; None when it does not exist."""
-        row = self._db.execute(
-            "SELECT value FROM client_data WHERE namespace = ?", (namespace,)
-        ).fetchone()
-        value: dict[str, Any] | None = json.loads(row[0]) if row is not None else None
-        return value
-
-    def keep_client_data(self, namespace: str, value: dict[str, Any]) -> None:
-        """``namespace`` holds ``value`` from now on."""
-        with self._transaction() as db:
-            db.execute(
-                "INSERT INTO client_data (namespace, value) VALUES (?, ?) ON CONFLICT"
-                " (namespace) DO UPDATE SET value = excluded.value",
-                (namespace, json.dumps(value)),
-            )
 
     def keep_heaters(self, printer: str, heaters: list[Heater]) -> None:
         """The heaters that may be on at ``printer`` now (kept across restarts)."""

@@ -1,13 +1,18 @@
 """Moonraker's database (``server.database.*``): namespaces of JSON where Mainsail, Fluidd
-and KlipperScreen keep their settings, kept in the server's store (they outlive a restart).
-One set of namespaces for the server, as one Moonraker instance has one; a key may name a
-nested item with dots (``uiSettings.general``)."""
+and KlipperScreen keep their settings, kept in the data folder (they outlive a restart;
+``database_store`` keeps them, within its bounds). One set of namespaces for the server,
+as one Moonraker instance has one; a key may name a nested item with dots
+(``uiSettings.general``) or be a list of its parts."""
 
 from __future__ import annotations
 
-from typing import Any
+from collections.abc import Awaitable
+from typing import Any, TypeVar
 
+from repetrel_host.server.moonraker.database_store import Refused
 from repetrel_host.server.moonraker.rpc import Call, RpcError, method
+
+T = TypeVar("T")
 
 
 def _key(call: Call, required: bool) -> list[str]:
@@ -17,7 +22,8 @@ def _key(call: Call, required: bool) -> list[str]:
         return []
     parts = key if isinstance(key, list) else str(key).split(".")
     if not all(isinstance(part, str) and part for part in parts):
-        raise RpcError(400, f"Invalid key: {key!r}")
+        shown = repr(key) if len(parts) <= 32 else f"a key of {len(parts)} parts"
+        raise RpcError(400, f"Invalid key: {shown}")
     return list(parts)
 
 
@@ -28,27 +34,23 @@ def _namespace(call: Call) -> str:
     return namespace
 
 
-def _missing(namespace: str, key: list[str]) -> RpcError:
-    if not key:
-        return RpcError(404, f"Namespace {namespace} not found")
-    return RpcError(404, f"Key '{'.'.join(key)}' in namespace '{namespace}' not found")
+async def _kept(work: Awaitable[T]) -> T:
+    """The database's answer; its refusals as Moonraker's errors."""
+    try:
+        return await work
+    except Refused as exc:
+        raise RpcError(exc.status, exc.message) from None
 
 
 @method("/server/database/list")
 async def database_list(call: Call) -> dict[str, Any]:
-    return {"namespaces": call.server.store.client_namespaces(), "backups": []}
+    return {"namespaces": await call.face.database.namespaces(), "backups": []}
 
 
 @method("/server/database/item", "GET", name="server.database.get_item")
 async def get_item(call: Call) -> dict[str, Any]:
     namespace, key = _namespace(call), _key(call, required=False)
-    value: Any = call.server.store.client_data(namespace)
-    if value is None:
-        raise _missing(namespace, [])
-    for part in key:
-        if not isinstance(value, dict) or part not in value:
-            raise _missing(namespace, key)
-        value = value[part]
+    value = await _kept(call.face.database.get(namespace, key))
     return {"namespace": namespace, "key": call.get("key"), "value": value}
 
 
@@ -56,29 +58,12 @@ async def get_item(call: Call) -> dict[str, Any]:
 async def post_item(call: Call) -> dict[str, Any]:
     namespace, key = _namespace(call), _key(call, required=True)
     value = call.required("value", null=True)
-    data = call.server.store.client_data(namespace) or {}
-    place = data
-    for part in key[:-1]:
-        inner = place.get(part)
-        if not isinstance(inner, dict):
-            inner = place[part] = {}
-        place = inner
-    place[key[-1]] = value
-    call.server.store.keep_client_data(namespace, data)
+    await _kept(call.face.database.post(namespace, key, value))
     return {"namespace": namespace, "key": call.get("key"), "value": value}
 
 
 @method("/server/database/item", "DELETE", name="server.database.delete_item")
 async def delete_item(call: Call) -> dict[str, Any]:
     namespace, key = _namespace(call), _key(call, required=True)
-    data = call.server.store.client_data(namespace)
-    if data is None:
-        raise _missing(namespace, [])
-    place: Any = data
-    for part in key[:-1]:
-        place = place.get(part) if isinstance(place, dict) else None
-    if not isinstance(place, dict) or key[-1] not in place:
-        raise _missing(namespace, key)
-    value = place.pop(key[-1])
-    call.server.store.keep_client_data(namespace, data)
+    value = await _kept(call.face.database.delete(namespace, key))
     return {"namespace": namespace, "key": call.get("key"), "value": value}

@@ -12,6 +12,7 @@ from collections.abc import Callable
 from typing import Any, Protocol
 
 from repetrel_host.server.events import PrinterMessage, ServerEvent
+from repetrel_host.server.moonraker.database_store import Database
 from repetrel_host.server.moonraker.host import Usage, own_memory
 from repetrel_host.server.moonraker.objects import Objects
 from repetrel_host.server.print_server import PrintServer
@@ -19,6 +20,7 @@ from repetrel_host.server.print_server import PrintServer
 log = logging.getLogger("repetrel_host.server.moonraker")
 
 GCODE_STORE = 1000  # Moonraker's gcode_store_size
+DATABASE = "moonraker-database.sqlite"  # in the data folder
 ONESHOT_SECONDS = 5.0
 
 
@@ -52,6 +54,9 @@ class MoonrakerFace:
         self.tokens: dict[str, tuple[str | None, float]] = {}
         self.listeners: list[Callable[[ServerEvent], None]] = []
         self.started = time.time()
+        # Its namespaces (server.database.*); a data folder of an earlier version kept them
+        # in the job store, moved from there once.
+        self.database = Database(server.data_dir / DATABASE, legacy=server.store.path)
         self.usage = Usage()
         self._stats: tuple[float, dict[str, Any]] = (0.0, {})  # the last, and when
         self._task: asyncio.Task[None] | None = None
@@ -67,6 +72,7 @@ class MoonrakerFace:
             await asyncio.gather(self._task, return_exceptions=True)
         for connection in list(self.connections.values()):
             await connection.close()
+        await asyncio.to_thread(self.database.close)
 
     async def _listen(self) -> None:
         async with self.server.events.listen() as events:

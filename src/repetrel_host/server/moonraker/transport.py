@@ -33,6 +33,11 @@ AREAS = ("printer", "server", "machine", "access")
 STATUS_EVERY = 0.25  # s: a subscription's changes go out at most this often
 PROC_STAT_EVERY = 1.0  # s: Moonraker's; Mainsail drops a socket silent for 10 s
 OUTBOX = 2000  # messages a websocket may have unsent before it is closed
+OUTBOX_BYTES = 32 << 20  # or bytes (a client that asks for big answers and reads none)
+# A JSON-RPC batch: at most this many calls, answered in at most this many bytes (a batch
+# is one message: the calls run one after the other, its answer waits for them all).
+BATCH_CALLS = 100
+BATCH_ANSWER_BYTES = 4 << 20
 
 
 def _query(scope: Any) -> list[tuple[str, str]]:
@@ -158,9 +163,40 @@ async def answer_rpc(
     except ValueError:
         return _error(None, -32700, "Parse error")
     if isinstance(request, list):
-        answers = [await _one(face, service, user, r, connection) for r in request]
-        return [a for a in answers if a is not None]
+        return await _batch(face, service, user, request, connection)
     return await _one(face, service, user, request, connection)
+
+
+async def _batch(
+    face: MoonrakerFace,
+    service: PrinterService,
+    user: str | None,
+    requests: list[Any],
+    connection: Connection | None,
+) -> Any:
+    """A batch's answers, within :data:`BATCH_CALLS` and :data:`BATCH_ANSWER_BYTES`: past
+    that many calls the batch is refused whole (none runs); an answer that would take the
+    batch's past its bytes is replaced by an error that says so (its call ran)."""
+    if len(requests) > BATCH_CALLS:
+        message = f"Invalid Request: a batch of {len(requests)} calls, at most {BATCH_CALLS}"
+        return _error(None, -32600, message)
+    answers: list[dict[str, Any]] = []
+    size = 0
+    for request in requests:
+        answer = await _one(face, service, user, request, connection)
+        await asyncio.sleep(0)  # the loop's other work between the calls
+        if answer is None:
+            continue
+        length = len(json.dumps(answer))
+        if size + length > BATCH_ANSWER_BYTES:
+            limit = BATCH_ANSWER_BYTES >> 20
+            message = f"the batch's answer would pass {limit} MB: this call ran, its answer "
+            message += "is left out"
+            answer = _error(answer.get("id"), 413, message)
+            length = len(json.dumps(answer))
+        size += length
+        answers.append(answer)
+    return answers
 
 
 async def _one(
@@ -232,6 +268,8 @@ class Connection:
         self.sent: dict[str, dict[str, Any]] = {}  # the subscribed objects, as last sent
         self.klippy = klippy_state(service)
         self._outbox: asyncio.Queue[str] = asyncio.Queue(OUTBOX)
+        self._unsent = 0  # bytes in the outbox
+        self._dropped = False  # it read too little: closed, told nothing more
         self._changed = asyncio.Event()
         self._tasks: set[asyncio.Task[None]] = set()
 
@@ -326,16 +364,24 @@ class Connection:
         self._put(message)
 
     def _put(self, message: Any) -> None:
-        if self._outbox.full():  # a client that reads nothing: dropped, not kept in memory
+        if self._dropped:
+            return
+        text = json.dumps(message)
+        if self._outbox.full() or self._unsent + len(text) > OUTBOX_BYTES:
+            # A client that reads nothing: dropped, not kept in memory.
             log.warning("moonraker: websocket %d reads nothing: closed", self.id)
+            self._dropped = True
             self.face.connections.pop(self.id, None)
             asyncio.get_running_loop().create_task(self.close())
             return
-        self._outbox.put_nowait(json.dumps(message))
+        self._unsent += len(text)
+        self._outbox.put_nowait(text)
 
     async def _write(self) -> None:
         while True:
-            await self.websocket.send_text(await self._outbox.get())
+            text = await self._outbox.get()
+            await self.websocket.send_text(text)
+            self._unsent -= len(text)
 
 
 _NOTHING = object()
