@@ -1,17 +1,20 @@
-"""Uploads keep their names apart (issue 35): letters of any script are kept, two names that
+"""Uploads keep their names apart (issue 35): letters of any script are kept, and (issue 49)
+every character a filesystem holds safely, emoji and combining marks too; two names that
 clean or shorten alike stay two files (``-1``, ``-2``... as OctoPrint adds), the same name
 replaces, a very long name is taken shortened; and every refusal says why in ``error``, as
 OctoPrint's clients read it. A real server over HTTP."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import signal
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from urllib.parse import quote
 
 import httpx
 import pytest
 
-from tests.support.server import Server
+from tests.support.server import KEY, Server
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -29,12 +32,54 @@ def content(client: httpx.Client, path: str) -> str:
     return answer.text
 
 
+@pytest.fixture(scope="module")
+def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
+    """One server for the names' cases: each is an upload and a read."""
+    started = Server(tmp_path_factory.mktemp("names") / "data", {"demo": "fake"}, "--api-key", KEY)
+    yield started.start()
+    started.stop(signal.SIGKILL)
+
+
 def test_names_in_any_script_stay_apart(servers: Callable[..., Server]) -> None:
     with servers({"demo": "fake"}).client() as client:
         japan = upload(client, "日本.gcode", "G1 X1\n")
         china = upload(client, "中国.gcode", "G1 X2\n")
         assert (japan, china) == ("日本.gcode", "中国.gcode")
         assert content(client, japan) == "G1 X1\n" and content(client, china) == "G1 X2\n"
+
+
+@pytest.mark.parametrize(
+    ("given", "stored"),
+    [
+        ("Wölfe 🐺.gcode", "Wölfe 🐺.gcode"),
+        ("👨\u200d👩\u200d👧 family.gcode", "👨\u200d👩\u200d👧 family.gcode"),  # joined emoji
+        ("cafe\u0301.gcode", "café.gcode"),  # a combining mark, composed (NFC)
+        ("नमस्ते.gcode", "नमस्ते.gcode"),  # marks that compose with nothing stay
+        ("#2 [draft] 50%, v1.1 (Ø) it's ok! ~=@^{}.gcode", None),  # punctuation stays
+        ("a;b&c$d`e|f.gcode", "a_b_c_d_e_f.gcode"),  # what a shell reads as its own
+        ('a"b<c>d?e.gcode', "a_b_c_d_e.gcode"),  # what Windows takes in no name
+        ("tab\there\x7f.gcode", "tab_here_.gcode"),  # control characters
+        ("evil\u202egcode.exe.gcode", "evil_gcode.exe.gcode"),  # a direction override
+    ],
+)
+def test_a_name_keeps_what_a_filesystem_holds_safely(
+    server: Server, given: str, stored: str | None
+) -> None:
+    # The form written out: httpx would percent-encode a quote or a tab in the name.
+    quoted = given.replace('"', '\\"').encode()
+    form = b'--xx\r\nContent-Disposition: form-data; name="file"; filename="%s"\r\n\r\n' % quoted
+    with server.client() as client:
+        answer = client.post(
+            "/api/files/local",
+            content=form + b"G1 X1\n\r\n--xx--\r\n",
+            headers={"Content-Type": "multipart/form-data; boundary=xx"},
+        )
+        assert answer.status_code == 201, answer.text
+        path = answer.json()["files"]["local"]["path"]
+        assert path == (stored or given)
+        assert content(client, quote(path)) == "G1 X1\n"
+        assert path in [f["path"] for f in client.get("/v1/files").json()]
+    assert (server.data_dir / "files" / path).read_text() == "G1 X1\n"
 
 
 def test_names_that_clean_or_shorten_alike_stay_two_files(

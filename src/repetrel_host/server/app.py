@@ -35,6 +35,7 @@ from starlette.exceptions import HTTPException
 import repetrel_host as rh
 from repetrel_host.server import native
 from repetrel_host.server.auth import RequestGuard
+from repetrel_host.server.json_input import JsonTooDeep, too_deep_answer
 from repetrel_host.server.moonraker import make_face
 from repetrel_host.server.moonraker import router as moonraker_router
 from repetrel_host.server.mqtt.bridge import MqttBridge, MqttSettings
@@ -92,6 +93,8 @@ def create_app(server: PrintServer, mqtt: MqttSettings | None = None) -> FastAPI
 
     @app.exception_handler(HTTPException)
     async def refused(request: Request, exc: HTTPException) -> JSONResponse:
+        if isinstance(exc.__cause__, RecursionError):  # FastAPI's own read of a body
+            return too_deep_answer()
         # OctoPrint's clients read "error"; FastAPI's read "detail": both say it.
         detail = exc.detail
         error = detail.get("error", detail) if isinstance(detail, dict) else detail
@@ -99,6 +102,10 @@ def create_app(server: PrintServer, mqtt: MqttSettings | None = None) -> FastAPI
         more: dict[str, Any] = detail if isinstance(detail, dict) else {}
         body = {**more, "error": error, "detail": detail}
         return JSONResponse(body, exc.status_code, headers=exc.headers)
+
+    @app.exception_handler(JsonTooDeep)
+    async def too_deep(request: Request, exc: JsonTooDeep) -> JSONResponse:
+        return too_deep_answer()
 
     @app.exception_handler(RequestValidationError)
     async def bad_request(request: Request, exc: RequestValidationError) -> JSONResponse:

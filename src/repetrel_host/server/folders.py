@@ -17,8 +17,8 @@ from repetrel_host.server.uploads import G_CODE_SUFFIXES
 
 def make_folder(server: PrintServer, parent: str, name: str) -> Path:
     """A new folder below the uploads; 409 when the name is taken or looks like a file."""
-    cleaned = uploads.safe_folder(name)
-    target = server.files / uploads.safe_folder(parent) / cleaned
+    cleaned = uploads.listed_folder(name)
+    target = server.files / uploads.listed_folder(parent) / cleaned
     if not cleaned.parts:
         raise HTTPException(400, "the folder name is empty")
     if target.name.lower().endswith(G_CODE_SUFFIXES):
@@ -46,7 +46,7 @@ def copy_or_move(server: PrintServer, location: str, destination: str, move: boo
     source = server.files / uploads.safe_folder(location)
     if not source.exists() or source == server.files:
         raise HTTPException(404, f"no file or folder '{location}'")
-    target = server.files / uploads.safe_folder(destination)
+    target = server.files / uploads.listed_folder(destination)
     if target.is_dir() and target != source:
         target = target / source.name
     if target.exists():

@@ -9,6 +9,7 @@ import hashlib
 import logging
 import os
 import secrets
+import unicodedata
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -34,7 +35,12 @@ G_CODE_SUFFIXES = (".gcode", ".gco", ".g")
 MAX_NAME = 200
 # A file name's bytes (UTF-8): filesystems take 255; room is left for a "-12" after it.
 MAX_NAME_BYTES = 240
-_SAFE_MARKS = frozenset("._ ()+-")  # kept in a file name beside letters and digits
+# Made ``_`` in a name, besides control characters: what Windows takes in no name
+# (\\ / : * ? " < > |: a share or a copy to a stick would fail) and what a shell reads as
+# its own (; & $, as OctoPrint removes them, and the backquote).
+_UNSAFE_MARKS = frozenset('\\/:*?"<>|;&$`')
+# Format characters a name keeps: the joiners emoji sequences and some scripts are made of.
+_JOINERS = frozenset("\u200c\u200d")
 MAX_PATH = 1024
 # An upload goes to disk as it comes, this many bytes at a time: one fsync of a gigabyte at
 # its end would hold up every other fsync on the disk meanwhile, the store's commits on the
@@ -50,13 +56,24 @@ def upload_name(name: str) -> str:
 
 
 def _cleaned(name: str) -> str:
-    """Letters and digits of any script, and ``._ ()+-``; anything else ``_``."""
-    return "".join(c if c.isalnum() or c in _SAFE_MARKS else "_" for c in name)
+    """``name`` in NFC with every character a filesystem holds safely kept (letters of
+    any script, emoji, combining marks, punctuation); control and format characters (a
+    bidirectional override can disguise a name's end) and :data:`_UNSAFE_MARKS` ``_``."""
+    return "".join("_" if _unsafe(c) else c for c in unicodedata.normalize("NFC", name))
+
+
+def _unsafe(character: str) -> bool:
+    if character in _UNSAFE_MARKS:
+        return True
+    category = unicodedata.category(character)
+    # Cc: controls (NUL, line ends); Cs: a lone surrogate (no UTF-8 for it); Zl, Zp: line
+    # and paragraph separators; Cf: format characters, but for the joiners.
+    return category in ("Cc", "Cs", "Zl", "Zp") or (category == "Cf" and character not in _JOINERS)
 
 
 def safe_file_name(name: str) -> tuple[str, str]:
-    """The upload's own name, without folders, in safe characters (letters and digits of
-    any script kept), and a note when it was shortened to fit the filesystem (at most
+    """The upload's own name, without folders, in safe characters (see :func:`_cleaned`),
+    without a leading dot, and a note when it was shortened to fit the filesystem (at most
     :data:`MAX_NAME` characters and :data:`MAX_NAME_BYTES` bytes); 400 if nothing is left
     or it is not a G-code file."""
     cleaned = _cleaned(upload_name(name)).lstrip(".")
@@ -90,6 +107,17 @@ def safe_folder(path: str) -> Path:
     return Path(*(_cleaned(part) for part in parts)) if parts else Path()
 
 
+def listed_folder(path: str) -> Path:
+    """:func:`safe_folder` for a place a file or folder is put (an upload, a new folder, a
+    move): 400 when a name in it starts with '.' (Moonraker's ``.thumbs``, the server's own
+    folders), which every listing hides: what went there would never be seen."""
+    folder = safe_folder(path)
+    if any(part.startswith(".") for part in folder.parts):
+        said = f"'{_shown(path)}' is hidden (a name in it starts with '.'): nothing there is listed"
+        raise HTTPException(400, said)
+    return folder
+
+
 @dataclass(frozen=True)
 class Upload:
     """A stored upload: where, the lint's findings, its commands, and what became of a
@@ -109,7 +137,7 @@ async def save_upload(
     gets a new name (``part-2.gcode``). A file with errors is refused (400, with the
     findings), and one of the same name stays as it was."""
     name, shortened = safe_file_name(upload.filename or "")
-    target_dir = server.files / safe_folder(folder)
+    target_dir = server.files / listed_folder(folder)
     target_dir.mkdir(parents=True, exist_ok=True)
     # Written beside it under a hidden name first: a failed upload replaces nothing.
     partial = target_dir / f".upload-{secrets.token_hex(8)}.part"

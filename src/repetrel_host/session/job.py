@@ -210,10 +210,12 @@ MAX_KEPT_LINE = 1 << 16
 # Read a megabyte at a time: in a thread, reading 64 KB at a time (a GIL release and retake
 # each time, a few milliseconds apart) starved the event loop of the GIL for most of a second.
 _READ_SIZE = 1 << 20
+UTF8_BOM = b"\xef\xbb\xbf"
 
 
 def _raw_lines(handle: BinaryIO) -> Iterator[tuple[bytes, int]]:
-    """Lines without their ending (LF, CRLF or a lone CR), with the offset past each.
+    """Lines without their ending (LF, CRLF or a lone CR), with the offset past each; a
+    UTF-8 byte order mark at the file's start is skipped (Windows editors write one).
 
     Linear in the file's size, whatever its lines (a line of megabytes without an end
     costs what its bytes do), and bounded in memory: of a line longer than
@@ -224,11 +226,15 @@ def _raw_lines(handle: BinaryIO) -> Iterator[tuple[bytes, int]]:
     parts: list[bytes] = []  # the line so far
     kept = 0  # its bytes in parts
     held_cr = False  # the last chunk ended with a CR: maybe the first half of a CRLF
+    first = True
     while True:
         try:
             chunk = handle.read(_READ_SIZE)
         except OSError as exc:  # a stick pulled out, a network share gone
             raise JobError(f"{handle.name}: cannot be read on ({exc.strerror})") from None
+        if first and chunk.startswith(UTF8_BOM):  # an editor's mark, not part of a command
+            chunk, offset = chunk[len(UTF8_BOM) :], len(UTF8_BOM)
+        first = False
         if held_cr:
             crlf = chunk.startswith(b"\n")
             line, length = b"".join(parts), offset + 1 + crlf

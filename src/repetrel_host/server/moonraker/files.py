@@ -154,7 +154,10 @@ async def download(call: Call) -> Response:
 
 def _preview(server: PrintServer, wanted: Path) -> Response:
     """The preview ``wanted`` names, read from its G-code file beside ``.thumbs``."""
-    for gcode in wanted.parent.parent.iterdir():
+    folder = wanted.parent.parent
+    if not folder.is_dir():  # a folder that is not there has no previews either
+        raise RpcError(404, f"File does not exist: {wanted.name}")
+    for gcode in folder.iterdir():
         if not _gcode(gcode) or not wanted.name.startswith(f"{gcode.stem}-"):
             continue
         summary = server.analyses.cached(gcode)

@@ -2,17 +2,18 @@
 ("/printer/info" is ``printer.info``; where one path takes several verbs, the last part
 takes the verb, as ``server.database.get_item``), and its handler takes a :class:`Call`
 and gives the result. Errors are :class:`RpcError` with Moonraker's HTTP status; the
-websocket says them with JSON-RPC's codes (404 is -32601, "Method not found")."""
+websocket says them with Moonraker's JSON-RPC codes (its status, but 404 is -32601 and 401
+-32602), each with its own sentence: only an unknown method says "Method not found"."""
 
 from __future__ import annotations
 
-import json
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 from fastapi import HTTPException
 
+from repetrel_host.server.json_input import JsonTooDeep, parse_json
 from repetrel_host.server.moonraker.face import MoonrakerFace, Subscriber
 from repetrel_host.server.print_server import PrintServer
 from repetrel_host.server.printers.service import PrinterService, Refused
@@ -31,7 +32,9 @@ class RpcError(Exception):
 
     @property
     def code(self) -> int:
-        """The JSON-RPC error code (Moonraker's: 404 is "method not found", 401 -32602)."""
+        """The JSON-RPC error code, as Moonraker's ``execute_method`` gives it: the status,
+        but 404 (a missing file, namespace or job too) is -32601 and 401 -32602; the
+        message stays the refusal's own sentence."""
         return {404: -32601, 401: -32602}.get(self.status, self.status)
 
 
@@ -187,9 +190,11 @@ def query_args(items: list[tuple[str, str]]) -> dict[str, Any]:
             elif hint == "bool":
                 args[name] = value.lower() in ("true", "1")
             elif hint == "json":
-                args[name] = json.loads(value)
+                args[name] = parse_json(value)
             else:
                 args[name] = value
         except ValueError:
             raise RpcError(400, f"Invalid value for argument {name}: {value!r}") from None
+        except JsonTooDeep as exc:
+            raise RpcError(400, f"Invalid value for argument {name}: {exc}") from None
     return args

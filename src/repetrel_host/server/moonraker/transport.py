@@ -22,6 +22,7 @@ from starlette.datastructures import UploadFile
 
 from repetrel_host.server.auth import identify
 from repetrel_host.server.events import PrinterState, ServerEvent
+from repetrel_host.server.json_input import JsonTooDeep, parse_json
 from repetrel_host.server.moonraker import rpc
 from repetrel_host.server.moonraker.face import MoonrakerFace
 from repetrel_host.server.moonraker.objects import klippy_state
@@ -137,9 +138,11 @@ async def _body(request: Request) -> dict[str, Any]:
     kind = request.headers.get("content-type", "")
     if kind.startswith("application/json"):
         try:
-            body = await request.json()
+            body = parse_json(await request.body())
         except ValueError:
             raise rpc.RpcError(400, "the body is not JSON") from None
+        except JsonTooDeep as exc:
+            raise rpc.RpcError(400, str(exc)) from None
         if not isinstance(body, dict):
             raise rpc.RpcError(400, "the body is not a JSON object")
         return body
@@ -159,9 +162,11 @@ async def answer_rpc(
     """The answer to a JSON-RPC request (or batch) ``text``: a response, a list of them, or
     None for a notification."""
     try:
-        request = json.loads(text)
+        request = parse_json(text)
     except ValueError:
         return _error(None, -32700, "Parse error")
+    except JsonTooDeep as exc:
+        return _error(None, -32700, f"Parse error: {exc}")
     if isinstance(request, list):
         return await _batch(face, service, user, request, connection)
     return await _one(face, service, user, request, connection)

@@ -16,13 +16,14 @@ from fastapi.responses import JSONResponse, RedirectResponse, Response
 from repetrel_host.server.access import OWNER, AppKey
 from repetrel_host.server.auth import user_of
 from repetrel_host.server.events import AppKeyEvent
+from repetrel_host.server.json_input import parse_json
 from repetrel_host.server.print_server import PrintServer, server_of
 
 
 async def _body(request: Request) -> dict[str, Any]:
     """The JSON body, or 400 "Missing data" (OctoPrint's sentence)."""
     try:
-        data = await request.json()
+        data = parse_json(await request.body())
     except ValueError:
         data = None
     if not isinstance(data, dict):

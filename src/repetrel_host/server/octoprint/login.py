@@ -12,6 +12,7 @@ from fastapi.responses import JSONResponse
 
 from repetrel_host.server.access import GROUPS, PERMISSIONS
 from repetrel_host.server.auth import CSRF_COOKIE, SESSION_COOKIE, session_of, user_of
+from repetrel_host.server.json_input import parse_json
 from repetrel_host.server.print_server import server_of
 
 
@@ -50,7 +51,7 @@ def router() -> APIRouter:
         data: Any = None
         if request.headers.get("content-type", "").startswith("application/json"):
             with contextlib.suppress(ValueError):
-                data = await request.json()
+                data = parse_json(await request.body())
         else:
             data = dict(await request.form())
         if not isinstance(data, dict):

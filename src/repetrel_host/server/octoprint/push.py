@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
 import logging
 import re
 import time
@@ -39,6 +38,7 @@ from repetrel_host.server.events import (
     TemperatureReadings,
     ZChanged,
 )
+from repetrel_host.server.json_input import JsonTooDeep, parse_json
 from repetrel_host.server.octoprint import model
 from repetrel_host.server.octoprint.messages import Frame, Subscriptions, connected_text, dumps
 from repetrel_host.server.octoprint.terminal import LOG_LINES, terminal_lines
@@ -172,9 +172,9 @@ class Client:
             if len(message) > INCOMING_MOST:
                 return
             try:
-                message = json.loads(message)
-            except ValueError:
-                log.info("push socket client %s: not JSON, ignored", self.address)
+                message = parse_json(message)
+            except (ValueError, JsonTooDeep) as exc:
+                log.info("push socket client %s: ignored: %s", self.address, exc)
                 return
         if not isinstance(message, dict):
             return

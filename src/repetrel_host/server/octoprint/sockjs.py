@@ -23,6 +23,7 @@ from fastapi.responses import JSONResponse, PlainTextResponse, Response
 from starlette.routing import WebSocketRoute
 from starlette.types import Receive, Scope, Send
 
+from repetrel_host.server.json_input import JsonTooDeep, parse_json
 from repetrel_host.server.octoprint.messages import Frame
 from repetrel_host.server.octoprint.push import INCOMING_MOST, Client, Push
 
@@ -36,8 +37,8 @@ def _sockjs_messages(text: str) -> Iterable[Any]:
     """The messages of one SockJS frame from a client: a JSON list of strings, or one
     string; octorest's ``send`` writes a bare object, taken as one message."""
     try:
-        data = json.loads(text)
-    except ValueError:
+        data = parse_json(text)
+    except (ValueError, JsonTooDeep):
         return ()
     return data if isinstance(data, list) else (data,)
 
@@ -324,9 +325,11 @@ def router(push: Push) -> APIRouter:
         if len(body) > INCOMING_MOST:
             return PlainTextResponse("the message is too long", 413, headers=headers)
         try:
-            messages = json.loads(body)
+            messages = parse_json(body)
         except ValueError:
             return PlainTextResponse("Broken JSON encoding.", 400, headers=headers)
+        except JsonTooDeep as exc:
+            return PlainTextResponse(str(exc), 400, headers=headers)
         for message in messages if isinstance(messages, list) else (messages,):
             session.client.receive(message)
         return Response(status_code=204, headers={**headers, "Content-Type": "text/plain"})
