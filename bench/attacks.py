@@ -397,7 +397,9 @@ def main() -> None:
                     spawn = multiprocessing.get_context("spawn")
                     stop = spawn.Event()
                     receiving, sending = spawn.Pipe(duplex=False)
-                    poller = spawn.Process(target=poll, args=(server.url, stop, sending))
+                    poller = spawn.Process(
+                        target=poll, args=(server.url, stop, sending), daemon=True
+                    )
                     poller.start()
                     assert receiving.recv() == "polling"
                     target = Target(server.url, "127.0.0.1", server.port, args.scale)
