@@ -228,7 +228,20 @@ def test_values_keys_and_namespaces_past_their_bounds_are_refused(server: Server
         answer = json.loads((await socket.socket.receive(timeout=30)).data)
         while "id" not in answer:
             answer = json.loads((await socket.socket.receive(timeout=30)).data)
-        assert answer["error"]["code"] == 400
+        # Refused as it is read (no client nests JSON that deep), on the socket that goes on.
+        assert answer["error"]["code"] == -32700
+        assert "nested too deep" in answer["error"]["message"]
+        # Deep enough to be read, too deep to be kept: refused as it is stored.
+        deep = await socket.send(
+            call("server.database.post_item", 3, namespace="deep", key="e", value=[[[[[[[]]]]]]])
+        )
+        assert "result" in deep
+        forty = json.loads("[" * 40 + "]" * 40)
+        refused_deep = await socket.send(
+            call("server.database.post_item", 4, namespace="deep", key="f", value=forty)
+        )
+        assert refused_deep["error"]["code"] == 400, refused_deep
+        await socket.send(call("server.database.delete_item", 5, namespace="deep", key="e"))
         filled = [
             call("server.database.post_item", i, namespace="full", key=f"k{i}", value="f" * 700_000)
             for i in range(3)
