@@ -121,27 +121,31 @@ class OriginGuard:
         if not self.origins.answers_to(host):
             name = name_of(host or "")[:_SHOWN]
             said = f"this server does not answer to the name '{name}' (server_names lists more)"
-            await self._refuse(scope, receive, send, 421, said)
+            await _refuse(scope, receive, send, rpc.RpcError(421, said))
             return
         origin = headers.get("origin", headers.get("sec-websocket-origin"))
         if scope["type"] == "websocket" and origin is not None:
             trusts = self.server.access.trusts
             if not self.origins.may_open(origin, host or "", trusts):
+                origin = origin[:_SHOWN]
                 said = (
-                    f"a page from {origin[:_SHOWN]} may not open this websocket "
+                    f"a page from {origin} may not open this websocket "
                     "(cors_domains lists the other origins that may)"
                 )
-                await self._refuse(scope, receive, send, 403, said)
+                await _refuse(scope, receive, send, rpc.RpcError(403, said))
                 return
         await self.app(scope, receive, send)
 
-    @staticmethod
-    async def _refuse(scope: Any, receive: Any, send: Any, status: int, said: str) -> None:
-        if _MOONRAKER.fullmatch(scope["path"]):
-            answer = error_body(rpc.RpcError(status, said))
-        else:  # OctoPrint's clients read "error", FastAPI's "detail"
-            answer = JSONResponse({"error": said, "detail": said}, status)
-        if scope["type"] == "websocket":
-            await WebSocket(scope, receive, send).send_denial_response(answer)
-        else:
-            await answer(scope, receive, send)
+
+async def _refuse(scope: Any, receive: Any, send: Any, refused: rpc.RpcError) -> None:
+    """Answer ``refused`` in the face's shape (Moonraker's on its paths; else OctoPrint's
+    clients read "error", FastAPI's "detail"); a websocket's before its upgrade."""
+    status, said = refused.status, refused.message
+    if _MOONRAKER.fullmatch(scope["path"]):
+        answer = error_body(refused)
+    else:
+        answer = JSONResponse({"error": said, "detail": said}, status)
+    if scope["type"] == "websocket":
+        await WebSocket(scope, receive, send).send_denial_response(answer)
+    else:
+        await answer(scope, receive, send)
