@@ -449,7 +449,9 @@ def test_octoprints_sockjs_client_in_a_browser_follows_a_print(
     from selenium.webdriver.support.ui import WebDriverWait
 
     fake = bench("--move-time", "0.002")
-    server = servers({"bench": fake.port})
+    # The page is another origin's (another port): its websocket is let in once listed, as
+    # OctoPrint's needs allowCrossOrigin.
+    server = servers({"bench": fake.port}, "--cors-domain", "http://127.0.0.1:*")
     auth = passive_login(server)
     url = page_server(
         PAGE

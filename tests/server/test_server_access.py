@@ -74,7 +74,10 @@ def test_every_request_needs_a_key_unless_reads_are_opened(
         assert anonymous.get("/api/currentuser").json()["groups"] == ["guests"]
         refused = anonymous.post("/api/printer/command", json={"command": "M105"})
         assert refused.status_code == 403  # changes still need the key
-        assert anonymous.get("/v1/appkeys").status_code == 200
+        # The app keys and the requests waiting are a user's, as on OctoPrint: a request's
+        # user_token decides it.
+        assert anonymous.get("/v1/appkeys").status_code == 403
+        assert anonymous.get("/api/plugin/appkeys").status_code == 403
         assert (
             anonymous.post(
                 "/api/plugin/appkeys", json={"command": "generate", "app": "x"}

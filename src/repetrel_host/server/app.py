@@ -41,6 +41,7 @@ from repetrel_host.server.moonraker import router as moonraker_router
 from repetrel_host.server.mqtt.bridge import MqttBridge, MqttSettings
 from repetrel_host.server.octoprint import appkeys, rest, sockjs
 from repetrel_host.server.octoprint.push import Push
+from repetrel_host.server.origins import OriginGuard, Origins, machine_names
 from repetrel_host.server.print_server import PrintServer, server_of
 from repetrel_host.session.workers import stop_workers
 
@@ -59,8 +60,11 @@ def _long_part_headers() -> None:
         module.MultipartParser = functools.partial(module.MultipartParser, max_header_size=1 << 16)
 
 
-def create_app(server: PrintServer, mqtt: MqttSettings | None = None) -> FastAPI:
-    """The app of ``server``: its APIs and page; with ``mqtt``, its bridge to that broker."""
+def create_app(
+    server: PrintServer, mqtt: MqttSettings | None = None, origins: Origins | None = None
+) -> FastAPI:
+    """The app of ``server``: its APIs and page; with ``mqtt``, its bridge to that broker;
+    answering to the names of ``origins`` (default: the machine's own and IP addresses)."""
     _long_part_headers()
     push = Push(server)
     moonraker = make_face(server)
@@ -89,6 +93,8 @@ def create_app(server: PrintServer, mqtt: MqttSettings | None = None) -> FastAPI
     app.state.server = server
     app.state.moonraker = moonraker
     app.add_middleware(RequestGuard, server=server)
+    # Outside the key's check: a rebound name or another site's page goes no further.
+    app.add_middleware(OriginGuard, server=server, origins=origins or Origins(machine_names()))
     app.add_middleware(SingleSlashes)
 
     @app.exception_handler(HTTPException)

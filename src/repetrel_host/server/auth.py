@@ -45,10 +45,10 @@ def session_of(request: Request) -> str | None:
     return session
 
 
-def identify(server: PrintServer, scope: Any) -> tuple[str | None, str | None]:
+def identify(server: PrintServer, scope: Any, cookie: bool = True) -> tuple[str | None, str | None]:
     """``(user, session)`` that the request names: a key (``X-Api-Key``, ``apikey`` in the
-    query, ``Authorization: Bearer``), else the login's session cookie (with the CSRF token
-    a change needs, as OctoPrint asks of a cookie)."""
+    query, ``Authorization: Bearer``), else, with ``cookie``, the login's session cookie
+    (with the CSRF token a change needs, as OctoPrint asks of a cookie)."""
     headers = {key.decode("latin-1").lower(): value for key, value in scope["headers"]}
     query = dict(parse_qsl(scope.get("query_string", b"").decode("latin-1")))
     given = headers.get("x-api-key", b"").decode("latin-1") or query.get("apikey", "")
@@ -57,6 +57,8 @@ def identify(server: PrintServer, scope: Any) -> tuple[str | None, str | None]:
         given = bearer[7:].strip()
     if given:
         return server.access.user_for_key(given), None
+    if not cookie:
+        return None, None
     cookies = SimpleCookie()
     cookies.load(headers.get("cookie", b"").decode("latin-1"))
     session = cookies[SESSION_COOKIE].value if SESSION_COOKIE in cookies else ""

@@ -122,6 +122,29 @@ def serve(
         str | None,
         typer.Option(help="Where the farm reaches this server (default: http://BIND)."),
     ] = None,
+    trusted_proxy: Annotated[
+        list[str] | None,
+        typer.Option(
+            metavar="ADDRESS[/BITS]",
+            help="A web server in front, whose X-Forwarded-For names the client (default "
+            "none: the header is ignored); repeat.",
+        ),
+    ] = None,
+    server_name: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="A host name the server answers to, besides IP addresses, localhost and the "
+            "machine's own; repeat.",
+        ),
+    ] = None,
+    cors_domain: Annotated[
+        list[str] | None,
+        typer.Option(
+            metavar="http(s)://HOST[:PORT]",
+            help="Another origin whose pages may open the websockets ('*' for any "
+            "characters); repeat.",
+        ),
+    ] = None,
     config: Annotated[Path | None, typer.Option(help="A TOML file with these settings.")] = None,
     version: Annotated[bool, typer.Option("--version", help="Print the version.")] = False,
 ) -> None:
@@ -141,6 +164,7 @@ def serve(
         public_read,
         (farm, node_name, node_url),
         stop_timeout,
+        (trusted_proxy or [], server_name or [], cors_domain or []),
     )
     host, port = parse_address(settings.bind, "--bind", example=DEFAULT_BIND)
     logging.basicConfig(
@@ -171,6 +195,7 @@ def serve(
     import uvicorn
 
     from repetrel_host.server.app import PrinterPorts, PrintServer, create_app
+    from repetrel_host.server.origins import Origins, machine_names
 
     printers = {
         name: PrinterConfig(entry)
@@ -213,13 +238,23 @@ def serve(
     # would end it on the spot, heaters on: they stop it as SIGTERM does.
     for signum in (signal.SIGHUP, signal.SIGQUIT):
         signal.signal(signum, lambda *_: signal.raise_signal(signal.SIGTERM))
-    served = create_app(server, mqtt_settings(settings))
+    node_url = farm_settings.node_url if farm_settings is not None else None
+    origins = Origins(
+        {*machine_names(), host, *served_names(node_url), *settings.server_names},
+        settings.cors_domains,
+    )
+    served = create_app(server, mqtt_settings(settings), origins)
+    proxies = [str(network) for network in settings.trusted_proxies]
     listening = uvicorn.Config(
         PrinterPorts(served, ports) if ports else served,
         host=host,
         port=port,
         log_level="info",
         access_log=False,
+        # X-Forwarded-For names the client only when a proxy the settings name sent it
+        # (uvicorn's default believes any local process, $FORWARDED_ALLOW_IPS anyone).
+        proxy_headers=bool(proxies),
+        forwarded_allow_ips=proxies,
         # Event streams never end by themselves: after this long they are closed, so that
         # a stop reaches the printers' safe stop.
         timeout_graceful_shutdown=3,
@@ -233,6 +268,14 @@ def serve(
         ws_ping_timeout=10.0,
     )
     uvicorn.Server(listening).run(sockets=sockets)
+
+
+def served_names(url: str | None) -> list[str]:
+    """The host name in ``url`` (the farm's link to this server), if it has one."""
+    from urllib.parse import urlsplit
+
+    name = urlsplit(url).hostname if url else None
+    return [name] if name else []
 
 
 def bound(host: str, port: int, what: str) -> socket.socket:

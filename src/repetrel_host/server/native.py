@@ -328,6 +328,8 @@ def router() -> APIRouter:
         server = server_of(request)
         only = server.service(printer).name if printer else None
         names = [only] if only is not None else list(server.services)
+        # Open reads hear no app-key requests: their user_token decides them.
+        keyed = user_of(request) is not None
 
         async def stream() -> AsyncIterator[str]:
             async with server.events.listen(only) as events:  # before the snapshot: none lost
@@ -344,13 +346,16 @@ def router() -> APIRouter:
                     except TimeoutError:
                         yield ": keepalive\n\n"  # proxies keep the stream open
                         continue
-                    yield _sse(event.as_json())
+                    if keyed or not isinstance(event, AppKeyEvent):
+                        yield _sse(event.as_json())
 
         return StreamingResponse(stream(), media_type="text/event-stream")
 
     @router.get("/appkeys")
     async def app_keys(request: Request) -> dict[str, Any]:
-        """The app keys granted (never the keys themselves) and the requests waiting."""
+        """The app keys granted (never the keys themselves) and the requests waiting: with
+        a key only, as OctoPrint's list (a request's user_token decides it)."""
+        appkeys.user_needed(request)
         access = server_of(request).access
         return {
             "keys": [appkeys.key_json(key) for key in access.app_keys()],

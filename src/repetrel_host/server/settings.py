@@ -10,10 +10,17 @@ import re
 import secrets
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, Annotated, Literal
 
 import typer
-from pydantic import BaseModel, ConfigDict, Field, IPvAnyNetwork, ValidationError
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    IPvAnyNetwork,
+    ValidationError,
+)
 
 from repetrel_host.config import CameraCommand, read_toml
 from repetrel_host.errors import ConfigError
@@ -27,6 +34,26 @@ DEFAULT_BIND = "127.0.0.1:8765"
 API_KEY_FILE = "api-key"
 _NAME = re.compile(r"^[A-Za-z0-9_-]+$")
 _BRANCHES = ("str", "PrinterEntry")  # how pydantic names the sides of a printer's union
+
+
+def _server_name(name: str) -> str:
+    if not re.fullmatch(r"[A-Za-z0-9]([A-Za-z0-9.-]*[A-Za-z0-9])?", name):
+        raise ValueError(f"'{name}' is not a host name (no scheme, port or '*')")
+    return name.lower()
+
+
+def _cors_domain(domain: str) -> str:
+    """An origin (``http://HOST[:PORT]``, ``*`` for any characters), as Moonraker takes its
+    ``cors_domains``: no ``*`` in the top-level domain, no trailing slash."""
+    if not re.fullmatch(r"https?://[^/?#\s]+", domain):
+        raise ValueError(f"'{domain}' is not an origin: give http(s)://HOST[:PORT], no path")
+    if re.search(r"^.+\.[^:]*\*", domain):
+        raise ValueError(f"'{domain}': a '*' in the top-level domain would match any site")
+    return domain
+
+
+ServerName = Annotated[str, AfterValidator(_server_name)]
+CorsDomain = Annotated[str, AfterValidator(_cors_domain)]
 
 
 class PrinterEntry(BaseModel):
@@ -86,6 +113,12 @@ class ServerSettings(BaseModel):
     stop_timeout: float = Field(default=30.0, gt=0, le=3600)
     # Moonraker's face lets these networks in without a key (its trusted_clients).
     moonraker_trusted_clients: list[IPvAnyNetwork] = []
+    # X-Forwarded-For and -Proto are believed only from these (a web server in front).
+    trusted_proxies: list[IPvAnyNetwork] = []
+    # Names the server answers to besides localhost, the machine's and node_url's (Host).
+    server_names: list[ServerName] = []
+    # Other origins whose pages may open the websockets (Moonraker's cors_domains).
+    cors_domains: list[CorsDomain] = []
     mqtt: str | None = None  # HOST[:PORT] of a broker
     mqtt_prefix: str = "hyrel"
     mqtt_commands: bool = False
@@ -118,8 +151,10 @@ def load_settings(
     public_read: bool = False,
     farm: tuple[str | None, str | None, str | None] = (None, None, None),
     stop_timeout: float | None = None,
+    ways_in: tuple[list[str], list[str], list[str]] = ([], [], []),
 ) -> ServerSettings:
-    """The settings of the TOML file ``config``, with the options given over them."""
+    """The settings of the TOML file ``config``, with the options given over them
+    (``ways_in``: the trusted proxies, server names and CORS domains given)."""
     values: dict[str, object] = {}
     if config is not None:
         try:
@@ -153,6 +188,9 @@ def load_settings(
         "farm": farm[0],
         "node_name": farm[1],
         "node_url": farm[2],
+        "trusted_proxies": ways_in[0] or None,
+        "server_names": ways_in[1] or None,
+        "cors_domains": ways_in[2] or None,
     }
     values.update({key: value for key, value in given.items() if value is not None})
     if not printers:

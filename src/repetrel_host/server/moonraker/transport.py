@@ -57,8 +57,9 @@ def who(face: MoonrakerFace, scope: Any) -> tuple[bool, str | None]:
     ``Authorization: Bearer``), a trusted network, a one-shot ``?token=``; an unknown
     token is ignored, as Moonraker does (KlipperScreen sends ``token=False``). The
     server's open reads (``public_read``) do not open this face: a read here (a one-shot
-    token, a websocket) leads to everything."""
-    user, _ = identify(face.server, scope)
+    token, a websocket) leads to everything. Nor does the page's session cookie: Moonraker
+    takes none, and a browser sends it with another site's websocket or request too."""
+    user, _ = identify(face.server, scope, cookie=False)
     if user is not None:
         return True, user
     client = scope.get("client")

@@ -3,7 +3,8 @@ key, a person allows or denies it on the status page, the application polls for 
 answer. Home Assistant's OctoPrint integration has no other way to set up.
 
 The routes are ``/plugin/appkeys/...`` (the request, open to anyone: an app has no key
-yet), ``/api/plugin/appkeys`` (the keys and pending requests, for a user), both at the
+yet), ``/api/plugin/appkeys`` (the keys and pending requests, for a user only: a
+request's ``user_token`` decides it), both at the
 server's root and under ``/printers/NAME``."""
 
 from __future__ import annotations
@@ -45,7 +46,9 @@ def _named(app: object) -> str:
     return app.strip()
 
 
-def _user(request: Request) -> str:
+def user_needed(request: Request) -> str:
+    """Who asks (a key's or session's user); 403 for nobody: the keys and requests are a
+    user's business, even where the server opens reads."""
     user = user_of(request)
     if user is None:  # the server opens reads: a key still decides who may grant keys
         raise HTTPException(403, "a valid API key is needed (the X-Api-Key header)")
@@ -96,11 +99,14 @@ def router() -> APIRouter:
         if "decision" not in data:
             raise HTTPException(400, "No decision provided")
         allow = data["decision"] is True or str(data["decision"]).lower() in ("true", "1", "yes")
-        decided(server_of(request), user_token, allow, _user(request))
+        decided(server_of(request), user_token, allow, user_needed(request))
         return Response(status_code=204)
 
     @router.get("/api/plugin/appkeys")
     async def keys(request: Request) -> dict[str, Any]:
+        # OctoPrint answers a named user only, even where reads are open: a pending
+        # request's user_token decides it.
+        user_needed(request)
         server = server_of(request)
         app = request.query_params.get("app")
         if app:
@@ -117,7 +123,7 @@ def router() -> APIRouter:
     async def key_command(request: Request) -> Response:
         data = await _body(request)
         server = server_of(request)
-        user = _user(request)
+        user = user_needed(request)
         command = data.get("command")
         if command == "revoke":
             app, key = data.get("app"), data.get("key")

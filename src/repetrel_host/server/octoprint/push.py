@@ -124,7 +124,8 @@ class Client:
         plugins = self.subscriptions.plugins
         if plugins is not None and plugin not in plugins:
             return
-        if self.may_read:
+        # Open reads do not open the appkeys plugin's messages: a user_token decides a request.
+        if self.may_read and (self.user is not None or plugin != "appkeys"):
             self.offer(frame)
         elif len(self.backlog) < UNAUTHED_BACKLOG:  # (offered at its auth: queued then)
             self.backlog.append(frame)  # OctoPrint holds it until the client's auth
