@@ -445,11 +445,16 @@ def _message_args(
         return [*call.args, *_body(call.args)], False
     if name == "JSONResponse":
         return _body([*call.args, *keywords.values()]), False
-    for sink in sinks:
-        sink_module, function, index = sink
-        here = sink_module == module.name or module.imported.get(name) == sink_module
-        if here and name == function:
-            return call.args[index : index + 1], sink not in SINK_FUNCTIONS
+    # Every parameter of the function that is a sink (not the first one a set's order
+    # gives: which one that is changed with the hash seed).
+    matched = sorted(
+        sink
+        for sink in sinks
+        if sink[1] == name and (sink[0] == module.name or module.imported.get(name) == sink[0])
+    )
+    if matched:
+        args = [arg for _, _, index in matched for arg in call.args[index : index + 1]]
+        return args, any(sink not in SINK_FUNCTIONS for sink in matched)
     if name in SINK_CALLS:
         index = SINK_CALLS[name]
         if name in {"fail", "skip", "exit"} and ast.unparse(call.func) != f"pytest.{name}":
