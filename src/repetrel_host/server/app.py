@@ -35,6 +35,7 @@ from starlette.exceptions import HTTPException
 import repetrel_host as rh
 from repetrel_host.server import native
 from repetrel_host.server.auth import RequestGuard
+from repetrel_host.server.bodies import BodyBound
 from repetrel_host.server.moonraker import make_face
 from repetrel_host.server.moonraker import router as moonraker_router
 from repetrel_host.server.mqtt.bridge import MqttBridge, MqttSettings
@@ -88,6 +89,7 @@ def create_app(server: PrintServer, mqtt: MqttSettings | None = None) -> FastAPI
     app.state.server = server
     app.state.moonraker = moonraker
     app.add_middleware(RequestGuard, server=server)
+    app.add_middleware(BodyBound, server=server)  # around the guard: its 403 reads no body
     app.add_middleware(SingleSlashes)
 
     @app.exception_handler(HTTPException)

@@ -171,6 +171,8 @@ def serve(
     import uvicorn
 
     from repetrel_host.server.app import PrinterPorts, PrintServer, create_app
+    from repetrel_host.server.bodies import SMALL_BODY
+    from repetrel_host.server.connections import ConnectionGuard, connection_limit, quiet_repeats
 
     printers = {
         name: PrinterConfig(entry)
@@ -214,12 +216,17 @@ def serve(
     for signum in (signal.SIGHUP, signal.SIGQUIT):
         signal.signal(signum, lambda *_: signal.raise_signal(signal.SIGTERM))
     served = create_app(server, mqtt_settings(settings))
+    # Connections that send nothing are closed, and take no more than their share of files.
+    guard = ConnectionGuard(connection_limit(settings.max_connections), settings.header_timeout)
     listening = uvicorn.Config(
         PrinterPorts(served, ports) if ports else served,
         host=host,
         port=port,
         log_level="info",
         access_log=False,
+        **guard.options(),
+        # A websocket's message is bounded as an HTTP body is (bodies.py).
+        ws_max_size=SMALL_BODY,
         # Event streams never end by themselves: after this long they are closed, so that
         # a stop reaches the printers' safe stop.
         timeout_graceful_shutdown=3,
@@ -232,6 +239,7 @@ def serve(
         ws_ping_interval=10.0,
         ws_ping_timeout=10.0,
     )
+    quiet_repeats()  # after uvicorn set up its loggers
     uvicorn.Server(listening).run(sockets=sockets)
 
 
