@@ -8,8 +8,9 @@ and asyncio logs a traceback for each accept it tries. Here:
 - a connection must send a complete request head within ``header_timeout`` seconds of
   connecting (or of its last answer, kept alive): else it is closed;
 - the server holds at most ``max_connections`` connections (HTTP and websockets): past
-  them, the oldest connection that has not sent a complete request head is closed, so a
-  client that asks at once (a keyed client, the page) gets in; the file limit keeps
+  them, the oldest connection waiting for a request head is closed (one that never sent a
+  request before one kept alive after its answer), so a client that asks at once (a keyed
+  client, the page) gets in; the file limit keeps
   :data:`RESERVED_FILES` more for the printers' ports, the database, logs and workers;
 - a refusal is logged once a minute per kind, with how many there were.
 """
