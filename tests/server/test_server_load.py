@@ -118,6 +118,11 @@ def test_big_bodies_are_refused_before_they_are_read_with_a_key_or_without(
         body = Body(b'["')
         octoprint_refused(anyone.post("/sockjs/000/abcdefgh/xhr_send", content=body), 413)
         assert body.sent < BODY_MB // 2
+        # Refused for want of a key, unread: the refusal comes whole, the rest is not read.
+        body = Body(b"")
+        refused = anyone.post("/v1/printers/busy/hold", content=body)
+        assert octoprint_refused(refused, 403) and refused.headers["connection"] == "close"
+        assert body.sent < BODY_MB // 2
         # Its length said first: refused before a byte of it is read.
         body = Body(b"{")
         length = {**json_kind, "Content-Length": str(BODY_MB * MB + 1)}

@@ -95,7 +95,7 @@ class BodyBound:
 
         async def watched(message: Any) -> None:
             nonlocal started
-            if over:
+            if over and not started:
                 return  # the app's answer to a body cut short: ours goes instead
             if message["type"] == "http.response.start":
                 started = True

@@ -23,7 +23,7 @@ import errno
 import logging
 import resource
 import time
-from typing import Any
+from typing import Any, cast
 
 import h11
 from uvicorn.protocols.http.h11_impl import H11Protocol
@@ -41,6 +41,12 @@ RESERVED_FILES = 256
 # (uvicorn's 2,048 took every descriptor at once).
 BACKLOG = 64
 LOG_EVERY = 60.0  # s between two lines of one kind of refusal
+# A connection closed with a request's body still coming (a refusal before the body was
+# read: 413, 403) is first only shut for writing, and what still comes is dropped for up
+# to this long or this much: closed at once, with bytes unread, the kernel resets it and
+# the client may never see the answer.
+LINGER = 2.0  # s
+LINGER_BYTES = 1024 * 1024
 
 
 class RefusalLog:
@@ -213,17 +219,27 @@ class ConnectionGuard:
 
 class GuardedH11Protocol(H11Protocol):
     """uvicorn's h11 protocol, telling its :class:`ConnectionGuard` when a connection
-    comes, sends a request head, waits for the next one, and goes."""
+    comes, sends a request head, waits for the next one, and goes; and closing a
+    connection whose request body is still coming with a lingering close."""
 
     guard: ConnectionGuard
+    dropped: int | None = None  # lingering: the bytes dropped since
 
     def connection_made(self, transport: Any) -> None:
-        super().connection_made(transport)
+        super().connection_made(cast(asyncio.Transport, LingeringClose(transport, self)))
         self.guard.arrived(self)
 
     def connection_lost(self, exc: Exception | None) -> None:
         self.guard.gone(self)
         super().connection_lost(exc)
+
+    def data_received(self, data: bytes) -> None:
+        if self.dropped is None:
+            super().data_received(data)
+            return
+        self.dropped += len(data)  # the rest of a refused body: read for nothing
+        if self.dropped > LINGER_BYTES:
+            self.transport.close()
 
     def handle_events(self) -> None:
         cycle = self.cycle
@@ -236,3 +252,36 @@ class GuardedH11Protocol(H11Protocol):
         if not self.transport.is_closing():
             self.guard.answered(self)  # kept alive: the next head has its deadline too
         super().on_response_complete()
+
+
+class LingeringClose:
+    """A connection's transport as its :class:`GuardedH11Protocol` sees it: closed while
+    the request's body still comes, it sends what was written and a FIN, drops what comes
+    for :data:`LINGER` seconds or :data:`LINGER_BYTES`, and then closes."""
+
+    def __init__(self, transport: Any, protocol: GuardedH11Protocol) -> None:
+        self._transport = transport
+        self._protocol = protocol
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._transport, name)
+
+    def is_closing(self) -> bool:
+        return self._protocol.dropped is not None or bool(self._transport.is_closing())
+
+    def close(self) -> None:
+        transport, protocol = self._transport, self._protocol
+        body_coming = (
+            transport.get_protocol() is protocol  # not a websocket by now
+            and protocol.conn.their_state is h11.SEND_BODY
+            and protocol.dropped is None
+            and transport.can_write_eof()
+            and not transport.is_closing()
+        )
+        if not body_coming:
+            transport.close()
+            return
+        protocol.dropped = 0
+        transport.write_eof()
+        transport.resume_reading()
+        protocol.loop.call_later(LINGER, transport.close)
