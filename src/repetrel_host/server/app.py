@@ -35,6 +35,7 @@ from starlette.exceptions import HTTPException
 import repetrel_host as rh
 from repetrel_host.server import native
 from repetrel_host.server.auth import RequestGuard
+from repetrel_host.server.bodies import BodyBound
 from repetrel_host.server.json_input import JsonTooDeep, too_deep_answer
 from repetrel_host.server.moonraker import make_face
 from repetrel_host.server.moonraker import router as moonraker_router
@@ -95,6 +96,8 @@ def create_app(
     app.add_middleware(RequestGuard, server=server)
     # Outside the key's check: a rebound name or another site's page goes no further.
     app.add_middleware(OriginGuard, server=server, origins=origins or Origins(machine_names()))
+    # Around both guards: a body their refusals leave unread is read within its bound.
+    app.add_middleware(BodyBound, server=server)
     app.add_middleware(SingleSlashes)
 
     @app.exception_handler(HTTPException)

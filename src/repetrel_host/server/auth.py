@@ -75,9 +75,8 @@ def identify(server: PrintServer, scope: Any, cookie: bool = True) -> tuple[str 
 
 class RequestGuard:
     """Before any body is read: a request needs a valid key or session (403; reads pass
-    without one where the server opens them), and a body over the upload limit is refused
-    (413), chunked or not. FastAPI's own checks come after the body was parsed, which
-    would let anyone fill the disk. Who asked goes into the request's state."""
+    without one where the server opens them). FastAPI's own checks come after the body was
+    parsed, which would let anyone fill the disk. Who asked goes into the request's state."""
 
     def __init__(self, app: Any, server: PrintServer) -> None:
         self.app = app
@@ -95,40 +94,4 @@ class RequestGuard:
         if user is None and not open_route and not (reading and server.access.public_read):
             await JSONResponse({"error": NO_KEY, "detail": NO_KEY}, 403)(scope, receive, send)
             return
-        if reading:
-            await self.app(scope, receive, send)
-            return
-        limit = server.max_upload + 65536  # the form's own bytes
-        headers = {key.decode("latin-1").lower(): value for key, value in scope["headers"]}
-        length = headers.get("content-length", b"")
-        said = f"the upload is over {server.max_upload} bytes"
-        too_big = {"error": said, "detail": said}  # OctoPrint's clients read "error"
-        if length.isdigit() and int(length) > limit:
-            await JSONResponse(too_big, 413)(scope, receive, send)
-            return
-        received, over, started = 0, False, False
-
-        async def counted() -> Any:
-            nonlocal received, over
-            message = await receive()
-            if message["type"] == "http.request":
-                received += len(message.get("body", b""))
-                if received > limit:
-                    over = True
-                    return {"type": "http.disconnect"}  # the app stops reading
-            return message
-
-        async def watched(message: Any) -> None:
-            nonlocal started
-            if over:
-                return  # the app's answer to a body cut short: ours goes instead
-            started = started or message["type"] == "http.response.start"
-            await send(message)
-
-        try:
-            await self.app(scope, counted, watched)
-        except Exception:
-            if not over:
-                raise
-        if over and not started:
-            await JSONResponse(too_big, 413)(scope, receive, send)
+        await self.app(scope, receive, send)  # its body bounded next (bodies.py)

@@ -195,6 +195,8 @@ def serve(
     import uvicorn
 
     from repetrel_host.server.app import PrinterPorts, PrintServer, create_app
+    from repetrel_host.server.bodies import SMALL_BODY
+    from repetrel_host.server.connections import ConnectionGuard, connection_limit, quiet_repeats
     from repetrel_host.server.origins import Origins, machine_names
 
     printers = {
@@ -245,6 +247,8 @@ def serve(
     )
     served = create_app(server, mqtt_settings(settings), origins)
     proxies = [str(network) for network in settings.trusted_proxies]
+    # Connections that send nothing are closed, and take no more than their share of files.
+    guard = ConnectionGuard(connection_limit(settings.max_connections), settings.header_timeout)
     listening = uvicorn.Config(
         PrinterPorts(served, ports) if ports else served,
         host=host,
@@ -255,6 +259,9 @@ def serve(
         # (uvicorn's default believes any local process, $FORWARDED_ALLOW_IPS anyone).
         proxy_headers=bool(proxies),
         forwarded_allow_ips=proxies,
+        **guard.options(),
+        # A websocket's message is bounded as an HTTP body is (bodies.py).
+        ws_max_size=SMALL_BODY,
         # Event streams never end by themselves: after this long they are closed, so that
         # a stop reaches the printers' safe stop.
         timeout_graceful_shutdown=3,
@@ -267,6 +274,7 @@ def serve(
         ws_ping_interval=10.0,
         ws_ping_timeout=10.0,
     )
+    quiet_repeats()  # after uvicorn set up its loggers
     uvicorn.Server(listening).run(sockets=sockets)
 
 

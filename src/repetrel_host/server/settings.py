@@ -111,6 +111,11 @@ class ServerSettings(BaseModel):
     # How long a stop (SIGTERM) waits for a printing machine's safe stop before it leaves
     # it owed (and exits 75, for systemd to start the server again to send it).
     stop_timeout: float = Field(default=30.0, gt=0, le=3600)
+    # Connections held at once (HTTP and websockets; connections.py keeps 256 more file
+    # descriptors for the rest: 1,024 in all), and the seconds a connection has to send a
+    # request's head: past either, connections that sent no request are closed.
+    max_connections: int = Field(default=768, ge=16, le=100_000)
+    header_timeout: float = Field(default=10.0, gt=0, le=300)
     # Moonraker's face lets these networks in without a key (its trusted_clients).
     moonraker_trusted_clients: list[IPvAnyNetwork] = []
     # X-Forwarded-For and -Proto are believed only from these (a web server in front).

@@ -19,6 +19,7 @@ from urllib.parse import parse_qsl
 from fastapi import APIRouter, Request, WebSocket, WebSocketDisconnect
 from fastapi.responses import JSONResponse, Response
 from starlette.datastructures import UploadFile
+from starlette.exceptions import HTTPException
 
 from repetrel_host.server.auth import identify
 from repetrel_host.server.events import PrinterState, ServerEvent
@@ -148,7 +149,10 @@ async def _body(request: Request) -> dict[str, Any]:
             raise rpc.RpcError(400, "the body is not a JSON object")
         return body
     if kind.startswith(("multipart/form-data", "application/x-www-form-urlencoded")):
-        form = await request.form()
+        try:
+            form = await request.form()
+        except HTTPException as exc:  # Starlette's word on a broken form, in Moonraker's shape
+            raise rpc.RpcError(exc.status_code, str(exc.detail)) from None
         return {k: v for k, v in form.multi_items() if isinstance(v, (str, UploadFile))}
     return {}
 
