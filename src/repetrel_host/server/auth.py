@@ -30,6 +30,20 @@ _OPEN = re.compile(
     r"|/openapi\.json|/docs|/docs/oauth2-redirect|/redoc"
 )
 _READS = ("GET", "HEAD", "OPTIONS")
+# Moonraker's paths, at the root or a printer's: its face refuses in its own shape.
+_MOONRAKER = re.compile(r"(/printers/[^/]+)?(/(printer|server|machine|access)/.*|/websocket)")
+
+
+def refusal(
+    path: str, status: int, said: str, headers: dict[str, str] | None = None
+) -> JSONResponse:
+    """A refusal made before any route, in the shape of the face ``path`` belongs to:
+    Moonraker's ``{"error": {"code", "message"}}`` on its paths, else ``error`` (what
+    OctoPrint's clients read) and ``detail`` (FastAPI's)."""
+    if _MOONRAKER.fullmatch(path):
+        moonrakers = {"code": status, "message": said, "traceback": ""}
+        return JSONResponse({"error": moonrakers}, status, headers=headers)
+    return JSONResponse({"error": said, "detail": said}, status, headers=headers)
 
 
 def user_of(request: Request) -> str | None:
@@ -92,6 +106,6 @@ class RequestGuard:
         open_route = _OPEN.fullmatch(scope["path"]) is not None
         reading = scope["method"] in _READS
         if user is None and not open_route and not (reading and server.access.public_read):
-            await JSONResponse({"error": NO_KEY, "detail": NO_KEY}, 403)(scope, receive, send)
+            await refusal(scope["path"], 403, NO_KEY)(scope, receive, send)
             return
         await self.app(scope, receive, send)  # its body bounded next (bodies.py)

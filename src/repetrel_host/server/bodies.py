@@ -13,6 +13,7 @@ from typing import Any
 
 from fastapi.responses import JSONResponse
 
+from repetrel_host.server.auth import refusal
 from repetrel_host.server.print_server import PrintServer
 
 # A form's own bytes around an upload's file: its boundaries, its part headers (a name of
@@ -34,7 +35,6 @@ _UPLOADS = re.compile(
 _OPEN = re.compile(
     _PRINTER + r"/(?:api/login|api/logout|plugin/appkeys/(?:probe|request(?:/[^/]+)?)|sockjs/.*)"
 )
-_MOONRAKER = re.compile(_PRINTER + r"/(?:printer|server|machine|access)/.*")
 
 
 def body_bound(path: str, max_upload: int) -> tuple[int, str]:
@@ -48,11 +48,7 @@ def body_bound(path: str, max_upload: int) -> tuple[int, str]:
 def too_big(path: str, said: str) -> JSONResponse:
     """413 in the shape of the face ``path`` belongs to; the connection is closed after it
     (the rest of the body is not read)."""
-    if _MOONRAKER.fullmatch(path):
-        body: dict[str, Any] = {"error": {"code": 413, "message": said, "traceback": ""}}
-    else:
-        body = {"error": said, "detail": said}  # OctoPrint's clients read "error"
-    return JSONResponse(body, 413, headers={"Connection": "close"})
+    return refusal(path, 413, said, {"Connection": "close"})
 
 
 class BodyBound:

@@ -26,15 +26,11 @@ from ipaddress import ip_address
 from typing import Any
 from urllib.parse import urlsplit
 
-from fastapi.responses import JSONResponse
 from starlette.websockets import WebSocket
 
-from repetrel_host.server.moonraker import rpc
-from repetrel_host.server.moonraker.transport import error_body
+from repetrel_host.server.auth import refusal
 from repetrel_host.server.print_server import PrintServer
 
-# Moonraker's paths (its face answers in its own shape), at the root or a printer's.
-_MOONRAKER = re.compile(r"(/printers/[^/]+)?(/(printer|server|machine|access)/.*|/websocket)")
 _SHOWN = 100  # characters of a refused name or origin said back
 FQDN_WAIT = 2.0  # s: a host with a broken resolver starts anyway, without its FQDN
 
@@ -121,7 +117,7 @@ class OriginGuard:
         if not self.origins.answers_to(host):
             name = name_of(host or "")[:_SHOWN]
             said = f"this server does not answer to the name '{name}' (server_names lists more)"
-            await _refuse(scope, receive, send, rpc.RpcError(421, said))
+            await _refuse(scope, receive, send, 421, said)
             return
         origin = headers.get("origin", headers.get("sec-websocket-origin"))
         if scope["type"] == "websocket" and origin is not None:
@@ -132,19 +128,14 @@ class OriginGuard:
                     f"a page from {origin} may not open this websocket "
                     "(cors_domains lists the other origins that may)"
                 )
-                await _refuse(scope, receive, send, rpc.RpcError(403, said))
+                await _refuse(scope, receive, send, 403, said)
                 return
         await self.app(scope, receive, send)
 
 
-async def _refuse(scope: Any, receive: Any, send: Any, refused: rpc.RpcError) -> None:
-    """Answer ``refused`` in the face's shape (Moonraker's on its paths; else OctoPrint's
-    clients read "error", FastAPI's "detail"); a websocket's before its upgrade."""
-    status, said = refused.status, refused.message
-    if _MOONRAKER.fullmatch(scope["path"]):
-        answer = error_body(refused)
-    else:
-        answer = JSONResponse({"error": said, "detail": said}, status)
+async def _refuse(scope: Any, receive: Any, send: Any, status: int, said: str) -> None:
+    """Answer ``status`` and ``said`` in the face's shape; a websocket's before its upgrade."""
+    answer = refusal(scope["path"], status, said)
     if scope["type"] == "websocket":
         await WebSocket(scope, receive, send).send_denial_response(answer)
     else:
