@@ -324,3 +324,31 @@ def test_the_units_file_limit_fits_the_default_connections() -> None:
     assert found is not None
     default = ServerSettings.model_fields["max_connections"].default
     assert int(found.group(1)) == default + RESERVED_FILES  # every descriptor below 1,024
+
+
+def test_the_servers_connections_send_at_once_without_nagles_algorithm() -> None:
+    """An answer on a kept connection went 40 ms late (Nagle's algorithm held its second
+    write for the client's delayed ACK): the server's sockets say they are TCP, so asyncio
+    turns the algorithm off on each connection it accepts."""
+    from repetrel_host.server.main import bound
+
+    async def scenario() -> int:
+        listening = bound("127.0.0.1", 0, "--bind")
+        accepted: asyncio.Future[int] = asyncio.get_running_loop().create_future()
+
+        class Note(asyncio.Protocol):
+            def connection_made(self, transport: asyncio.BaseTransport) -> None:
+                made = transport.get_extra_info("socket")
+                accepted.set_result(made.getsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY))
+                transport.close()
+
+        server = await asyncio.get_running_loop().create_server(Note, sock=listening)
+        try:
+            port = listening.getsockname()[1]
+            _, writer = await asyncio.open_connection("127.0.0.1", port)
+            writer.close()
+            return await asyncio.wait_for(accepted, 10)
+        finally:
+            server.close()
+
+    assert asyncio.run(scenario()) == 1
