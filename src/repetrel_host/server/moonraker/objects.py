@@ -178,7 +178,8 @@ class Objects:
         )
         if state == "error":  # why, as the job's record says it once ended
             ended_record = service.store.job(record.id)
-            stats["message"] = (ended_record.error if ended_record else None) or stats["message"]
+            why = ended_record.error if ended_record else None
+            stats["message"] = why or service.finished_error or stats["message"]
         return stats
 
     def virtual_sdcard(self) -> dict[str, Any]:

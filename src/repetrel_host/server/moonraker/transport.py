@@ -113,7 +113,8 @@ async def _http(request: Request, rest: str) -> Response:
             service = _service(face, request.path_params.get("printer"))
         except rpc.RpcError as exc:
             return error_body(exc)
-        return JSONResponse(await answer_rpc(face, service, user, await request.body()))
+        answer = await answer_rpc(face, service, user, await request.body())
+        return Response("null" if answer is None else answer, media_type="application/json")
     found, given = rpc.METHODS.route(path, verb)
     if found is None:
         known = rpc.METHODS.knows(path)
@@ -163,18 +164,19 @@ async def answer_rpc(
     user: str | None,
     text: str | bytes,
     connection: Connection | None = None,
-) -> Any:
-    """The answer to a JSON-RPC request (or batch) ``text``: a response, a list of them, or
-    None for a notification."""
+) -> str | None:
+    """The answer to a JSON-RPC request (or batch) ``text``, as JSON: a response, a list of
+    them, or None for a notification."""
     try:
         request = parse_json(text)
     except ValueError:
-        return _error(None, -32700, "Parse error")
+        return json.dumps(_error(None, -32700, "Parse error"))
     except JsonTooDeep as exc:
-        return _error(None, -32700, f"Parse error: {exc}")
+        return json.dumps(_error(None, -32700, f"Parse error: {exc}"))
     if isinstance(request, list):
         return await _batch(face, service, user, request, connection)
-    return await _one(face, service, user, request, connection)
+    answer = await _one(face, service, user, request, connection)
+    return None if answer is None else json.dumps(answer)
 
 
 async def _batch(
@@ -183,30 +185,29 @@ async def _batch(
     user: str | None,
     requests: list[Any],
     connection: Connection | None,
-) -> Any:
-    """A batch's answers, within :data:`BATCH_CALLS` and :data:`BATCH_ANSWER_BYTES`: past
-    that many calls the batch is refused whole (none runs); an answer that would take the
-    batch's past its bytes is replaced by an error that says so (its call ran)."""
+) -> str:
+    """A batch's answers as JSON, within :data:`BATCH_CALLS` and :data:`BATCH_ANSWER_BYTES`:
+    past that many calls the batch is refused whole (none runs); an answer that would take
+    the batch's past its bytes is replaced by an error that says so (its call ran). Each
+    answer is encoded as its call ends, not all at once on the loop at the end."""
     if len(requests) > BATCH_CALLS:
         message = f"Invalid Request: a batch of {len(requests)} calls, at most {BATCH_CALLS}"
-        return _error(None, -32600, message)
-    answers: list[dict[str, Any]] = []
+        return json.dumps(_error(None, -32600, message))
+    answers: list[str] = []
     size = 0
     for request in requests:
         answer = await _one(face, service, user, request, connection)
+        if answer is not None:
+            text = json.dumps(answer)
+            if size + len(text) > BATCH_ANSWER_BYTES:
+                limit = BATCH_ANSWER_BYTES >> 20
+                message = f"the batch's answer would pass {limit} MB: this call ran, its "
+                message += "answer is left out"
+                text = json.dumps(_error(answer.get("id"), 413, message))
+            size += len(text)
+            answers.append(text)
         await asyncio.sleep(0)  # the loop's other work between the calls
-        if answer is None:
-            continue
-        length = len(json.dumps(answer))
-        if size + length > BATCH_ANSWER_BYTES:
-            limit = BATCH_ANSWER_BYTES >> 20
-            message = f"the batch's answer would pass {limit} MB: this call ran, its answer "
-            message += "is left out"
-            answer = _error(answer.get("id"), 413, message)
-            length = len(json.dumps(answer))
-        size += length
-        answers.append(answer)
-    return answers
+    return "[" + ",".join(answers) + "]"
 
 
 async def _one(
@@ -313,7 +314,7 @@ class Connection:
     async def _answer(self, text: str) -> None:
         answer = await answer_rpc(self.face, self.service, self.user, text, self)
         if answer is not None:
-            self._put(answer)
+            self._put_text(answer)
 
     # --- subscriptions ----------------------------------------------------------------
 
@@ -374,9 +375,13 @@ class Connection:
         self._put(message)
 
     def _put(self, message: Any) -> None:
+        self._put_text(json.dumps(message))
+
+    def _put_text(self, text: str) -> None:
+        """``text`` (a message as JSON) to send; a client that leaves too much unread is
+        closed instead."""
         if self._dropped:
             return
-        text = json.dumps(message)
         if self._outbox.full() or self._unsent + len(text) > OUTBOX_BYTES:
             # A client that reads nothing: dropped, not kept in memory.
             log.warning("moonraker: websocket %d reads nothing: closed", self.id)

@@ -110,6 +110,8 @@ class PrinterService:
         # until another file is selected), with how and when it ended.
         self.finished: Running | None = None
         self.finished_state: JobState | None = None
+        # Why it ended, as its record will say once it is written (a moment after the end).
+        self.finished_error: str | None = None
         self.finished_at: float | None = None
         self.phase = ""  # "pausing", "resuming": asked for, not reached yet
         # The temperature reports of the last half hour or so (time, sensor: (actual, target)).
@@ -384,6 +386,7 @@ class PrinterService:
             )
             self._record_progress(record, job, completed)
             self.finished, self.finished_state, self.finished_at = running, state, time.time()
+            self.finished_error = error
             self.selected = None
             self.running = None
             self.changed()
