@@ -9,7 +9,7 @@ from __future__ import annotations
 from collections.abc import Awaitable
 from typing import Any, TypeVar
 
-from repetrel_host.server.moonraker.database_store import Refused
+from repetrel_host.server.moonraker.database_store import ItemRefused
 from repetrel_host.server.moonraker.rpc import Call, RpcError, method
 
 T = TypeVar("T")
@@ -38,7 +38,7 @@ async def _kept(work: Awaitable[T]) -> T:
     """The database's answer; its refusals as Moonraker's errors."""
     try:
         return await work
-    except Refused as exc:
+    except ItemRefused as exc:
         raise RpcError(exc.status, exc.message) from None
 
 

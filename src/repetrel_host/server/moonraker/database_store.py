@@ -8,7 +8,7 @@ else is replaced by an object, as Moonraker replaces it) and adds one row. So a 
 its own size, and the rows it split (each split once), never its namespace's size.
 
 Every item stays within bounds that fit what Mainsail, Fluidd and KlipperScreen keep
-(small settings objects): a refused write is a :class:`Refused` with the status and
+(small settings objects): a refused write is a :class:`ItemRefused` with the status and
 sentence the client is told."""
 
 from __future__ import annotations
@@ -54,7 +54,7 @@ T = TypeVar("T")
 Row = tuple[list[str], Any]  # a key's parts and its value
 
 
-class Refused(Exception):
+class ItemRefused(Exception):
     """A refused call: ``status`` (400, 404) and the sentence the client is told."""
 
     def __init__(self, status: int, message: str) -> None:
@@ -63,25 +63,25 @@ class Refused(Exception):
         self.message = message
 
 
-def missing(namespace: str, key: list[str]) -> Refused:
+def missing(namespace: str, key: list[str]) -> ItemRefused:
     """Moonraker's 404 for a namespace, or a key in it, that is not there."""
     if not key:
-        return Refused(404, f"Namespace {namespace} not found")
-    return Refused(404, f"Key '{'.'.join(key)}' in namespace '{namespace}' not found")
+        return ItemRefused(404, f"Namespace {namespace} not found")
+    return ItemRefused(404, f"Key '{'.'.join(key)}' in namespace '{namespace}' not found")
 
 
 def check_key(namespace: str, parts: list[str]) -> None:
     """Refuse a namespace name or a key past its bounds (before anything is read)."""
     if len(namespace.encode()) > NAME_BYTES:
-        raise Refused(400, f"Invalid namespace: a name of at most {NAME_BYTES} bytes")
+        raise ItemRefused(400, f"Invalid namespace: a name of at most {NAME_BYTES} bytes")
     if len(parts) > DEPTH:
-        raise Refused(400, f"Invalid key: {len(parts)} parts, at most {DEPTH}")
+        raise ItemRefused(400, f"Invalid key: {len(parts)} parts, at most {DEPTH}")
     # No control characters: then the rows at and below a key are exactly those between it
     # and it followed by a space (SEP sorts below every character a part may hold).
     if any(char < " " for part in parts for char in part):
-        raise Refused(400, "Invalid key: a part holds a control character")
+        raise ItemRefused(400, "Invalid key: a part holds a control character")
     if len(SEP.join(parts).encode()) > KEY_BYTES:
-        raise Refused(400, f"Invalid key: longer than {KEY_BYTES} bytes")
+        raise ItemRefused(400, f"Invalid key: longer than {KEY_BYTES} bytes")
 
 
 def encode(parts: list[str], value: Any) -> str:
@@ -103,13 +103,13 @@ def encode(parts: list[str], value: Any) -> str:
             estimate += len(item) + 2 if isinstance(item, str) else 8
             continue
         if level + 1 > room:
-            raise Refused(400, f"Invalid value: nested deeper than {DEPTH} levels with its key")
+            raise ItemRefused(400, f"Invalid value: nested deeper than {DEPTH} levels with its key")
         if estimate > VALUE_BYTES:
             break
         stack.extend((child, level + 1) for child in children)
     text = json.dumps(value) if estimate <= VALUE_BYTES else ""
     if not text or len(text) > VALUE_BYTES:
-        raise Refused(400, f"Invalid value: larger than {VALUE_BYTES // MB} MB as JSON")
+        raise ItemRefused(400, f"Invalid value: larger than {VALUE_BYTES // MB} MB as JSON")
     return text
 
 
@@ -319,11 +319,11 @@ class Database:
         items, size = (int(kept[0]), int(kept[1])) if kept is not None else (0, 0)
         growth = sum(_size(k, v) for k, v in added) - sum(s for _, s in removed)
         if growth > 0 and size + growth > NAMESPACE_BYTES:
-            raise Refused(
+            raise ItemRefused(
                 400, f"Namespace '{namespace}' would pass {NAMESPACE_BYTES // MB} MB: not stored"
             )
         if kept is None and added and len(self._namespaces()) >= NAMESPACES:
-            raise Refused(400, f"Too many namespaces: at most {NAMESPACES}")
+            raise ItemRefused(400, f"Too many namespaces: at most {NAMESPACES}")
         items += len(added) - len(removed)
         self._db.execute("BEGIN IMMEDIATE")
         try:
@@ -378,7 +378,7 @@ class Database:
                     try:
                         check_key(namespace, [name])
                         kept.append((name, encode([name], value)))
-                    except (Refused, RecursionError) as exc:
+                    except (ItemRefused, RecursionError) as exc:
                         log.warning("the database's %s.%s was left out: %s", namespace, name, exc)
                 self._db.executemany(
                     "INSERT INTO items (namespace, key, value, size) VALUES (?, ?, ?, ?)",
