@@ -19,7 +19,7 @@ from pathlib import Path
 
 import httpx
 import pytest
-from websockets.exceptions import ConnectionClosed
+from websockets.exceptions import ConnectionClosed, InvalidStatus
 from websockets.sync.client import connect
 
 from repetrel_host.fakes.fake_controller import BuiltInFake
@@ -352,3 +352,23 @@ def test_the_servers_connections_send_at_once_without_nagles_algorithm() -> None
             server.close()
 
     assert asyncio.run(scenario()) == 1
+
+
+@pytest.mark.timeout(60)
+def test_refused_websockets_are_logged_once_a_minute_not_each(
+    servers: Callable[..., Server],
+) -> None:
+    server = servers({"p": "fake"})
+    for _ in range(30):  # another site's page, each refused before its upgrade
+        with pytest.raises(InvalidStatus):
+            connect(
+                f"ws://127.0.0.1:{server.port}/websocket",
+                additional_headers={"X-Api-Key": KEY, "Origin": "http://evil.example"},
+                open_timeout=10,
+            )
+    with server.client() as client:  # the server answers on
+        assert client.get("/v1/printers").status_code == 200
+    server.stop()
+    log = server.stderr.read_text()
+    assert log.count("refused websocket upgrades") == 1, log
+    assert "connection rejected" not in log and '"WebSocket /websocket" 403' not in log, log

@@ -105,6 +105,13 @@ class QuietRepeats(logging.Filter):
 
     def filter(self, record: logging.LogRecord) -> bool:
         message = str(record.msg)
+        # uvicorn's two lines for each websocket refused before its upgrade (another site's
+        # page, no key, a name not served): one count, said once a minute.
+        if message.startswith('%s - "WebSocket %s"') and "[accepted]" not in message:
+            refusals.note("websocket", "refused websocket upgrades")
+            return False
+        if message.startswith("connection rejected ("):
+            return False  # the second line of the same refusal
         for start, (kind, sentence) in _REPEATED.items():
             if message.startswith(start):
                 refusals.note(kind, sentence)
