@@ -34,9 +34,9 @@ from starlette.exceptions import HTTPException
 
 import repetrel_host as rh
 from repetrel_host.server import native
-from repetrel_host.server.auth import RequestGuard
+from repetrel_host.server.auth import RequestGuard, refusal
 from repetrel_host.server.bodies import BodyBound
-from repetrel_host.server.json_input import JsonTooDeep, too_deep_answer
+from repetrel_host.server.json_input import TOO_DEEP, JsonTooDeep
 from repetrel_host.server.moonraker import make_face
 from repetrel_host.server.moonraker import router as moonraker_router
 from repetrel_host.server.mqtt.bridge import MqttBridge, MqttSettings
@@ -104,7 +104,7 @@ def create_app(
     @app.exception_handler(HTTPException)
     async def refused(request: Request, exc: HTTPException) -> JSONResponse:
         if isinstance(exc.__cause__, RecursionError):  # FastAPI's own read of a body
-            return too_deep_answer()
+            return refusal(request.scope["path"], 400, TOO_DEEP)
         # OctoPrint's clients read "error"; FastAPI's read "detail": both say it.
         detail = exc.detail
         error = detail.get("error", detail) if isinstance(detail, dict) else detail
@@ -115,7 +115,7 @@ def create_app(
 
     @app.exception_handler(JsonTooDeep)
     async def too_deep(request: Request, exc: JsonTooDeep) -> JSONResponse:
-        return too_deep_answer()
+        return refusal(request.scope["path"], 400, TOO_DEEP)
 
     @app.exception_handler(RequestValidationError)
     async def bad_request(request: Request, exc: RequestValidationError) -> JSONResponse:

@@ -9,8 +9,6 @@ from __future__ import annotations
 import json
 from typing import Any
 
-from fastapi.responses import JSONResponse
-
 MAX_DEPTH = 64
 TOO_DEEP = f"the JSON is nested too deep (more than {MAX_DEPTH} levels)"
 
@@ -57,8 +55,3 @@ def _deeper_than(value: Any, most: int) -> bool:
         if not level:
             return False
     return True
-
-
-def too_deep_answer() -> JSONResponse:
-    """The native and OctoPrint faces' answer: 400 with the sentence in ``error``."""
-    return JSONResponse({"error": TOO_DEEP, "detail": TOO_DEEP}, status_code=400)
