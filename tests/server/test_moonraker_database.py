@@ -17,8 +17,8 @@ import pytest
 from websockets.sync import client as ws_client
 
 from repetrel_host.fakes.fake_controller import BuiltInFake
-from tests.support.attack import streaming_beside
-from tests.support.server import KEY, Server, server_config, wait_for
+from tests.support.attack import busy_server, streaming_beside
+from tests.support.server import KEY, Server, wait_for
 
 pytestmark = pytest.mark.timeout(240)
 
@@ -87,11 +87,8 @@ def streaming(
     tmp_path: Path,
 ) -> tuple[Server, BuiltInFake]:
     """A server whose printer ``busy`` (on each link) can stream beside the attack."""
-    protocol = request.param
-    fake = bench("--move-time", "0.005", "--protocol", protocol)
-    config = server_config(tmp_path, busy={"port": fake.port, "protocol": protocol})
-    server = servers({}, "--config", str(config)).wait_ready("busy")
-    return server, fake
+    server, fake = busy_server(tmp_path, bench, servers, request.param)
+    return server.wait_ready("busy"), fake
 
 
 def test_a_flood_of_writes_over_the_websocket_costs_each_its_own_size(

@@ -17,7 +17,7 @@ import websocket
 from repetrel_host.fakes.fake_controller import BuiltInFake
 from repetrel_host.server.json_input import MAX_DEPTH, TOO_DEEP
 from repetrel_host.session.job import Job
-from tests.support.attack import streaming_beside
+from tests.support.attack import busy_server, streaming_beside
 from tests.support.helpers import executed, hyrel_send
 from tests.support.server import KEY, Server, job_state, server_config, wait_for
 
@@ -126,10 +126,8 @@ def test_json_nested_too_deep_is_one_sentence_everywhere_and_costs_the_printer_n
     tmp_path: Path,
     protocol: str,
 ) -> None:
-    fake = bench("--move-time", "0.005", "--protocol", protocol)
-    config = server_config(tmp_path, busy={"port": fake.port, "protocol": protocol})
-    server = servers({}, "--config", str(config)).wait_ready("busy")
-    with streaming_beside(server, fake):
+    server, fake = busy_server(tmp_path, bench, servers, protocol)
+    with streaming_beside(server.wait_ready("busy"), fake):
         deep_json_everywhere(server)
     assert "Traceback" not in server.stderr.read_text()
 

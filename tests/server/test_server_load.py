@@ -25,10 +25,10 @@ from websockets.sync.client import connect
 from repetrel_host.fakes.fake_controller import BuiltInFake
 from repetrel_host.server.connections import RESERVED_FILES, RefusalLog
 from repetrel_host.server.settings import ServerSettings
-from tests.support.attack import streaming_beside
+from tests.support.attack import busy_server, streaming_beside
 from tests.support.helpers import MARLIN_SAFE_STOP, executed, heater_targets
 from tests.support.paths import ROOT
-from tests.support.server import KEY, Server, job_state, server_config, wait_for
+from tests.support.server import KEY, Server, job_state, wait_for
 
 pytestmark = pytest.mark.timeout(180)
 LINKS = ["reprap", "hyrel"]
@@ -79,22 +79,6 @@ def octoprint_refused(answer: httpx.Response, status: int) -> str:
     error = answer.json()["error"]
     assert isinstance(error, str), answer.text
     return error
-
-
-def busy_server(
-    tmp_path: Path,
-    bench: Callable[..., BuiltInFake],
-    servers: Callable[..., Server],
-    protocol: str,
-    settings: str = "",
-    **more: dict[str, object],
-) -> tuple[Server, BuiltInFake]:
-    """A server with printer ``busy`` (a fake that moves for 5 ms a line, on ``protocol``'s
-    link), and the TOML lines ``settings`` before its printers."""
-    fake = bench("--move-time", "0.005", "--protocol", protocol)
-    config = server_config(tmp_path, busy={"port": fake.port, "protocol": protocol}, **more)
-    config.write_text(settings + config.read_text())
-    return servers({}, "--config", str(config)), fake
 
 
 @pytest.mark.parametrize("protocol", LINKS)

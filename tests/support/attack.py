@@ -5,11 +5,12 @@ from __future__ import annotations
 import contextlib
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from pathlib import Path
 
 from repetrel_host.fakes.fake_controller import BuiltInFake
 from tests.support.helpers import executed
-from tests.support.server import Server, job_state, wait_for
+from tests.support.server import Server, job_state, server_config, wait_for
 
 # A move of 5 ms each (``--move-time 0.005`` at the fake): 4,000 of them outlast an attack.
 BESIDE_MOVES = 4000
@@ -17,6 +18,22 @@ BESIDE_MOVES = 4000
 # is told a few times a second), far below the minute an attack used to stall it for.
 # Not a speed goal (bench/attacks.py measures the delay): a stall caught in seconds.
 LONGEST_STILL = 5.0
+
+
+def busy_server(
+    tmp_path: Path,
+    bench: Callable[..., BuiltInFake],
+    servers: Callable[..., Server],
+    protocol: str,
+    settings: str = "",
+    **more: dict[str, object],
+) -> tuple[Server, BuiltInFake]:
+    """A server with printer ``busy`` (a fake that moves for 5 ms a line, on ``protocol``'s
+    link), and the TOML lines ``settings`` before its printers."""
+    fake = bench("--move-time", "0.005", "--protocol", protocol)
+    config = server_config(tmp_path, busy={"port": fake.port, "protocol": protocol}, **more)
+    config.write_text(settings + config.read_text())
+    return servers({}, "--config", str(config)), fake
 
 
 @contextlib.contextmanager
