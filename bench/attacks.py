@@ -25,7 +25,6 @@ import json
 import multiprocessing
 import resource
 import socket
-import subprocess
 import sys
 import tempfile
 import time
@@ -40,6 +39,7 @@ from websockets.sync.client import connect
 
 sys.path.insert(0, str(Path(__file__).parent.parent))
 
+from loop_delay import lines
 from tests.support.helpers import executed
 from tests.support.server import KEY, Server
 
@@ -338,39 +338,12 @@ def reset_peak(pid: int) -> None:
     Path(f"/proc/{pid}/clear_refs").write_text("5")
 
 
-def lines(client: httpx.Client, job: int) -> int:
-    return int(client.get(f"/v1/jobs/{job}").json()["lines"])
-
-
 def unit_file_limit() -> int:
     """The shipped unit's ``LimitNOFILE``; systemd's default (1,024) where it sets none."""
     for line in UNIT.read_text().splitlines():
         if line.startswith("LimitNOFILE="):
             return int(line.split("=")[1].split(":")[-1])
     return 1024
-
-
-def limited_files() -> None:
-    """The server process's file limit: the shipped unit's."""
-    limit = unit_file_limit()
-    resource.setrlimit(resource.RLIMIT_NOFILE, (limit, limit))
-
-
-class LimitedServer(Server):
-    """A :class:`Server` whose process has the shipped unit's file limit."""
-
-    def start(self) -> LimitedServer:
-        original = subprocess.Popen.__init__
-
-        def with_limit(popen: Any, *args: Any, **kwargs: Any) -> None:
-            original(popen, *args, preexec_fn=limited_files, **kwargs)
-
-        subprocess.Popen.__init__ = with_limit  # type: ignore[method-assign]
-        try:
-            super().start()
-        finally:
-            subprocess.Popen.__init__ = original  # type: ignore[method-assign]
-        return self
 
 
 def main() -> None:
@@ -392,10 +365,13 @@ def main() -> None:
                 'moonraker_trusted_clients = ["192.168.1.0/24"]\n'
                 f'[printers.busy]\nport = "{busy.port}"\nprotocol = "{args.protocol}"\n'
             )
-            server = LimitedServer(folder / "data", {}, "--api-key", KEY, "--config", str(config))
+            server = Server(folder / "data", {}, "--api-key", KEY, "--config", str(config))
             server.start()
             assert server.process is not None
             pid = server.process.pid
+            # The shipped unit's file limit, not this process's (raised for its sockets).
+            limit = unit_file_limit()
+            resource.prlimit(pid, resource.RLIMIT_NOFILE, (limit, limit))
             rows: list[tuple[str, str, float, float, float, str]] = []
             try:
                 with server.client() as client:
