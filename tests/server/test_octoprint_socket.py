@@ -292,9 +292,10 @@ def test_a_farm_managers_raw_websocket_follows_a_print_its_events_and_the_wire(
         assert any(0 < c["progress"]["completion"] < 100 for c in printing)
         assert any(c["busyFiles"] == [{"origin": "local", "path": "part.gcode"}] for c in printing)
         final = listener.of("current")[-1]
-        assert (
-            final["progress"]["completion"] == 100.0 and final["state"]["flags"]["ready"] is False
-        )
+        assert final["progress"]["completion"] == 100.0
+        # Held (the part on the bed), yet ready: a client's start says the bed is clear
+        # (not ready where every start waits for a release: test_print_after_print.py).
+        assert final["state"]["flags"]["held"] is True and final["state"]["flags"]["ready"]
         # The wire as OctoPrint's terminal shows it: the job's lines and the controller's.
         logs = [line for c in listener.of("current") for line in c["logs"]]
         assert any(line.startswith("Send: N") and " G1 X" in line for line in logs)

@@ -81,7 +81,8 @@ def test_upload_without_print_waits_until_selected_and_started(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
 ) -> None:
     fake = bench()
-    server = servers({"bench": fake.port})
+    # Every start waits for a release (a farm's): a start while held is refused.
+    server = servers({"bench": fake.port}, "--start-waits-for-release")
     with server.client() as client:
         answer = client.post(
             "/printers/bench/api/files/local",

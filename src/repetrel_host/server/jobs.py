@@ -12,6 +12,7 @@ from fastapi import HTTPException
 import repetrel_host as rh
 from repetrel_host.gcode.analysis import scan_marks
 from repetrel_host.server.print_server import PrintServer
+from repetrel_host.server.printers.service import PrinterService
 from repetrel_host.server.store import JobRecord, JobState
 from repetrel_host.server.uploads import relative
 from repetrel_host.session.planning import layer_line
@@ -37,6 +38,27 @@ def queue(
     service = server.services[printer]
     service.job_changed(record.id)
     service.wake()
+    return record
+
+
+def start(
+    server: PrintServer,
+    service: PrinterService,
+    path: Path,
+    commands: int,
+    user: str | None,
+    via: str,
+    first: bool = False,
+) -> JobRecord:
+    """A person's start of ``path`` from any face (``via`` names the face's start): a held
+    queue is released (:meth:`PrinterService.start_asked`, which refuses when every start
+    waits for a release), the job queued, and put first when the queue was held (the jobs
+    that waited behind the hold wait on: the start asked for goes first) or ``first``.
+    Nothing awaits in between: the queue's loop takes this job, not one that waited."""
+    released = service.start_asked(path.name, user, via)
+    record = queue(server, service.name, path, commands, user)
+    if released or first:
+        to_front(server, record)
     return record
 
 

@@ -92,6 +92,14 @@ def serve(
             "held until released, as the part is still on the bed).",
         ),
     ] = False,
+    start_waits_for_release: Annotated[
+        bool,
+        typer.Option(
+            "--start-waits-for-release",
+            help="A print started from a client waits for the queue's release too, as queued "
+            "jobs do (a farm's; default: a person's start says the bed is clear).",
+        ),
+    ] = False,
     public_read: Annotated[
         bool,
         typer.Option(
@@ -165,6 +173,7 @@ def serve(
         (farm, node_name, node_url),
         stop_timeout,
         (trusted_proxy or [], server_name or [], cors_domain or []),
+        start_waits_for_release,
     )
     host, port = parse_address(settings.bind, "--bind", example=DEFAULT_BIND)
     logging.basicConfig(
@@ -211,6 +220,7 @@ def serve(
         key,
         settings.max_upload_mb * 1024 * 1024,
         automatic_transition=settings.automatic_transition,
+        start_waits_for_release=settings.start_waits_for_release,
         public_read=settings.public_read,
         trusted=settings.moonraker_trusted_clients,
         presets={name: p.model_dump() for name, p in settings.presets.items()},

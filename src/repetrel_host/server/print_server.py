@@ -43,6 +43,7 @@ class PrintServer:
         max_upload: int,
         user: UserConfig | None = None,
         automatic_transition: bool = False,
+        start_waits_for_release: bool = False,
         public_read: bool = False,
         trusted: Sequence[IPv4Network | IPv6Network] = (),
         presets: dict[str, dict[str, float | None]] | None = None,
@@ -69,6 +70,7 @@ class PrintServer:
         }
         for service in self.services.values():
             service.automatic_transition = automatic_transition
+            service.start_waits_for_release = start_waits_for_release
             service.stop_timeout = stop_timeout
         # The printers whose safe stop a stop left owed (the exit code says so).
         self.left_owing: list[str] = []
@@ -104,11 +106,12 @@ class PrintServer:
                 )
             if service.hold_reason is not None:  # kept from before the restart
                 log.warning(
-                    "printer %s: the queue is held (%s): POST /v1/printers/%s/release, or "
-                    "OctoPrint's job start, releases it",
+                    "printer %s: the queue is held (%s): POST /v1/printers/%s/release%s "
+                    "releases it",
                     service.name,
                     service.hold_reason,
                     service.name,
+                    "" if start_waits_for_release else ", or a print started from a client,",
                 )
 
     async def start(self) -> None:

@@ -107,6 +107,9 @@ class ServerSettings(BaseModel):
     api_key: str | None = None
     max_upload_mb: int = Field(default=1024, gt=0)
     automatic_transition: bool = False  # start the next job by itself after one ends
+    # A farm's: a person's start of a file waits for the queue's release too (by default
+    # a start says the bed is clear, and releases the hold).
+    start_waits_for_release: bool = False
     public_read: bool = False  # reads without a key (OctoPrint asks for one on every request)
     # How long a stop (SIGTERM) waits for a printing machine's safe stop before it leaves
     # it owed (and exits 75, for systemd to start the server again to send it).
@@ -157,6 +160,7 @@ def load_settings(
     farm: tuple[str | None, str | None, str | None] = (None, None, None),
     stop_timeout: float | None = None,
     ways_in: tuple[list[str], list[str], list[str]] = ([], [], []),
+    start_waits_for_release: bool = False,
 ) -> ServerSettings:
     """The settings of the TOML file ``config``, with the options given over them
     (``ways_in``: the trusted proxies, server names and CORS domains given)."""
@@ -188,6 +192,7 @@ def load_settings(
         "mqtt_discovery_prefix": mqtt[3],
         "mqtt_discovery": False if mqtt[4] else None,
         "automatic_transition": automatic_transition or None,
+        "start_waits_for_release": start_waits_for_release or None,
         "public_read": public_read or None,
         "stop_timeout": stop_timeout,
         "farm": farm[0],

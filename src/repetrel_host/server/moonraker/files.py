@@ -303,7 +303,7 @@ async def upload(call: Call) -> Response:
     location = stored.path.relative_to(call.server.files).as_posix()
     started = False
     if call.flag("print"):
-        await start_print(call, location)
+        await start_print(call, location, "upload with print=true")
         started = True
     answer = {
         "item": {**_item(call.server, stored.path), "root": ROOT},

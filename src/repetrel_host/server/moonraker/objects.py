@@ -155,6 +155,9 @@ class Objects:
             "message": service.last_error if state == "error" else "",
             "info": {"total_layer": None, "current_layer": None},
         }
+        if state != "error" and service.running is None:
+            # Klipper's message says what went wrong; here also why nothing starts by itself.
+            stats["message"] = service.hold_note()
         if shown is None:
             return stats
         record = shown.record

@@ -141,16 +141,14 @@ async def restart(call: Call) -> str:
 # --- what the methods share ------------------------------------------------------------
 
 
-async def start_print(call: Call, filename: str) -> None:
+async def start_print(call: Call, filename: str, via: str = "printer.print.start") -> None:
     """Klipper's print start: the stored file queued and started now, as OctoPrint's face
-    starts one (refused when the printer is busy, held or the file fails its check)."""
+    starts one (refused when the printer is busy or the file fails its check). A person's
+    start says the bed is clear: a held queue is released (the server's one rule,
+    ``jobs.start``), unless every start waits for a release."""
     service, server = call.service, call.server
     if service.running is not None or service.state in ("printing", "paused"):
         raise RpcError(400, "Printer is busy: cancel the job running first")
-    if service.held:
-        raise RpcError(
-            400, f"printer {service.name}'s queue is held: release it (the part on the bed)"
-        )
     try:
         path = uploads.uploaded(server, filename)
     except Exception:
@@ -158,7 +156,10 @@ async def start_print(call: Call, filename: str) -> None:
     findings, commands = await asyncio.to_thread(uploads.check, server, service.name, path)
     uploads.refuse_errors(path.name, findings)
     # First in the queue: it is the print asked for now.
-    jobs.to_front(server, jobs.queue(server, service.name, path, commands, call.user))
+    try:
+        jobs.start(server, service, path, commands, call.user, f"Moonraker's {via}", first=True)
+    except Refused as exc:
+        raise RpcError(400, str(exc)) from None
 
 
 async def _control(service: PrinterService, action: str) -> None:
@@ -193,7 +194,7 @@ async def run_line(call: Call, line: str) -> None:
     elif word == "CANCEL_PRINT":
         await _control(service, "cancel")
     elif word == "SDCARD_PRINT_FILE":
-        await start_print(call, params.get("FILENAME", ""))
+        await start_print(call, params.get("FILENAME", ""), "SDCARD_PRINT_FILE")
     elif word in ("FIRMWARE_RESTART", "RESTART"):
         await reconnect(service)
     elif word == "SET_HEATER_TEMPERATURE":

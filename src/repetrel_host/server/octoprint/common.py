@@ -4,14 +4,17 @@ when it is not)."""
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Annotated, Any
 
 from fastapi import Depends, HTTPException, Request
 from pydantic import BaseModel
 
+from repetrel_host.server import jobs
 from repetrel_host.server.octoprint import model
-from repetrel_host.server.print_server import server_of
-from repetrel_host.server.printers.service import PrinterService
+from repetrel_host.server.print_server import PrintServer, server_of
+from repetrel_host.server.printers.service import PrinterService, Refused
+from repetrel_host.server.store import JobRecord
 
 _TRUE = ("true", "1", "yes", "y")
 NOT_OPERATIONAL = "Printer is not operational"
@@ -46,3 +49,20 @@ def operational(service: PrinterService) -> str:
     if not model.flags(service, text)["operational"]:
         raise HTTPException(409, NOT_OPERATIONAL)
     return text
+
+
+def start(
+    server: PrintServer,
+    service: PrinterService,
+    path: Path,
+    commands: int,
+    user: str | None,
+    via: str,
+) -> JobRecord:
+    """OctoPrint's start of a file (select's print, the job's start): the server's one
+    rule (:func:`jobs.start`: a held queue is released); 409 with why when every start
+    waits for a release."""
+    try:
+        return jobs.start(server, service, path, commands, user, via)
+    except Refused as exc:
+        raise HTTPException(409, str(exc)) from None

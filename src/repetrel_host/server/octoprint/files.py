@@ -17,9 +17,15 @@ from fastapi.responses import JSONResponse, Response
 from repetrel_host.server import jobs, uploads
 from repetrel_host.server.auth import user_of
 from repetrel_host.server.folders import copy_or_move, delete_folder, make_folder
-from repetrel_host.server.octoprint import model
-from repetrel_host.server.octoprint.common import OctoPrintCommand, Printer, is_true, operational
+from repetrel_host.server.octoprint.common import (
+    OctoPrintCommand,
+    Printer,
+    is_true,
+    operational,
+    start,
+)
 from repetrel_host.server.print_server import PrintServer, server_of
+from repetrel_host.server.printers.service import Refused
 from repetrel_host.server.uploads import G_CODE_SUFFIXES
 
 
@@ -131,19 +137,21 @@ def router() -> APIRouter:
             return JSONResponse(answer, 201, headers=headers)
         to_print, to_select = is_true(print), is_true(select)
         stored = await uploads.save_upload(server, service.name, file, path)
-        if to_print and service.held:
-            # Stored (nothing accepted is lost), but not printed: a slicer shows the reason.
-            raise HTTPException(
-                409, f"{stored.path.name} is stored, not printed: {model.HELD_REASON}"
-            )
         extra: dict[str, Any] = {"findings": stored.findings}
         if stored.note:
             extra["note"] = stored.note
         if to_print:
             # Queued: it runs when the printer is free (OctoPrint answers 409 when it is
-            # busy; a queue is what this server is for).
+            # busy; a queue is what this server is for). A held queue is released (the
+            # server's one rule), unless every start waits for a release: then it is
+            # stored (nothing accepted is lost), not printed, and a slicer shows why.
             user = user_of(request)
-            record = jobs.queue(server, service.name, stored.path, stored.commands, user)
+            via = "OctoPrint's upload and print"
+            try:
+                record = jobs.start(server, service, stored.path, stored.commands, user, via)
+            except Refused as exc:
+                name = stored.path.name
+                raise HTTPException(409, f"{name} is stored, not printed: {exc}") from None
             extra["job"] = record.as_json()
             service.select(None)
         elif to_select and service.running is None:
@@ -222,10 +230,8 @@ def router() -> APIRouter:
                 raise HTTPException(409, "Printer is already printing, cannot select a new file")
             if is_true(body.get("print", False)):
                 operational(service)
-                if service.held:
-                    raise HTTPException(409, model.HELD_REASON)
                 _, commands = await asyncio.to_thread(uploads.check, server, service.name, path)
-                jobs.queue(server, service.name, path, commands, user_of(request))
+                start(server, service, path, commands, user_of(request), "OctoPrint's select")
                 service.select(None)
             else:
                 # Its analysis in memory, for /api/job (read from the data folder, or made).

@@ -12,7 +12,7 @@ from fastapi.responses import Response
 from repetrel_host.server import jobs, uploads
 from repetrel_host.server.auth import user_of
 from repetrel_host.server.octoprint import model
-from repetrel_host.server.octoprint.common import OctoPrintCommand, Printer, operational
+from repetrel_host.server.octoprint.common import OctoPrintCommand, Printer, operational, start
 from repetrel_host.server.print_server import PrintServer, answered, server_of
 from repetrel_host.server.printers.service import PrinterService
 
@@ -80,15 +80,13 @@ def router() -> APIRouter:
 
 async def _start(server: PrintServer, service: PrinterService, user: str | None) -> None:
     """OctoPrint's start: the selected file (or the last job's, to print it again)."""
-    if service.held:
-        raise HTTPException(409, model.HELD_REASON)
     path = service.selected
     if path is None and service.finished is not None:
         path = service.data_dir / service.finished.record.file
     if path is None or not path.is_file():
         raise HTTPException(409, f"printer {service.name}: no file is selected")
     _, commands = await asyncio.to_thread(uploads.check, server, service.name, path)
-    jobs.queue(server, service.name, path, commands, user)
+    start(server, service, path, commands, user, "OctoPrint's job start")
     service.select(None)
 
 

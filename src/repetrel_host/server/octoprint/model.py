@@ -19,11 +19,9 @@ from repetrel_host.server.store import JobRecord, JobState
 # OctoPrint's states whose "printing" flag is set: a job is under way.
 _PRINTING = ("Starting", "Printing", "Pausing", "Resuming", "Finishing", "Cancelling")
 _OPERATIONAL = (*_PRINTING, "Operational", "Paused")
+# The queue held after a job (its part may be on the bed): operational, and ready for a
+# start (a person's start says the bed is clear) unless every start waits for a release.
 HELD_TEXT = "Operational (bed not cleared)"
-HELD_REASON = (
-    "the part from the last job is still on the bed: release the queue (button on the "
-    "status page, hyrel-send --release, or --automatic-transition)"
-)
 
 
 def state_text(service: PrinterService) -> str:
@@ -53,8 +51,10 @@ def state_text(service: PrinterService) -> str:
 
 def flags(service: PrinterService, text: str | None = None) -> dict[str, bool]:
     """OctoPrint's state flags, each true while its phase lasts; ``held``: the queue waits
-    for the bed to be cleared (ours)."""
+    for the bed to be cleared (ours). A held printer is ``ready`` (a client's start works,
+    and says the bed is clear), but where every start waits for a release."""
     text = text or state_text(service)
+    startable = text == HELD_TEXT and not service.start_waits_for_release
     return {
         "operational": text in _OPERATIONAL or text == HELD_TEXT,
         "printing": text in _PRINTING,
@@ -65,7 +65,7 @@ def flags(service: PrinterService, text: str | None = None) -> dict[str, bool]:
         "closedOrError": text.startswith("Offline"),
         "error": text == "Offline after error",
         "paused": text == "Paused",
-        "ready": text == "Operational",
+        "ready": text == "Operational" or startable,
         "sdReady": False,
         "held": service.held,
     }

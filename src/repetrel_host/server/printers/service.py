@@ -149,6 +149,9 @@ class PrinterService:
         # After a job ends, start the next one by itself (a farm with an automatic bed
         # change); else the queue is held until released (Moonraker's automatic_transition).
         self.automatic_transition = False
+        # A person's start of a file releases the hold (they say the bed is clear); a farm
+        # whose every start waits for a release sets this (start_waits_for_release).
+        self.start_waits_for_release = False
         loadout = Path(config.loadout) if config.loadout is not None else None
         # What it checks before a job starts, and the files that passed (checks.py).
         self.checks = JobChecks(JobRequest(loadout, config.machine), user, self._firmware)
@@ -650,6 +653,31 @@ class PrinterService:
         """The hold, kept in the store (told by the caller, once its job is told)."""
         self.store.hold(self.name, reason)
         self.hold_reason = reason
+
+    def hold_note(self) -> str:
+        """The hold as a client shows it: why, and what ends it ("" when not held)."""
+        if self.hold_reason is None:
+            return ""
+        then = "release the queue" if self.start_waits_for_release else "start a print"
+        return f"Queue held ({self.hold_reason}): clear the bed, then {then}"
+
+    def start_asked(self, file: str, by: str | None, via: str) -> bool:
+        """A person's explicit start of ``file`` (``via`` a face's start: every face calls
+        this one rule) says the bed is clear: a held queue is released, and True (the job
+        then goes before those that waited behind the hold). :class:`Refused`, with why,
+        when every start waits for a release (start_waits_for_release)."""
+        reason = self.hold_reason
+        if reason is None:
+            return False
+        if self.start_waits_for_release:
+            raise Refused(
+                f"printer {self.name}'s queue is held ({reason}): release it once nothing "
+                "is still on the bed (start_waits_for_release: a start does not release it)"
+            )
+        who = f"{by or 'a client'} starting {file} ({via})"
+        log.info("printer %s: the queue's hold (%s) released by %s", self.name, reason, who)
+        self.release()
+        return True
 
     def release(self) -> None:
         """Let the queue run again (after an interrupted job was looked at)."""
