@@ -161,6 +161,7 @@ class Flow(_Model):
 
 class Head(_Model):
     description: str = ""
+    max_temp: Number | None = Field(default=None, gt=0)  # °C, where the maker gives it
     unprime: Unprime
     prime: Prime
     flow: Flow

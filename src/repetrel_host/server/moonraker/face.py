@@ -13,7 +13,7 @@ from typing import Any, Protocol
 
 from repetrel_host.server.events import PrinterMessage, ServerEvent
 from repetrel_host.server.moonraker.database_store import Database
-from repetrel_host.server.moonraker.host import Usage, own_memory
+from repetrel_host.server.moonraker.host import Usage, own_memory, system_memory
 from repetrel_host.server.moonraker.objects import Objects
 from repetrel_host.server.print_server import PrintServer
 
@@ -145,6 +145,7 @@ class MoonrakerFace:
             "cpu_temp": None,
             "network": network,
             "system_cpu_usage": cpus,
+            "system_memory": system_memory(),
             "websocket_connections": len(self.connections),
         }
         self._stats = (now, stats)

@@ -11,6 +11,13 @@ def meminfo(field: str) -> int:
     return _field("/proc/meminfo", field)
 
 
+def system_memory() -> dict[str, int]:
+    """The machine's memory in kB, as Moonraker's process statistics give it (KlipperScreen
+    reads it from every ``notify_proc_stat_update``)."""
+    total, available = meminfo("MemTotal"), meminfo("MemAvailable")
+    return {"total": total, "available": available, "used": total - available}
+
+
 def own_memory() -> int:
     """The server's resident memory in kB."""
     return _field("/proc/self/status", "VmRSS")

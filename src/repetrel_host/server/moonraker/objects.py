@@ -7,11 +7,13 @@ position, a fan's speed, a heater's power) has Klipper's idle value, and
 
 from __future__ import annotations
 
+import math
 import os
 import time
 from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
+from repetrel_host.gcode.estimate import DEFAULT_LIMITS
 from repetrel_host.server.moonraker.host import meminfo
 from repetrel_host.server.printers.heaters import heaters
 from repetrel_host.server.printers.service import PrinterService
@@ -35,6 +37,15 @@ _ENDED = {
     JobState.INTERRUPTED: "error",
 }
 _ZEROS = [0.0, 0.0, 0.0, 0.0]
+# A heater's limits as Klipper's clients read them: the head library's ``max_temp``, else
+# Marlin's default maxima (its Configuration.h: HEATER_0_MAXTEMP, BED_MAXTEMP,
+# CHAMBER_MAXTEMP, HEATER_0_MINTEMP, EXTRUDE_MINTEMP). The controller keeps its own limits
+# whatever a client offers.
+MAX_TEMP = {"head": 275.0, "bed": 150.0, "chamber": 60.0}
+MIN_TEMP = 5.0
+MIN_EXTRUDE_TEMP = 170.0
+FILAMENT = 1.75  # mm: Hyrel's thermoplastic heads take 1.75 mm filament
+NOZZLE = 0.4  # mm, where the loadout gives none
 
 
 def klippy_state(service: PrinterService) -> str:
@@ -265,17 +276,16 @@ class Objects:
         return {"available_heaters": names, "available_sensors": names, "available_monitors": []}
 
     def configfile(self) -> dict[str, Any]:
-        """What a client reads of the machine: the heaters as sections, the kinematics,
+        """What a client reads of the machine: its limits and each heater's, the kinematics,
         where the files are (as text, Klipper's ``config``, and parsed, its ``settings``)."""
         service = self.service
         sections: dict[str, dict[str, Any]] = {
-            "printer": {"kinematics": "cartesian"},
+            "printer": _printer_section(service),
             "virtual_sdcard": {"path": str(service.data_dir / "files")},
             "pause_resume": {},
             "display_status": {},
         }
-        for name in heater_names(service):
-            sections[name] = {}
+        sections.update(_heater_sections(service, sections["printer"]["max_velocity"]))
         return {
             "config": {name: {k: str(v) for k, v in s.items()} for name, s in sections.items()},
             "settings": sections,
@@ -311,6 +321,62 @@ class Objects:
         if name.startswith("extruder"):
             values.update(can_extrude=True, pressure_advance=0.0, smooth_time=0.04)
         return values
+
+
+def _printer_section(service: PrinterService) -> dict[str, Any]:
+    """Klipper's ``[printer]``: the planner's limits the print time uses (the machine
+    profile's, else Marlin's defaults)."""
+    loadout = service.plan_loadout()
+    limits = loadout.machine.planner_limits() if loadout is not None else DEFAULT_LIMITS
+    return {
+        "kinematics": "cartesian",
+        "max_velocity": limits.max_feedrate["X"],
+        "max_accel": limits.print_acceleration,
+        "max_z_velocity": limits.max_feedrate["Z"],
+        "max_z_accel": limits.max_acceleration["Z"],
+        "square_corner_velocity": 5.0,
+        "minimum_cruise_ratio": 0.5,
+    }
+
+
+def _heater_sections(service: PrinterService, max_velocity: float) -> dict[str, dict[str, Any]]:
+    """A section per heater, with the keys Klipper's clients read before they offer a
+    target (Mainsail refuses one above ``max_temp``; KlipperScreen and Mobileraker fail
+    without ``max_temp``, ``control``, ``filament_diameter``...)."""
+    loadout = service.plan_loadout()
+    heads = {head.tool: head for head in loadout.heads} if loadout is not None else {}
+    sections: dict[str, dict[str, Any]] = {}
+    tools = {heater["sensor"]: heater.get("tool") for heater in heaters(service)}
+    for name, sensor in heater_names(service).items():
+        kind = "head" if name.startswith("extruder") else "bed" if name == "heater_bed" else ""
+        kind = kind or "chamber"
+        head = heads.get(tools.get(sensor, -1)) if kind == "head" else None
+        limit = head.head.max_temp if head is not None else None
+        section: dict[str, Any] = {
+            "control": "pid",
+            "max_power": 1.0,
+            "min_temp": MIN_TEMP,
+            "max_temp": float(limit or MAX_TEMP[kind]),
+        }
+        if kind == "head":
+            nozzle = (head.nozzle if head is not None else None) or NOZZLE
+            cross_section = 4.0 * nozzle**2  # Klipper's default max_extrude_cross_section
+            area = math.pi * (FILAMENT / 2) ** 2
+            section.update(
+                min_extrude_temp=MIN_EXTRUDE_TEMP,
+                nozzle_diameter=nozzle,
+                filament_diameter=FILAMENT,
+                max_extrude_cross_section=round(cross_section, 4),
+                max_extrude_only_distance=50.0,
+                max_extrude_only_velocity=round(max_velocity * cross_section / area, 3),
+                max_extrude_only_accel=round(
+                    DEFAULT_LIMITS.print_acceleration * cross_section / area, 3
+                ),
+                pressure_advance=0.0,
+                pressure_advance_smooth_time=0.04,
+            )
+        sections[name] = section
+    return sections
 
 
 def reading(

@@ -164,11 +164,7 @@ async def machine_proc_stats(call: Call) -> dict[str, Any]:
         "cpu_temp": None,
         "network": now["network"],
         "system_cpu_usage": now["system_cpu_usage"],
-        "system_memory": {
-            "total": meminfo("MemTotal"),
-            "available": meminfo("MemAvailable"),
-            "used": meminfo("MemTotal") - meminfo("MemAvailable"),
-        },
+        "system_memory": now["system_memory"],
         "system_uptime": uptime(),
         "websocket_connections": len(call.face.connections),
     }
