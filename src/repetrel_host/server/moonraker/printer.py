@@ -82,10 +82,12 @@ async def objects_query(call: Call) -> dict[str, Any]:
     return {"eventtime": _eventtime(), "status": status}
 
 
-@method("/printer/objects/subscribe", "POST", http=False)
+@method("/printer/objects/subscribe", "POST")
 async def objects_subscribe(call: Call) -> dict[str, Any]:
+    """A websocket's subscription: made on it, or over HTTP by a request that names it
+    (``?connection_id=``, as FDM Monster does); its changes go to that websocket."""
     if call.connection is None:
-        raise RpcError(400, "a subscription needs the websocket")
+        raise RpcError(400, "No connection associated with subscription request")
     return {"eventtime": _eventtime(), "status": call.connection.subscribe(_wanted(call))}
 
 

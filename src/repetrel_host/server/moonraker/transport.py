@@ -21,7 +21,7 @@ from fastapi.responses import JSONResponse, Response
 from starlette.datastructures import UploadFile
 from starlette.exceptions import HTTPException
 
-from repetrel_host.server.auth import identify
+from repetrel_host.server.auth import WRONG_KEY, given_key, identify
 from repetrel_host.server.events import PrinterState, ServerEvent
 from repetrel_host.server.json_input import JsonTooDeep, parse_json
 from repetrel_host.server.moonraker import rpc
@@ -53,25 +53,29 @@ def _service(face: MoonrakerFace, printer: str | None) -> PrinterService:
     return service
 
 
-def who(face: MoonrakerFace, scope: Any) -> tuple[bool, str | None]:
-    """(whether the request may use the API, who made it): the server's keys (header,
-    ``Authorization: Bearer``), a trusted network, a one-shot ``?token=``; an unknown
-    token is ignored, as Moonraker does (KlipperScreen sends ``token=False``). The
-    server's open reads (``public_read``) do not open this face: a read here (a one-shot
-    token, a websocket) leads to everything. Nor does the page's session cookie: Moonraker
-    takes none, and a browser sends it with another site's websocket or request too."""
-    user, _ = identify(face.server, scope, cookie=False)
-    if user is not None:
-        return True, user
-    client = scope.get("client")
-    if face.server.access.trusts(client[0] if client else None):
-        return True, None
+def who(face: MoonrakerFace, scope: Any) -> str | None:
+    """Who made the request (None: a trusted network's client), in Moonraker's order
+    (``authorization.py``): a live one-shot ``?token=`` (an unknown one is ignored:
+    KlipperScreen sends ``token=False``), else a key (``X-Api-Key``, ``Authorization:
+    Bearer``), else a trusted network; :data:`rpc.UNAUTHORIZED` when none. A wrong key is
+    refused whatever the network ("Invalid API Key"), as Moonraker refuses it. The server's
+    open reads (``public_read``) do not open this face: a read here (a one-shot token, a
+    websocket) leads to everything. Nor does the page's session cookie: Moonraker takes
+    none, and a browser sends it with another site's websocket or request too."""
     for key, value in _query(scope):
         if key == "token":
             valid, owner = face.redeem(value)
             if valid:
-                return True, owner
-    return False, None
+                return owner
+    if given_key(scope):
+        user, _ = identify(face.server, scope, cookie=False)
+        if user is None:
+            raise rpc.RpcError(401, WRONG_KEY)
+        return user
+    client = scope.get("client")
+    if face.server.access.trusts(client[0] if client else None):
+        return None
+    raise rpc.RpcError(401, rpc.UNAUTHORIZED.message)
 
 
 def face_of(request: Request | WebSocket) -> MoonrakerFace:
@@ -101,9 +105,10 @@ def router() -> APIRouter:
 
 async def _http(request: Request, rest: str) -> Response:
     face = face_of(request)
-    allowed, user = who(face, request.scope)
-    if not allowed:
-        return error_body(rpc.UNAUTHORIZED)
+    try:
+        user = who(face, request.scope)
+    except rpc.RpcError as exc:
+        return error_body(exc)
     path = request.url.path
     if "printer" in request.path_params:  # /printers/NAME/server/info
         path = "/" + path.split("/", 3)[3]
@@ -127,7 +132,8 @@ async def _http(request: Request, rest: str) -> Response:
         args.update(await _body(request))
         args.update(given)
         service = _service(face, request.path_params.get("printer"))
-        call = rpc.Call(face, service, user, args, base_url=str(request.base_url))
+        connection = _named_websocket(face, service, args.get("connection_id"))
+        call = rpc.Call(face, service, user, args, connection, base_url=str(request.base_url))
         result = await rpc.call(found, call)
     except rpc.RpcError as exc:
         return error_body(exc)
@@ -136,12 +142,31 @@ async def _http(request: Request, rest: str) -> Response:
     return JSONResponse({"result": result})
 
 
+def _named_websocket(face: MoonrakerFace, service: PrinterService, named: Any) -> Connection | None:
+    """The websocket an HTTP request names by its ``connection_id`` (what
+    ``server.connection.identify`` and ``server.websocket.id`` gave it), as Moonraker's
+    ``get_associated_websocket``: a subscription made over HTTP is that websocket's, its
+    changes go there. None for an id that is no websocket of this printer's."""
+    try:
+        found = face.connections.get(int(named)) if named is not None else None
+    except (TypeError, ValueError):
+        return None
+    if isinstance(found, Connection) and found.printer == service.name:
+        return found
+    return None
+
+
 async def _body(request: Request) -> dict[str, Any]:
-    """The arguments in a body: a JSON object, or a form's fields (its files too)."""
+    """The arguments in a body: a JSON object, or a form's fields (its files too). An empty
+    (or blank) body is no arguments whatever its type, as Moonraker takes it: FDM Monster
+    sends ``Content-Type: application/json`` with no body on its GETs and POSTs."""
     kind = request.headers.get("content-type", "")
     if kind.startswith("application/json"):
+        text = await request.body()
+        if not text.strip():
+            return {}
         try:
-            body = parse_json(await request.body())
+            body = parse_json(text)
         except ValueError:
             raise rpc.RpcError(400, "the body is not JSON") from None
         except JsonTooDeep as exc:
@@ -247,9 +272,10 @@ async def _one(
 
 async def _websocket(websocket: WebSocket) -> None:
     face = face_of(websocket)
-    allowed, user = who(face, websocket.scope)
-    if not allowed:
-        await websocket.send_denial_response(error_body(rpc.UNAUTHORIZED))
+    try:
+        user = who(face, websocket.scope)
+    except rpc.RpcError as exc:
+        await websocket.send_denial_response(error_body(exc))
         return
     try:
         service = _service(face, websocket.path_params.get("printer"))
