@@ -110,14 +110,20 @@ def socket_of(server: Server, path: str = "/websocket") -> Iterator[websocket.We
         opened.close()
 
 
-def rpc(opened: websocket.WebSocket, method: str, ident: int, **params: Any) -> Any:
-    """``method``'s result on ``opened`` (the notifications before it skipped)."""
+def answer_of(opened: websocket.WebSocket, method: str, ident: int, **params: Any) -> Any:
+    """The answer to ``method`` on ``opened`` (the notifications before it skipped)."""
     opened.send(json.dumps({"jsonrpc": "2.0", "method": method, "params": params, "id": ident}))
     while True:
         message = json.loads(opened.recv())
         if message.get("id") == ident:
-            assert "result" in message, message
-            return message["result"]
+            return message
+
+
+def rpc(opened: websocket.WebSocket, method: str, ident: int, **params: Any) -> Any:
+    """``method``'s result on ``opened``."""
+    message = answer_of(opened, method, ident, **params)
+    assert "result" in message, message
+    return message["result"]
 
 
 def status_update(opened: websocket.WebSocket, wanted: Callable[[dict[str, Any]], bool]) -> Any:
@@ -186,19 +192,27 @@ def test_a_subscription_over_http_names_a_websocket_of_its_own_printer(
 def test_a_wrong_key_is_refused_from_a_trusted_network_too(
     trusting: tuple[Server, BuiltInFake],
 ) -> None:
-    """Moonraker refuses a wrong key whatever the network (401 "Invalid API Key"): on HTTP,
-    as a bearer, and at the websocket's upgrade. A one-shot token it does not know is
+    """Moonraker refuses a wrong key whatever the network (401 "Unauthorized"): on HTTP, as
+    a bearer, and at the websocket's upgrade. A one-shot token it does not know is
     ignored (KlipperScreen sends ``?token=False``)."""
     server, fake = trusting
     with httpx.Client(base_url=server.url, timeout=30) as curl:
         assert curl.get("/server/info", headers=INSIDE).status_code == 200
         assert curl.get("/server/info?token=False", headers=INSIDE).status_code == 200
-        for wrong in ({"X-Api-Key": "wrong"}, {"Authorization": "Bearer wrong"}):
+        for wrong in (
+            {"X-Api-Key": "wrong"},
+            {"Authorization": "Bearer wrong"},
+            {"X-Access-Token": "wrong"},  # Moonraker's login token: this server makes none
+        ):
             answer = curl.post(
                 "/printer/gcode/script", json={"script": "M104 S244"}, headers=INSIDE | wrong
             )
             assert answer.status_code == 401
-            assert answer.json()["error"]["message"] == "Invalid API Key"
+            assert answer.json()["error"]["message"] == "Unauthorized"
+        assert curl.get("/server/info?access_token=x", headers=INSIDE).status_code == 401
+        # OctoPrint's ?apikey= is no Moonraker key: a wrong one is ignored there, as on Moonraker.
+        assert curl.get("/server/info?apikey=wrong", headers=INSIDE).status_code == 200
+        assert curl.get(f"/server/info?apikey={KEY}", headers=OUTSIDE).status_code == 200
         assert curl.get("/server/info", headers=INSIDE | {"X-Api-Key": KEY}).status_code == 200
         assert curl.get("/server/info", headers=OUTSIDE).status_code == 401
     base = f"ws://127.0.0.1:{server.port}/websocket"
@@ -208,7 +222,23 @@ def test_a_wrong_key_is_refused_from_a_trusted_network_too(
         websocket.create_connection(base, header=[*inside, "X-Api-Key: wrong"], timeout=30)
     assert refused.value.status_code == 401
     said = json.loads(refused.value.resp_body or b"")["error"]["message"]
-    assert said == "Invalid API Key"
+    assert said == "Unauthorized"
+    # Signing in after the upgrade (server.connection.identify's api_key): a wrong key
+    # leaves the socket nothing, trusted network or not, until a right one.
+    opened = websocket.create_connection(base, header=inside, timeout=30)
+    try:
+        identify = {"client_name": "x", "version": "1", "type": "other", "url": "x"}
+        refused_identify = answer_of(opened, "server.connection.identify", 1, api_key="wrong")
+        assert refused_identify["error"] == {"code": -32602, "message": "Invalid API Key"}
+        script = {"script": "M104 S244"}
+        after = answer_of(opened, "printer.gcode.script", 2, **script)
+        assert after["error"] == {"code": -32602, "message": "Unauthorized"}
+        signed_in = answer_of(opened, "server.connection.identify", 3, **identify, api_key=KEY)
+        assert "connection_id" in signed_in["result"]
+        assert answer_of(opened, "printer.gcode.script", 4, script="M104 S212")["result"] == "ok"
+    finally:
+        opened.close()
+    assert ran(fake, "M104 S212")
     assert not ran(fake, "M104 S244")
 
 
@@ -243,6 +273,27 @@ def test_a_trusted_network_opens_moonrakers_octoprint_endpoints_and_no_other(
             headers=INSIDE | {"X-Api-Key": "wrong"},
         )
         assert refused.status_code == 401
-        assert refused.json()["error"] == "Invalid API Key"
+        assert refused.json()["error"] == "a valid API key is needed (the X-Api-Key header)"
     wait_for(lambda: ran(fake, "M104 S211"), what="the trusted client's command")
     assert not ran(fake, "M104 S243")
+
+
+# --- verbs -----------------------------------------------------------------------------
+
+
+def test_klippys_own_endpoints_take_get_and_post_as_fdm_monster_sends_them(
+    printer: tuple[Server, BuiltInFake],
+) -> None:
+    """Moonraker registers Klippy's endpoints for GET and POST alike: FDM Monster POSTs
+    ``printer/info`` and GETs ``printer/gcode/script?script=``; the print's buttons stay
+    POST's only, as there."""
+    server, fake = printer
+    with server.client() as client:
+        info = client.post("/printer/info", headers=JSON)
+        assert info.status_code == 200 and info.json()["result"]["state"] == "ready"
+        listed = client.post("/printer/objects/list")
+        assert "print_stats" in listed.json()["result"]["objects"]
+        said = client.get("/printer/gcode/script", params={"script": "M104 S151"})
+        assert said.status_code == 200 and said.json() == {"result": "ok"}
+        assert client.get("/printer/print/start?filename=x.gcode").status_code == 405
+    assert ran(fake, "M104 S151")

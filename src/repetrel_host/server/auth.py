@@ -19,8 +19,6 @@ from repetrel_host.server.print_server import PrintServer
 SESSION_COOKIE = "hyrel_session"
 CSRF_COOKIE = "hyrel_csrf"
 NO_KEY = "a valid API key is needed (the X-Api-Key header)"
-# Moonraker's answer to a key it does not know, whatever the network (authorization.py).
-WRONG_KEY = "Invalid API Key"
 # Open to anyone: the page and its files (it asks for the key), asking for an app key (OctoPrint's
 # appkeys plugin: an app has no key yet), logging in, the push socket's SockJS requests
 # (the socket takes its own auth message, as OctoPrint's), the API's own description, and
@@ -97,7 +95,7 @@ def given_key(scope: Any) -> str:
     """The key a request names (``X-Api-Key``, ``apikey`` in the query, ``Authorization:
     Bearer``), valid or not; "" when it names none."""
     headers = {key.decode("latin-1").lower(): value for key, value in scope["headers"]}
-    given = headers.get("x-api-key", b"").decode("latin-1")
+    given: str = headers.get("x-api-key", b"").decode("latin-1")
     if not given:
         query = dict(parse_qsl(scope.get("query_string", b"").decode("latin-1")))
         given = query.get("apikey", "")
@@ -139,7 +137,7 @@ class RequestGuard:
             if not trusted_octoprint(server, scope):
                 await refusal(scope["path"], 403, NO_KEY)(scope, receive, send)
                 return
-            if given_key(scope):  # a wrong key: refused whatever the network, as Moonraker
-                await refusal(scope["path"], 401, WRONG_KEY)(scope, receive, send)
+            if given_key(scope):  # a wrong key: 401 whatever the network, as on Moonraker
+                await refusal(scope["path"], 401, NO_KEY)(scope, receive, send)
                 return
         await self.app(scope, receive, send)  # its body bounded next (bodies.py)

@@ -18,10 +18,10 @@ from urllib.parse import parse_qsl
 
 from fastapi import APIRouter, Request, WebSocket, WebSocketDisconnect
 from fastapi.responses import JSONResponse, Response
-from starlette.datastructures import UploadFile
+from starlette.datastructures import Headers, UploadFile
 from starlette.exceptions import HTTPException
 
-from repetrel_host.server.auth import WRONG_KEY, given_key, identify
+from repetrel_host.server.auth import identify
 from repetrel_host.server.events import PrinterState, ServerEvent
 from repetrel_host.server.json_input import JsonTooDeep, parse_json
 from repetrel_host.server.moonraker import rpc
@@ -56,26 +56,45 @@ def _service(face: MoonrakerFace, printer: str | None) -> PrinterService:
 def who(face: MoonrakerFace, scope: Any) -> str | None:
     """Who made the request (None: a trusted network's client), in Moonraker's order
     (``authorization.py``): a live one-shot ``?token=`` (an unknown one is ignored:
-    KlipperScreen sends ``token=False``), else a key (``X-Api-Key``, ``Authorization:
-    Bearer``), else a trusted network; :data:`rpc.UNAUTHORIZED` when none. A wrong key is
-    refused whatever the network ("Invalid API Key"), as Moonraker refuses it. The server's
-    open reads (``public_read``) do not open this face: a read here (a one-shot token, a
-    websocket) leads to everything. Nor does the page's session cookie: Moonraker takes
-    none, and a browser sends it with another site's websocket or request too."""
-    for key, value in _query(scope):
-        if key == "token":
+    KlipperScreen sends ``token=False``), else a key, else a trusted network; 401
+    "Unauthorized" when none. A wrong key is refused whatever the network, as Moonraker
+    refuses it (its log says "Invalid API Key"; the answer, Tornado's "Unauthorized").
+    The server's open reads (``public_read``) do not open this face: a read here (a
+    one-shot token, a websocket) leads to everything. Nor does the page's session cookie:
+    Moonraker takes none, and a browser sends it with another site's websocket or request
+    too."""
+    for name, value in _query(scope):
+        if name == "token":
             valid, owner = face.redeem(value)
             if valid:
                 return owner
-    if given_key(scope):
-        user, _ = identify(face.server, scope, cookie=False)
+    key = _key(scope)
+    if key:
+        user = face.server.access.user_for_key(key)
         if user is None:
-            raise rpc.RpcError(401, WRONG_KEY)
+            raise rpc.RpcError(401, rpc.UNAUTHORIZED.message)
+        return user
+    user, _ = identify(face.server, scope, cookie=False)  # OctoPrint's ?apikey= too
+    if user is not None:
         return user
     client = scope.get("client")
     if face.server.access.trusts(client[0] if client else None):
         return None
     raise rpc.RpcError(401, rpc.UNAUTHORIZED.message)
+
+
+def _key(scope: Any) -> str:
+    """The key a request names where Moonraker reads one: ``X-Api-Key``, ``Authorization:
+    Bearer``, ``X-Access-Token`` or ``?access_token=`` (Moonraker's login tokens: this
+    server makes none, so such a token is one of its keys or wrong)."""
+    headers = Headers(scope=scope)
+    bearer = headers.get("authorization", "")
+    key = headers.get("x-api-key") or headers.get("x-access-token")
+    if not key and bearer.startswith("Bearer "):
+        key = bearer[7:].strip()
+    if not key:
+        key = dict(_query(scope)).get("access_token", "")
+    return key
 
 
 def face_of(request: Request | WebSocket) -> MoonrakerFace:
@@ -133,6 +152,7 @@ async def _http(request: Request, rest: str) -> Response:
         args.update(given)
         service = _service(face, request.path_params.get("printer"))
         connection = _named_websocket(face, service, args.get("connection_id"))
+        args = {k: v for k, v in args.items() if k not in rpc.EXCLUDED}
         call = rpc.Call(face, service, user, args, connection, base_url=str(request.base_url))
         result = await rpc.call(found, call)
     except rpc.RpcError as exc:
@@ -254,6 +274,8 @@ async def _one(
     found = rpc.METHODS.by_name.get(name)
     if found is None:
         return _error(ident, -32601, "Method not found") if "id" in request else None
+    if connection is not None and connection.refused and name != "server.connection.identify":
+        return _error(ident, -32602, rpc.UNAUTHORIZED.message)  # a wrong key in its identify
     call = rpc.Call(face, service, user, dict(params), connection)
     try:
         result = await rpc.call(found, call)
@@ -301,6 +323,7 @@ class Connection:
         self.user = user
         self.id = id(self)
         self.client: dict[str, Any] = {}  # what server.connection.identify said
+        self.refused = False  # its identify named a wrong key: it gets nothing more
         self.subscribed: dict[str, list[str] | None] = {}
         self.sent: dict[str, dict[str, Any]] = {}  # the subscribed objects, as last sent
         self.klippy = klippy_state(service)
@@ -395,6 +418,8 @@ class Connection:
     # --- sending ----------------------------------------------------------------------
 
     def send_later(self, method: str, params: list[Any] | None = None) -> None:
+        if self.refused:
+            return  # Moonraker tells a socket that must sign in again nothing
         message: dict[str, Any] = {"jsonrpc": "2.0", "method": method}
         if params is not None:
             message["params"] = params
