@@ -19,7 +19,7 @@ import websocket
 
 from repetrel_host.fakes.fake_controller import BuiltInFake
 from tests.support.helpers import executed
-from tests.support.server import KEY, Server, gcode, wait_for
+from tests.support.server import KEY, Server, free_port, gcode, server_config, wait_for
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -297,3 +297,26 @@ def test_klippys_own_endpoints_take_get_and_post_as_fdm_monster_sends_them(
         assert said.status_code == 200 and said.json() == {"result": "ok"}
         assert client.get("/printer/print/start?filename=x.gcode").status_code == 405
     assert ran(fake, "M104 S151")
+
+
+def test_a_printers_own_port_opens_the_same_octoprint_paths_to_a_trusted_network(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server], tmp_path: Path
+) -> None:
+    """A ``moonraker_port`` is all Moonraker, for a client that takes a host and a port:
+    Moonraker's OctoPrint-compatible paths there are that printer's, open to a trusted
+    network as at the root; the rest of OctoPrint's face still asks for a key."""
+    left, right = bench(), bench()
+    own = free_port()
+    config = server_config(
+        tmp_path, left={"port": left.port}, right={"port": right.port, "moonraker_port": own}
+    )
+    config.write_text('moonraker_trusted_clients = ["127.0.0.0/8"]\n' + config.read_text())
+    server = servers({}, "--config", str(config))
+    server.wait_ready("left", "right")
+    with httpx.Client(base_url=f"http://127.0.0.1:{own}", timeout=30) as curl:
+        assert curl.get("/api/version").status_code == 200
+        command = {"commands": ["M104 S166"]}
+        assert curl.post("/api/printer/command", json=command).status_code == 204
+        assert curl.get("/api/files").status_code == 403
+    wait_for(lambda: ran(right, "M104 S166"), what="the command on the printer's own port")
+    assert not ran(left, "M104 S166")
