@@ -6,6 +6,7 @@ saying why, where it cannot be installed."""
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -16,6 +17,7 @@ from typing import Any
 
 import httpx
 import pytest
+import websocket
 
 from repetrel_host.fakes.fake_controller import BuiltInFake
 from tests.support.paths import TESTS
@@ -115,7 +117,8 @@ def reference(tmp_path: Path) -> Iterator[str]:
     (data / "config" / "moonraker.conf").write_text(
         f"[server]\nhost: 127.0.0.1\nport: {port}\nklippy_uds_address: {socket_path}\n\n"
         "[machine]\nprovider: none\nvalidate_service: False\n\n"
-        "[authorization]\ntrusted_clients:\n  127.0.0.0/8\n\n[history]\n\n[job_queue]\n"
+        "[authorization]\ntrusted_clients:\n  127.0.0.0/8\n\n[history]\n\n[job_queue]\n\n"
+        "[octoprint_compat]\n"
     )
     log = (tmp_path / "moonraker.log").open("w")
     klippy = subprocess.Popen(
@@ -227,4 +230,134 @@ def test_the_same_calls_answer_in_moonrakers_shapes(reference: str, ours: Server
             )
         if theirs.status_code != 405 and set(mine.json()["error"]) < {"code", "message"}:
             found.append(f"{what}: {mine.json()} is not Moonraker's error body")
+    assert not found, "\n".join(found)
+
+
+# --- ways in and argument forms (issue 50) ------------------------------------------------
+
+JSON = {"Content-Type": "application/json"}
+# Each: (what, verb, path, headers, body); compared by status and error message, or by the
+# result's keys (its top two levels).
+WAYS_IN = [
+    ("an empty JSON body on a GET", "GET", "/server/files/directory?path=gcodes", JSON, b""),
+    ("an empty JSON body on a POST", "POST", "/printer/objects/query?webhooks", JSON, b""),
+    ("a blank JSON body", "POST", "/printer/objects/query?webhooks", JSON, b" \n"),
+    (
+        "a query's objects and a body's",
+        "POST",
+        "/printer/objects/query?webhooks",
+        JSON,
+        b'{"objects": {"print_stats": ["state"]}}',
+    ),
+    ("an object's fields in the query", "GET", "/printer/objects/query?print_stats=state", {}, b""),
+    (
+        "a subscription naming no websocket",
+        "POST",
+        "/printer/objects/subscribe?connection_id=12345&webhooks",
+        JSON,
+        b"",
+    ),
+    ("a wrong key, trusted network", "GET", "/server/info", {"X-Api-Key": "wrong"}, b""),
+    ("a wrong bearer", "GET", "/server/info", {"Authorization": "Bearer wrong"}, b""),
+    ("a wrong access token", "GET", "/server/info?access_token=wrong", {}, b""),
+    ("a wrong X-Access-Token", "GET", "/server/info", {"X-Access-Token": "wrong"}, b""),
+    ("OctoPrint's apikey: not Moonraker's", "GET", "/server/info?apikey=wrong", {}, b""),
+    ("printer.info by POST", "POST", "/printer/info", {}, b""),
+    ("printer.objects.list by POST", "POST", "/printer/objects/list", {}, b""),
+    ("printer.gcode.script by GET", "GET", "/printer/gcode/script?script=M115", {}, b""),
+    ("an unknown one-shot token", "GET", "/server/info?token=False", {}, b""),
+    ("OctoPrint's version, trusted network", "GET", "/api/version", {}, b""),
+    ("OctoPrint's server, trusted network", "GET", "/api/server", {}, b""),
+]
+
+
+def call(opened: websocket.WebSocket, method: str, **params: Any) -> Any:
+    """The answer to ``method`` on the websocket ``opened`` (notifications skipped)."""
+    opened.send(json.dumps({"jsonrpc": "2.0", "method": method, "params": params, "id": 7}))
+    while True:
+        message = json.loads(opened.recv())
+        if message.get("id") == 7:
+            return message
+
+
+def gist(answer: Any) -> Any:
+    """What of an answer both servers must agree on: an error's message; a status's objects
+    and their fields; "ok"; else that OctoPrint's version is named ("server")."""
+    if isinstance(answer.get("error"), dict):
+        return answer["error"]["message"]
+    result = answer.get("result", answer)
+    if not isinstance(result, dict):
+        return result
+    if "status" in result:
+        return {name: sorted(fields) for name, fields in result["status"].items()}
+    return "server" in result
+
+
+def observed(url: str) -> dict[str, Any]:
+    """What ``url`` answers each of :data:`WAYS_IN` (from a trusted network), and a
+    websocket's subscription made over HTTP by its ``connection_id``."""
+    seen: dict[str, Any] = {}
+    with httpx.Client(base_url=url, timeout=30) as curl:
+        for what, verb, path, headers, body in WAYS_IN:
+            answer = curl.request(verb, path, headers=headers, content=body)
+            seen[what] = (answer.status_code, gist(answer.json()))
+        socket_url = url.replace("http", "ws", 1) + "/websocket"
+        opened = websocket.create_connection(socket_url, timeout=30)
+        try:
+            identify = {"client_name": "FDM Monster", "version": "2.1.1", "type": "other"}
+            identify["url"] = "https://github.com/fdm-monster/fdm-monster"
+            identified = call(opened, "server.connection.identify", **identify)
+            ident = identified["result"]["connection_id"]
+            path = f"/printer/objects/subscribe?connection_id={ident}&webhooks&print_stats=state"
+            answer = curl.post(path, headers=JSON)
+            status = answer.json()["result"]["status"]
+            subscribed = (answer.status_code, sorted(status), sorted(status["print_stats"]))
+            seen["a subscription over HTTP"] = subscribed
+        finally:
+            opened.close()
+    # A first identify with a wrong key, from a trusted network: refused, and so is every
+    # call after it.
+    opened = websocket.create_connection(socket_url, timeout=30)
+    try:
+        wrong = call(opened, "server.connection.identify", **identify, api_key="wrong")
+        seen["an identify with a wrong key"] = wrong["error"]
+        seen["a call after it"] = call(opened, "printer.info")["error"]
+    finally:
+        opened.close()
+    # A wrong key at the websocket: Moonraker opens it and answers every call 401 (its
+    # -32602); ours refuses the upgrade with 401. Either way it gets nothing.
+    try:
+        opened = websocket.create_connection(socket_url, header=["X-Api-Key: wrong"], timeout=30)
+    except websocket.WebSocketBadStatusException as refused:
+        seen["a wrong key's websocket gets nothing"] = refused.status_code == 401
+    else:
+        answer = call(opened, "printer.info")
+        opened.close()
+        seen["a wrong key's websocket gets nothing"] = answer["error"]["code"] == -32602
+    return seen
+
+
+@pytest.fixture
+def ours_trusting(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server], tmp_path: Path
+) -> Server:
+    config = tmp_path / "trusting.toml"
+    config.write_text(
+        f'moonraker_trusted_clients = ["127.0.0.0/8"]\n[printers]\nbench = "{bench().port}"\n'
+    )
+    server = servers({}, "--config", str(config))
+    server.wait_ready("bench")
+    return server
+
+
+def test_the_ways_in_and_argument_forms_answer_as_moonrakers(
+    reference: str, ours_trusting: Server
+) -> None:
+    theirs = observed(reference)
+    mine = observed(ours_trusting.url)
+    found = [
+        f"{what}: {mine.get(what)} where Moonraker answers {said}"
+        for what, said in theirs.items()
+        if mine.get(what) != said
+    ]
     assert not found, "\n".join(found)

@@ -30,6 +30,14 @@ _OPEN = re.compile(
     r"|/openapi\.json|/docs|/docs/oauth2-redirect|/redoc"
 )
 _READS = ("GET", "HEAD", "OPTIONS")
+# Moonraker's OctoPrint-compatible endpoints (its components/octoprint_compat.py, with the
+# upload it registers): on this face, a Moonraker trusted network opens exactly these, as
+# Moonraker lets it in there (FDM Monster's Klipper printers ask /api/version first).
+_MOONRAKER_OCTOPRINT = re.compile(
+    r"GET (/printers/[^/]+)?/api/(version|server|currentuser|settings|job|printer"
+    r"|printerprofiles)|POST (/printers/[^/]+)?/api/(login|printer/command|files/local"
+    r"|files/moonraker/.+)"
+)
 # Moonraker's paths, at the root or a printer's: its face refuses in its own shape.
 _MOONRAKER = re.compile(r"(/printers/[^/]+)?(/(printer|server|machine|access)/.*|/websocket)")
 
@@ -63,16 +71,12 @@ def identify(server: PrintServer, scope: Any, cookie: bool = True) -> tuple[str 
     """``(user, session)`` that the request names: a key (``X-Api-Key``, ``apikey`` in the
     query, ``Authorization: Bearer``), else, with ``cookie``, the login's session cookie
     (with the CSRF token a change needs, as OctoPrint asks of a cookie)."""
-    headers = {key.decode("latin-1").lower(): value for key, value in scope["headers"]}
-    query = dict(parse_qsl(scope.get("query_string", b"").decode("latin-1")))
-    given = headers.get("x-api-key", b"").decode("latin-1") or query.get("apikey", "")
-    bearer = headers.get("authorization", b"").decode("latin-1")
-    if not given and bearer.lower().startswith("bearer "):
-        given = bearer[7:].strip()
+    given = given_key(scope)
     if given:
         return server.access.user_for_key(given), None
     if not cookie:
         return None, None
+    headers = {key.decode("latin-1").lower(): value for key, value in scope["headers"]}
     cookies = SimpleCookie()
     cookies.load(headers.get("cookie", b"").decode("latin-1"))
     session = cookies[SESSION_COOKIE].value if SESSION_COOKIE in cookies else ""
@@ -85,6 +89,30 @@ def identify(server: PrintServer, scope: Any, cookie: bool = True) -> tuple[str 
         if not csrf or not hmac.compare_digest(csrf.encode(), token.encode()):
             return None, None
     return user, session
+
+
+def given_key(scope: Any) -> str:
+    """The key a request names (``X-Api-Key``, ``apikey`` in the query, ``Authorization:
+    Bearer``), valid or not; "" when it names none."""
+    headers = {key.decode("latin-1").lower(): value for key, value in scope["headers"]}
+    given: str = headers.get("x-api-key", b"").decode("latin-1")
+    if not given:
+        query = dict(parse_qsl(scope.get("query_string", b"").decode("latin-1")))
+        given = query.get("apikey", "")
+    bearer = headers.get("authorization", b"").decode("latin-1")
+    if not given and bearer.lower().startswith("bearer "):
+        given = bearer[7:].strip()
+    return given
+
+
+def trusted_octoprint(server: PrintServer, scope: Any) -> bool:
+    """``scope`` asks one of Moonraker's OctoPrint-compatible endpoints from a Moonraker
+    trusted network (``moonraker_trusted_clients``)."""
+    client = scope.get("client")
+    asked = f"{scope.get('method', 'GET')} {scope['path']}"
+    return _MOONRAKER_OCTOPRINT.fullmatch(asked) is not None and server.access.trusts(
+        client[0] if client else None
+    )
 
 
 class RequestGuard:
@@ -106,6 +134,10 @@ class RequestGuard:
         open_route = _OPEN.fullmatch(scope["path"]) is not None
         reading = scope["method"] in _READS
         if user is None and not open_route and not (reading and server.access.public_read):
-            await refusal(scope["path"], 403, NO_KEY)(scope, receive, send)
-            return
+            if not trusted_octoprint(server, scope):
+                await refusal(scope["path"], 403, NO_KEY)(scope, receive, send)
+                return
+            if given_key(scope):  # a wrong key: 401 whatever the network, as on Moonraker
+                await refusal(scope["path"], 401, NO_KEY)(scope, receive, send)
+                return
         await self.app(scope, receive, send)  # its body bounded next (bodies.py)

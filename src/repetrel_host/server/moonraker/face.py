@@ -30,6 +30,8 @@ class Subscriber(Protocol):
     id: int
     printer: str
     client: dict[str, Any]
+    user: str | None
+    refused: bool  # its identify named a wrong key
 
     def heard(self, event: ServerEvent) -> None: ...
 

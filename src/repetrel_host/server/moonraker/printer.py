@@ -2,7 +2,10 @@
 subscribed), G-code from a console (Klipper's own commands a client sends, such as
 ``PAUSE`` or ``SET_HEATER_TEMPERATURE``, done as the server does them), a print started,
 paused, resumed and cancelled by the same paths as every other face, the emergency stop and
-a reconnect for Klipper's restarts."""
+a reconnect for Klipper's restarts. Klippy's own endpoints (info, the objects, G-code, the
+emergency stop) take GET and POST alike, as Moonraker registers them
+(``klippy_connection.py``): FDM Monster POSTs ``printer/info`` and GETs
+``printer/gcode/script?script=``."""
 
 from __future__ import annotations
 
@@ -34,7 +37,7 @@ KLIPPER_COMMANDS = {
 }
 
 
-@method("/printer/info")
+@method("/printer/info", "GET", "POST")
 async def info(call: Call) -> dict[str, Any]:
     service = call.service
     return {
@@ -53,7 +56,7 @@ async def info(call: Call) -> dict[str, Any]:
     }
 
 
-@method("/printer/objects/list")
+@method("/printer/objects/list", "GET", "POST")
 async def objects_list(call: Call) -> dict[str, Any]:
     return {"objects": call.face.objects[call.service.name].names()}
 
@@ -82,14 +85,16 @@ async def objects_query(call: Call) -> dict[str, Any]:
     return {"eventtime": _eventtime(), "status": status}
 
 
-@method("/printer/objects/subscribe", "POST", http=False)
+@method("/printer/objects/subscribe", "GET", "POST")
 async def objects_subscribe(call: Call) -> dict[str, Any]:
+    """A websocket's subscription: made on it, or over HTTP by a request that names it
+    (``?connection_id=``, as FDM Monster does); its changes go to that websocket."""
     if call.connection is None:
-        raise RpcError(400, "a subscription needs the websocket")
+        raise RpcError(400, "No connection associated with subscription request")
     return {"eventtime": _eventtime(), "status": call.connection.subscribe(_wanted(call))}
 
 
-@method("/printer/gcode/script", "POST")
+@method("/printer/gcode/script", "GET", "POST")
 async def gcode_script(call: Call) -> str:
     lines = [line.strip() for line in call.string("script").splitlines() if line.strip()]
     if await call.service.emergency_first(lines):
@@ -125,7 +130,7 @@ for _action in ("pause", "resume", "cancel"):
     method(f"/printer/print/{_action}", "POST")(_print_action(_action))
 
 
-@method("/printer/emergency_stop", "POST")
+@method("/printer/emergency_stop", "GET", "POST")
 async def emergency_stop(call: Call) -> str:
     await call.service.command("M112")
     return "ok"

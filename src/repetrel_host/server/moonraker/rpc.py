@@ -18,7 +18,9 @@ from repetrel_host.server.moonraker.face import MoonrakerFace, Subscriber
 from repetrel_host.server.print_server import PrintServer
 from repetrel_host.server.printers.service import PrinterService, Refused
 
-# Arguments a client adds for its own ends (a token, its connection, a cache breaker).
+# Arguments a client adds to an HTTP call for its own ends (a token, its websocket, a cache
+# breaker), left out of the method's, as Moonraker's EXCLUDED_ARGS; a websocket's call keeps
+# its params whole (``server.connection.identify`` reads its ``access_token``).
 EXCLUDED = frozenset({"token", "access_token", "connection_id", "_"})
 
 
@@ -50,7 +52,7 @@ class Call:
     service: PrinterService
     user: str | None
     args: dict[str, Any]
-    connection: Subscriber | None = None  # the websocket's, None over HTTP
+    connection: Subscriber | None = None  # its websocket, or the one HTTP's names
     base_url: str = ""  # where the client reached us (for a Location header)
 
     @property
@@ -162,8 +164,6 @@ method = METHODS.add
 async def call(handler: Handler, call: Call) -> Any:
     """``handler`` run for ``call``: the printer's refusals and the API's errors as
     :class:`RpcError`."""
-    args = {k: v for k, v in call.args.items() if k not in EXCLUDED}
-    call.args = args
     try:
         return await handler(call)
     except Refused as exc:

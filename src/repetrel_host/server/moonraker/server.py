@@ -78,6 +78,16 @@ async def identify(call: Call) -> dict[str, int]:
     if connection is None:
         raise RpcError(400, "the websocket's only: it names the websocket's client")
     connection.client = {key: call.get(key) for key in ("client_name", "version", "type", "url")}
+    # Moonraker's way to sign a websocket in after it opened (websockets.py): a key (or a
+    # login token, which this server makes none of) is its user from now on; a wrong one
+    # leaves it nothing, trusted network or not, until an identify with a right one.
+    key = call.get("access_token") or call.get("api_key")
+    if key is not None:
+        user = call.server.access.user_for_key(str(key))
+        connection.refused = user is None
+        if user is None:
+            raise RpcError(401, "Invalid API Key")
+        connection.user = user
     return {"connection_id": connection.id}
 
 

@@ -18,7 +18,7 @@ from urllib.parse import parse_qsl
 
 from fastapi import APIRouter, Request, WebSocket, WebSocketDisconnect
 from fastapi.responses import JSONResponse, Response
-from starlette.datastructures import UploadFile
+from starlette.datastructures import Headers, UploadFile
 from starlette.exceptions import HTTPException
 
 from repetrel_host.server.auth import identify
@@ -53,25 +53,48 @@ def _service(face: MoonrakerFace, printer: str | None) -> PrinterService:
     return service
 
 
-def who(face: MoonrakerFace, scope: Any) -> tuple[bool, str | None]:
-    """(whether the request may use the API, who made it): the server's keys (header,
-    ``Authorization: Bearer``), a trusted network, a one-shot ``?token=``; an unknown
-    token is ignored, as Moonraker does (KlipperScreen sends ``token=False``). The
-    server's open reads (``public_read``) do not open this face: a read here (a one-shot
-    token, a websocket) leads to everything. Nor does the page's session cookie: Moonraker
-    takes none, and a browser sends it with another site's websocket or request too."""
-    user, _ = identify(face.server, scope, cookie=False)
-    if user is not None:
-        return True, user
-    client = scope.get("client")
-    if face.server.access.trusts(client[0] if client else None):
-        return True, None
-    for key, value in _query(scope):
-        if key == "token":
+def who(face: MoonrakerFace, scope: Any) -> str | None:
+    """Who made the request (None: a trusted network's client), in Moonraker's order
+    (``authorization.py``): a live one-shot ``?token=`` (an unknown one is ignored:
+    KlipperScreen sends ``token=False``), else a key, else a trusted network; 401
+    "Unauthorized" when none. A wrong key is refused whatever the network, as Moonraker
+    refuses it (its log says "Invalid API Key"; the answer, Tornado's "Unauthorized").
+    The server's open reads (``public_read``) do not open this face: a read here (a
+    one-shot token, a websocket) leads to everything. Nor does the page's session cookie:
+    Moonraker takes none, and a browser sends it with another site's websocket or request
+    too."""
+    for name, value in _query(scope):
+        if name == "token":
             valid, owner = face.redeem(value)
             if valid:
-                return True, owner
-    return False, None
+                return owner
+    key = _key(scope)
+    if key:
+        user = face.server.access.user_for_key(key)
+        if user is None:
+            raise rpc.RpcError(401, rpc.UNAUTHORIZED.message)
+        return user
+    user, _ = identify(face.server, scope, cookie=False)  # OctoPrint's ?apikey= too
+    if user is not None:
+        return user
+    client = scope.get("client")
+    if face.server.access.trusts(client[0] if client else None):
+        return None
+    raise rpc.RpcError(401, rpc.UNAUTHORIZED.message)
+
+
+def _key(scope: Any) -> str:
+    """The key a request names where Moonraker reads one: ``X-Api-Key``, ``Authorization:
+    Bearer``, ``X-Access-Token`` or ``?access_token=`` (Moonraker's login tokens: this
+    server makes none, so such a token is one of its keys or wrong)."""
+    headers = Headers(scope=scope)
+    bearer = headers.get("authorization", "")
+    key = headers.get("x-api-key") or headers.get("x-access-token")
+    if not key and bearer.startswith("Bearer "):
+        key = bearer[7:].strip()
+    if not key:
+        key = dict(_query(scope)).get("access_token", "")
+    return key
 
 
 def face_of(request: Request | WebSocket) -> MoonrakerFace:
@@ -101,9 +124,10 @@ def router() -> APIRouter:
 
 async def _http(request: Request, rest: str) -> Response:
     face = face_of(request)
-    allowed, user = who(face, request.scope)
-    if not allowed:
-        return error_body(rpc.UNAUTHORIZED)
+    try:
+        user = who(face, request.scope)
+    except rpc.RpcError as exc:
+        return error_body(exc)
     path = request.url.path
     if "printer" in request.path_params:  # /printers/NAME/server/info
         path = "/" + path.split("/", 3)[3]
@@ -127,7 +151,9 @@ async def _http(request: Request, rest: str) -> Response:
         args.update(await _body(request))
         args.update(given)
         service = _service(face, request.path_params.get("printer"))
-        call = rpc.Call(face, service, user, args, base_url=str(request.base_url))
+        connection = _named_websocket(face, service, args.get("connection_id"))
+        args = {k: v for k, v in args.items() if k not in rpc.EXCLUDED}
+        call = rpc.Call(face, service, user, args, connection, base_url=str(request.base_url))
         result = await rpc.call(found, call)
     except rpc.RpcError as exc:
         return error_body(exc)
@@ -136,12 +162,31 @@ async def _http(request: Request, rest: str) -> Response:
     return JSONResponse({"result": result})
 
 
+def _named_websocket(face: MoonrakerFace, service: PrinterService, named: Any) -> Connection | None:
+    """The websocket an HTTP request names by its ``connection_id`` (what
+    ``server.connection.identify`` and ``server.websocket.id`` gave it), as Moonraker's
+    ``get_associated_websocket``: a subscription made over HTTP is that websocket's, its
+    changes go there. None for an id that is no websocket of this printer's."""
+    try:
+        found = face.connections.get(int(named)) if named is not None else None
+    except (TypeError, ValueError):
+        return None
+    if isinstance(found, Connection) and found.printer == service.name:
+        return found
+    return None
+
+
 async def _body(request: Request) -> dict[str, Any]:
-    """The arguments in a body: a JSON object, or a form's fields (its files too)."""
+    """The arguments in a body: a JSON object, or a form's fields (its files too). An empty
+    (or blank) body is no arguments whatever its type, as Moonraker takes it: FDM Monster
+    sends ``Content-Type: application/json`` with no body on its GETs and POSTs."""
     kind = request.headers.get("content-type", "")
     if kind.startswith("application/json"):
+        text = await request.body()
+        if not text.strip():
+            return {}
         try:
-            body = parse_json(await request.body())
+            body = parse_json(text)
         except ValueError:
             raise rpc.RpcError(400, "the body is not JSON") from None
         except JsonTooDeep as exc:
@@ -229,6 +274,8 @@ async def _one(
     found = rpc.METHODS.by_name.get(name)
     if found is None:
         return _error(ident, -32601, "Method not found") if "id" in request else None
+    if connection is not None and connection.refused and name != "server.connection.identify":
+        return _error(ident, -32602, rpc.UNAUTHORIZED.message)  # a wrong key in its identify
     call = rpc.Call(face, service, user, dict(params), connection)
     try:
         result = await rpc.call(found, call)
@@ -247,9 +294,10 @@ async def _one(
 
 async def _websocket(websocket: WebSocket) -> None:
     face = face_of(websocket)
-    allowed, user = who(face, websocket.scope)
-    if not allowed:
-        await websocket.send_denial_response(error_body(rpc.UNAUTHORIZED))
+    try:
+        user = who(face, websocket.scope)
+    except rpc.RpcError as exc:
+        await websocket.send_denial_response(error_body(exc))
         return
     try:
         service = _service(face, websocket.path_params.get("printer"))
@@ -275,6 +323,7 @@ class Connection:
         self.user = user
         self.id = id(self)
         self.client: dict[str, Any] = {}  # what server.connection.identify said
+        self.refused = False  # its identify named a wrong key: it gets nothing more
         self.subscribed: dict[str, list[str] | None] = {}
         self.sent: dict[str, dict[str, Any]] = {}  # the subscribed objects, as last sent
         self.klippy = klippy_state(service)
@@ -369,6 +418,8 @@ class Connection:
     # --- sending ----------------------------------------------------------------------
 
     def send_later(self, method: str, params: list[Any] | None = None) -> None:
+        if self.refused:
+            return  # Moonraker tells a socket that must sign in again nothing
         message: dict[str, Any] = {"jsonrpc": "2.0", "method": method}
         if params is not None:
             message["params"] = params

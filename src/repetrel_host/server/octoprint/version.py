@@ -28,6 +28,12 @@ def router() -> APIRouter:
 
     @router.get("/server")
     async def server_info() -> dict[str, Any]:
-        return {"version": OCTOPRINT_VERSION, "safemode": None, "online": True}
+        # "server" too: Moonraker's OctoPrint-compatible /api/server says it there.
+        return {
+            "version": OCTOPRINT_VERSION,
+            "server": OCTOPRINT_VERSION,
+            "safemode": None,
+            "online": True,
+        }
 
     return router
