@@ -216,8 +216,8 @@ _ARGS = re.compile(r"([A-Z_]+|[A-Z*])")
 def _command(line: str) -> tuple[str, bool]:
     """The line's command as Klipper names it, and whether it is an extended one."""
     parts = _ARGS.split(line.split(";", 1)[0].upper())
-    if "".join(parts[:2]) == "N":  # a line number first
-        parts = parts[2:]
+    if "".join(parts[:2]) == "N":  # a line number first: N10 G1 is G1
+        parts = ["", *parts[3:]]
     return "".join(parts[:3]).strip(), len(parts) > 1 and len(parts[1]) > 1
 
 
@@ -259,7 +259,7 @@ async def _extended(call: Call, name: str, word: str, params: dict[str, str]) ->
         for heater in heaters(service):
             await _send(call, heater["command"].format(target=0))
     elif word == "HELP":
-        listed = [f"{name:<10}: {text}" for name, text in sorted(KLIPPER_COMMANDS.items())]
+        listed = [f"{known:<10}: {text}" for known, text in sorted(KLIPPER_COMMANDS.items())]
         _respond(call, "\n".join(["Available extended commands:", *listed]))
     else:
         _respond(call, f'Unknown command:"{name}"')
