@@ -361,3 +361,35 @@ def test_the_ways_in_and_argument_forms_answer_as_moonrakers(
         if mine.get(what) != said
     ]
     assert not found, "\n".join(found)
+
+
+# Klipper's commands: (what, path, arguments), answered with the same status, result or
+# message, and G-code responses (the fake Klippy says them as Klipper does).
+COMMANDS = [
+    ("a cancel with no print", "/printer/print/cancel", {}),
+    ("an extended command neither has", "/printer/gcode/script", {"script": "FOOBAR"}),
+    ("a babystep", "/printer/gcode/script", {"script": "SET_GCODE_OFFSET Z_ADJUST=0.05"}),
+    ("an extruder it lacks", "/printer/gcode/script", {"script": "M104 T1 S200"}),
+]
+
+
+def test_klippers_commands_answer_and_respond_as_klipper(reference: str, ours: Server) -> None:
+    found: list[str] = []
+
+    def responses(url: str, key: str | None) -> list[str]:
+        store = ask(url, "GET", "/server/gcode_store", {}, key).json()["result"]["gcode_store"]
+        return [item["message"] for item in store if item["type"] == "response"]
+
+    for what, path, args in COMMANDS:
+        told = []
+        for url, key in ((reference, None), (ours.url, KEY)):
+            before = len(responses(url, key))
+            answer = ask(url, "POST", path, args, key)
+            body = answer.json()
+            said = body["result"] if "result" in body else body["error"]["message"]
+            # The responses are told as the call runs; wait for the last of them.
+            wait_for(lambda u=url, k=key, n=before: len(responses(u, k)) > n, 5, what)
+            told.append((answer.status_code, said, responses(url, key)[before:]))
+        if told[1] != told[0]:
+            found.append(f"{what}: ours {told[1]} where Moonraker {told[0]}")
+    assert not found, "\n".join(found)

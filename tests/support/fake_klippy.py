@@ -1,7 +1,8 @@
 """A small fake Klippy for a real Moonraker to talk to (the reference test): Klippy's API
 server on a unix socket, JSON messages each ended by 0x03, answering what Moonraker asks as
 it starts (info, list_endpoints, the objects, G-code help, subscriptions) with an idle
-Klipper printer's status.
+Klipper printer's status, and Klipper's G-code responses and errors to a few calls
+(:func:`output`).
 
     python tests/support/fake_klippy.py SOCKET_PATH
 """
@@ -11,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import re
 import sys
 import time
 from typing import Any
@@ -130,6 +132,33 @@ def answer(method: str, params: dict[str, Any], gcodes: str) -> Any:
     return {}
 
 
+# Klipper's split of a line into words (klippy/gcode.py).
+ARGS = re.compile(r"([A-Z_]+|[A-Z*])")
+
+
+def output(method: str, params: dict[str, Any]) -> tuple[list[str], str | None]:
+    """What Klipper says as G-code responses to a call, and its error if it fails: an
+    extended command it lacks is a response, not an error (klippy/gcode.py cmd_default);
+    M104 for an extruder it lacks is an error (klippy/kinematics/extruder.py); a cancel
+    with no print says action:cancel (klippy/extras/pause_resume.py)."""
+    if method == "pause_resume/cancel":
+        return ["// action:cancel"], None
+    said: list[str] = []
+    for line in str(params.get("script", "")).split("\n") if method == "gcode/script" else ():
+        parts = ARGS.split(line.split(";", 1)[0].strip().upper())
+        command = "".join(parts[:3]).strip()
+        words = {parts[i]: parts[i + 1].strip() for i in range(1, len(parts) - 1, 2)}
+        if command in ("M104", "M109") and int(words.get("T") or 0) > 0:
+            if float(words.get("S") or 0) > 0:  # this printer has one extruder
+                return [*said, "!! Extruder not configured"], "Extruder not configured"
+        elif len(parts) > 1 and len(parts[1]) > 1 and command not in EXTENDED:
+            said.append(f'// Unknown command:"{command}"')
+    return said, None
+
+
+EXTENDED = {"PAUSE", "RESUME", "CANCEL_PRINT", "SDCARD_PRINT_FILE", "SDCARD_RESET_FILE"}
+
+
 def configfile(gcodes: str) -> dict[str, Any]:
     sections = {
         "printer": {"kinematics": "cartesian"},
@@ -150,11 +179,22 @@ def configfile(gcodes: str) -> dict[str, Any]:
 
 async def main(path: str, gcodes: str) -> None:
     async def serve(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        template: dict[str, Any] | None = None  # gcode/subscribe_output's, for responses
         try:
             while True:
                 request = json.loads((await reader.readuntil(b"\x03"))[:-1])
-                result = answer(request.get("method", ""), request.get("params", {}), gcodes)
-                reply = {"id": request.get("id"), "result": result}
+                method, params = request.get("method", ""), request.get("params", {})
+                if method == "gcode/subscribe_output":
+                    template = params.get("response_template", {})
+                said, error = output(method, params)
+                for response in said if template is not None else ():
+                    message = {**template, "params": {"response": response}}
+                    writer.write(json.dumps(message).encode() + b"\x03")
+                reply: dict[str, Any] = {"id": request.get("id")}
+                if error is None:
+                    reply["result"] = answer(method, params, gcodes)
+                else:
+                    reply["error"] = {"error": "WebRequestError", "message": error}
                 writer.write(json.dumps(reply).encode() + b"\x03")
                 await writer.drain()
         except (asyncio.IncompleteReadError, ConnectionError):

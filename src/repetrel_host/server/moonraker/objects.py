@@ -346,7 +346,7 @@ def _heater_sections(service: PrinterService, max_velocity: float) -> dict[str, 
     loadout = service.plan_loadout()
     heads = {head.tool: head for head in loadout.heads} if loadout is not None else {}
     sections: dict[str, dict[str, Any]] = {}
-    tools = {heater["sensor"]: heater.get("tool") for heater in heaters(service)}
+    tools: dict[str, int] = {h["sensor"]: h["tool"] for h in heaters(service) if "tool" in h}
     for name, sensor in heater_names(service).items():
         kind = "head" if name.startswith("extruder") else "bed" if name == "heater_bed" else ""
         kind = kind or "chamber"

@@ -10,10 +10,11 @@ emergency stop) take GET and POST alike, as Moonraker registers them
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import re
 import shlex
 import socket
-from typing import Any
+from typing import Any, NoReturn
 
 import repetrel_host as rh
 from repetrel_host.server import jobs, uploads
@@ -22,17 +23,20 @@ from repetrel_host.server.moonraker.rpc import Call, Handler, RpcError, method
 from repetrel_host.server.printers.heaters import heaters
 from repetrel_host.server.printers.service import PrinterService, Refused
 
-# Klipper's G-code help for the commands the face takes itself; any other line goes to the
-# controller as it is.
+# Klipper's G-code help for its extended commands the face does itself. G-code (G1, M104,
+# T0: a letter and a number) goes to the controller, Hyrel's own M-codes too; an extended
+# command not here is answered as Klipper answers one it does not have (``_unknown``).
 KLIPPER_COMMANDS = {
     "PAUSE": "Pauses the current print (the job's safe pause)",
     "RESUME": "Resumes the print from a pause",
     "CANCEL_PRINT": "Cancel the current print (its safe stop first)",
     "SDCARD_PRINT_FILE": "Queues and starts a stored file: FILENAME=",
+    "SDCARD_RESET_FILE": "Clears the last print's file (not while printing)",
     "SET_HEATER_TEMPERATURE": "Sets a heater's target: HEATER= TARGET=",
     "TURN_OFF_HEATERS": "Turn off all heaters",
     "FIRMWARE_RESTART": "Reconnect to the controller",
     "RESTART": "Reconnect to the controller",
+    "HELP": "Report the list of available extended G-Code commands",
     "M112": "Emergency stop",
 }
 
@@ -117,7 +121,7 @@ async def print_start(call: Call) -> str:
 
 
 def _print_action(action: str) -> Handler:
-    """``printer.print.pause``/``resume``/``cancel``: the server's own action."""
+    """``printer.print.pause``/``resume``: the server's own action."""
 
     async def handler(call: Call) -> str:
         await _control(call.service, action)
@@ -126,8 +130,14 @@ def _print_action(action: str) -> Handler:
     return handler
 
 
-for _action in ("pause", "resume", "cancel"):
+for _action in ("pause", "resume"):
     method(f"/printer/print/{_action}", "POST")(_print_action(_action))
+
+
+@method("/printer/print/cancel", "POST")
+async def print_cancel(call: Call) -> str:
+    await _cancel(call)
+    return "ok"
 
 
 @method("/printer/emergency_stop", "GET", "POST")
@@ -174,6 +184,29 @@ async def _control(service: PrinterService, action: str) -> None:
         raise RpcError(400, str(exc)) from None
 
 
+async def _cancel(call: Call) -> None:
+    """Klipper's CANCEL_PRINT: the job's safe stop. With no job Klipper only says
+    ``action:cancel`` and answers ok (klippy/extras/pause_resume.py), so a client's cancel
+    at a job's end is no error."""
+    try:
+        cancelled = await call.service.cancel()
+    except rh.UsageError as exc:
+        raise RpcError(400, str(exc)) from None
+    if not cancelled:
+        call.face.gcode_response(call.service.name, "// action:cancel")
+
+
+def _reset_file(call: Call) -> None:
+    """Klipper's SDCARD_RESET_FILE, the clients' "clear" of a print that ended: the last
+    job forgotten, as OctoPrint's unselect forgets it, so ``print_stats`` reads standby with
+    no file (klippy/extras/virtual_sdcard.py). Klipper would stop a print running; here a
+    print stops by its cancel (its safe stop), so the reset waits for one."""
+    service = call.service
+    if service.running is not None or service.state in ("printing", "paused"):
+        _fail(call, "SDCARD_RESET_FILE cannot be run while printing: cancel the print first")
+    service.select(None)
+
+
 async def reconnect(service: PrinterService) -> None:
     """Klipper's restarts: the port closed and opened again (refused while a job runs:
     its safe stop needs the port)."""
@@ -181,7 +214,17 @@ async def reconnect(service: PrinterService) -> None:
     service.connect()
 
 
-_WORD = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+# Klipper's split of a line into words (klippy/gcode.py): a command is G1, M104, T0 (one
+# letter, then its number) or an extended one (SET_FAN_SPEED: a longer word).
+_ARGS = re.compile(r"([A-Z_]+|[A-Z*])")
+
+
+def _command(line: str) -> tuple[str, bool]:
+    """The line's command as Klipper names it, and whether it is an extended one."""
+    parts = _ARGS.split(line.split(";", 1)[0].upper())
+    if "".join(parts[:2]) == "N":  # a line number first: N10 G1 is G1
+        parts = ["", *parts[3:]]
+    return "".join(parts[:3]).strip(), len(parts) > 1 and len(parts[1]) > 1
 
 
 async def run_line(call: Call, line: str) -> None:
@@ -189,17 +232,31 @@ async def run_line(call: Call, line: str) -> None:
     controller, its reply lines told as responses."""
     face, service = call.face, call.service
     face.gcode_command(service.name, line)
-    found = _WORD.match(line)
-    word = found.group(0).upper() if found else ""
-    params = _params(line[len(word) :]) if word in KLIPPER_COMMANDS else {}
+    name, extended = _command(line)
+    if extended:
+        word = name.split()[0]
+        rest = line[line.upper().index(word) + len(word) :]
+        await _extended(call, name, word, _params(rest))
+    elif name in ("M104", "M109"):
+        await _set_extruder(call, name, line)
+    else:
+        await _send(call, line)
+
+
+async def _extended(call: Call, name: str, word: str, params: dict[str, str]) -> None:
+    """Klipper's extended commands: the ones in KLIPPER_COMMANDS, else Klipper's answer to
+    a command it does not have: a response saying so, and ok (klippy/gcode.py cmd_default)."""
+    service = call.service
     if word == "PAUSE":
         await _control(service, "pause")
     elif word == "RESUME":
         await _control(service, "resume")
     elif word == "CANCEL_PRINT":
-        await _control(service, "cancel")
+        await _cancel(call)
     elif word == "SDCARD_PRINT_FILE":
         await start_print(call, params.get("FILENAME", ""), "SDCARD_PRINT_FILE")
+    elif word == "SDCARD_RESET_FILE":
+        _reset_file(call)
     elif word in ("FIRMWARE_RESTART", "RESTART"):
         await reconnect(service)
     elif word == "SET_HEATER_TEMPERATURE":
@@ -207,8 +264,24 @@ async def run_line(call: Call, line: str) -> None:
     elif word == "TURN_OFF_HEATERS":
         for heater in heaters(service):
             await _send(call, heater["command"].format(target=0))
+    elif word == "HELP":
+        listed = [f"{known:<10}: {text}" for known, text in sorted(KLIPPER_COMMANDS.items())]
+        _respond(call, "\n".join(["Available extended commands:", *listed]))
     else:
-        await _send(call, line)
+        _respond(call, f'Unknown command:"{name}"')
+
+
+def _respond(call: Call, text: str) -> None:
+    """Klipper's ``respond_info``: each line a response starting ``// ``."""
+    for said in text.splitlines():
+        call.face.gcode_response(call.service.name, f"// {said}")
+
+
+def _fail(call: Call, message: str) -> NoReturn:
+    """Klipper's G-code error: ``!!`` and the message as a response, the call refused
+    with it (Moonraker's 400)."""
+    call.face.gcode_response(call.service.name, f"!! {message}")
+    raise RpcError(400, message)
 
 
 async def _send(call: Call, line: str) -> None:
@@ -223,8 +296,28 @@ async def _send(call: Call, line: str) -> None:
         call.face.gcode_response(call.service.name, reply.ok_line)
 
 
-async def _set_heater(call: Call, name: str, target: str) -> None:
-    """SET_HEATER_TEMPERATURE: the heater's own command (a Hyrel head by its address)."""
+async def _set_extruder(call: Call, word: str, line: str) -> None:
+    """Klipper's M104/M109 (klippy/kinematics/extruder.py): ``T<n>`` is its extruder n
+    (``extruder``, ``extruder1``...), no T the active one (the first here); set as
+    SET_HEATER_TEMPERATURE sets it, by the head's own command (on Hyrel's link its
+    address), so that a client's ``M104 T1`` sets the head it shows as ``extruder1``."""
+    parts = _ARGS.split(line.split(";", 1)[0].upper())
+    params = {parts[i]: parts[i + 1].strip() for i in range(1, len(parts) - 1, 2)}
+    target, index = params.get("S") or "0", params.get("T") or "0"
+    if not index.isdigit():
+        _fail(call, f"Invalid T {index!r}")
+    name = f"extruder{int(index) or ''}"
+    if name not in heater_names(call.service):
+        with contextlib.suppress(ValueError):
+            if float(target) <= 0:
+                return  # Klipper lets an extruder it lacks be turned off
+        _fail(call, "Extruder not configured")
+    await _set_heater(call, name, target, wait=word == "M109")
+
+
+async def _set_heater(call: Call, name: str, target: str, wait: bool = False) -> None:
+    """SET_HEATER_TEMPERATURE: the heater's own command (a Hyrel head by its address);
+    ``wait``: a head's M109, which waits for it."""
     sensor = heater_names(call.service).get(name.strip().strip('"'))
     command = next((h["command"] for h in heaters(call.service) if h["sensor"] == sensor), None)
     if command is None:  # before any report named it
@@ -235,7 +328,10 @@ async def _set_heater(call: Call, name: str, target: str) -> None:
         degrees = float(target)
     except ValueError:
         raise RpcError(400, f"Invalid TARGET {target!r}") from None
-    await _send(call, command.format(target=f"{degrees:g}"))
+    line = command.format(target=f"{degrees:g}")
+    if wait and line.startswith("M104"):
+        line = "M109" + line[4:]
+    await _send(call, line)
 
 
 def _params(text: str) -> dict[str, str]:
