@@ -178,9 +178,10 @@ def answered(response: httpx.Response) -> httpx.Response:
     return response
 
 
-def drive(manager: Manager, url: str) -> Checks:
+def drive(manager: Manager, url: str, ran: Callable[[], list[str]]) -> Checks:
     """FDM Monster's page's calls for a Klipper printer at ``url`` that holds ``cube.gcode``,
-    as a person clicks through them; the printer's own record is left to the caller."""
+    as a person clicks through them; ``ran`` gives the lines the printer ran (the rest of
+    the printer's own record is left to the caller)."""
     checks = Checks()
     fdm = manager.http
     login = {"printerURL": url, "printerType": KLIPPER, "apiKey": KEY}
@@ -229,13 +230,16 @@ def drive(manager: Manager, url: str) -> Checks:
         needs=online,
     )
 
-    def button(name: str, path: str, body: dict[str, str] | None = None, **form: Any) -> bool:
+    def button(name: str, path: str, body: dict[str, Any] | None = None, **form: Any) -> bool:
         """A click, once: its answer is a check of its own."""
         return bool(checks.once(name, lambda: answered(fdm.post(path, json=body, **form))))
 
     def listed(name: str) -> bool:
         files = answered(fdm.get(f"/printer-files/{number}")).json()["files"]
         return name in [file["path"] for file in files]
+
+    if button("home is answered", f"/printer/{number}/home", {"x": True, "y": True, "z": True}):
+        checks.check("the printer homes", lambda: "G28 X Y Z" in ran(), 10)
 
     listing = "its files are listed"
     checks.check(listing, lambda: listed("cube.gcode"), timeout=5)
@@ -286,7 +290,7 @@ def test_fdm_monster_drives_a_hyrel_printer_as_a_klipper_printer(
     with server.client() as http:
         upload = http.post("/server/files/upload", files={"file": ("cube.gcode", SHORT)})
         assert upload.status_code == 201, upload.text
-    checks = drive(manager, server.url)
+    checks = drive(manager, server.url, lambda: executed(fake.log_path))
     fake.request("status")
     ran = executed(fake.log_path)
     print("passed:", checks.passed, "\nfailed:", checks.failed)
@@ -306,7 +310,12 @@ def test_fdm_monster_drives_real_moonraker_the_reference(
 ) -> None:
     upload = httpx.post(f"{reference}/server/files/upload", files={"file": ("cube.gcode", SHORT)})
     assert upload.status_code == 201, upload.text
-    checks = drive(manager, reference)
+
+    def ran() -> list[str]:
+        store = httpx.get(f"{reference}/server/gcode_store").json()["result"]["gcode_store"]
+        return [str(line["message"]) for line in store if line["type"] == "command"]
+
+    checks = drive(manager, reference, ran)
     print("passed:", checks.passed, "\nfailed:", checks.failed)
     jobs = httpx.get(f"{reference}/server/history/list").json()["result"]["jobs"]
     assert [job["status"] for job in jobs][:1] == ["completed"]
