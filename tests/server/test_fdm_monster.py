@@ -1,6 +1,6 @@
 """FDM Monster, a farm manager, for real: version 2.1.1 from the npm registry, run headless
 with Node, drives a printer of its Klipper type (Moonraker) through its own REST API as its
-web page does: test the connection, add the printer, see it online with its temperatures,
+web page does: test the connection, add the printer, see it online with its temperatures, home it,
 list and upload files, print, pause, resume, cancel, and print a file to its end. Once
 against hyrel-server with the fake controller (the fake's log says what ran), once against
 real Moonraker 0.11.0 on the fake Klippy (the reference).
