@@ -117,8 +117,9 @@ def reference(tmp_path: Path) -> Iterator[str]:
     (data / "config" / "moonraker.conf").write_text(
         f"[server]\nhost: 127.0.0.1\nport: {port}\nklippy_uds_address: {socket_path}\n\n"
         "[machine]\nprovider: none\nvalidate_service: False\n\n"
-        "[authorization]\ntrusted_clients:\n  127.0.0.0/8\n\n[history]\n\n[job_queue]\n\n"
-        "[octoprint_compat]\n"
+        "[authorization]\ntrusted_clients:\n  127.0.0.0/8\n\n[history]\n\n[job_queue]\n"
+        # OctoPrint's /api/version, which FDM Monster asks first (test_fdm_monster.py)
+        "\n[octoprint_compat]\n"
     )
     log = (tmp_path / "moonraker.log").open("w")
     klippy = subprocess.Popen(

@@ -1,10 +1,12 @@
 """A small fake Klippy for a real Moonraker to talk to (the reference test): Klippy's API
 server on a unix socket, JSON messages each ended by 0x03, answering what Moonraker asks as
-it starts (info, list_endpoints, the objects, G-code help, subscriptions) with an idle
+it starts (info, list_endpoints, the objects, G-code help, subscriptions) with a
 Klipper printer's status, and Klipper's G-code responses and errors to a few calls
-(:func:`output`).
+(:func:`output`). A print (``SDCARD_PRINT_FILE``) runs for ``PRINT_SECONDS`` of printing
+time, pauses, resumes and is cancelled as Klipper's ``print_stats`` says it, and each change
+is pushed to Moonraker's subscription as Klippy pushes it (``process_status_update``).
 
-    python tests/support/fake_klippy.py SOCKET_PATH
+    python tests/support/fake_klippy.py SOCKET_PATH GCODES_FOLDER
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import asyncio
 import json
 import os
 import re
+import shlex
 import sys
 import time
 from typing import Any
@@ -33,6 +36,7 @@ ENDPOINTS = [
     "register_remote_method",
 ]
 ZEROS = [0.0, 0.0, 0.0, 0.0]
+PRINT_SECONDS = 4.0  # a print's printing time, pauses left out
 # An idle Klipper printer's objects (Klipper's status reference).
 STATUS: dict[str, dict[str, Any]] = {
     "webhooks": {"state": "ready", "state_message": "Printer is ready"},
@@ -127,6 +131,19 @@ def answer(method: str, params: dict[str, Any], gcodes: str) -> Any:
             if name in status
         }
         return {"eventtime": time.monotonic(), "status": found}
+    if method == "gcode/script":
+        script = str(params.get("script", ""))
+        for line in script.splitlines():
+            command = line.strip().split(" ", 1)[0].upper()
+            if command == "SDCARD_PRINT_FILE":
+                found = re.search(r"FILENAME=(.*)", line)
+                PRINT.start(shlex.split(found.group(1))[0] if found else "")
+            elif command in ("PAUSE", "RESUME", "CANCEL_PRINT"):
+                PRINT.button(command)
+        return {}
+    if method.startswith("pause_resume/"):
+        PRINT.button({"pause": "PAUSE", "resume": "RESUME"}.get(method[13:], "CANCEL_PRINT"))
+        return {}
     if method == "gcode/help":
         return {"G28": "Home", "M104": "Set the extruder's temperature"}
     return {}
@@ -159,6 +176,62 @@ def output(method: str, params: dict[str, Any]) -> tuple[list[str], str | None]:
 EXTENDED = {"PAUSE", "RESUME", "CANCEL_PRINT", "SDCARD_PRINT_FILE", "SDCARD_RESET_FILE"}
 
 
+class Print:
+    """The one print: its state in ``STATUS``, each change sent to the subscribers."""
+
+    def __init__(self) -> None:
+        self.subscribers: list[tuple[asyncio.StreamWriter, str]] = []
+        self.printed = 0.0  # seconds printed
+        self.since: float | None = None  # printing since (monotonic), None unless printing
+
+    def start(self, filename: str) -> None:
+        if STATUS["print_stats"]["state"] in ("printing", "paused"):
+            return
+        self.printed, self.since = 0.0, time.monotonic()
+        self.change(filename, "printing", active=True)
+
+    def button(self, command: str) -> None:
+        state = STATUS["print_stats"]["state"]
+        if command == "PAUSE" and state == "printing":
+            self.tick()
+            self.since = None
+            self.change(STATUS["print_stats"]["filename"], "paused", active=False)
+        elif command == "RESUME" and state == "paused":
+            self.since = time.monotonic()
+            self.change(STATUS["print_stats"]["filename"], "printing", active=True)
+        elif command == "CANCEL_PRINT" and state in ("printing", "paused"):
+            self.since = None
+            self.change(STATUS["print_stats"]["filename"], "cancelled", active=False)
+
+    def tick(self) -> None:
+        """Count the time printed; the print completes after ``PRINT_SECONDS`` of it."""
+        if self.since is None:
+            return
+        now = time.monotonic()
+        self.printed, self.since = self.printed + now - self.since, now
+        if self.printed >= PRINT_SECONDS:
+            self.since = None
+            self.change(STATUS["print_stats"]["filename"], "complete", active=False)
+
+    def change(self, filename: str, state: str, *, active: bool) -> None:
+        progress = min(self.printed / PRINT_SECONDS, 1.0)
+        diff = {
+            "print_stats": {"filename": filename, "state": state, "print_duration": self.printed},
+            "virtual_sdcard": {"is_active": active, "progress": progress},
+            "display_status": {"progress": progress},
+            "pause_resume": {"is_paused": state == "paused"},
+            "idle_timeout": {"state": "Printing" if active else "Ready"},
+        }
+        for name, fields in diff.items():
+            STATUS[name].update(fields)
+        for writer, method in self.subscribers:
+            push = {"method": method, "params": {"eventtime": time.monotonic(), "status": diff}}
+            writer.write(json.dumps(push).encode() + b"\x03")
+
+
+PRINT = Print()
+
+
 def configfile(gcodes: str) -> dict[str, Any]:
     sections = {
         "printer": {"kinematics": "cartesian"},
@@ -186,6 +259,9 @@ async def main(path: str, gcodes: str) -> None:
                 method, params = request.get("method", ""), request.get("params", {})
                 if method == "gcode/subscribe_output":
                     template = params.get("response_template", {})
+                pushed = params.get("response_template", {})
+                if method == "objects/subscribe" and "method" in pushed:
+                    PRINT.subscribers.append((writer, pushed["method"]))
                 said, error = output(method, params)
                 for response in said if template is not None else ():
                     message = {**template, "params": {"response": response}}
@@ -200,10 +276,17 @@ async def main(path: str, gcodes: str) -> None:
         except (asyncio.IncompleteReadError, ConnectionError):
             pass
 
+    async def clock() -> None:
+        while True:
+            await asyncio.sleep(0.1)
+            PRINT.tick()
+
     server = await asyncio.start_unix_server(serve, path)
     print("ready", flush=True)
+    ticking = asyncio.create_task(clock())
     async with server:
         await server.serve_forever()
+    ticking.cancel()
 
 
 if __name__ == "__main__":
