@@ -16,6 +16,7 @@ from moonraker_api import MoonrakerClient
 
 from repetrel_host.fakes.fake_controller import BuiltInFake
 from tests.server.test_moonraker import Heard, connected, klipperctl, until
+from tests.server.test_octoprint_socket import Listener, passive_login, socket_url
 from tests.support.helpers import MARLIN_SAFE_STOP, executed
 from tests.support.paths import DATA
 from tests.support.server import KEY, Server, gcode, wait_for
@@ -196,3 +197,82 @@ def test_a_websocket_is_told_of_files_added_and_removed(
         ("create_file", "n.gcode"),
         ("delete_file", "n.gcode"),
     ]
+
+
+def test_a_move_from_either_face_is_one_move_with_where_it_was(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
+) -> None:
+    """Moonraker's move and OctoPrint's, of a file and a folder: a Moonraker websocket hears
+    one ``move_file`` (``move_dir``) with its ``source_item``, no delete after it (Mainsail
+    reads ``source_item.path``); a copy is ``create_file``. OctoPrint's socket hears
+    OctoPrint's three events of a move."""
+    server = servers({"bench": bench().port})
+    server.wait_ready("bench")
+    heard = Heard()
+    octoprint = Listener(socket_url(server))
+    auth = passive_login(server)
+
+    def changes() -> list[tuple[str, str, str | None]]:
+        return [
+            (d[0]["action"], d[0]["item"]["path"], d[0].get("source_item", {}).get("path"))
+            for m, d in heard.notifications
+            if m == "notify_filelist_changed"
+        ]
+
+    async def run() -> None:
+        async with (
+            connected(MoonrakerClient(heard, "127.0.0.1", server.port, api_key=KEY)),
+            httpx.AsyncClient(base_url=server.url, headers={"X-Api-Key": KEY}) as http,
+        ):
+            sent = await http.post("/v1/files", files={"file": ("a.gcode", gcode(20))})
+            assert sent.status_code == 201
+            moved = await http.post(
+                "/server/files/move", json={"source": "gcodes/a.gcode", "dest": "gcodes/b.gcode"}
+            )
+            assert moved.json()["result"]["source_item"] == {"path": "a.gcode", "root": "gcodes"}
+            octo = {"command": "move", "destination": "c.gcode"}
+            assert (await http.post("/api/files/local/b.gcode", json=octo)).status_code == 201
+            await http.post("/server/files/directory", json={"path": "gcodes/box"})
+            box = {"source": "gcodes/box", "dest": "gcodes/crate"}
+            assert (await http.post("/server/files/move", json=box)).status_code == 200
+            copy = {"source": "gcodes/c.gcode", "dest": "gcodes/crate/d.gcode"}
+            assert (await http.post("/server/files/copy", json=copy)).status_code == 200
+            await until(lambda: len(changes()) >= 6, "six file notifications")
+            await asyncio.sleep(0.3)  # nothing more comes
+
+    try:
+        octoprint.wait(lambda: octoprint.messages, "OctoPrint's connected message")
+        octoprint.send({"auth": auth})
+        octoprint.wait(lambda: octoprint.of("current"), "OctoPrint's socket let in")
+        asyncio.run(run())
+
+        def files_told() -> list[str]:
+            return [e for e in octoprint.events() if e.endswith(("Added", "Removed", "Moved"))]
+
+        octoprint.wait(lambda: len(files_told()) >= 12, "OctoPrint's file events")
+        events = files_told()
+        moves = [
+            (e["payload"]["source_path"], e["payload"]["destination_path"])
+            for e in octoprint.of("event")
+            if e["type"] == "FileMoved"
+        ]
+    finally:
+        octoprint.close()
+    assert changes() == [
+        ("create_file", "a.gcode", None),
+        ("move_file", "b.gcode", "a.gcode"),
+        ("move_file", "c.gcode", "b.gcode"),
+        ("create_dir", "box", None),
+        ("move_dir", "crate", "box"),
+        ("create_file", "crate/d.gcode", None),
+    ]
+    # OctoPrint's filemanager tells a move as removed, added and moved.
+    move = ["Removed", "Added", "Moved"]
+    assert events == [
+        "FileAdded",
+        *(f"File{e}" for e in move * 2),
+        "FolderAdded",
+        *(f"Folder{e}" for e in move),
+        "FileAdded",
+    ]
+    assert moves == [("a.gcode", "b.gcode"), ("b.gcode", "c.gcode")]

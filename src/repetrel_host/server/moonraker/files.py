@@ -48,13 +48,14 @@ def _path(server: PrintServer, given: str, root_first: bool = True) -> tuple[Pat
 
 
 def _item(server: PrintServer, path: Path) -> dict[str, Any]:
-    stat = path.stat()
-    return {
-        "path": path.relative_to(server.files).as_posix(),
-        "modified": stat.st_mtime,
-        "size": stat.st_size,
-        "permissions": "rw",
-    }
+    """A file's or folder's item: one that is gone has no time, size or permissions, as
+    Moonraker tells a deleted one."""
+    where = path.relative_to(server.files).as_posix()
+    try:
+        stat = path.stat()
+    except OSError:
+        return {"path": where, "modified": 0, "size": 0, "permissions": ""}
+    return {"path": where, "modified": stat.st_mtime, "size": stat.st_size, "permissions": "rw"}
 
 
 def _gcode(path: Path) -> bool:
@@ -261,13 +262,14 @@ def _folder_item(server: PrintServer, path: Path) -> dict[str, Any]:
 
 async def _move_or_copy(call: Call, move: bool) -> dict[str, Any]:
     server = call.server
-    _, source = _path(server, call.string("source"))
+    from_path, source = _path(server, call.string("source"))
     _, dest = _path(server, call.string("dest"))
     target = await asyncio.to_thread(folders.copy_or_move, server, source, dest, move)
     what = "dir" if target.is_dir() else "file"
-    uploads.file_changed(server, target, "added", "move" if move else "copy", target.is_dir())
     if move:
-        uploads.file_changed(server, server.files / source, "removed", "move", target.is_dir())
+        uploads.file_moved(server, from_path, target, target.is_dir())
+    else:
+        uploads.file_changed(server, target, "added", "copy", target.is_dir())
     item = (
         {**_item(server, target), "root": ROOT} if what == "file" else _folder_item(server, target)
     )
@@ -319,16 +321,18 @@ def tell_file_changes(face: MoonrakerFace) -> None:
     """``notify_filelist_changed`` for each file event of the server, to every websocket."""
 
     def heard(event: ServerEvent) -> None:
-        if not isinstance(event, FileChanged) or event.what not in ("added", "removed"):
+        if not isinstance(event, FileChanged):
             return
         kind = "dir" if event.folder else "file"
-        action = f"{'create' if event.what == 'added' else 'delete'}_{kind}"
-        if event.operation == "move" and event.what == "added":
-            action = f"move_{kind}"
-        path = face.server.files / event.path
-        item: dict[str, Any] = {"path": event.path, "root": ROOT}
-        if path.is_file():
-            item = {**_item(face.server, path), "root": ROOT}
-        face.notify(None, "notify_filelist_changed", [{"action": action, "item": item}])
+        verb = {"added": "create", "removed": "delete", "moved": "move"}.get(event.what)
+        if verb is None:  # an analysis made: Moonraker tells a file once, when it is parsed
+            return
+        told: dict[str, Any] = {
+            "action": f"{verb}_{kind}",
+            "item": {**_item(face.server, face.server.files / event.path), "root": ROOT},
+        }
+        if event.source is not None:  # a move: where it was (file_manager's source_item)
+            told["source_item"] = {"path": event.source, "root": ROOT}
+        face.notify(None, "notify_filelist_changed", [told])
 
     face.listeners.append(heard)
