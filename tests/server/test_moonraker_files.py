@@ -276,3 +276,43 @@ def test_a_move_from_either_face_is_one_move_with_where_it_was(
         "FileAdded",
     ]
     assert moves == [("a.gcode", "b.gcode"), ("b.gcode", "c.gcode")]
+
+
+def test_print_true_while_a_job_runs_queues_the_upload(
+    slow: tuple[Server, BuiltInFake], tmp_path: Path
+) -> None:
+    """Moonraker's answer to ``print=true`` on a busy printer: 201, not started, queued (as
+    Moonraker with ``queue_gcode_uploads``). The file being printed is not replaced by an
+    upload of its name: that upload is stored beside it, and the item says where."""
+    server, _ = slow
+    with server.client() as http:
+        first = http.post(
+            "/server/files/upload",
+            files={"file": ("long.gcode", gcode(20000))},
+            data={"print": "true"},
+        )
+        assert first.status_code == 201 and first.json()["print_started"] is True
+        wait_for(lambda: print_state(server) == "printing", what="printing")
+        printing = (server.data_dir / "files" / "long.gcode").read_bytes()
+        answers = [
+            http.post(
+                "/server/files/upload", files={"file": (name, gcode(30))}, data={"print": "true"}
+            )
+            for name in ("next.gcode", "long.gcode")
+        ]
+        assert [a.status_code for a in answers] == [201, 201], [a.text for a in answers]
+        told = [
+            (a.json()["item"]["path"], a.json()["print_started"], a.json()["print_queued"])
+            for a in answers
+        ]
+        assert told == [("next.gcode", False, True), ("long-2.gcode", False, True)]
+        assert (server.data_dir / "files" / "long.gcode").read_bytes() == printing
+        queue = http.get("/server/job_queue/status").json()["result"]
+        assert [j["filename"] for j in queue["queued_jobs"]] == ["next.gcode", "long-2.gcode"]
+        # The job runs on: the one printing is the first upload still.
+        assert (
+            klipperctl(server, "--json", "printer", "query", "print_stats")["print_stats"][
+                "filename"
+            ]
+            == "long.gcode"
+        )

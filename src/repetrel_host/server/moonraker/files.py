@@ -20,7 +20,7 @@ from starlette.datastructures import UploadFile
 from repetrel_host.gcode.analysis import FileSummary
 from repetrel_host.gcode.thumbnails import Thumbnail, ThumbnailError
 from repetrel_host.gcode.thumbnails import read as read_thumbnail
-from repetrel_host.server import folders, uploads
+from repetrel_host.server import folders, jobs, uploads
 from repetrel_host.server.events import FileChanged, ServerEvent
 from repetrel_host.server.moonraker.face import MoonrakerFace
 from repetrel_host.server.moonraker.printer import start_print
@@ -301,17 +301,26 @@ async def upload(call: Call) -> Response:
     if root != ROOT:
         raise RpcError(400, f"Invalid root: {root!r}: this server has 'gcodes' only")
     folder = call.string("path", "")
-    stored = await uploads.save_upload(call.server, call.service.name, file, folder)
+    service = call.service
+    stored = await uploads.save_upload(call.server, service.name, file, folder)
     location = stored.path.relative_to(call.server.files).as_posix()
-    started = False
+    started = queued = False
     if call.flag("print"):
-        await start_print(call, location)
-        started = True
+        if service.running is not None or service.state in ("printing", "paused"):
+            # Busy: queued to run after the job (Moonraker with queue_gcode_uploads; the
+            # OctoPrint face queues it too). 201 still: the upload is done, and a client's
+            # retry would store it again. A file the job prints is never replaced: the
+            # upload got another name (NAME-2), the item tells it.
+            jobs.queue(call.server, service.name, stored.path, stored.commands, call.user)
+            queued = True
+        else:
+            await start_print(call, location)
+            started = True
     answer = {
         "item": {**_item(call.server, stored.path), "root": ROOT},
-        "action": "create_file",
+        "action": "create_file",  # over a file of the same name too, as Moonraker says
         "print_started": started,
-        "print_queued": False,
+        "print_queued": queued,
     }
     where = f"{call.base_url}server/files/{ROOT}/{quote(location)}"
     return JSONResponse(answer, 201, headers={"Location": where})
