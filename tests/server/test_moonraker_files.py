@@ -5,7 +5,6 @@ back from the server's own API and the fake's log."""
 from __future__ import annotations
 
 import asyncio
-import shutil
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -18,6 +17,7 @@ from repetrel_host.fakes.fake_controller import BuiltInFake
 from tests.server.test_moonraker import Heard, connected, klipperctl, until
 from tests.server.test_octoprint_socket import Listener, passive_login, socket_url
 from tests.support.helpers import MARLIN_SAFE_STOP, executed
+from tests.support.images import block, encoded, picture
 from tests.support.paths import DATA
 from tests.support.server import KEY, Server, gcode, wait_for
 
@@ -46,7 +46,8 @@ def test_a_file_uploaded_listed_described_and_downloaded(
 ) -> None:
     server, _ = slow
     cone = tmp_path / "cone.gcode"
-    shutil.copy(DATA / "cone-prusaslicer.gcode", cone)
+    preview = encoded(picture(32, 24), "PNG")
+    cone.write_text(block(preview, 32, 24) + (DATA / "cone-prusaslicer.gcode").read_text())
     klipperctl(server, "files", "upload", str(cone), "--path", "parts", "--no-progress")
     listed = klipperctl(server, "--json", "files", "list")
     assert [(f["path"], f["size"]) for f in listed] == [("parts/cone.gcode", cone.stat().st_size)]
@@ -65,6 +66,18 @@ def test_a_file_uploaded_listed_described_and_downloaded(
         assert other_root.status_code == 400
         directory = http.get("/server/files/directory", params={"path": "gcodes/parts"}).json()
         assert [f["filename"] for f in directory["result"]["files"]] == ["cone.gcode"]
+        assert "slicer" not in directory["result"]["files"][0]
+        # extended: each file's metadata in the listing (Fluidd's and Mobileraker's list).
+        args = {"path": "gcodes/parts", "extended": "true"}
+        extended = http.get("/server/files/directory", params=args).json()["result"]["files"]
+        assert len(extended) == 1 and extended[0]["filename"] == "cone.gcode"
+        assert {k: extended[0][k] for k in info if k not in ("filename", "thumbnails")} == {
+            k: v for k, v in info.items() if k not in ("filename", "thumbnails")
+        }
+        (thumbnail,) = extended[0]["thumbnails"]
+        assert thumbnail["relative_path"] == ".thumbs/cone-32x24.png"
+        shown = http.get(f"/server/files/gcodes/parts/{thumbnail['relative_path']}")
+        assert shown.status_code == 200 and shown.content == preview
         gone = http.delete("/server/files/gcodes/parts/cone.gcode")
         assert gone.json()["result"]["action"] == "delete_file"
         assert http.get("/v1/files").json() == []

@@ -189,6 +189,7 @@ async def get_directory(call: Call) -> dict[str, Any]:
     path, location = _path(server, call.string("path", ROOT))
     if not path.is_dir():
         raise RpcError(404, f"Directory does not exist ({location})")
+    extended = call.flag("extended")
 
     def listing() -> dict[str, Any]:
         dirs, files = [], []
@@ -207,14 +208,15 @@ async def get_directory(call: Call) -> dict[str, Any]:
                     }
                 )
             elif _gcode(child):
-                files.append(
-                    {
-                        "filename": child.name,
-                        "modified": stat.st_mtime,
-                        "size": stat.st_size,
-                        "permissions": "rw",
-                    }
-                )
+                found = {
+                    "filename": child.name,
+                    "modified": stat.st_mtime,
+                    "size": stat.st_size,
+                    "permissions": "rw",
+                }
+                if extended:
+                    found = {**_listed_metadata(server, child), **found}
+                files.append(found)
         usage = shutil.disk_usage(server.files)
         return {
             "dirs": dirs,
@@ -224,6 +226,15 @@ async def get_directory(call: Call) -> dict[str, Any]:
         }
 
     return await asyncio.to_thread(listing)
+
+
+def _listed_metadata(server: PrintServer, path: Path) -> dict[str, Any]:
+    """A listed file's metadata (``extended=true``), as ``server.files.metadata`` gives it
+    but for its ``filename``, which stays the listing's; from the analysis kept on disk,
+    one not made yet is made in the background (Moonraker lists a file it has not parsed
+    without metadata too)."""
+    location = path.relative_to(server.files).as_posix()
+    return file_metadata(path, location, server.analyses.summary(path))
 
 
 @method("/server/files/directory", "POST", name="server.files.post_directory")
