@@ -6,6 +6,7 @@ saying why, where it cannot be installed."""
 
 from __future__ import annotations
 
+import asyncio
 import json
 import os
 import signal
@@ -18,8 +19,10 @@ from typing import Any
 import httpx
 import pytest
 import websocket
+from moonraker_api import MoonrakerClient
 
 from repetrel_host.fakes.fake_controller import BuiltInFake
+from tests.server.test_moonraker import Heard, connected, until
 from tests.support.paths import TESTS
 from tests.support.server import KEY, Server, free_port, gcode, wait_for
 
@@ -393,4 +396,89 @@ def test_klippers_commands_answer_and_respond_as_klipper(reference: str, ours: S
             told.append((answer.status_code, said, responses(url, key)[before:]))
         if told[1] != told[0]:
             found.append(f"{what}: ours {told[1]} where Moonraker {told[0]}")
+
+
+def file_changes(url: str, key: str | None) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """An upload, the same name uploaded over it, a move, a copy and a delete, with a
+    websocket listening: its ``notify_filelist_changed`` (but of hidden folders: Moonraker
+    makes ``.thumbs``), and the second upload's answer."""
+    heard = Heard()
+    headers = {"X-Api-Key": key} if key else {}
+
+    def changes() -> list[dict[str, Any]]:
+        told = [d[0] for m, d in heard.notifications if m == "notify_filelist_changed"]
+        return [c for c in told if not c["item"]["path"].startswith(".")]
+
+    async def run() -> dict[str, Any]:
+        port = int(url.rsplit(":", 1)[1])
+        async with (
+            connected(MoonrakerClient(heard, "127.0.0.1", port, api_key=key)),
+            httpx.AsyncClient(base_url=url, headers=headers, timeout=30) as http,
+        ):
+
+            async def upload(text: str, told: int) -> dict[str, Any]:
+                sent = await http.post("/server/files/upload", files={"file": ("a.gcode", text)})
+                assert sent.status_code == 201, sent.text
+                await until(lambda: len(changes()) >= told, f"{told} file notifications")
+                answer: dict[str, Any] = sent.json()
+                return answer
+
+            await upload(gcode(50), 1)
+            again = await upload(gcode(60), 2)
+            for verb, path, args in (
+                (
+                    "POST",
+                    "/server/files/move",
+                    {"source": "gcodes/a.gcode", "dest": "gcodes/b.gcode"},
+                ),
+                (
+                    "POST",
+                    "/server/files/copy",
+                    {"source": "gcodes/b.gcode", "dest": "gcodes/c.gcode"},
+                ),
+                ("DELETE", "/server/files/gcodes/c.gcode", {}),
+            ):
+                done = await http.request(verb, path, params=args)
+                assert done.status_code == 200, done.text
+            await until(lambda: len(changes()) >= 5, "5 file notifications")
+            await asyncio.sleep(1.5)  # anything more Moonraker tells, after its delay
+            return again
+
+    again = asyncio.run(run())
+    return changes(), again
+
+
+def test_file_changes_are_told_as_moonraker_tells_them(reference: str, ours: Server) -> None:
+    """A move is one ``move_file`` with its ``source_item``, an upload over a file of the
+    same name is ``create_file``, and a listing with ``extended`` has each file's metadata."""
+    theirs, their_upload = file_changes(reference, None)
+    mine, my_upload = file_changes(ours.url, KEY)
+
+    def told(changes: list[dict[str, Any]]) -> list[tuple[str, str, str | None]]:
+        return [
+            (c["action"], c["item"]["path"], c.get("source_item", {}).get("path")) for c in changes
+        ]
+
+    assert told(theirs) == [
+        ("create_file", "a.gcode", None),
+        ("create_file", "a.gcode", None),
+        ("move_file", "b.gcode", "a.gcode"),
+        ("create_file", "c.gcode", None),
+        ("delete_file", "c.gcode", None),
+    ]
+    assert told(mine) == told(theirs)
+    found = [
+        f"{m['action']}: {d}"
+        for m, t in zip(mine, theirs, strict=True)
+        for d in differences(shape(m), shape(t))
+    ]
+    assert my_upload["action"] == their_upload["action"] == "create_file"
+    found += [f"upload: {d}" for d in differences(shape(my_upload), shape(their_upload))]
+    args = {"path": "gcodes", "extended": "true"}
+    their_list = ask(reference, "GET", "/server/files/directory", args, None).json()["result"]
+    my_list = ask(ours.url, "GET", "/server/files/directory", args, KEY).json()["result"]
+    assert [f["filename"] for f in my_list["files"]] == ["b.gcode"]
+    # Moonraker's metadata of the file: its parsed keys, in the listing.
+    assert {"uuid", "gcode_end_byte"} <= set(their_list["files"][0])
+    found += [f"extended: {d}" for d in differences(shape(my_list), shape(their_list))]
     assert not found, "\n".join(found)

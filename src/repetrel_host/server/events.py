@@ -160,8 +160,9 @@ class SnapshotTaken:
 @dataclass(frozen=True)
 class FileChanged:
     """An upload (or a folder) was ``added`` or ``removed`` by an ``operation`` (add, copy,
-    move, remove), or its analysis was made in the background (``analysed``, by
-    ``analyse``); ``path`` is below the uploads. The server's, for every printer."""
+    remove), ``moved`` (by move: from ``source`` to ``path``, one event, as Moonraker tells
+    a move), or its analysis was made in the background (``analysed``, by ``analyse``);
+    ``path`` and ``source`` are below the uploads. The server's, for every printer."""
 
     type: ClassVar[str] = "file"
     printer: ClassVar[None] = None
@@ -170,9 +171,10 @@ class FileChanged:
     name: str
     folder: bool
     operation: str
+    source: str | None = None
 
     def as_json(self) -> dict[str, Any]:
-        return {
+        found = {
             "type": self.type,
             "what": self.what,
             "path": self.path,
@@ -180,6 +182,9 @@ class FileChanged:
             "folder": self.folder,
             "operation": self.operation,
         }
+        if self.source is not None:
+            found["source"] = self.source
+        return found
 
 
 @dataclass(frozen=True)

@@ -286,6 +286,14 @@ def file_changed(
     server.events.publish(FileChanged(what, where, path.name, folder, operation))
 
 
+def file_moved(server: PrintServer, source: Path, target: Path, folder: bool = False) -> None:
+    """An upload (or a folder: ``folder``) moved from ``source`` to ``target``: one event
+    with both places, so each face tells the move its own way (Moonraker's ``move_file``
+    with its ``source_item``, OctoPrint's FileRemoved, FileAdded and FileMoved)."""
+    where, came_from = (p.relative_to(server.files).as_posix() for p in (target, source))
+    server.events.publish(FileChanged("moved", where, target.name, folder, "move", came_from))
+
+
 def refuse_errors(name: str, findings: list[str]) -> None:
     """400 with the job lint's ``findings`` when they hold errors: file ``name`` is refused."""
     errors = [f for f in findings if f.startswith("error")]

@@ -20,7 +20,7 @@ from starlette.datastructures import UploadFile
 from repetrel_host.gcode.analysis import FileSummary
 from repetrel_host.gcode.thumbnails import Thumbnail, ThumbnailError
 from repetrel_host.gcode.thumbnails import read as read_thumbnail
-from repetrel_host.server import folders, uploads
+from repetrel_host.server import folders, jobs, uploads
 from repetrel_host.server.events import FileChanged, ServerEvent
 from repetrel_host.server.moonraker.face import MoonrakerFace
 from repetrel_host.server.moonraker.printer import start_print
@@ -48,13 +48,14 @@ def _path(server: PrintServer, given: str, root_first: bool = True) -> tuple[Pat
 
 
 def _item(server: PrintServer, path: Path) -> dict[str, Any]:
-    stat = path.stat()
-    return {
-        "path": path.relative_to(server.files).as_posix(),
-        "modified": stat.st_mtime,
-        "size": stat.st_size,
-        "permissions": "rw",
-    }
+    """A file's or folder's item: one that is gone has no time, size or permissions, as
+    Moonraker tells a deleted one."""
+    where = path.relative_to(server.files).as_posix()
+    try:
+        stat = path.stat()
+    except OSError:
+        return {"path": where, "modified": 0, "size": 0, "permissions": ""}
+    return {"path": where, "modified": stat.st_mtime, "size": stat.st_size, "permissions": "rw"}
 
 
 def _gcode(path: Path) -> bool:
@@ -188,6 +189,7 @@ async def get_directory(call: Call) -> dict[str, Any]:
     path, location = _path(server, call.string("path", ROOT))
     if not path.is_dir():
         raise RpcError(404, f"Directory does not exist ({location})")
+    extended = call.flag("extended")
 
     def listing() -> dict[str, Any]:
         dirs, files = [], []
@@ -206,14 +208,15 @@ async def get_directory(call: Call) -> dict[str, Any]:
                     }
                 )
             elif _gcode(child):
-                files.append(
-                    {
-                        "filename": child.name,
-                        "modified": stat.st_mtime,
-                        "size": stat.st_size,
-                        "permissions": "rw",
-                    }
-                )
+                found = {
+                    "filename": child.name,
+                    "modified": stat.st_mtime,
+                    "size": stat.st_size,
+                    "permissions": "rw",
+                }
+                if extended:
+                    found = {**_listed_metadata(server, child), **found}
+                files.append(found)
         usage = shutil.disk_usage(server.files)
         return {
             "dirs": dirs,
@@ -223,6 +226,15 @@ async def get_directory(call: Call) -> dict[str, Any]:
         }
 
     return await asyncio.to_thread(listing)
+
+
+def _listed_metadata(server: PrintServer, path: Path) -> dict[str, Any]:
+    """A listed file's metadata (``extended=true``), as ``server.files.metadata`` gives it
+    but for its ``filename``, which stays the listing's; from the analysis kept on disk,
+    one not made yet is made in the background (Moonraker lists a file it has not parsed
+    without metadata too)."""
+    location = path.relative_to(server.files).as_posix()
+    return file_metadata(path, location, server.analyses.summary(path))
 
 
 @method("/server/files/directory", "POST", name="server.files.post_directory")
@@ -261,13 +273,14 @@ def _folder_item(server: PrintServer, path: Path) -> dict[str, Any]:
 
 async def _move_or_copy(call: Call, move: bool) -> dict[str, Any]:
     server = call.server
-    _, source = _path(server, call.string("source"))
+    from_path, source = _path(server, call.string("source"))
     _, dest = _path(server, call.string("dest"))
     target = await asyncio.to_thread(folders.copy_or_move, server, source, dest, move)
     what = "dir" if target.is_dir() else "file"
-    uploads.file_changed(server, target, "added", "move" if move else "copy", target.is_dir())
     if move:
-        uploads.file_changed(server, server.files / source, "removed", "move", target.is_dir())
+        uploads.file_moved(server, from_path, target, target.is_dir())
+    else:
+        uploads.file_changed(server, target, "added", "copy", target.is_dir())
     item = (
         {**_item(server, target), "root": ROOT} if what == "file" else _folder_item(server, target)
     )
@@ -299,17 +312,26 @@ async def upload(call: Call) -> Response:
     if root != ROOT:
         raise RpcError(400, f"Invalid root: {root!r}: this server has 'gcodes' only")
     folder = call.string("path", "")
-    stored = await uploads.save_upload(call.server, call.service.name, file, folder)
+    service = call.service
+    stored = await uploads.save_upload(call.server, service.name, file, folder)
     location = stored.path.relative_to(call.server.files).as_posix()
-    started = False
+    started = queued = False
     if call.flag("print"):
-        await start_print(call, location, "upload with print=true")
-        started = True
+        if service.running is not None or service.state in ("printing", "paused"):
+            # Busy: queued to run after the job (Moonraker with queue_gcode_uploads; the
+            # OctoPrint face queues it too). 201 still: the upload is done, and a client's
+            # retry would store it again. A file the job prints is never replaced: the
+            # upload got another name (NAME-2), the item tells it.
+            jobs.queue(call.server, service.name, stored.path, stored.commands, call.user)
+            queued = True
+        else:
+            await start_print(call, location, "upload with print=true")
+            started = True
     answer = {
         "item": {**_item(call.server, stored.path), "root": ROOT},
-        "action": "create_file",
+        "action": "create_file",  # over a file of the same name too, as Moonraker says
         "print_started": started,
-        "print_queued": False,
+        "print_queued": queued,
     }
     where = f"{call.base_url}server/files/{ROOT}/{quote(location)}"
     return JSONResponse(answer, 201, headers={"Location": where})
@@ -319,16 +341,18 @@ def tell_file_changes(face: MoonrakerFace) -> None:
     """``notify_filelist_changed`` for each file event of the server, to every websocket."""
 
     def heard(event: ServerEvent) -> None:
-        if not isinstance(event, FileChanged) or event.what not in ("added", "removed"):
+        if not isinstance(event, FileChanged):
             return
         kind = "dir" if event.folder else "file"
-        action = f"{'create' if event.what == 'added' else 'delete'}_{kind}"
-        if event.operation == "move" and event.what == "added":
-            action = f"move_{kind}"
-        path = face.server.files / event.path
-        item: dict[str, Any] = {"path": event.path, "root": ROOT}
-        if path.is_file():
-            item = {**_item(face.server, path), "root": ROOT}
-        face.notify(None, "notify_filelist_changed", [{"action": action, "item": item}])
+        verb = {"added": "create", "removed": "delete", "moved": "move"}.get(event.what)
+        if verb is None:  # an analysis made: Moonraker tells a file once, when it is parsed
+            return
+        told: dict[str, Any] = {
+            "action": f"{verb}_{kind}",
+            "item": {**_item(face.server, face.server.files / event.path), "root": ROOT},
+        }
+        if event.source is not None:  # a move: where it was (file_manager's source_item)
+            told["source_item"] = {"path": event.source, "root": ROOT}
+        face.notify(None, "notify_filelist_changed", [told])
 
     face.listeners.append(heard)

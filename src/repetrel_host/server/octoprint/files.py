@@ -215,8 +215,9 @@ def router() -> APIRouter:
             folder = target.is_dir()
             if moving:
                 source = server.files / uploads.safe_folder(location)
-                uploads.file_changed(server, source, "removed", "move", folder)
-            uploads.file_changed(server, target, "added", body.command, folder)
+                uploads.file_moved(server, source, target, folder)
+            else:
+                uploads.file_changed(server, target, "added", "copy", folder)
             where = target.relative_to(server.files).as_posix()
             resource = resource_url(_base(request), where)
             refs = {"resource": resource}

@@ -499,16 +499,35 @@ class Feed:
                 self.event("PrintFailed", {**payload, "reason": "error", "error": record.error})
 
     def _file(self, event: FileChanged) -> None:
-        what = "Added" if event.what == "added" else "Removed"
         payload = {"storage": "local", "path": event.path, "name": event.name}
         if event.what == "analysed":  # its gcodeAnalysis is complete: OctoPrint's words
             self.event("MetadataAnalysisFinished", {**payload, "origin": "local"})
-        elif event.folder:
+        elif event.what == "moved" and event.source is not None:
+            # OctoPrint's move: removed, added and moved (its filemanager's move_file).
+            name = event.source.rsplit("/", 1)[-1]
+            self._added_or_removed(
+                "Removed", event, {"storage": "local", "path": event.source, "name": name}
+            )
+            self._added_or_removed("Added", event, payload)
+            moved = {
+                "storage": "local",
+                "source_path": event.source,
+                "source_name": name,
+                "destination_path": event.path,
+                "destination_name": event.name,
+            }
+            self.event("FolderMoved" if event.folder else "FileMoved", moved)
+        else:
+            what = "Added" if event.what == "added" else "Removed"
+            self._added_or_removed(what, event, payload)
+        self.event("UpdatedFiles", {"type": "printables"})
+
+    def _added_or_removed(self, what: str, event: FileChanged, payload: dict[str, Any]) -> None:
+        if event.folder:
             self.event(f"Folder{what}", payload)
         else:
             kind = ["machinecode", "gcode"]
             self.event(f"File{what}", {**payload, "type": kind, "operation": event.operation})
-        self.event("UpdatedFiles", {"type": "printables"})
 
     def _appkey(self, event: AppKeyEvent) -> None:
         """The appkeys plugin's messages: a request to decide, a decision made."""
