@@ -396,6 +396,7 @@ def test_klippers_commands_answer_and_respond_as_klipper(reference: str, ours: S
             told.append((answer.status_code, said, responses(url, key)[before:]))
         if told[1] != told[0]:
             found.append(f"{what}: ours {told[1]} where Moonraker {told[0]}")
+    assert not found, "\n".join(found)
 
 
 def file_changes(url: str, key: str | None) -> tuple[list[dict[str, Any]], dict[str, Any]]:
