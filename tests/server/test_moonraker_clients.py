@@ -278,6 +278,50 @@ def test_a_trusted_network_opens_moonrakers_octoprint_endpoints_and_no_other(
     assert not ran(fake, "M104 S243")
 
 
+def test_a_page_of_another_site_gets_nothing_through_a_trusted_network(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server], tmp_path: Path
+) -> None:
+    """A browser in the trusted network that opens another site's page: the page's form
+    or image address (the browser marks it ``Sec-Fetch-Site: cross-site``) gets 401 on
+    Moonraker's face and 403 on its OctoPrint paths, and no G-code reaches the controller;
+    the browser's own pages (same-origin, same-site), a page whose origin ``cors_domains``
+    lists, a program (no such header) and a key still get in."""
+    fake = bench()
+    config = tmp_path / "trusting.toml"
+    config.write_text(
+        'moonraker_trusted_clients = ["127.0.0.0/8"]\n'
+        'cors_domains = ["http://mainsail.lab.example"]\n'
+        f'[printers]\nbench = "{fake.port}"\n'
+    )
+    server = servers({}, "--config", str(config))
+    server.wait_ready("bench")
+    evil = {"Sec-Fetch-Site": "cross-site", "Origin": "http://evil.example"}
+    image = {"Sec-Fetch-Site": "cross-site"}  # an <img> sends no Origin
+    listed = {"Sec-Fetch-Site": "cross-site", "Origin": "http://mainsail.lab.example"}
+    form = {"script": "M104 S231"}
+    with httpx.Client(base_url=server.url, timeout=30) as browser:
+        refused = browser.post("/printer/gcode/script", data=form, headers=evil)
+        assert refused.status_code == 401, refused.text
+        assert refused.json()["error"]["message"] == "Unauthorized"
+        shown = browser.get("/printer/gcode/script?script=M104%20S232", headers=image)
+        assert shown.status_code == 401
+        command = {"commands": ["M104 S233"]}
+        assert browser.post("/api/printer/command", json=command, headers=evil).status_code == 403
+        # Let in: the browser's own pages, a listed origin, a program, a key.
+        for headers, line in (
+            ({"Sec-Fetch-Site": "same-origin"}, "M104 S161"),
+            ({"Sec-Fetch-Site": "same-site"}, "M104 S162"),
+            (listed, "M104 S163"),
+            ({}, "M104 S164"),
+            (evil | {"X-Api-Key": KEY}, "M104 S165"),
+        ):
+            answer = browser.post("/printer/gcode/script", json={"script": line}, headers=headers)
+            assert answer.status_code == 200, (headers, answer.text)
+    for line in ("M104 S161", "M104 S162", "M104 S163", "M104 S164", "M104 S165"):
+        wait_for(lambda line=line: ran(fake, line), what=line)
+    assert not any(ran(fake, f"M104 S{t}") for t in (231, 232, 233))
+
+
 # --- verbs -----------------------------------------------------------------------------
 
 

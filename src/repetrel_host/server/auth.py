@@ -38,6 +38,8 @@ _MOONRAKER_OCTOPRINT = re.compile(
     r"|printerprofiles)|POST (/printers/[^/]+)?/api/(login|printer/command|files/local"
     r"|files/moonraker/.+)"
 )
+# Set in a request's state when a browser says a page of another site sent it (origins.py).
+CROSS_SITE = "cross_site"
 # Moonraker's paths, at the root or a printer's: its face refuses in its own shape.
 _MOONRAKER = re.compile(r"(/printers/[^/]+)?(/(printer|server|machine|access)/.*|/websocket)")
 
@@ -108,11 +110,19 @@ def given_key(scope: Any) -> str:
 def trusted_octoprint(server: PrintServer, scope: Any) -> bool:
     """``scope`` asks one of Moonraker's OctoPrint-compatible endpoints from a Moonraker
     trusted network (``moonraker_trusted_clients``)."""
-    client = scope.get("client")
     asked = f"{scope.get('method', 'GET')} {scope['path']}"
-    return _MOONRAKER_OCTOPRINT.fullmatch(asked) is not None and server.access.trusts(
-        client[0] if client else None
-    )
+    return _MOONRAKER_OCTOPRINT.fullmatch(asked) is not None and trusted(server, scope)
+
+
+def trusted(server: PrintServer, scope: Any) -> bool:
+    """``scope`` comes from a trusted network (``moonraker_trusted_clients``), and not from
+    a page of another site that a browser there opened: such a page could send G-code with a
+    form or an image's address, and a trusted network asks for no key (origins.py marks it;
+    ``cors_domains`` lets a page in)."""
+    client = scope.get("client")
+    if scope.get("state", {}).get(CROSS_SITE):
+        return False
+    return server.access.trusts(client[0] if client else None)
 
 
 class RequestGuard:

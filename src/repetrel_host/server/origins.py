@@ -11,6 +11,10 @@
   when the settings list it (``cors_domains``, Moonraker's rules: ``*`` matches anything,
   e.g. ``http://*.lan``) or when its address is in a trusted network
   (``moonraker_trusted_clients``, as Moonraker lets it in). Else 403, before the upgrade.
+- For any request a browser marks as sent by a page of another site (``Sec-Fetch-Site:
+  cross-site``: a form, an image's address, a script), from an origin the settings do not
+  let in as above: a trusted network does not open the API to it, a key still does. A
+  trusted network asks for no key, and such a page needs none to send G-code otherwise.
 
 Model: Tornado's ``WebSocketHandler.check_origin`` (Moonraker's and OctoPrint's servers:
 the origin's host and port against the request's ``Host``) and Moonraker's ``check_cors``.
@@ -28,7 +32,7 @@ from urllib.parse import urlsplit
 
 from starlette.websockets import WebSocket
 
-from repetrel_host.server.auth import refusal
+from repetrel_host.server.auth import CROSS_SITE, refusal
 from repetrel_host.server.print_server import PrintServer
 
 _SHOWN = 100  # characters of a refused name or origin said back
@@ -120,16 +124,24 @@ class OriginGuard:
             await _refuse(scope, receive, send, 421, said)
             return
         origin = headers.get("origin", headers.get("sec-websocket-origin"))
-        if scope["type"] == "websocket" and origin is not None:
-            trusts = self.server.access.trusts
-            if not self.origins.may_open(origin, host or "", trusts):
-                origin = origin[:_SHOWN]
-                said = (
-                    f"a page from {origin} may not open this websocket "
-                    "(cors_domains lists the other origins that may)"
-                )
-                await _refuse(scope, receive, send, 403, said)
-                return
+        trusts = self.server.access.trusts
+        if headers.get("sec-fetch-site") == "cross-site" and not (
+            origin is not None and self.origins.may_open(origin, host or "", trusts)
+        ):
+            # A page of another site: a trusted network does not open the API to it.
+            scope["state"] = {**scope.get("state", {}), CROSS_SITE: True}
+        if (
+            scope["type"] == "websocket"
+            and origin is not None
+            and not self.origins.may_open(origin, host or "", trusts)
+        ):
+            origin = origin[:_SHOWN]
+            said = (
+                f"a page from {origin} may not open this websocket "
+                "(cors_domains lists the other origins that may)"
+            )
+            await _refuse(scope, receive, send, 403, said)
+            return
         await self.app(scope, receive, send)
 
 

@@ -21,7 +21,7 @@ from fastapi.responses import JSONResponse, Response
 from starlette.datastructures import Headers, UploadFile
 from starlette.exceptions import HTTPException
 
-from repetrel_host.server.auth import identify
+from repetrel_host.server.auth import identify, trusted
 from repetrel_host.server.events import PrinterState, ServerEvent
 from repetrel_host.server.json_input import JsonTooDeep, parse_json
 from repetrel_host.server.moonraker import rpc
@@ -77,8 +77,7 @@ def who(face: MoonrakerFace, scope: Any) -> str | None:
     user, _ = identify(face.server, scope, cookie=False)  # OctoPrint's ?apikey= too
     if user is not None:
         return user
-    client = scope.get("client")
-    if face.server.access.trusts(client[0] if client else None):
+    if trusted(face.server, scope):
         return None
     raise rpc.RpcError(401, rpc.UNAUTHORIZED.message)
 
