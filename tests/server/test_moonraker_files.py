@@ -128,6 +128,11 @@ def test_an_upload_answers_as_moonraker_and_print_true_starts_it(
     with server.client() as http:
         job = http.get("/server/history/job", params={"uid": history[0]["job_id"]}).json()
         assert job["result"]["job"]["status"] == "cancelled"
+        # Its file's metadata, as Mainsail's and Fluidd's history lists show it.
+        metadata = job["result"]["job"]["metadata"]
+        assert metadata["size"] == (server.data_dir / "files" / "long.gcode").stat().st_size
+        assert metadata["estimated_time"] > 0 and "job_id" not in metadata
+        assert history[0]["metadata"] == metadata
         assert http.get("/server/history/job", params={"uid": "FFFFFF"}).status_code == 404
 
 

@@ -7,12 +7,15 @@ from __future__ import annotations
 import asyncio
 import json
 import time
+from pathlib import Path
 from typing import Any
 
 from repetrel_host.server import jobs, uploads
 from repetrel_host.server.events import JobChanged, PrinterState, ServerEvent
 from repetrel_host.server.moonraker.face import MoonrakerFace
+from repetrel_host.server.moonraker.files import file_metadata
 from repetrel_host.server.moonraker.rpc import Call, RpcError, method
+from repetrel_host.server.print_server import PrintServer
 from repetrel_host.server.printers.service import PrinterService
 from repetrel_host.server.store import ENDED, JobRecord, JobState
 
@@ -46,17 +49,20 @@ def _filament(record: JobRecord) -> float:
     return round(sum(tool["length"] for tool in used.values()), 2)
 
 
-def history_job(service: PrinterService, record: JobRecord) -> dict[str, Any]:
-    """A job as Moonraker's history shows it."""
+def history_job(server: PrintServer, record: JobRecord) -> dict[str, Any]:
+    """A job as Moonraker's history shows it, with its file's metadata (Mainsail and Fluidd
+    show its thumbnail and estimate in their history lists); reads the file's kept analysis,
+    so not on the event loop but for a job's own notification."""
     end = record.ended
     duration = ((end or time.time()) - record.started) if record.started else 0.0
+    path = server.data_dir / record.file
     return {
         "job_id": job_uid(record),
-        "exists": (service.data_dir / record.file).is_file(),
+        "exists": path.is_file(),
         "end_time": end,
         "filament_used": _filament(record),
         "filename": record.location,
-        "metadata": {},
+        "metadata": _job_metadata(server, path, record.location),
         "print_duration": round(duration, 3),
         "status": _STATUS.get(record.state, "in_progress"),
         "start_time": record.started,
@@ -64,6 +70,18 @@ def history_job(service: PrinterService, record: JobRecord) -> dict[str, Any]:
         "user": record.user or "",
         "auxiliary_data": [],
     }
+
+
+def _job_metadata(server: PrintServer, path: Path, location: str) -> dict[str, Any]:
+    """The file's metadata as Moonraker's history keeps it: without what the job itself
+    says (its start, its id, its name); empty once the file is gone."""
+    try:
+        found = file_metadata(path, location, server.analyses.cached(path))
+    except OSError:
+        return {}
+    for repeated in ("print_start_time", "job_id", "filename"):
+        found.pop(repeated, None)
+    return found
 
 
 def _history(call: Call) -> list[JobRecord]:
@@ -82,7 +100,8 @@ async def history_list(call: Call) -> dict[str, Any]:
         found.reverse()
     start, limit = call.integer("start", 0), call.integer("limit", 50)
     shown = found[start : start + limit] if limit > 0 else found[start:]
-    return {"count": len(found), "jobs": [history_job(call.service, r) for r in shown]}
+    listed = await asyncio.to_thread(lambda: [history_job(call.server, r) for r in shown])
+    return {"count": len(found), "jobs": listed}
 
 
 @method("/server/history/job", "GET", name="server.history.get_job")
@@ -90,7 +109,7 @@ async def history_get_job(call: Call) -> dict[str, Any]:
     record = _record_of(call, call.string("uid"))
     if record.started is None:
         raise RpcError(404, f"Invalid job uid: {call.string('uid')}")
-    return {"job": history_job(call.service, record)}
+    return {"job": await asyncio.to_thread(history_job, call.server, record)}
 
 
 @method("/server/history/totals")
@@ -206,7 +225,6 @@ def tell_job_changes(face: MoonrakerFace) -> None:
         if not isinstance(event, JobChanged):
             return
         record, printer = event.record, event.printer
-        service = face.server.services[printer]
         if record.state is JobState.QUEUED:
             _queue_changed(face, printer, "jobs_added")
         elif record.state is JobState.PRINTING and record.ended is None:
@@ -215,7 +233,7 @@ def tell_job_changes(face: MoonrakerFace) -> None:
                 face.notify(
                     printer,
                     "notify_history_changed",
-                    [{"action": "added", "job": history_job(service, record)}],
+                    [{"action": "added", "job": history_job(face.server, record)}],
                 )
         elif record.state in ENDED:
             if record.started is None:
@@ -224,7 +242,7 @@ def tell_job_changes(face: MoonrakerFace) -> None:
                 face.notify(
                     printer,
                     "notify_history_changed",
-                    [{"action": "finished", "job": history_job(service, record)}],
+                    [{"action": "finished", "job": history_job(face.server, record)}],
                 )
 
     face.listeners.append(heard)
