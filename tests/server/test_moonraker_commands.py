@@ -131,6 +131,12 @@ def test_an_extended_command_the_server_does_not_do_is_unknown_as_in_klipper(
         assert any(line.startswith("// SDCARD_RESET_FILE: ") for line in helped)
         listed = http.get("/printer/gcode/help").json()["result"]
         assert "SDCARD_RESET_FILE" in listed and "FOOBAR" not in listed
+        # Klipper's gcode object, which Mainsail's console completes commands from.
+        query = {"objects": {"gcode": ["commands"]}}
+        found = http.post("/printer/objects/query", json=query).json()["result"]["status"]
+        commands = found["gcode"]["commands"]
+        assert commands["SDCARD_RESET_FILE"] == {"help": listed["SDCARD_RESET_FILE"]}
+        assert commands.keys() == listed.keys()
     fake.request("status")
     ran = executed(fake.log_path)
     assert "M220 S150" in ran and "M221 S95" in ran

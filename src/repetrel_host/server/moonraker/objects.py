@@ -37,6 +37,24 @@ _ENDED = {
     JobState.INTERRUPTED: "error",
 }
 _ZEROS = [0.0, 0.0, 0.0, 0.0]
+
+# Klipper's G-code help for its extended commands the face does itself. G-code (G1, M104,
+# T0: a letter and a number) goes to the controller, Hyrel's own M-codes too; an extended
+# command not here is answered as Klipper answers one it does not have (``_unknown``).
+KLIPPER_COMMANDS = {
+    "PAUSE": "Pauses the current print (the job's safe pause)",
+    "RESUME": "Resumes the print from a pause",
+    "CANCEL_PRINT": "Cancel the current print (its safe stop first)",
+    "SDCARD_PRINT_FILE": "Queues and starts a stored file: FILENAME=",
+    "SDCARD_RESET_FILE": "Clears the last print's file (not while printing)",
+    "SET_HEATER_TEMPERATURE": "Sets a heater's target: HEATER= TARGET=",
+    "TURN_OFF_HEATERS": "Turn off all heaters",
+    "FIRMWARE_RESTART": "Reconnect to the controller",
+    "RESTART": "Reconnect to the controller",
+    "HELP": "Report the list of available extended G-Code commands",
+    "M112": "Emergency stop",
+}
+
 # A heater's limits as Klipper's clients read them: the head library's ``max_temp``, else
 # Marlin's default maxima (its Configuration.h: HEATER_0_MAXTEMP, BED_MAXTEMP,
 # CHAMBER_MAXTEMP, HEATER_0_MINTEMP, EXTRUDE_MINTEMP). The controller keeps its own limits
@@ -125,6 +143,7 @@ class Objects:
             "heaters": self.heaters,
             "configfile": self.configfile,
             "system_stats": self.system_stats,
+            "gcode": self.gcode,
         }
 
     def names(self) -> list[str]:
@@ -293,6 +312,11 @@ class Objects:
             "save_config_pending": False,
             "save_config_pending_items": {},
         }
+
+    def gcode(self) -> dict[str, Any]:
+        """The extended commands the face does, with their help (Mainsail's console
+        completes them), as Klipper's ``gcode`` object lists its commands."""
+        return {"commands": {name: {"help": text} for name, text in KLIPPER_COMMANDS.items()}}
 
     def system_stats(self) -> dict[str, Any]:
         load = os.getloadavg()[0] if hasattr(os, "getloadavg") else 0.0

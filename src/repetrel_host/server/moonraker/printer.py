@@ -18,27 +18,15 @@ from typing import Any, NoReturn
 
 import repetrel_host as rh
 from repetrel_host.server import jobs, uploads
-from repetrel_host.server.moonraker.objects import heater_names, klippy_state, state_message
+from repetrel_host.server.moonraker.objects import (
+    KLIPPER_COMMANDS,
+    heater_names,
+    klippy_state,
+    state_message,
+)
 from repetrel_host.server.moonraker.rpc import Call, Handler, RpcError, method
 from repetrel_host.server.printers.heaters import heaters
 from repetrel_host.server.printers.service import PrinterService, Refused
-
-# Klipper's G-code help for its extended commands the face does itself. G-code (G1, M104,
-# T0: a letter and a number) goes to the controller, Hyrel's own M-codes too; an extended
-# command not here is answered as Klipper answers one it does not have (``_unknown``).
-KLIPPER_COMMANDS = {
-    "PAUSE": "Pauses the current print (the job's safe pause)",
-    "RESUME": "Resumes the print from a pause",
-    "CANCEL_PRINT": "Cancel the current print (its safe stop first)",
-    "SDCARD_PRINT_FILE": "Queues and starts a stored file: FILENAME=",
-    "SDCARD_RESET_FILE": "Clears the last print's file (not while printing)",
-    "SET_HEATER_TEMPERATURE": "Sets a heater's target: HEATER= TARGET=",
-    "TURN_OFF_HEATERS": "Turn off all heaters",
-    "FIRMWARE_RESTART": "Reconnect to the controller",
-    "RESTART": "Reconnect to the controller",
-    "HELP": "Report the list of available extended G-Code commands",
-    "M112": "Emergency stop",
-}
 
 
 @method("/printer/info", "GET", "POST")
