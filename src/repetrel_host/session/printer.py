@@ -91,6 +91,7 @@ from repetrel_host.session.pump import (
     failure_error,
 )
 from repetrel_host.session.settings import SessionSettings
+from repetrel_host.session.targets import with_target
 from repetrel_host.session.temperature_watch import TemperatureWatch
 from repetrel_host.session.wire import Wire
 
@@ -1017,6 +1018,16 @@ class _SessionSide:
     ) -> None:
         self._printer.temperatures = readings
         self._printer._hub.publish(Temperatures(readings, line))
+
+    def target_confirmed(self, command: str) -> None:
+        printer = self._printer
+        hyrel = None
+        if printer.settings.protocol == "hyrel":
+            machine = printer.profile.machine
+            hyrel = machine.firmware if machine is not None else "v5"
+        readings = with_target(printer.temperatures, command, printer._heaters.tool, hyrel)
+        if readings is not None:
+            self.temperatures_heard(readings, command)
 
     def fail_commands(self, commands: Iterable[PendingCommand], error: HostError) -> None:
         self._printer._fail_commands(commands, error)
