@@ -37,6 +37,15 @@ _ENDED = {
 _ZEROS = [0.0, 0.0, 0.0, 0.0]
 
 
+def eventtime() -> float:
+    """Klippy's clock: its reactor's ``monotonic()`` (``chelper``'s ``get_monotonic``,
+    ``CLOCK_MONOTONIC_RAW``), what its status updates and queries give as ``eventtime``."""
+    return time.clock_gettime(_CLOCK) if _CLOCK is not None else time.monotonic()
+
+
+_CLOCK = getattr(time, "CLOCK_MONOTONIC_RAW", None)
+
+
 def klippy_state(service: PrinterService) -> str:
     """``ready``, ``startup`` (connecting, or the server starting), ``shutdown`` (the
     controller's link is lost) or ``disconnected`` (its port was closed on purpose)."""
@@ -100,6 +109,10 @@ class Objects:
 
     def __init__(self, service: PrinterService) -> None:
         self.service = service
+        # Klipper's print time runs on its controller's clock from the controller's start:
+        # here from the face's (toolhead's estimated_print_time, which always moves).
+        self.started = eventtime()
+        self._print_time = 0.0  # the toolhead's print_time: where the last job's moves got
         self.makers: dict[str, Callable[[], dict[str, Any]]] = {
             "webhooks": self.webhooks,
             "print_stats": self.print_stats,
@@ -214,17 +227,25 @@ class Objects:
         since = service.running.record.started if service.running is not None else None
         return {
             "state": "Printing" if printing else "Ready" if service.state == "ready" else "Idle",
-            "printing_time": round(time.time() - since, 1) if since else 0.0,
+            # Klipper's moves with its clock while it prints (extras/idle_timeout.py).
+            "printing_time": max(time.time() - since, 0.0) if since else 0.0,
+            "idle_timeout": 600.0,
         }
 
     def toolhead(self) -> dict[str, Any]:
+        """Klipper's toolhead (toolhead.py ``get_status``): its estimated_print_time is the
+        controller's clock, which moves while idle too; its print_time where the queued
+        moves end (here: with the clock while a job runs, then where that job left it)."""
+        estimated = eventtime() - self.started
+        if self.service.running is not None:
+            self._print_time = estimated
         return {
             "homed_axes": "",
             "axis_minimum": _ZEROS,
             "axis_maximum": _ZEROS,
-            "print_time": 0.0,
+            "print_time": self._print_time,
             "stalls": 0,
-            "estimated_print_time": 0.0,
+            "estimated_print_time": estimated,
             "extruder": "extruder",
             "position": _ZEROS,
             "max_velocity": 0.0,
@@ -272,7 +293,8 @@ class Objects:
             "display_status": {},
         }
         for name in heater_names(service):
-            sections[name] = {}
+            # A chamber answers M105 as C, as a heater_generic with that gcode_id would.
+            sections[name] = {"gcode_id": "C"} if name.startswith("heater_generic") else {}
         return {
             "config": {name: {k: str(v) for k, v in s.items()} for name, s in sections.items()},
             "settings": sections,
