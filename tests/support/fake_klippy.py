@@ -3,6 +3,14 @@ server on a unix socket, JSON messages each ended by 0x03, answering what Moonra
 it starts (info, list_endpoints, the objects, G-code help, subscriptions) with an idle
 Klipper printer's status.
 
+Live as Klipper is (``klippy/webhooks.py``): a subscription is looked at every 0.25 s
+(``QueryStatusHelper``) and sent what changed since, with the reactor's clock
+(``CLOCK_MONOTONIC_RAW``) as its eventtime, nothing when nothing changed; the toolhead's
+``estimated_print_time`` is that clock from the start (the controller's clock, in Klipper).
+``gcode/script`` runs M104/M140 (the target set before the answer) and M105, whose answer
+goes to ``gcode/subscribe_output``'s subscribers as ``heaters.py``'s ``cmd_M105`` gives it,
+no ``ok``; other G-code says nothing, as a Klipper command that succeeds.
+
     python tests/support/fake_klippy.py SOCKET_PATH
 """
 
@@ -11,6 +19,7 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import re
 import sys
 import time
 from typing import Any
@@ -95,6 +104,42 @@ STATUS: dict[str, dict[str, Any]] = {
 }
 
 
+SUBSCRIPTION_REFRESH_TIME = 0.25  # s: Klipper's
+STARTED = time.clock_gettime(time.CLOCK_MONOTONIC_RAW)
+_TARGET = re.compile(r"^(M104|M140)\b.*?\bS(\d+(?:\.\d*)?)", re.IGNORECASE)
+
+
+def eventtime() -> float:
+    """Klipper's reactor clock (chelper's get_monotonic)."""
+    return time.clock_gettime(time.CLOCK_MONOTONIC_RAW)
+
+
+def current(gcodes: str, now: float) -> dict[str, dict[str, Any]]:
+    """Every object as it is at ``now``: the toolhead's estimated_print_time moves."""
+    status = {**STATUS, "configfile": configfile(gcodes)}
+    status["toolhead"] = {**STATUS["toolhead"], "estimated_print_time": now - STARTED}
+    return status
+
+
+def script(text: str) -> list[str]:
+    """``gcode/script``: its lines run; what Klipper says of them (only M105 says a thing)."""
+    said = []
+    for line in text.splitlines():
+        target = _TARGET.match(line.strip())
+        if target is not None:
+            name = "extruder" if target.group(1).upper() == "M104" else "heater_bed"
+            STATUS[name]["target"] = float(target.group(2))
+        elif line.strip().upper() == "M105":
+            heaters = {"B": STATUS["heater_bed"], "T0": STATUS["extruder"]}
+            said.append(
+                " ".join(
+                    f"{ident}:{h['temperature']:.1f} /{h['target']:.1f}"
+                    for ident, h in sorted(heaters.items())
+                )
+            )
+    return said
+
+
 def answer(method: str, params: dict[str, Any], gcodes: str) -> Any:
     if method == "info":
         return {
@@ -117,17 +162,19 @@ def answer(method: str, params: dict[str, Any], gcodes: str) -> Any:
     if method == "objects/list":
         return {"objects": [*STATUS, "configfile"]}
     if method in ("objects/query", "objects/subscribe"):
-        status = {**STATUS, "configfile": configfile(gcodes)}
-        wanted = params.get("objects", {})
-        found = {
-            name: {k: v for k, v in status[name].items() if fields is None or k in fields}
-            for name, fields in wanted.items()
-            if name in status
-        }
-        return {"eventtime": time.monotonic(), "status": found}
+        now = eventtime()
+        return {"eventtime": now, "status": pick(current(gcodes, now), params.get("objects", {}))}
     if method == "gcode/help":
         return {"G28": "Home", "M104": "Set the extruder's temperature"}
     return {}
+
+
+def pick(status: dict[str, dict[str, Any]], wanted: dict[str, Any]) -> dict[str, Any]:
+    return {
+        name: {k: v for k, v in status[name].items() if fields is None or k in fields}
+        for name, fields in wanted.items()
+        if name in status
+    }
 
 
 def configfile(gcodes: str) -> dict[str, Any]:
@@ -150,15 +197,57 @@ def configfile(gcodes: str) -> dict[str, Any]:
 
 async def main(path: str, gcodes: str) -> None:
     async def serve(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        def send(message: dict[str, Any]) -> None:
+            writer.write(json.dumps(message).encode() + b"\x03")
+
+        # What this connection subscribed to, and its gcode output's template.
+        subscribed: dict[str, Any] = {}
+        output: dict[str, Any] = {}
+        last: dict[str, dict[str, Any]] = {}  # as the last look found them
+
+        async def tick() -> None:
+            while True:
+                await asyncio.sleep(SUBSCRIPTION_REFRESH_TIME)
+                if not subscribed:
+                    continue
+                now = eventtime()
+                found = pick(current(gcodes, now), subscribed["objects"])
+                changed = {}
+                for name, values in found.items():
+                    before = last.setdefault(name, {})
+                    diff = {k: v for k, v in values.items() if before.get(k, ...) != v}
+                    before.update(diff)
+                    if diff:
+                        changed[name] = diff
+                if changed:
+                    params = {"eventtime": now, "status": changed}
+                    send({**subscribed["template"], "params": params})
+
+        ticker = asyncio.create_task(tick())
         try:
             while True:
                 request = json.loads((await reader.readuntil(b"\x03"))[:-1])
-                result = answer(request.get("method", ""), request.get("params", {}), gcodes)
-                reply = {"id": request.get("id"), "result": result}
-                writer.write(json.dumps(reply).encode() + b"\x03")
+                method, params = request.get("method", ""), request.get("params", {})
+                result = answer(method, params, gcodes)
+                if method == "objects/subscribe":
+                    subscribed.update(
+                        objects=params.get("objects", {}),
+                        template=params.get("response_template", {}),
+                    )
+                    last.clear()
+                    last.update({k: dict(v) for k, v in result["status"].items()})
+                elif method == "gcode/subscribe_output":
+                    output.update(params.get("response_template", {}))
+                elif method == "gcode/script":
+                    for said in script(params.get("script", "")):
+                        if output:
+                            send({**output, "params": {"response": said}})
+                send({"id": request.get("id"), "result": result})
                 await writer.drain()
         except (asyncio.IncompleteReadError, ConnectionError):
             pass
+        finally:
+            ticker.cancel()
 
     server = await asyncio.start_unix_server(serve, path)
     print("ready", flush=True)
