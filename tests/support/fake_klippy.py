@@ -61,7 +61,7 @@ STATUS: dict[str, dict[str, Any]] = {
     },
     "display_status": {"message": None, "progress": 0.0},
     "pause_resume": {"is_paused": False},
-    "idle_timeout": {"state": "Idle", "printing_time": 0.0},
+    "idle_timeout": {"state": "Idle", "printing_time": 0.0, "idle_timeout": 600.0},
     "toolhead": {
         "homed_axes": "",
         "axis_minimum": ZEROS,
@@ -93,6 +93,7 @@ STATUS: dict[str, dict[str, Any]] = {
         "can_extrude": False,
         "pressure_advance": 0.0,
         "smooth_time": 0.04,
+        "motion_queue": None,
     },
     "heater_bed": {"temperature": 21.0, "target": 0.0, "power": 0.0},
     "fan": {"speed": 0.0, "rpm": None},

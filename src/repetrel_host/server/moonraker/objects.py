@@ -328,7 +328,9 @@ class Objects:
             "power": 0.0,
         }
         if name.startswith("extruder"):
-            values.update(can_extrude=True, pressure_advance=0.0, smooth_time=0.04)
+            values.update(
+                can_extrude=True, pressure_advance=0.0, smooth_time=0.04, motion_queue=None
+            )
         return values
 
 
