@@ -57,6 +57,18 @@ def test_a_hotend_and_bed_target_reads_back_as_the_command_returns(protocol: str
 
 
 @pytest.mark.parametrize("protocol", ["reprap", "hyrel"])
+def test_a_target_set_before_any_report_reads_back_too(protocol: str) -> None:
+    # Nothing to set it in yet: the session asks for a report before the command returns.
+    async def scenario() -> None:
+        async with connect(protocol) as printer:
+            assert not printer.temperatures
+            await printer.command("M140 S50")
+            assert printer.temperatures["B"][1] == 50
+
+    run(scenario)
+
+
+@pytest.mark.parametrize("protocol", ["reprap", "hyrel"])
 def test_a_second_hotend_is_set_by_its_t_word_and_the_first_keeps_its_target(
     protocol: str,
 ) -> None:
