@@ -282,6 +282,7 @@ class Connection:
         self._unsent = 0  # bytes in the outbox
         self._dropped = False  # it read too little: closed, told nothing more
         self._tasks: set[asyncio.Task[None]] = set()
+        self._state_changed = asyncio.Event()  # a look now: a state is not missed between two
 
     async def run(self) -> None:
         face = self.face
@@ -325,14 +326,16 @@ class Connection:
         return status
 
     def heard(self, event: ServerEvent) -> None:
-        """A server event of this printer: the klippy notifications (its objects' changes
-        go at the next look)."""
+        """A server event of this printer: the klippy notifications; a state's change is
+        looked for at once (a restart's states would fall between two looks), the rest at
+        the next look."""
         if isinstance(event, PrinterState):
             state = klippy_state(self.service)
             if state != self.klippy:
                 self.klippy = state
                 if state in ("ready", "shutdown", "disconnected"):
                     self.send_later(f"notify_klippy_{state}")
+            self._state_changed.set()
 
     def _changes(self) -> dict[str, dict[str, Any]]:
         """What changed in the subscribed objects since they were last sent."""
@@ -353,9 +356,11 @@ class Connection:
         what changed in the subscribed objects since the last look, with Klippy's clock as
         its eventtime (nothing changed: nothing sent; Klipper's clock moves, and with it the
         toolhead's estimated_print_time, so a subscription to it hears four a second);
-        Moonraker's process statistics every second, which keep a client's heartbeat fed."""
+        Moonraker's process statistics every second, which keep a client's heartbeat fed.
+        A state's change is looked at as it comes, as Moonraker passes Klippy's on."""
         next_stat = 0.0
         while True:
+            self._state_changed.clear()
             changes = self._changes()
             if changes:
                 self.send_later("notify_status_update", [changes, eventtime()])
@@ -363,7 +368,8 @@ class Connection:
             if now >= next_stat:
                 next_stat = now + PROC_STAT_EVERY
                 self.send_later("notify_proc_stat_update", [self.face.proc_stats()])
-            await asyncio.sleep(STATUS_EVERY)
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._state_changed.wait(), STATUS_EVERY)
 
     # --- sending ----------------------------------------------------------------------
 
