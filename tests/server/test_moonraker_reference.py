@@ -7,8 +7,10 @@ saying why, where it cannot be installed."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -16,6 +18,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import aiohttp
 import httpx
 import pytest
 import websocket
@@ -483,3 +486,78 @@ def test_file_changes_are_told_as_moonraker_tells_them(reference: str, ours: Ser
     assert {"uuid", "gcode_end_byte"} <= set(their_list["files"][0])
     found += [f"extended: {d}" for d in differences(shape(my_list), shape(their_list))]
     assert not found, "\n".join(found)
+
+
+async def live(url: str, key: str | None) -> dict[str, Any]:
+    """What a websocket client hears of an idle printer in 3 s of a subscription, then of
+    ``M104 S205`` and ``M105`` over ``printer.gcode.script``."""
+    headers = {"X-Api-Key": key} if key else {}
+    ws_url = url.replace("http", "ws", 1) + "/websocket"
+    async with (
+        aiohttp.ClientSession(headers=headers) as session,
+        session.ws_connect(ws_url) as socket,
+    ):
+        ids = iter(range(1, 100))
+        heard: list[dict[str, Any]] = []
+
+        async def call(method: str, **params: Any) -> Any:
+            ident = next(ids)
+            await socket.send_json(
+                {"jsonrpc": "2.0", "method": method, "params": params, "id": ident}
+            )
+            async for message in socket:
+                found = json.loads(message.data)
+                if found.get("id") == ident:
+                    return found["result"]
+                heard.append(found)
+            raise AssertionError("the websocket closed")
+
+        async def listen(seconds: float) -> None:
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(seconds):
+                    async for message in socket:
+                        heard.append(json.loads(message.data))
+
+        wanted = {"toolhead": None, "extruder": ["target"]}
+        first = await call("printer.objects.subscribe", objects=wanted)
+        await listen(3)
+        updates = [m["params"] for m in heard if m.get("method") == "notify_status_update"]
+        heard.clear()
+        set_it = await call("printer.gcode.script", script="M104 S205")
+        query = await call("printer.objects.query", objects={"extruder": ["target"]})
+        await listen(0.5)
+        after_m104 = [m for m in heard if m.get("method") == "notify_gcode_response"]
+        heard.clear()
+        await call("printer.gcode.script", script="M105")
+        await listen(0.5)
+        m105 = [m["params"][0] for m in heard if m.get("method") == "notify_gcode_response"]
+    return {
+        "first": first,
+        "updates": updates,
+        "set": set_it,
+        "target": query["status"]["extruder"]["target"],
+        "after_m104": after_m104,
+        "m105": m105,
+    }
+
+
+def test_live_status_and_gcode_replies_as_moonraker_on_klipper(
+    reference: str, ours: Server
+) -> None:
+    # Klipper's clock moves: four updates a second with a later eventtime each, the
+    # toolhead's estimated_print_time with it; a target is set by the time the script
+    # returns; no "ok" is told for a command; M105 answers in Klipper's words.
+    for url, key in ((reference, None), (ours.url, KEY)):
+        heard = asyncio.run(live(url, key))
+        who = "Moonraker" if key is None else "hyrel-server"
+        updates = heard["updates"]
+        assert len(updates) >= 8, f"{who}: {len(updates)} updates in 3 s"
+        times = [heard["first"]["eventtime"], *(eventtime for _, eventtime in updates)]
+        assert times == sorted(times) and len(set(times)) == len(times), who
+        clock = [status["toolhead"]["estimated_print_time"] for status, _ in updates]
+        assert clock == sorted(clock) and clock[-1] > clock[0], who
+        assert not any("extruder" in status for status, _ in updates), who
+        assert heard["set"] == "ok" and heard["target"] == 205, who
+        assert heard["after_m104"] == [], who
+        assert len(heard["m105"]) == 1, who
+        assert re.fullmatch(r"B:\d+\.\d /\d+\.\d T0:\d+\.\d /205\.0", heard["m105"][0]), who

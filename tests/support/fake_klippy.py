@@ -6,6 +6,14 @@ Klipper printer's status, and Klipper's G-code responses and errors to a few cal
 time, pauses, resumes and is cancelled as Klipper's ``print_stats`` says it, and each change
 is pushed to Moonraker's subscription as Klippy pushes it (``process_status_update``).
 
+Live as Klipper is (``klippy/webhooks.py``): a subscription is looked at every 0.25 s
+(``QueryStatusHelper``) and sent what changed since, with the reactor's clock
+(``CLOCK_MONOTONIC_RAW``) as its eventtime, nothing when nothing changed; the toolhead's
+``estimated_print_time`` is that clock from the start (the controller's clock, in Klipper).
+``gcode/script`` runs M104/M140 (the target set before the answer) and M105, whose answer
+goes to ``gcode/subscribe_output``'s subscribers as ``heaters.py``'s ``cmd_M105`` gives it,
+no ``ok``; other G-code says nothing, as a Klipper command that succeeds.
+
     python tests/support/fake_klippy.py SOCKET_PATH GCODES_FOLDER
 """
 
@@ -58,7 +66,7 @@ STATUS: dict[str, dict[str, Any]] = {
     },
     "display_status": {"message": None, "progress": 0.0},
     "pause_resume": {"is_paused": False},
-    "idle_timeout": {"state": "Idle", "printing_time": 0.0},
+    "idle_timeout": {"state": "Idle", "printing_time": 0.0, "idle_timeout": 600.0},
     "toolhead": {
         "homed_axes": "",
         "axis_minimum": ZEROS,
@@ -90,6 +98,7 @@ STATUS: dict[str, dict[str, Any]] = {
         "can_extrude": False,
         "pressure_advance": 0.0,
         "smooth_time": 0.04,
+        "motion_queue": None,
     },
     "heater_bed": {"temperature": 21.0, "target": 0.0, "power": 0.0},
     "fan": {"speed": 0.0, "rpm": None},
@@ -99,6 +108,42 @@ STATUS: dict[str, dict[str, Any]] = {
         "available_monitors": [],
     },
 }
+
+
+SUBSCRIPTION_REFRESH_TIME = 0.25  # s: Klipper's
+STARTED = time.clock_gettime(time.CLOCK_MONOTONIC_RAW)
+_TARGET = re.compile(r"^(M104|M140)\b.*?\bS(\d+(?:\.\d*)?)", re.IGNORECASE)
+
+
+def eventtime() -> float:
+    """Klipper's reactor clock (chelper's get_monotonic)."""
+    return time.clock_gettime(time.CLOCK_MONOTONIC_RAW)
+
+
+def current(gcodes: str, now: float) -> dict[str, dict[str, Any]]:
+    """Every object as it is at ``now``: the toolhead's estimated_print_time moves."""
+    status = {**STATUS, "configfile": configfile(gcodes)}
+    status["toolhead"] = {**STATUS["toolhead"], "estimated_print_time": now - STARTED}
+    return status
+
+
+def script(text: str) -> list[str]:
+    """``gcode/script``: its lines run; what Klipper says of them (only M105 says a thing)."""
+    said = []
+    for line in text.splitlines():
+        target = _TARGET.match(line.strip())
+        if target is not None:
+            name = "extruder" if target.group(1).upper() == "M104" else "heater_bed"
+            STATUS[name]["target"] = float(target.group(2))
+        elif line.strip().upper() == "M105":
+            heaters = {"B": STATUS["heater_bed"], "T0": STATUS["extruder"]}
+            said.append(
+                " ".join(
+                    f"{ident}:{h['temperature']:.1f} /{h['target']:.1f}"
+                    for ident, h in sorted(heaters.items())
+                )
+            )
+    return said
 
 
 def answer(method: str, params: dict[str, Any], gcodes: str) -> Any:
@@ -123,14 +168,8 @@ def answer(method: str, params: dict[str, Any], gcodes: str) -> Any:
     if method == "objects/list":
         return {"objects": [*STATUS, "configfile"]}
     if method in ("objects/query", "objects/subscribe"):
-        status = {**STATUS, "configfile": configfile(gcodes)}
-        wanted = params.get("objects", {})
-        found = {
-            name: {k: v for k, v in status[name].items() if fields is None or k in fields}
-            for name, fields in wanted.items()
-            if name in status
-        }
-        return {"eventtime": time.monotonic(), "status": found}
+        now = eventtime()
+        return {"eventtime": now, "status": pick(current(gcodes, now), params.get("objects", {}))}
     if method == "gcode/script":
         script = str(params.get("script", ""))
         for line in script.splitlines():
@@ -180,7 +219,6 @@ class Print:
     """The one print: its state in ``STATUS``, each change sent to the subscribers."""
 
     def __init__(self) -> None:
-        self.subscribers: list[tuple[asyncio.StreamWriter, str]] = []
         self.printed = 0.0  # seconds printed
         self.since: float | None = None  # printing since (monotonic), None unless printing
 
@@ -222,14 +260,19 @@ class Print:
             "pause_resume": {"is_paused": state == "paused"},
             "idle_timeout": {"state": "Printing" if active else "Ready"},
         }
-        for name, fields in diff.items():
+        for name, fields in diff.items():  # told by each subscription's next look
             STATUS[name].update(fields)
-        for writer, method in self.subscribers:
-            push = {"method": method, "params": {"eventtime": time.monotonic(), "status": diff}}
-            writer.write(json.dumps(push).encode() + b"\x03")
 
 
 PRINT = Print()
+
+
+def pick(status: dict[str, dict[str, Any]], wanted: dict[str, Any]) -> dict[str, Any]:
+    return {
+        name: {k: v for k, v in status[name].items() if fields is None or k in fields}
+        for name, fields in wanted.items()
+        if name in status
+    }
 
 
 def configfile(gcodes: str) -> dict[str, Any]:
@@ -252,29 +295,62 @@ def configfile(gcodes: str) -> dict[str, Any]:
 
 async def main(path: str, gcodes: str) -> None:
     async def serve(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        template: dict[str, Any] | None = None  # gcode/subscribe_output's, for responses
+        def send(message: dict[str, Any]) -> None:
+            writer.write(json.dumps(message).encode() + b"\x03")
+
+        # What this connection subscribed to, and its gcode output's template.
+        subscribed: dict[str, Any] = {}
+        responses: dict[str, Any] = {}
+        last: dict[str, dict[str, Any]] = {}  # as the last look found them
+
+        async def tick() -> None:
+            while True:
+                await asyncio.sleep(SUBSCRIPTION_REFRESH_TIME)
+                if not subscribed:
+                    continue
+                now = eventtime()
+                found = pick(current(gcodes, now), subscribed["objects"])
+                changed = {}
+                for name, values in found.items():
+                    before = last.setdefault(name, {})
+                    diff = {k: v for k, v in values.items() if before.get(k, ...) != v}
+                    before.update(diff)
+                    if diff:
+                        changed[name] = diff
+                if changed:
+                    params = {"eventtime": now, "status": changed}
+                    send({**subscribed["template"], "params": params})
+
+        ticker = asyncio.create_task(tick())
         try:
             while True:
                 request = json.loads((await reader.readuntil(b"\x03"))[:-1])
                 method, params = request.get("method", ""), request.get("params", {})
-                if method == "gcode/subscribe_output":
-                    template = params.get("response_template", {})
-                pushed = params.get("response_template", {})
-                if method == "objects/subscribe" and "method" in pushed:
-                    PRINT.subscribers.append((writer, pushed["method"]))
                 said, error = output(method, params)
-                for response in said if template is not None else ():
-                    message = {**template, "params": {"response": response}}
-                    writer.write(json.dumps(message).encode() + b"\x03")
-                reply: dict[str, Any] = {"id": request.get("id")}
+                result = answer(method, params, gcodes) if error is None else None
+                if method == "objects/subscribe":
+                    subscribed.update(
+                        objects=params.get("objects", {}),
+                        template=params.get("response_template", {}),
+                    )
+                    last.clear()
+                    last.update({k: dict(v) for k, v in result["status"].items()})
+                elif method == "gcode/subscribe_output":
+                    responses.update(params.get("response_template", {}))
+                elif method == "gcode/script" and error is None:
+                    said += script(params.get("script", ""))
+                for line in said if responses else ():
+                    send({**responses, "params": {"response": line}})
                 if error is None:
-                    reply["result"] = answer(method, params, gcodes)
+                    send({"id": request.get("id"), "result": result})
                 else:
-                    reply["error"] = {"error": "WebRequestError", "message": error}
-                writer.write(json.dumps(reply).encode() + b"\x03")
+                    failed = {"error": "WebRequestError", "message": error}
+                    send({"id": request.get("id"), "error": failed})
                 await writer.drain()
         except (asyncio.IncompleteReadError, ConnectionError):
             pass
+        finally:
+            ticker.cancel()
 
     async def clock() -> None:
         while True:

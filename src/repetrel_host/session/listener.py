@@ -95,6 +95,9 @@ class ListenerSession(Protocol):
     ) -> None:
         """The controller reported its temperatures (in ``line``)."""
 
+    def target_confirmed(self, command: str) -> None:
+        """The controller acknowledged ``command``, which may set a heater's target."""
+
     def fail_commands(self, commands: Iterable[PendingCommand], error: HostError) -> None:
         """Those commands fail with ``error``."""
 
@@ -149,8 +152,18 @@ class PumpListener(Listener):
             session.pending_commands.remove(tag)
         if data:
             self._temperatures(data, f"ok {data}")
+        if tag.command.startswith("M1"):  # M104, M140...: read back before its caller
+            session.target_confirmed(tag.command)
         if not tag.future.done():
             tag.future.set_result(Reply(tag.command, tag.lines, f"ok {data}" if data else "ok"))
+
+    def acknowledged(self, line: JobLine) -> None:
+        # A job's M104 too, where the ok says the line ran (RepRap's); Hyrel's ack says it
+        # arrived, and the line may wait there behind the moves before it.
+        if line.command.startswith("M1"):
+            pump = self.session.pump
+            if pump is not None and not pump.dialect.acks_say_received:
+                self.session.target_confirmed(line.command)
 
     def commands_dropped(self, tags: list[object]) -> None:
         error = UsageError("the command was not sent: the job it waited behind was stopped")

@@ -36,7 +36,7 @@ from repetrel_host.errors import (
     UsageError,
 )
 from repetrel_host.gcode.commands import command_word
-from repetrel_host.gcode.heaters import Heater, HeaterLog, complete_safe_stop
+from repetrel_host.gcode.heaters import HEATING, Heater, HeaterLog, complete_safe_stop
 from repetrel_host.links import Link
 from repetrel_host.protocol.dialect import Statistics
 from repetrel_host.protocol.dialects import create_dialect, release_bytes
@@ -91,6 +91,7 @@ from repetrel_host.session.pump import (
     failure_error,
 )
 from repetrel_host.session.settings import SessionSettings
+from repetrel_host.session.targets import with_target
 from repetrel_host.session.temperature_watch import TemperatureWatch
 from repetrel_host.session.wire import Wire
 
@@ -104,6 +105,7 @@ MARKER_TIMEOUT = 30.0
 # Sent before a job when its report is asked for: reset the metrics, and have M30 send
 # the M773 report (Hyrel's diagnostic codes, M772: bit 0 of S).
 REPORT_COMMAND = "M772 S1"
+FIRST_REPORT_WAIT = 2.0  # s: for the answer to Hyrel's status request (it comes at once)
 BACK_TO_JOB_TIMEOUT = 60.0  # s: each command that brings a paused job's machine back
 
 
@@ -305,7 +307,24 @@ class Printer:
             self._check_can_command()
             if self.state is State.PAUSED and word not in KEEPS_THE_JOB_STATE:
                 self._paused_words.add(word)
-            return await self._command(command, timeout)
+            reply = await self._command(command, timeout)
+            if word in HEATING and reply.ok and not self.temperatures:
+                await self._first_report(timeout)
+            return reply
+
+    async def _first_report(self, timeout: float | None) -> None:
+        """Nothing reported yet to set a target in: a report now (Hyrel's status request,
+        else M105), so that the target reads back as its command returns, as it does once
+        there are readings."""
+        pump = self._wire.pump
+        if pump is None or not pump.dialect.request_status():
+            await self._command("M105", timeout, own=True)
+            return
+        self._wire.drive()
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(min(timeout or FIRST_REPORT_WAIT, FIRST_REPORT_WAIT)):
+                while not self.temperatures:
+                    await asyncio.sleep(0.02)
 
     async def _command(self, command: str, timeout: float | None, own: bool = False) -> Reply:
         pending = self._send_command(command, own)
@@ -1017,6 +1036,16 @@ class _SessionSide:
     ) -> None:
         self._printer.temperatures = readings
         self._printer._hub.publish(Temperatures(readings, line))
+
+    def target_confirmed(self, command: str) -> None:
+        printer = self._printer
+        hyrel = None
+        if printer.settings.protocol == "hyrel":
+            machine = printer.profile.machine
+            hyrel = machine.firmware if machine is not None else "v5"
+        readings = with_target(printer.temperatures, command, printer._heaters.tool, hyrel)
+        if readings is not None:
+            self.temperatures_heard(readings, command)
 
     def fail_commands(self, commands: Iterable[PendingCommand], error: HostError) -> None:
         self._printer._fail_commands(commands, error)

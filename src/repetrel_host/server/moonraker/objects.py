@@ -66,6 +66,15 @@ FILAMENT = 1.75  # mm: Hyrel's thermoplastic heads take 1.75 mm filament
 NOZZLE = 0.4  # mm, where the loadout gives none
 
 
+def eventtime() -> float:
+    """Klippy's clock: its reactor's ``monotonic()`` (``chelper``'s ``get_monotonic``,
+    ``CLOCK_MONOTONIC_RAW``), what its status updates and queries give as ``eventtime``."""
+    return time.clock_gettime(_CLOCK) if _CLOCK is not None else time.monotonic()
+
+
+_CLOCK = getattr(time, "CLOCK_MONOTONIC_RAW", None)
+
+
 def klippy_state(service: PrinterService) -> str:
     """``ready``, ``startup`` (connecting, or the server starting), ``shutdown`` (the
     controller's link is lost) or ``disconnected`` (its port was closed on purpose)."""
@@ -129,6 +138,10 @@ class Objects:
 
     def __init__(self, service: PrinterService) -> None:
         self.service = service
+        # Klipper's print time runs on its controller's clock from the controller's start:
+        # here from the face's (toolhead's estimated_print_time, which always moves).
+        self.started = eventtime()
+        self._print_time = 0.0  # the toolhead's print_time: where the last job's moves got
         self.makers: dict[str, Callable[[], dict[str, Any]]] = {
             "webhooks": self.webhooks,
             "print_stats": self.print_stats,
@@ -247,17 +260,25 @@ class Objects:
         since = service.running.record.started if service.running is not None else None
         return {
             "state": "Printing" if printing else "Ready" if service.state == "ready" else "Idle",
-            "printing_time": round(time.time() - since, 1) if since else 0.0,
+            # Klipper's moves with its clock while it prints (extras/idle_timeout.py).
+            "printing_time": max(time.time() - since, 0.0) if since else 0.0,
+            "idle_timeout": 600.0,
         }
 
     def toolhead(self) -> dict[str, Any]:
+        """Klipper's toolhead (toolhead.py ``get_status``): its estimated_print_time is the
+        controller's clock, which moves while idle too; its print_time where the queued
+        moves end (here: with the clock while a job runs, then where that job left it)."""
+        estimated = eventtime() - self.started
+        if self.service.running is not None:
+            self._print_time = estimated
         return {
             "homed_axes": "",
             "axis_minimum": _ZEROS,
             "axis_maximum": _ZEROS,
-            "print_time": 0.0,
+            "print_time": self._print_time,
             "stalls": 0,
-            "estimated_print_time": 0.0,
+            "estimated_print_time": estimated,
             "extruder": "extruder",
             "position": _ZEROS,
             "max_velocity": 0.0,
@@ -343,7 +364,9 @@ class Objects:
             "power": 0.0,
         }
         if name.startswith("extruder"):
-            values.update(can_extrude=True, pressure_advance=0.0, smooth_time=0.04)
+            values.update(
+                can_extrude=True, pressure_advance=0.0, smooth_time=0.04, motion_queue=None
+            )
         return values
 
 
@@ -382,6 +405,8 @@ def _heater_sections(service: PrinterService, max_velocity: float) -> dict[str, 
             "min_temp": MIN_TEMP,
             "max_temp": float(limit or MAX_TEMP[kind]),
         }
+        if kind == "chamber":
+            section["gcode_id"] = "C"  # M105 tells it as C, as a heater_generic with it
         if kind == "head":
             nozzle = (head.nozzle if head is not None else None) or NOZZLE
             cross_section = 4.0 * nozzle**2  # Klipper's default max_extrude_cross_section

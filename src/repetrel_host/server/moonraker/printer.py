@@ -17,11 +17,16 @@ import socket
 from typing import Any, NoReturn
 
 import repetrel_host as rh
+from repetrel_host.gcode.commands import command_word
+from repetrel_host.protocol import replies
+from repetrel_host.protocol.reports import parse_temperatures
 from repetrel_host.server import jobs, uploads
 from repetrel_host.server.moonraker.objects import (
     KLIPPER_COMMANDS,
+    eventtime,
     heater_names,
     klippy_state,
+    reading,
     state_message,
 )
 from repetrel_host.server.moonraker.rpc import Call, Handler, RpcError, method
@@ -74,7 +79,7 @@ def _wanted(call: Call) -> dict[str, list[str] | None]:
 @method("/printer/objects/query", "GET", "POST")
 async def objects_query(call: Call) -> dict[str, Any]:
     status = call.face.objects[call.service.name].status(_wanted(call))
-    return {"eventtime": _eventtime(), "status": status}
+    return {"eventtime": eventtime(), "status": status}
 
 
 @method("/printer/objects/subscribe", "GET", "POST")
@@ -83,7 +88,7 @@ async def objects_subscribe(call: Call) -> dict[str, Any]:
     (``?connection_id=``, as FDM Monster does); its changes go to that websocket."""
     if call.connection is None:
         raise RpcError(400, "No connection associated with subscription request")
-    return {"eventtime": _eventtime(), "status": call.connection.subscribe(_wanted(call))}
+    return {"eventtime": eventtime(), "status": call.connection.subscribe(_wanted(call))}
 
 
 @method("/printer/gcode/script", "GET", "POST")
@@ -273,15 +278,56 @@ def _fail(call: Call, message: str) -> NoReturn:
 
 
 async def _send(call: Call, line: str) -> None:
+    """``line`` to the controller, its reply told as Klipper tells one: no ``ok`` (the
+    serial console's, not Klipper's: ``gcode/script`` sends none), no Hyrel notice of the
+    M-code run, and M105's answer in Klipper's words (``cmd_M105``); the controller's other
+    lines as they came. The other faces keep the controller's own reply."""
     try:
         reply = await call.service.command(line)
     except Refused as exc:
         call.face.gcode_response(call.service.name, f"!! {exc}")
         raise RpcError(400, str(exc)) from None
+    asked = command_word(line.strip().upper()) == "M105"
     for said in reply.lines:
-        call.face.gcode_response(call.service.name, said)
-    if reply.ok_line:
-        call.face.gcode_response(call.service.name, reply.ok_line)
+        if not _klippers_silence(said, asked):
+            call.face.gcode_response(call.service.name, said)
+    rest = reply.ok_line[2:].strip()  # what came on the ok line after "ok"
+    if rest and not parse_temperatures(rest):
+        call.face.gcode_response(call.service.name, rest)
+    if asked:
+        call.face.gcode_response(call.service.name, m105_answer(call.service))
+
+
+def _klippers_silence(said: str, asked: bool) -> bool:
+    """Whether a reply line is one Klipper would not say: Hyrel's notice that an M-code
+    ran, and the controller's temperature report where M105's answer is Klipper's own."""
+    kind = replies.classify(said)
+    if isinstance(kind, replies.HyrelReport) and kind.tag == "MC":
+        return True
+    return asked and bool(parse_temperatures(said))
+
+
+def m105_answer(service: PrinterService) -> str:
+    """M105's answer as Klipper's ``heaters.py`` (``_get_temp``) gives it: each heater by
+    its G-code id (``T0``, ``T1``... for the extruders, ``B`` for the bed, ``C`` for a
+    chamber), sorted by that id, as ``ID:current /target`` with one decimal; ``T:0``
+    before any reading."""
+    printer = service.printer
+    readings = dict(printer.temperatures) if printer is not None else {}
+    found: dict[str, tuple[float, float | None]] = {}
+    for name, sensor in heater_names(service).items():
+        read = reading(readings, sensor)
+        if read is not None:
+            found[_GCODE_IDS.get(name) or f"T{name.removeprefix('extruder')}"] = read
+    said = [
+        f"{ident}:{cur:.1f} /{target or 0.0:.1f}" for ident, (cur, target) in sorted(found.items())
+    ]
+    return " ".join(said) or "T:0"
+
+
+# Klipper's G-code ids of heaters that are not extruders (``gcode_id`` of a chamber's
+# ``heater_generic`` section, which ``configfile`` gives).
+_GCODE_IDS = {"extruder": "T0", "heater_bed": "B", "heater_generic chamber": "C"}
 
 
 async def _set_extruder(call: Call, word: str, line: str) -> None:
@@ -333,7 +379,3 @@ def _params(text: str) -> dict[str, str]:
         key, _, value = word.partition("=")
         found[key.upper()] = value
     return found
-
-
-def _eventtime() -> float:
-    return round(asyncio.get_running_loop().time(), 3)

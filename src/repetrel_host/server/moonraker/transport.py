@@ -26,13 +26,13 @@ from repetrel_host.server.events import PrinterState, ServerEvent
 from repetrel_host.server.json_input import JsonTooDeep, parse_json
 from repetrel_host.server.moonraker import rpc
 from repetrel_host.server.moonraker.face import MoonrakerFace
-from repetrel_host.server.moonraker.objects import klippy_state
+from repetrel_host.server.moonraker.objects import eventtime, klippy_state
 from repetrel_host.server.printers.service import PrinterService
 
 log = logging.getLogger("repetrel_host.server.moonraker")
 
 AREAS = ("printer", "server", "machine", "access")
-STATUS_EVERY = 0.25  # s: a subscription's changes go out at most this often
+STATUS_EVERY = 0.25  # s: a subscription's changes go out this often (Klipper's)
 PROC_STAT_EVERY = 1.0  # s: Moonraker's; Mainsail drops a socket silent for 10 s
 OUTBOX = 2000  # messages a websocket may have unsent before it is closed
 OUTBOX_BYTES = 32 << 20  # or bytes (a client that asks for big answers and reads none)
@@ -329,8 +329,8 @@ class Connection:
         self._outbox: asyncio.Queue[str] = asyncio.Queue(OUTBOX)
         self._unsent = 0  # bytes in the outbox
         self._dropped = False  # it read too little: closed, told nothing more
-        self._changed = asyncio.Event()
         self._tasks: set[asyncio.Task[None]] = set()
+        self._state_changed = asyncio.Event()  # a look now: a state is not missed between two
 
     async def run(self) -> None:
         face = self.face
@@ -374,14 +374,16 @@ class Connection:
         return status
 
     def heard(self, event: ServerEvent) -> None:
-        """A server event of this printer: the klippy notifications, then a status look."""
+        """A server event of this printer: the klippy notifications; a state's change is
+        looked for at once (a restart's states would fall between two looks), the rest at
+        the next look."""
         if isinstance(event, PrinterState):
             state = klippy_state(self.service)
             if state != self.klippy:
                 self.klippy = state
                 if state in ("ready", "shutdown", "disconnected"):
                     self.send_later(f"notify_klippy_{state}")
-        self._changed.set()
+            self._state_changed.set()
 
     def _changes(self) -> dict[str, dict[str, Any]]:
         """What changed in the subscribed objects since they were last sent."""
@@ -398,21 +400,24 @@ class Connection:
         return changes
 
     async def _tick(self) -> None:
-        """Status changes at most every 0.25 s (sooner after an event), and Moonraker's
-        process statistics every second, which keep a client's heartbeat fed."""
+        """Klipper's cadence (``klippy/webhooks.py``, ``QueryStatusHelper``): every 0.25 s,
+        what changed in the subscribed objects since the last look, with Klippy's clock as
+        its eventtime (nothing changed: nothing sent; Klipper's clock moves, and with it the
+        toolhead's estimated_print_time, so a subscription to it hears four a second);
+        Moonraker's process statistics every second, which keep a client's heartbeat fed.
+        A state's change is looked at as it comes, as Moonraker passes Klippy's on."""
         next_stat = 0.0
         while True:
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._changed.wait(), PROC_STAT_EVERY)
-            self._changed.clear()
+            self._state_changed.clear()
             changes = self._changes()
             if changes:
-                self.send_later("notify_status_update", [changes, time.monotonic()])
+                self.send_later("notify_status_update", [changes, eventtime()])
             now = time.monotonic()
             if now >= next_stat:
                 next_stat = now + PROC_STAT_EVERY
                 self.send_later("notify_proc_stat_update", [self.face.proc_stats()])
-            await asyncio.sleep(STATUS_EVERY)
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._state_changed.wait(), STATUS_EVERY)
 
     # --- sending ----------------------------------------------------------------------
 

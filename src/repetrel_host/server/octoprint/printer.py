@@ -51,12 +51,11 @@ def _tool_index(service: PrinterService, key: str, pattern: re.Pattern[str], wha
 
 
 async def _send(service: PrinterService, commands: list[str]) -> None:
-    """Commands to a printer not streaming a job, each after the last one ran; after a
-    heater's new target, M105, so that the next read shows it."""
+    """Commands to a printer not streaming a job, each after the last one ran (a heater's
+    new target is the session's once the controller acknowledged it: the next read shows
+    it)."""
     for command in commands:
         await answered(service.command(command))
-    if any(command.startswith(("M104", "M140", "M141")) for command in commands):
-        await answered(service.command("M105"))
 
 
 def _rate(factor: object) -> int:
