@@ -18,7 +18,7 @@ import pytest
 
 from repetrel_host.fakes.fake_controller import BuiltInFake
 from tests.server.test_moonraker import Heard, client, connected, until
-from tests.support.server import KEY, Server, server_config, wait_for
+from tests.support.server import KEY, Server, gcode, server_config, wait_for
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -131,3 +131,57 @@ def test_a_target_reads_back_as_the_call_returns_on_every_face(printer: Server) 
         assert done.status_code == 200, done.text
         readings = http.get("/v1/printers/bench").json()["temperatures"]
         assert readings["B"]["target"] == 0
+
+
+def test_homed_axes_and_factors_read_back_as_the_commands_ran(
+    printer: Server, request: pytest.FixtureRequest
+) -> None:
+    """``toolhead.homed_axes`` (what enables a client's jog buttons) and ``gcode_move``'s
+    factors come from the commands the controller ran: a homing names its axes (Marlin's
+    bare G28 homes all three; Hyrel's homes only what it names), motors off forgets them,
+    Marlin's M220/M221 set the factors (Hyrel's M221 is a head's flow set-up)."""
+    hyrel = request.node.callspec.params["printer"] == "hyrel"
+    wanted = {"objects": {"toolhead": ["homed_axes"], "gcode_move": None}}
+
+    def script(http: httpx.Client, line: str) -> dict[str, object]:
+        answer = http.post("/printer/gcode/script", json={"script": line})
+        assert answer.status_code == 200, answer.text
+        status: dict[str, object] = http.post("/printer/objects/query", json=wanted).json()[
+            "result"
+        ]["status"]
+        return status
+
+    def homed(status: dict[str, object]) -> object:
+        return status["toolhead"]["homed_axes"]  # type: ignore[index]
+
+    with printer.client() as http:
+        first = http.post("/printer/objects/query", json=wanted).json()["result"]["status"]
+        assert homed(first) == ""
+        assert homed(script(http, "G28 X0 Y0")) == "xy"
+        assert homed(script(http, "G28 Z0")) == "xyz"
+        assert homed(script(http, "M84 S120")) == "xyz"  # Marlin's idle timeout only
+        assert homed(script(http, "M18 X")) == "yz"
+        assert homed(script(http, "M84")) == ""
+        # A job starts from nothing homed; on the RepRap link its own G28 is read as it
+        # runs (its ok says it ran), on Hyrel's not (its ack says only that it arrived).
+        assert homed(script(http, "G28 X0 Y0")) == "xy"
+        assert http.post("/v1/files", files={"file": ("j.gcode", gcode(50))}).status_code == 201
+        assert http.post("/printer/print/start", params={"filename": "j.gcode"}).status_code == 200
+        wait_for(
+            lambda: (
+                http.get("/printer/objects/query?print_stats=state").json()["result"]["status"][
+                    "print_stats"
+                ]["state"]
+                == "complete"
+            ),
+            what="the job's end",
+        )
+        after_job = http.post("/printer/objects/query", json=wanted).json()["result"]["status"]
+        assert homed(after_job) == ("" if hyrel else "xyz")
+        if not hyrel:
+            assert homed(script(http, "M84")) == ""
+            assert homed(script(http, "G28")) == "xyz"
+            moved = script(http, "M220 S150")["gcode_move"]
+            assert moved["speed_factor"] == 1.5  # type: ignore[index]
+            moved = script(http, "M221 S95")["gcode_move"]
+            assert moved["extrude_factor"] == 0.95  # type: ignore[index]

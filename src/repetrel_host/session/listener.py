@@ -42,6 +42,10 @@ from repetrel_host.session.settings import SessionSettings
 
 # The session's log, as before its parts had modules of their own.
 log = logging.getLogger("repetrel_host.session.printer")
+# The commands whose acknowledgement changes what the session keeps of the controller:
+# heater targets (M104, M140...: targets.py), homing, motors off and the speed and flow
+# factors (motion_state.py).
+CONFIRMED = ("M1", "G28", "M84", "M22")
 
 
 class ListenerSession(Protocol):
@@ -95,8 +99,9 @@ class ListenerSession(Protocol):
     ) -> None:
         """The controller reported its temperatures (in ``line``)."""
 
-    def target_confirmed(self, command: str) -> None:
-        """The controller acknowledged ``command``, which may set a heater's target."""
+    def command_confirmed(self, command: str) -> None:
+        """The controller acknowledged having run ``command``, which may set a heater's
+        target or the motion state (:data:`CONFIRMED` names the commands that may)."""
 
     def fail_commands(self, commands: Iterable[PendingCommand], error: HostError) -> None:
         """Those commands fail with ``error``."""
@@ -152,18 +157,18 @@ class PumpListener(Listener):
             session.pending_commands.remove(tag)
         if data:
             self._temperatures(data, f"ok {data}")
-        if tag.command.startswith("M1"):  # M104, M140...: read back before its caller
-            session.target_confirmed(tag.command)
+        if tag.command.lstrip()[:4].upper().startswith(CONFIRMED):  # before its caller hears
+            session.command_confirmed(tag.command)
         if not tag.future.done():
             tag.future.set_result(Reply(tag.command, tag.lines, f"ok {data}" if data else "ok"))
 
     def acknowledged(self, line: JobLine) -> None:
-        # A job's M104 too, where the ok says the line ran (RepRap's); Hyrel's ack says it
-        # arrived, and the line may wait there behind the moves before it.
-        if line.command.startswith("M1"):
+        # A job's M104 or G28 too, where the ok says the line ran (RepRap's); Hyrel's ack
+        # says it arrived, and the line may wait there behind the moves before it.
+        if line.command.startswith(CONFIRMED):
             pump = self.session.pump
             if pump is not None and not pump.dialect.acks_say_received:
-                self.session.target_confirmed(line.command)
+                self.session.command_confirmed(line.command)
 
     def commands_dropped(self, tags: list[object]) -> None:
         error = UsageError("the command was not sent: the job it waited behind was stopped")

@@ -71,6 +71,8 @@ from repetrel_host.session.machine_state import (
     MachineState,
     back_to_job,
 )
+from repetrel_host.session.motion_state import MotionState
+from repetrel_host.session.motion_state import after as motion_after
 from repetrel_host.session.owed import OwedSafeStop, delivered, unsafe_stop_error
 from repetrel_host.session.planning import (
     JobPlan,
@@ -131,6 +133,8 @@ class Printer:
         self._identity = Identity()  # who the controller said it is (its firmware)
         self.probe: ProbeKind | None = None
         self.temperatures: dict[str, tuple[float, float | None]] = {}
+        # The axes homed and the factors, as the commands the controller ran left them.
+        self.motion = MotionState()
         self._wire = Wire(self._loop)
         self._side = _SessionSide(self)
         self._listener = PumpListener(self._side)
@@ -901,6 +905,8 @@ class Printer:
             return
         previous, self.state = self.state, state
         self.state_reason = reason
+        if state in (State.CONNECTING, State.DISCONNECTED) or previous is State.READY:
+            self.motion = MotionState()  # the controller may be reset; a job moves it
         self._hub.publish(StateChanged(state, previous, reason))
         self._changed()
         waiters, self._state_waiters = self._state_waiters, []
@@ -1037,7 +1043,7 @@ class _SessionSide:
         self._printer.temperatures = readings
         self._printer._hub.publish(Temperatures(readings, line))
 
-    def target_confirmed(self, command: str) -> None:
+    def command_confirmed(self, command: str) -> None:
         printer = self._printer
         hyrel = None
         if printer.settings.protocol == "hyrel":
@@ -1046,6 +1052,10 @@ class _SessionSide:
         readings = with_target(printer.temperatures, command, printer._heaters.tool, hyrel)
         if readings is not None:
             self.temperatures_heard(readings, command)
+        moved = motion_after(printer.motion, command, hyrel is not None)
+        if moved is not None and moved != printer.motion:
+            printer.motion = moved
+            printer._changed()
 
     def fail_commands(self, commands: Iterable[PendingCommand], error: HostError) -> None:
         self._printer._fail_commands(commands, error)

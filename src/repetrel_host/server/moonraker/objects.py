@@ -18,6 +18,7 @@ from repetrel_host.server.moonraker.host import meminfo
 from repetrel_host.server.printers.heaters import heaters
 from repetrel_host.server.printers.service import PrinterService
 from repetrel_host.server.store import JobState
+from repetrel_host.session.motion_state import MotionState
 
 # The session's states as Klippy's: ready, startup, shutdown (what a lost link is to
 # Klipper), disconnected (the port closed on purpose: no Klippy to talk to).
@@ -272,8 +273,9 @@ class Objects:
         estimated = eventtime() - self.started
         if self.service.running is not None:
             self._print_time = estimated
+        limits = _printer_section(self.service)
         return {
-            "homed_axes": "",
+            "homed_axes": self._motion().homed,
             "axis_minimum": _ZEROS,
             "axis_maximum": _ZEROS,
             "print_time": self._print_time,
@@ -281,17 +283,18 @@ class Objects:
             "estimated_print_time": estimated,
             "extruder": "extruder",
             "position": _ZEROS,
-            "max_velocity": 0.0,
-            "max_accel": 0.0,
+            "max_velocity": limits["max_velocity"],
+            "max_accel": limits["max_accel"],
             "minimum_cruise_ratio": 0.5,
             "square_corner_velocity": 5.0,
         }
 
     def gcode_move(self) -> dict[str, Any]:
+        motion = self._motion()
         return {
-            "speed_factor": 1.0,
+            "speed_factor": motion.speed_factor,
             "speed": 0.0,
-            "extrude_factor": 1.0,
+            "extrude_factor": motion.extrude_factor,
             "absolute_coordinates": True,
             "absolute_extrude": True,
             "homing_origin": _ZEROS,
@@ -346,6 +349,11 @@ class Objects:
             "cputime": round(time.process_time(), 3),
             "memavail": meminfo("MemAvailable"),
         }
+
+    def _motion(self) -> MotionState:
+        """The axes homed and the factors, as the session keeps them."""
+        printer = self.service.printer
+        return printer.motion if printer is not None else MotionState()
 
     # --- heaters --------------------------------------------------------------------
 
