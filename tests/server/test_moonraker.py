@@ -143,8 +143,21 @@ def test_a_subscription_carries_only_what_changed_and_gcode_sets_the_fakes_heate
             assert said == "ok"
         # Every notification is JSON-RPC's, and the stats keep the socket fed.
         assert any(m == "notify_proc_stat_update" for m, _ in heard.notifications)
-        # No "ok" told for it: Klipper sends none (the ok is a serial console's).
+        # No "ok" told for it: Klipper sends none (the ok is a serial console's); what the
+        # console says is told (HELP's list comes as responses).
         assert ("notify_gcode_response", ["ok"]) not in heard.notifications
+        async with connected(client(server, heard)) as moonraker:
+            assert await moonraker.call_method("printer.gcode.script", script="HELP") == "ok"
+            await until(
+                lambda: (
+                    (
+                        "notify_gcode_response",
+                        ["// Available extended commands:"],
+                    )
+                    in heard.notifications
+                ),
+                "HELP's responses",
+            )
 
     asyncio.run(run())
     assert targets(fake)["T"] == 95
@@ -153,6 +166,7 @@ def test_a_subscription_carries_only_what_changed_and_gcode_sets_the_fakes_heate
     assert [e["message"] for e in store if e["type"] == "command"] == [
         "M104 S120",
         "SET_HEATER_TEMPERATURE HEATER=extruder TARGET=95",
+        "HELP",
     ]
 
 

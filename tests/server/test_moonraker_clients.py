@@ -75,7 +75,9 @@ def test_an_empty_json_body_is_no_arguments_as_fdm_monster_sends_it(
         stored = client.post("/server/files/upload", files={"file": ("cube.gcode", gcode(30))})
         assert stored.status_code == 201, stored.text
         for body in (b"", b" \r\n"):
-            listed = client.request("GET", "/server/files/directory?path=gcodes", headers=JSON)
+            listed = client.request(
+                "GET", "/server/files/directory?path=gcodes", content=body, headers=JSON
+            )
             assert listed.status_code == 200, listed.text
             names = [f["filename"] for f in listed.json()["result"]["files"]]
             assert "cube.gcode" in names

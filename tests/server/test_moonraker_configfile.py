@@ -62,9 +62,9 @@ def test_a_loadouts_heads_have_their_limits_and_a_head_without_one_marlins(
     assert printer.keys() >= PRINTER_KEYS
     assert printer["max_velocity"] > 0 and printer["max_accel"] > 0
     assert float(text["printer"]["max_accel"]) == printer["max_accel"]
-    for name in ("heater_bed", "heater_generic chamber"):
-        if name in settings:  # as the controller's reports show them
-            assert settings[name]["max_temp"] > settings[name]["min_temp"]
+    # The bed, as the controller's reports show it: Marlin's default maximum.
+    assert settings["heater_bed"]["max_temp"] == 150.0
+    assert settings["heater_bed"]["min_temp"] == 5.0
 
 
 def test_each_proc_stat_update_carries_the_machines_memory(

@@ -217,3 +217,36 @@ def test_a_start_after_an_interrupted_job_sends_the_owed_safe_stop_first(
     assert "(job 1 was interrupted: its part may be on the bed) released" in (
         restarted.stderr.read_text()
     )
+
+
+def test_a_start_while_the_queue_is_held_on_request_prints_and_the_queue_stays_held(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
+) -> None:
+    """A hold someone asked for (Moonraker's ``server.job_queue.pause``) is the queue's,
+    not the bed's: a start prints its file, as Moonraker's does whatever its queue, and the
+    queued job still waits for the release, even where jobs follow one another by
+    themselves (``--automatic-transition``)."""
+    fake = bench()
+    server = servers({"bench": fake.port}, "--automatic-transition")
+    with server.client() as http:
+        server.wait_ready("bench")
+        assert http.post("/server/job_queue/pause").status_code == 200
+        behind = http.post("/v1/printers/bench/jobs", files={"file": ("c.gcode", BEHIND)})
+        assert behind.status_code == 201, behind.text
+        assert print_stats(http)["message"] == (
+            "Queue held (held on request): release the queue to run the queued jobs"
+        )
+        upload(http, "a.gcode", FIRST)
+        assert moonraker_start(http, "a.gcode").status_code == 200
+        wait_for(
+            lambda: [j["state"] for j in jobs(http)] == ["queued", "completed"],
+            what="the file started printed, the queued job still waiting",
+        )
+        time.sleep(1.5)  # the queue's loop looks again each second
+        assert job_state(http, 1)["state"] == "queued"
+        assert http.get("/v1/printers/bench").json()["hold_reason"] == "held on request"
+        assert http.get("/server/job_queue/status").json()["result"]["queue_state"] == "paused"
+    fake.request("status")
+    ran = executed(fake.log_path)
+    assert ran[-len(commands_of(FIRST)) :] == commands_of(FIRST)
+    assert "G1 X90 F3000" not in ran

@@ -39,6 +39,39 @@ _WORD = re.compile(r"([A-Z])\s*(-?\d+(?:\.\d*)?)", re.IGNORECASE)
 
 
 @dataclass(frozen=True, slots=True)
+class TargetSet:
+    """What a temperature command sets: its heater's kind, its T word (None: it names
+    none) and the target."""
+
+    kind: str  # hotend, bed, chamber
+    index: int | None
+    target: float
+
+
+def target_set(command: str) -> TargetSet | None:
+    """What ``command`` sets (M104/M109 a hotend, M140/M190 the bed, M141/M191 the
+    chamber; the target is S, or Marlin's M109 R, which waits for cooling too); None for
+    any other command, and for a wait for the target set before (Hyrel's M109 T# without
+    S)."""
+    word = command_word(command)
+    heating = HEATING.get(word)
+    if heating is None:
+        return None
+    words = {letter.upper(): value for letter, value in _WORD.findall(command[len(word) :])}
+    target = words.get("S", words.get("R"))
+    if target is None:
+        return None
+    index = int(float(words["T"])) if "T" in words else None
+    return TargetSet(heating[0], index, float(target))
+
+
+def is_group(kind: str, index: int | None) -> bool:
+    """``index`` is one of Hyrel's group addresses of heaters of ``kind`` (every head, every
+    bed...)."""
+    return index in _GROUPS[kind]
+
+
+@dataclass(frozen=True, slots=True)
 class Heater:
     """A heater a command set: its kind, its T word (None: the default bed or chamber),
     the target it was set to last, and that command."""
@@ -84,27 +117,22 @@ class HeaterLog:
             if fan is not None and int(fan) > 0:
                 self.fans.add(int(fan))
             return
-        heating = HEATING.get(word)
-        if heating is None:
+        found = target_set(command)
+        if found is None:
             return
-        kind = heating[0]
+        kind, index, target = found.kind, found.index, found.target
         on_before = self._on_keys()
-        words = {letter.upper(): value for letter, value in _WORD.findall(command[len(word) :])}
-        target = words.get("S", words.get("R"))  # Marlin's M109 R waits for cooling too
-        if target is None:
-            return  # a wait for the target set before (Hyrel's M109 T# without S)
-        index = int(float(words["T"])) if "T" in words else None
         if index is None and kind == "hotend":
             index = self.tool
-        if index in _GROUPS[kind] and float(target) == 0 and confirmed:
+        if is_group(kind, index) and target == 0 and confirmed:
             for key, heater in list(self.heaters.items()):
                 if heater.kind == kind and heater.target > 0:
                     self.heaters[key] = Heater(kind, heater.index, 0.0, command)
         key = (kind, index)
         previous = self.heaters.get(key)
-        if not confirmed and previous is not None and float(target) < previous.target:
+        if not confirmed and previous is not None and target < previous.target:
             return
-        self.heaters[key] = Heater(kind, index, float(target), command)
+        self.heaters[key] = Heater(kind, index, target, command)
         if self.on_change is not None and self._on_keys() != on_before:
             self.on_change()
 

@@ -35,8 +35,7 @@ _READS = ("GET", "HEAD", "OPTIONS")
 # Moonraker lets it in there (FDM Monster's Klipper printers ask /api/version first).
 _MOONRAKER_OCTOPRINT = re.compile(
     r"GET (/printers/[^/]+)?/api/(version|server|currentuser|settings|job|printer"
-    r"|printerprofiles)|POST (/printers/[^/]+)?/api/(login|printer/command|files/local"
-    r"|files/moonraker/.+)"
+    r"|printerprofiles)|POST (/printers/[^/]+)?/api/(login|printer/command|files/local)"
 )
 # Set in a request's state when a browser says a page of another site sent it (origins.py).
 CROSS_SITE = "cross_site"

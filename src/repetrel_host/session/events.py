@@ -54,8 +54,9 @@ class StateChanged:
 
 @dataclass(frozen=True, slots=True)
 class Temperatures:
-    """A temperature report: ``readings`` maps a sensor (``T``, ``T1``, ``B``, ``C``) to
-    (current, target); the target is None when the report gave none."""
+    """A temperature report, or the readings with a target the controller acknowledged
+    (``text``: that command, targets.py): ``readings`` maps a sensor (``T``, ``T1``, ``B``,
+    ``C``) to (current, target); the target is None when the report gave none."""
 
     readings: dict[str, tuple[float, float | None]]
     text: str

@@ -18,6 +18,7 @@ from typing import Any, Protocol
 
 from repetrel_host.errors import ControllerError, HostError, JobError, UsageError
 from repetrel_host.gcode.commands import command_word
+from repetrel_host.gcode.heaters import HEATING
 from repetrel_host.protocol import replies
 from repetrel_host.protocol.events import DialectFailed, GreetingRetry, ProbeKind
 from repetrel_host.protocol.reports import parse_temperatures
@@ -35,6 +36,7 @@ from repetrel_host.session.events import (
     StopDelayed,
 )
 from repetrel_host.session.job import ActionKind, HostAction, JobLine
+from repetrel_host.session.motion_state import MOTION_WORDS
 from repetrel_host.session.owed import OwedSafeStop
 from repetrel_host.session.print_job import ActionHandler, PrintJob
 from repetrel_host.session.pump import JobRun, Listener, Pump
@@ -44,8 +46,17 @@ from repetrel_host.session.settings import SessionSettings
 log = logging.getLogger("repetrel_host.session.printer")
 # The commands whose acknowledgement changes what the session keeps of the controller:
 # heater targets (M104, M140...: targets.py), homing, motors off and the speed and flow
-# factors (motion_state.py).
-CONFIRMED = ("M1", "G28", "M84", "M22")
+# factors (motion_state.py); and their first letters and digits, a cheap first look at
+# each of a job's lines.
+CONFIRMED_WORDS = frozenset({*HEATING, *MOTION_WORDS})
+_MAY_BE_CONFIRMED = tuple(
+    {word[:2] for word in CONFIRMED_WORDS} | {w[:2].lower() for w in CONFIRMED_WORDS}
+)
+
+
+def confirms(command: str) -> bool:
+    """``command``'s acknowledgement may change what the session keeps (CONFIRMED_WORDS)."""
+    return command.startswith(_MAY_BE_CONFIRMED) and command_word(command) in CONFIRMED_WORDS
 
 
 class ListenerSession(Protocol):
@@ -101,7 +112,7 @@ class ListenerSession(Protocol):
 
     def command_confirmed(self, command: str) -> None:
         """The controller acknowledged having run ``command``, which may set a heater's
-        target or the motion state (:data:`CONFIRMED` names the commands that may)."""
+        target or the motion state (:data:`CONFIRMED_WORDS` names the commands that may)."""
 
     def fail_commands(self, commands: Iterable[PendingCommand], error: HostError) -> None:
         """Those commands fail with ``error``."""
@@ -157,7 +168,7 @@ class PumpListener(Listener):
             session.pending_commands.remove(tag)
         if data:
             self._temperatures(data, f"ok {data}")
-        if tag.command.lstrip()[:4].upper().startswith(CONFIRMED):  # before its caller hears
+        if confirms(tag.command):  # read back before its caller has the reply
             session.command_confirmed(tag.command)
         if not tag.future.done():
             tag.future.set_result(Reply(tag.command, tag.lines, f"ok {data}" if data else "ok"))
@@ -165,7 +176,7 @@ class PumpListener(Listener):
     def acknowledged(self, line: JobLine) -> None:
         # A job's M104 or G28 too, where the ok says the line ran (RepRap's); Hyrel's ack
         # says it arrived, and the line may wait there behind the moves before it.
-        if line.command.startswith(CONFIRMED):
+        if confirms(line.command):
             pump = self.session.pump
             if pump is not None and not pump.dialect.acks_say_received:
                 self.session.command_confirmed(line.command)

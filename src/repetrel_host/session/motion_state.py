@@ -24,6 +24,7 @@ from dataclasses import dataclass, replace
 from repetrel_host.gcode.commands import command_rest, command_word
 
 _AXES = "xyz"
+MOTION_WORDS = frozenset({"G28", "M84", "M18", "M220", "M221"})  # what after() reads
 _WORD = re.compile(r"([A-Z])\s*([-+]?(?:\d+\.?\d*|\.\d+))?")
 
 

@@ -313,7 +313,9 @@ class Printer:
                 self._paused_words.add(word)
             reply = await self._command(command, timeout)
             if word in HEATING and reply.ok and not self.temperatures:
-                await self._first_report(timeout)
+                # The target is set: a report that does not come only leaves it unread.
+                with contextlib.suppress(HostError, TimeoutError):
+                    await self._first_report(timeout)
             return reply
 
     async def _first_report(self, timeout: float | None) -> None:
@@ -321,14 +323,14 @@ class Printer:
         else M105), so that the target reads back as its command returns, as it does once
         there are readings."""
         pump = self._wire.pump
+        wait = min(timeout or FIRST_REPORT_WAIT, FIRST_REPORT_WAIT)
         if pump is None or not pump.dialect.request_status():
-            await self._command("M105", timeout, own=True)
+            await self._command("M105", wait, own=True)
             return
         self._wire.drive()
-        with contextlib.suppress(TimeoutError):
-            async with asyncio.timeout(min(timeout or FIRST_REPORT_WAIT, FIRST_REPORT_WAIT)):
-                while not self.temperatures:
-                    await asyncio.sleep(0.02)
+        async with asyncio.timeout(wait):
+            while not self.temperatures:
+                await asyncio.sleep(0.02)
 
     async def _command(self, command: str, timeout: float | None, own: bool = False) -> Reply:
         pending = self._send_command(command, own)

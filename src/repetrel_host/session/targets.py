@@ -13,16 +13,12 @@ from __future__ import annotations
 import re
 
 from repetrel_host.gcode import addressing
-from repetrel_host.gcode.commands import command_word
-from repetrel_host.gcode.heaters import HEATING
+from repetrel_host.gcode.heaters import is_group, target_set
 
 Readings = dict[str, tuple[float, float | None]]
 
-_WORD = re.compile(r"([A-Z])\s*(-?\d+(?:\.\d*)?)", re.IGNORECASE)
 _HOTEND = re.compile(r"T\d*")
-# Hyrel's group addresses that name every head (v5: all devices, yoke 1, every head that
-# is not a bed; v4: every head).
-_ALL_HEADS = {"v5": frozenset({40, 41, 47}), "v4": frozenset({100})}
+_SENSORS = {"bed": ["B"], "chamber": ["C"]}
 
 
 def with_target(
@@ -36,42 +32,32 @@ def with_target(
     is the tool's number). A hotend is read as ``T<n>`` and, where it is the active one
     (or the only one), as ``T``; only sensors already read are set, so that a reading
     never shows a target without its temperature."""
-    word = command_word(command)
-    heating = HEATING.get(word)
-    if heating is None or not readings:
+    found = target_set(command)
+    if found is None or not readings:
         return None
-    words = {letter.upper(): value for letter, value in _WORD.findall(command[len(word) :])}
-    given = words.get("S", words.get("R"))  # Marlin's M109 R waits for cooling too
-    if given is None:
-        return None  # a wait for the target set before (Hyrel's M109 T# without S)
-    target = float(given)
-    kind = heating[0]
-    if kind == "bed":
-        sensors = ["B"]
-    elif kind == "chamber":
-        sensors = ["C"]
+    if found.kind == "hotend":
+        sensors = _hotends(readings, found.index, tool, hyrel)
     else:
-        sensors = _hotends(readings, words.get("T"), tool, hyrel)
-    found = {sensor: readings[sensor] for sensor in sensors if sensor in readings}
-    if not found:
+        sensors = _SENSORS[found.kind]
+    read = [sensor for sensor in sensors if sensor in readings]
+    if not read:
         return None
     changed = dict(readings)
-    for sensor, (current, _) in found.items():
-        changed[sensor] = (current, target)
+    for sensor in read:
+        changed[sensor] = (readings[sensor][0], found.target)
     return changed
 
 
 def _hotends(
-    readings: Readings, address: str | None, tool: int, hyrel: addressing.Firmware | None
+    readings: Readings, address: int | None, tool: int, hyrel: addressing.Firmware | None
 ) -> list[str]:
     """The sensors of the hotend(s) a hotend command's T word names."""
     if address is None:
         index: int | None = tool
     else:
-        value = int(float(address))
-        if hyrel is not None and value in _ALL_HEADS[hyrel]:
+        if hyrel is not None and is_group("hotend", address):
             return [s for s in readings if _HOTEND.fullmatch(s)]  # a group: every head
-        index = _tool_of(value, hyrel)
+        index = _tool_of(address, hyrel)
         if index is None:
             return []  # a device that is not a head (a spindle, a laser, a bed)
     numbered = any(s[1:] and _HOTEND.fullmatch(s) for s in readings)

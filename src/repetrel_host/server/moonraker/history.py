@@ -52,7 +52,7 @@ def _filament(record: JobRecord) -> float:
 def history_job(server: PrintServer, record: JobRecord) -> dict[str, Any]:
     """A job as Moonraker's history shows it, with its file's metadata (Mainsail and Fluidd
     show its thumbnail and estimate in their history lists); reads the file's kept analysis,
-    so not on the event loop but for a job's own notification."""
+    so not on the event loop."""
     end = record.ended
     duration = ((end or time.time()) - record.started) if record.started else 0.0
     path = server.data_dir / record.file
@@ -216,6 +216,20 @@ def tell_job_changes(face: MoonrakerFace) -> None:
     """``notify_history_changed`` as a job starts and ends, ``notify_job_queue_changed`` as
     the queue gains, loses or starts a job and as it is held or released."""
     held: dict[str, bool] = {}
+    told: list[asyncio.Task[None]] = []  # the last, each after the one before
+
+    def tell_history(printer: str, action: str, record: JobRecord) -> None:
+        """``notify_history_changed``, its job made in a thread (its file's metadata is
+        read from disk), in the order the jobs changed."""
+        before = told[-1] if told else None
+
+        async def tell() -> None:
+            job = await asyncio.to_thread(history_job, face.server, record)
+            if before is not None:
+                await asyncio.gather(before, return_exceptions=True)
+            face.notify(printer, "notify_history_changed", [{"action": action, "job": job}])
+
+        told[:] = [asyncio.get_running_loop().create_task(tell())]
 
     def heard(event: ServerEvent) -> None:
         if isinstance(event, PrinterState) and event.printer is not None:
@@ -230,20 +244,12 @@ def tell_job_changes(face: MoonrakerFace) -> None:
         elif record.state is JobState.PRINTING and record.ended is None:
             _queue_changed(face, printer, "job_loaded")
             if not record.lines:  # its start (a resume says it again, with lines)
-                face.notify(
-                    printer,
-                    "notify_history_changed",
-                    [{"action": "added", "job": history_job(face.server, record)}],
-                )
+                tell_history(printer, "added", record)
         elif record.state in ENDED:
             if record.started is None:
                 _queue_changed(face, printer, "jobs_removed")
             else:
-                face.notify(
-                    printer,
-                    "notify_history_changed",
-                    [{"action": "finished", "job": history_job(face.server, record)}],
-                )
+                tell_history(printer, "finished", record)
 
     face.listeners.append(heard)
 

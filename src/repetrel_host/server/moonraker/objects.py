@@ -39,9 +39,11 @@ _ENDED = {
 }
 _ZEROS = [0.0, 0.0, 0.0, 0.0]
 
-# Klipper's G-code help for its extended commands the face does itself. G-code (G1, M104,
-# T0: a letter and a number) goes to the controller, Hyrel's own M-codes too; an extended
-# command not here is answered as Klipper answers one it does not have (``_unknown``).
+# Klipper's G-code help for its extended commands the face does itself (what HELP,
+# printer.gcode.help and the gcode object list). G-code (G1, T0, Hyrel's M-codes: a letter
+# and a number) goes to the controller, but M104/M109, whose T is Klipper's extruder
+# number here, and M112, which goes at once; an extended command not here is answered as
+# Klipper answers one it does not have.
 KLIPPER_COMMANDS = {
     "PAUSE": "Pauses the current print (the job's safe pause)",
     "RESUME": "Resumes the print from a pause",
@@ -53,7 +55,6 @@ KLIPPER_COMMANDS = {
     "FIRMWARE_RESTART": "Reconnect to the controller",
     "RESTART": "Reconnect to the controller",
     "HELP": "Report the list of available extended G-Code commands",
-    "M112": "Emergency stop",
 }
 
 # A heater's limits as Klipper's clients read them: the head library's ``max_temp``, else
@@ -328,7 +329,7 @@ class Objects:
             "pause_resume": {},
             "display_status": {},
         }
-        sections.update(_heater_sections(service, sections["printer"]["max_velocity"]))
+        sections.update(_heater_sections(service, sections["printer"]))
         return {
             "config": {name: {k: str(v) for k, v in s.items()} for name, s in sections.items()},
             "settings": sections,
@@ -379,8 +380,8 @@ class Objects:
 
 
 def _printer_section(service: PrinterService) -> dict[str, Any]:
-    """Klipper's ``[printer]``: the planner's limits the print time uses (the machine
-    profile's, else Marlin's defaults)."""
+    """Klipper's ``[printer]``: the planner's limits the print time uses (the loadout's
+    machine profile's, else Marlin's defaults)."""
     loadout = service.plan_loadout()
     limits = loadout.machine.planner_limits() if loadout is not None else DEFAULT_LIMITS
     return {
@@ -394,7 +395,7 @@ def _printer_section(service: PrinterService) -> dict[str, Any]:
     }
 
 
-def _heater_sections(service: PrinterService, max_velocity: float) -> dict[str, dict[str, Any]]:
+def _heater_sections(service: PrinterService, limits: dict[str, Any]) -> dict[str, dict[str, Any]]:
     """A section per heater, with the keys Klipper's clients read before they offer a
     target (Mainsail refuses one above ``max_temp``; KlipperScreen and Mobileraker fail
     without ``max_temp``, ``control``, ``filament_diameter``...)."""
@@ -425,10 +426,8 @@ def _heater_sections(service: PrinterService, max_velocity: float) -> dict[str, 
                 filament_diameter=FILAMENT,
                 max_extrude_cross_section=round(cross_section, 4),
                 max_extrude_only_distance=50.0,
-                max_extrude_only_velocity=round(max_velocity * cross_section / area, 3),
-                max_extrude_only_accel=round(
-                    DEFAULT_LIMITS.print_acceleration * cross_section / area, 3
-                ),
+                max_extrude_only_velocity=round(limits["max_velocity"] * cross_section / area, 3),
+                max_extrude_only_accel=round(limits["max_accel"] * cross_section / area, 3),
                 pressure_advance=0.0,
                 pressure_advance_smooth_time=0.04,
             )

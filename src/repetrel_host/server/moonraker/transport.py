@@ -89,7 +89,7 @@ def _key(scope: Any) -> str:
     headers = Headers(scope=scope)
     bearer = headers.get("authorization", "")
     key = headers.get("x-api-key") or headers.get("x-access-token")
-    if not key and bearer.startswith("Bearer "):
+    if not key and bearer[:7].lower() == "bearer ":  # as auth.given_key reads it
         key = bearer[7:].strip()
     if not key:
         key = dict(_query(scope)).get("access_token", "")

@@ -58,11 +58,12 @@ def start(
     commands: int,
     user: str | None,
     via: str,
+    first: bool = False,
 ) -> JobRecord:
-    """OctoPrint's start of a file (select's print, the job's start): the server's one
-    rule (:func:`jobs.start`: a held queue is released); 409 with why when every start
-    waits for a release."""
+    """OctoPrint's start of a file (select's print, the job's start, a restart): the
+    server's one rule (:func:`jobs.start`: a held queue is released); 409 with why when
+    every start waits for a release."""
     try:
-        return jobs.start(server, service, path, commands, user, via)
+        return jobs.start(server, service, path, commands, user, via, first)
     except Refused as exc:
         raise HTTPException(409, str(exc)) from None

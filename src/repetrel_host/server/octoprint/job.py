@@ -9,7 +9,7 @@ from typing import Any
 from fastapi import APIRouter, HTTPException, Request
 from fastapi.responses import Response
 
-from repetrel_host.server import jobs, uploads
+from repetrel_host.server import uploads
 from repetrel_host.server.auth import user_of
 from repetrel_host.server.octoprint import model
 from repetrel_host.server.octoprint.common import OctoPrintCommand, Printer, operational, start
@@ -98,5 +98,6 @@ async def _restart(server: PrintServer, service: PrinterService, user: str | Non
     path = service.data_dir / running.record.file
     await answered(service.control("cancel"))
     _, commands = await asyncio.to_thread(uploads.check, server, service.name, path)
-    jobs.to_front(server, jobs.queue(server, service.name, path, commands, user))
-    service.release()
+    # Started as on every face: the hold its cancel left is released, unless every start
+    # waits for a release (then 409, with why: the job was cancelled).
+    start(server, service, path, commands, user, "OctoPrint's restart", first=True)

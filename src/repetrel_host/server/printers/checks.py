@@ -4,6 +4,7 @@ passed is remembered as it is on disk, so that its job starts without a second p
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -17,6 +18,8 @@ from repetrel_host.session.planning import (
     plan_job,
 )
 from repetrel_host.session.workers import in_worker
+
+LOADOUT_RETRY = 10.0  # s: a loadout that could not be read is read again after this long
 
 
 def _fingerprint(plan: JobPlan) -> tuple[object, ...]:
@@ -42,6 +45,7 @@ class JobChecks:
         # a job is checked once, at its upload, not again (on the event loop) as it starts.
         self._checked: dict[Path, tuple[object, ...]] = {}
         self._loadout: tuple[Path, Loadout] | None = None
+        self._failed: tuple[Path, float] | None = None  # a loadout unread, until when
 
     def plan(self, path: Path) -> JobPlan:
         """What this printer would stream for ``path``: its machine, loadout and firmware."""
@@ -73,9 +77,13 @@ class JobChecks:
         if path is None:
             return None
         if self._loadout is None or self._loadout[0] != path:
+            failed = self._failed
+            if failed is not None and failed[0] == path and time.monotonic() < failed[1]:
+                return None  # not read again at each look of a client (four a second)
             try:
                 loadout = load_loadout(find_loadout(path), load_library(self.user))
             except rh.HostError:
+                self._failed = (path, time.monotonic() + LOADOUT_RETRY)
                 return None
             self._loadout = (path, loadout)
         return self._loadout[1]

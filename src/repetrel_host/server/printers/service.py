@@ -66,6 +66,7 @@ SERVER_STOPPED = "the server was stopped"
 STOPPED_SAFELY = "the server was stopped: the job was stopped with its safe stop, confirmed"
 COMMAND_TIMEOUT = 60.0
 CONTROLS = ("pause", "resume", "cancel", "hold", "release")
+ON_REQUEST = "held on request"  # a hold someone asked for, not a part on the bed
 
 
 class Refused(Exception):
@@ -105,6 +106,7 @@ class PrinterService:
         # Why the queue waits for a release (a part may be on the bed), kept in the store
         # across restarts; None while it runs.
         self.hold_reason: str | None = store.hold_reason(name)
+        self._hold_after_start: str | None = None  # a hold a start lifted for its job only
         self.selected: Path | None = None  # OctoPrint's selected file, started by "start"
         # The last job, kept after it ended (OctoPrint shows its file and final progress
         # until another file is selected), with how and when it ended.
@@ -230,6 +232,9 @@ class PrinterService:
         record = None
         if printer.state is rh.State.READY and not self.held:
             record = await self.queue.take(self.name)
+            if record is not None and self._hold_after_start is not None:
+                self._keep_hold(self._hold_after_start)
+                self._hold_after_start = None
         if record is None:
             self._wake.clear()
             with contextlib.suppress(TimeoutError):
@@ -643,7 +648,7 @@ class PrinterService:
         """The queue waits for a release."""
         return self.hold_reason is not None
 
-    def hold(self, reason: str = "held on request") -> None:
+    def hold(self, reason: str = ON_REQUEST) -> None:
         """Start no more jobs (the running one goes on) until :meth:`release`; the hold
         outlives a restart and a kill -9."""
         self._keep_hold(reason)
@@ -658,6 +663,8 @@ class PrinterService:
         """The hold as a client shows it: why, and what ends it ("" when not held)."""
         if self.hold_reason is None:
             return ""
+        if self.hold_reason == ON_REQUEST:
+            return f"Queue held ({ON_REQUEST}): release the queue to run the queued jobs"
         then = "release the queue" if self.start_waits_for_release else "start a print"
         return f"Queue held ({self.hold_reason}): clear the bed, then {then}"
 
@@ -677,6 +684,10 @@ class PrinterService:
         who = f"{by or 'a client'} starting {file} ({via})"
         log.info("printer %s: the queue's hold (%s) released by %s", self.name, reason, who)
         self.release()
+        if reason == ON_REQUEST:
+            # A hold someone asked for is the queue's, not the bed's: it holds the jobs
+            # that wait again as soon as the started one is taken.
+            self._hold_after_start = reason
         return True
 
     def release(self) -> None:
