@@ -23,6 +23,7 @@ from repetrel_host.gcode.thumbnails import read as read_thumbnail
 from repetrel_host.server import folders, jobs, uploads
 from repetrel_host.server.events import FileChanged, ServerEvent
 from repetrel_host.server.moonraker.face import MoonrakerFace
+from repetrel_host.server.moonraker.objects import busy
 from repetrel_host.server.moonraker.printer import start_print
 from repetrel_host.server.moonraker.rpc import Call, RpcError, method
 from repetrel_host.server.print_server import PrintServer
@@ -317,7 +318,7 @@ async def upload(call: Call) -> Response:
     location = stored.path.relative_to(call.server.files).as_posix()
     started = queued = False
     if call.flag("print"):
-        if service.running is not None or service.state in ("printing", "paused"):
+        if busy(service):
             # Busy: queued to run after the job (Moonraker with queue_gcode_uploads; the
             # OctoPrint face queues it too). 201 still: the upload is done, and a client's
             # retry would store it again. A file the job prints is never replaced: the

@@ -120,8 +120,13 @@ def heater_names(service: PrinterService) -> dict[str, str]:
     return names
 
 
+def busy(service: PrinterService) -> bool:
+    """A job runs, or the session streams one the server has yet to take on."""
+    return service.running is not None or service.state in ("printing", "paused")
+
+
 def _shown_state(service: PrinterService) -> str:
-    if service.running is not None or service.state in ("printing", "paused"):
+    if busy(service):
         if service.state == "paused" or service.phase == "pausing":
             return "paused"
         return "printing"

@@ -23,6 +23,7 @@ from repetrel_host.protocol.reports import parse_temperatures
 from repetrel_host.server import jobs, uploads
 from repetrel_host.server.moonraker.objects import (
     KLIPPER_COMMANDS,
+    busy,
     eventtime,
     heater_names,
     klippy_state,
@@ -155,7 +156,7 @@ async def start_print(call: Call, filename: str, via: str = "printer.print.start
     start says the bed is clear: a held queue is released (the server's one rule,
     ``jobs.start``), unless every start waits for a release."""
     service, server = call.service, call.server
-    if service.running is not None or service.state in ("printing", "paused"):
+    if busy(service):
         raise RpcError(400, "Printer is busy: cancel the job running first")
     try:
         path = uploads.uploaded(server, filename)
@@ -195,7 +196,7 @@ def _reset_file(call: Call) -> None:
     no file (klippy/extras/virtual_sdcard.py). Klipper would stop a print running; here a
     print stops by its cancel (its safe stop), so the reset waits for one."""
     service = call.service
-    if service.running is not None or service.state in ("printing", "paused"):
+    if busy(service):
         _fail(call, "SDCARD_RESET_FILE cannot be run while printing: cancel the print first")
     service.select(None)
 
@@ -212,11 +213,17 @@ async def reconnect(service: PrinterService) -> None:
 _ARGS = re.compile(r"([A-Z_]+|[A-Z*])")
 
 
-def _command(line: str) -> tuple[str, bool]:
-    """The line's command as Klipper names it, and whether it is an extended one."""
+def _words(line: str) -> list[str]:
+    """The line split as Klipper splits it: "", then each word's letters and its value."""
     parts = _ARGS.split(line.split(";", 1)[0].upper())
     if "".join(parts[:2]) == "N":  # a line number first: N10 G1 is G1
         parts = ["", *parts[3:]]
+    return parts
+
+
+def _command(parts: list[str]) -> tuple[str, bool]:
+    """The command of a line's words as Klipper names it, and whether it is an extended
+    one."""
     return "".join(parts[:3]).strip(), len(parts) > 1 and len(parts[1]) > 1
 
 
@@ -225,13 +232,14 @@ async def run_line(call: Call, line: str) -> None:
     controller, its reply lines told as responses."""
     face, service = call.face, call.service
     face.gcode_command(service.name, line)
-    name, extended = _command(line)
+    parts = _words(line)
+    name, extended = _command(parts)
     if extended:
         word = name.split()[0]
         rest = line[line.upper().index(word) + len(word) :]
         await _extended(call, name, word, _params(rest))
     elif name in ("M104", "M109"):
-        await _set_extruder(call, name, line)
+        await _set_extruder(call, name, parts)
     else:
         await _send(call, line)
 
@@ -330,12 +338,11 @@ def m105_answer(service: PrinterService) -> str:
 _GCODE_IDS = {"extruder": "T0", "heater_bed": "B", "heater_generic chamber": "C"}
 
 
-async def _set_extruder(call: Call, word: str, line: str) -> None:
+async def _set_extruder(call: Call, word: str, parts: list[str]) -> None:
     """Klipper's M104/M109 (klippy/kinematics/extruder.py): ``T<n>`` is its extruder n
     (``extruder``, ``extruder1``...), no T the active one (the first here); set as
     SET_HEATER_TEMPERATURE sets it, by the head's own command (on Hyrel's link its
     address), so that a client's ``M104 T1`` sets the head it shows as ``extruder1``."""
-    parts = _ARGS.split(line.split(";", 1)[0].upper())
     params = {parts[i]: parts[i + 1].strip() for i in range(1, len(parts) - 1, 2)}
     target, index = params.get("S") or "0", params.get("T") or "0"
     if not index.isdigit():
