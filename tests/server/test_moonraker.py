@@ -81,16 +81,6 @@ def klipperctl(server: Server, *args: str, key: str = KEY, url: str | None = Non
     return json.loads(done.stdout) if "--json" in args else done.stdout
 
 
-@pytest.fixture
-def printer(
-    bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
-) -> tuple[Server, BuiltInFake]:
-    fake = bench()
-    server = servers({"bench": fake.port})
-    server.wait_ready("bench")
-    return server, fake
-
-
 def test_home_assistants_library_connects_with_the_key_and_reads_the_printer(
     printer: tuple[Server, BuiltInFake],
 ) -> None:

@@ -36,16 +36,6 @@ def ran(fake: BuiltInFake, line: str) -> bool:
 
 
 @pytest.fixture
-def printer(
-    bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
-) -> tuple[Server, BuiltInFake]:
-    fake = bench()
-    server = servers({"bench": fake.port})
-    server.wait_ready("bench")
-    return server, fake
-
-
-@pytest.fixture
 def trusting(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server], tmp_path: Path
 ) -> tuple[Server, BuiltInFake]:

@@ -153,13 +153,3 @@ def test_a_cancel_with_no_job_is_ok_as_in_klipper(printer: tuple[Server, BuiltIn
         assert script(http, "CANCEL_PRINT").status_code == 200
         assert responses(http).count("// action:cancel") == 2
         assert print_stats(http)["state"] == "standby"
-
-
-@pytest.fixture
-def printer(
-    bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
-) -> tuple[Server, BuiltInFake]:
-    fake = bench()
-    server = servers({"bench": fake.port})
-    server.wait_ready("bench")
-    return server, fake
