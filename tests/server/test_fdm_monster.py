@@ -257,12 +257,17 @@ def drive(manager: Manager, url: str, ran: Callable[[], list[str]]) -> Checks:
 
     printing = "it shows printing"
     job = f"/printer/{number}/job"
+    # FDM Monster merges each status update into the objects it holds one level deep: an
+    # update of print_stats' durations (they move while a job runs or waits, on Klipper
+    # too) drops its state, and its flags read false until its next full query (every
+    # 15 s). A flag of a running job is looked for over two such queries.
+    polls = 35
     if button("a print is started", f"/printer-files/{number}/print", {"filePath": "long.gcode"}):
-        checks.check(printing, lambda: flags()["printing"], needs=online)
+        checks.check(printing, lambda: flags()["printing"], polls, needs=online)
     if button("pause is answered", f"{job}/pause"):
-        checks.check("it shows paused", lambda: flags()["paused"], needs=printing)
+        checks.check("it shows paused", lambda: flags()["paused"], polls, needs=printing)
     if button("resume is answered", f"{job}/resume"):
-        checks.check("it shows printing again", lambda: flags()["printing"], needs=printing)
+        checks.check("it shows printing again", lambda: flags()["printing"], polls, printing)
     if button("cancel is answered", f"{job}/cancel"):
         checks.check("it shows cancelled", lambda: state() == "cancelled", needs=printing)
     if button(
