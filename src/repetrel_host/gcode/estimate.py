@@ -152,6 +152,7 @@ class Estimate:
     limits_from: str
     heating: float = 0.0  # of the seconds, those spent waiting for heaters
     tool_changes: int = 0
+    tool_change_seconds: float = 0.0  # of the seconds, the tool changes' own pauses
 
     @property
     def moving(self) -> float:
@@ -299,7 +300,12 @@ class Estimator:
         """Every block done: the estimate."""
         self.flush()
         return Estimate(
-            self.seconds, self.moves, self.limits.source, self.heating, self.tool_changes
+            self.seconds,
+            self.moves,
+            self.limits.source,
+            self.heating,
+            self.tool_changes,
+            self.tool_changes * self.limits.tool_change,
         )
 
     def flush(self) -> None:

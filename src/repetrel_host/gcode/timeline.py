@@ -34,6 +34,25 @@ PACE_JOBS = 5  # a printer's pace: the median of its last jobs' (one odd job doe
 SETTLE = 30.0
 # A heater this close below its target has reached it (Marlin's M109 waits within a degree).
 REACHED = 1.0
+# A rise of the time left smaller than this (seconds, or this share of it) is not shown: it
+# holds until the run falls that far behind (a stretch's noise, a plan replaced by a finer one).
+RISE_SECONDS = 5.0
+RISE_SHARE = 0.02
+
+
+@dataclass(frozen=True, slots=True)
+class PlannedTime:
+    """A job's planned time, split: its moves (and dwells), its heat waits, its tool
+    changes' pauses (seconds, as the plan gives them)."""
+
+    moving: float
+    heating: float
+    tool_changes: float = 0.0
+
+    def total(self, pace: float = 1.0) -> float:
+        """The whole job at ``pace`` (actual over planned moving time; heat waits as
+        planned)."""
+        return (self.moving + self.tool_changes) * pace + self.heating
 
 
 def learned_pace(paces: Iterable[float]) -> float:
@@ -53,6 +72,7 @@ class Timeline:
     heating: list[float] = field(default_factory=list)  # of the seconds, the heat waits'
     total: float = 0.0
     total_heating: float = 0.0
+    tool_changes: float = 0.0  # of the total, the tool changes' pauses (the estimate's)
     limits_from: str = ""  # where the plan's limits came from (the estimate's)
     moves: list[int] = field(default_factory=list)  # moves (and dwells) planned by each point
     total_moves: int = 0
@@ -60,6 +80,12 @@ class Timeline:
     wait_moves: list[int] = field(default_factory=list)  # the moves planned before each
     _seen: tuple[int, float, float, int] | None = None  # the last point told, maybe not kept
     _heating: float = 0.0  # the heat waits' seconds so far, as last told
+
+    @property
+    def planned(self) -> PlannedTime:
+        """The whole plan, split."""
+        moving = self.total - self.total_heating - self.tool_changes
+        return PlannedTime(max(0.0, moving), self.total_heating, self.tool_changes)
 
     def heated(self, wait: HeatWait) -> None:
         """A heat wait is planned (the estimator's ``on_heat``)."""
@@ -189,6 +215,7 @@ class TimeLeft:
     # Every line acknowledged: when, and the time left then (the controller runs what it
     # holds, and no acknowledgement says how far it got).
     _drained: tuple[float, float] | None = None
+    _shown: float | None = None  # the time left given last (see RISE_SECONDS)
 
     def observe(self, line: int, now: float, moving: bool = True, waiting: bool = False) -> None:
         """The controller acknowledged up to ``line`` by ``now``. ``moving``: False while the
@@ -264,15 +291,28 @@ class TimeLeft:
         the controller's latest reports ({"T0": (current, target)}, as the plan names
         them); the wait at hand then counts from where its heater is, and a wait is not
         watched as motion. Once every line is acknowledged, what the controller holds is
-        counted down by the clock (no line moves then to tell the pace by)."""
+        counted down by the clock (no line moves then to tell the pace by). A rise smaller
+        than :data:`RISE_SECONDS` (or :data:`RISE_SHARE` of it) is held back: the figure
+        given stays until the run is that far behind."""
         if self.timeline.lines and line >= self.timeline.lines[-1] and moving:
             if self._drained is None:
                 self._drained = (now, self._remainder(line, now, moving, heaters))
             self._last = (line, now)
-            since, left = self._drained
-            return max(0.0, left - (now - since))
-        self._drained = None
-        return self._remainder(line, now, moving, heaters)
+            since, drained = self._drained
+            left = max(0.0, drained - (now - since))
+        else:
+            self._drained = None
+            left = self._remainder(line, now, moving, heaters)
+        shown = self._shown
+        if shown is not None and shown < left < shown + max(RISE_SECONDS, RISE_SHARE * left):
+            left = shown
+        self._shown = left
+        return left
+
+    @property
+    def whole(self) -> float:
+        """The whole job's seconds at :attr:`pace` (its heat waits as planned)."""
+        return self.timeline.planned.total(self.pace)
 
     def _remainder(
         self,

@@ -129,7 +129,8 @@ class JobPlan:
     def timeline(self, temperatures: dict[str, float] | None = None) -> Timeline:
         """The job's planned time at its lines (:meth:`print_time`'s)."""
         timeline = Timeline()
-        timeline.limits_from = self.print_time(timeline, temperatures).limits_from
+        found = self.print_time(timeline, temperatures)
+        timeline.limits_from, timeline.tool_changes = found.limits_from, found.tool_change_seconds
         return timeline
 
     def linter(self, streaming: bool = False) -> Linter:

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Protocol
 
 from repetrel_host.errors import HostError
-from repetrel_host.gcode.timeline import TimeLeft, Timeline
+from repetrel_host.gcode.timeline import PlannedTime, TimeLeft, Timeline
 from repetrel_host.protocol.reports import JobReport, ReportReader
 from repetrel_host.session import history as print_history
 from repetrel_host.session.events import Done, Failed, JobEvent, Progress, Report, State
@@ -34,8 +34,9 @@ PROGRESS_INTERVAL = 0.1
 # layers 7 % short; 19.5 came within 0.2 %). Hyrel's controller holds up to 8 KB.
 MARLIN_HELD_MOVES = 19.5
 HYREL_HELD_BYTES = 8192
-# Seconds a job runs before its time is planned (see PrintJob.follow_time).
-PLAN_AFTER = 3.0
+# Seconds a job runs before its time is planned (see PrintJob.follow_time): at once, in a
+# worker, so that its time left is known from its first seconds (its heat-up, mostly).
+PLAN_AFTER = 0.0
 # Seconds between looks at the line acknowledged, for the pace a job keeps.
 PACE_INTERVAL = 0.25
 # Events a late subscriber to a job still gets.
@@ -184,6 +185,20 @@ class PrintJob:
         """The pace this run kept: actual over planned moving time (None: not planned, or
         too little of it watched; see :attr:`TimeLeft.measured`)."""
         return self.following.measured if self.following is not None else None
+
+    @property
+    def planned_time(self) -> PlannedTime | None:
+        """The job's plan, split into moving, heating and tool changes (None before
+        :meth:`follow_time` made it)."""
+        following = self.following
+        return following.timeline.planned if following is not None else None
+
+    @property
+    def expected_seconds(self) -> float | None:
+        """The whole job's seconds at the pace it keeps (the printer's past jobs' until it
+        was watched): its plan's moving part at the pace, its heat waits as planned."""
+        following = self.following
+        return following.whole if following is not None else None
 
     def time_left(self, now: float | None = None) -> float | None:
         """Seconds the job has left at the line acknowledged last: the plan's remainder at
