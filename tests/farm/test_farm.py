@@ -587,7 +587,8 @@ def test_a_job_gets_its_estimate_and_a_printing_printer_its_free_time(
     (job_id,) = answer.json()["jobs"]
     # Planned after the submit answered, by the node that received the file.
     job = farm.wait(lambda: (j := farm.jobs()[job_id])["estimated_time"] is not None and j)
-    assert job["estimated_time"] == pytest.approx(planned.planned_seconds)
+    # Planned as a1 plans its jobs: its loadout's header first (a few commands, no motion).
+    assert job["estimated_time"] == pytest.approx(planned.planned_seconds, abs=0.01)
     assert job["estimate_of"] == "file"
     # Printing: a1 is free at its job's expected end.
     farm.wait(lambda: _printing(farm, job_id), what="the job to stream")

@@ -47,10 +47,10 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, BinaryIO
 
-from repetrel_host.gcode.estimate import estimate_file
+from repetrel_host.gcode.estimate import PlanSettings, estimate_file
 from repetrel_host.gcode.marks import Layer, SlicerMarks
 from repetrel_host.gcode.thumbnails import Thumbnail
-from repetrel_host.gcode.timeline import Timeline
+from repetrel_host.gcode.timeline import PlannedTime, Timeline
 
 _CHUNK = 1 << 20
 DEFAULT_DIAMETER = 1.75  # mm, where the file names none
@@ -143,6 +143,9 @@ class FileSummary:
     # The planned seconds at the end of some lines, in order (:data:`PLANNED_POINTS` at
     # most; none in a summary kept before they were).
     planned_points: tuple[tuple[int, float], ...] = ()
+    # Of the planned seconds, the heat waits' (from room temperature) and the tool changes'.
+    planned_heating: float = 0.0
+    planned_tool_changes: float = 0.0
     filament: dict[str, Filament] = field(default_factory=dict)  # by tool: "tool0"...
     printing_area: Box | None = None  # of the extruding moves
     travel_area: Box | None = None  # of every move
@@ -150,17 +153,19 @@ class FileSummary:
     slicer: str | None = None  # "PrusaSlicer 2.5.0"
     thumbnails: tuple[Thumbnail, ...] = ()  # the slicer's preview images, where they lie
 
-    def gcode_analysis(self) -> dict[str, Any]:
+    def gcode_analysis(self, pace: float = 1.0) -> dict[str, Any]:
         """OctoPrint's ``gcodeAnalysis``. ``estimatedPrintTime`` is the time from the moves
-        (what OctoPrint's own analysis gives there), left out when the file has none; the
+        (what OctoPrint's own analysis gives there) at ``pace`` (a printer's: its moving part
+        scaled, see :class:`PlannedTime`), left out when the file has none; the
         slicer's figure is beside it as ``slicerEstimatedPrintTime`` (a key OctoPrint's
         clients ignore), when the file states one. A file with no extruding move has
         OctoPrint's empty result (zeros)."""
         empty = Box(0, 0, 0, 0, 0, 0)
         printing, travel = self.printing_area or empty, self.travel_area or empty
         found: dict[str, Any] = {}
-        if self.planned_seconds is not None:
-            found["estimatedPrintTime"] = self.planned_seconds
+        planned = self.planned
+        if planned is not None:
+            found["estimatedPrintTime"] = planned.total(pace)
         if self.slicer_seconds is not None:
             found["slicerEstimatedPrintTime"] = self.slicer_seconds
         found["filament"] = {
@@ -175,22 +180,35 @@ class FileSummary:
             found["_empty"] = True
         return found
 
-    def as_json(self) -> dict[str, Any]:
-        """OctoPrint's ``gcodeAnalysis`` with both estimates always present (None when
-        unknown) and where the limits of ours came from, the layer count, the slicer's name
-        and the embedded thumbnails' formats and sizes."""
+    def as_json(self, pace: float = 1.0) -> dict[str, Any]:
+        """OctoPrint's ``gcodeAnalysis`` (at ``pace``) with both estimates always present
+        (None when unknown), the plan split and the pace, where the limits of ours came
+        from, the layer count, the slicer's name and the thumbnails' formats and sizes."""
         thumbnails = [
             {"format": t.format, "width": t.width, "height": t.height} for t in self.thumbnails
         ]
+        planned = self.planned
         return {
-            **self.gcode_analysis(),
-            "estimatedPrintTime": self.planned_seconds,
+            **self.gcode_analysis(pace),
+            "estimatedPrintTime": planned.total(pace) if planned else None,
+            "estimatedMoving": round(planned.moving, 2) if planned else None,
+            "estimatedHeating": round(planned.heating, 2) if planned else None,
+            "estimatedToolChanges": round(planned.tool_changes, 2) if planned else None,
+            "estimatedPace": round(pace, 4),
             "estimatedPrintTimeLimitsFrom": self.planned_limits_from,
             "slicerEstimatedPrintTime": self.slicer_seconds,
             "layers": self.layers,
             "slicer": self.slicer,
             "thumbnails": thumbnails,
         }
+
+    @property
+    def planned(self) -> PlannedTime | None:
+        """The planned time, split (None: not planned)."""
+        if self.planned_seconds is None:
+            return None
+        heating, changes = self.planned_heating, self.planned_tool_changes
+        return PlannedTime(max(0.0, self.planned_seconds - heating - changes), heating, changes)
 
     def planned_after(self, line: int) -> float | None:
         """The planned seconds after ``line`` (what a job that starts at the next line
@@ -234,6 +252,8 @@ class FileSummary:
             planned_points=tuple(
                 (int(line), float(at)) for line, at in data.get("planned_points", ())
             ),
+            planned_heating=float(data.get("planned_heating", 0.0)),
+            planned_tool_changes=float(data.get("planned_tool_changes", 0.0)),
             filament={
                 tool: Filament(float(used["length"]), float(used["volume"]))
                 for tool, used in data["filament"].items()
@@ -266,6 +286,7 @@ def analyse(
     moves: bool = True,
     *,
     planned: bool = False,
+    settings: PlanSettings | None = None,
 ) -> Analysis:
     """``path`` read once (:class:`OSError` when it cannot be). ``until_line``: read no
     further than the piece holding that line (what a recovery needs of a big file; a summary
@@ -275,14 +296,22 @@ def analyse(
     ``planned`` (with a summary of the whole file): the summary also carries the print time
     the moves take, read again by :func:`~repetrel_host.gcode.estimate.estimate_file`
     (several times the pass's own cost) with the file's limits, else Marlin's defaults (a
-    file is not a machine's: a job's own plan has its machine's); None for a file without
-    moves."""
+    file is not a machine's: a job's own plan has its machine's), or as ``settings`` say
+    (the printer's: then the summary's time is the one its jobs plan, from room
+    temperature); None for a file without moves."""
     with path.open("rb") as handle:
         found = scan(chunks(handle), until_line, moves)
     if planned and found.summary is not None and until_line is None:
         timeline = Timeline()
         try:
-            estimate = estimate_file(path, on_time=timeline.add)
+            settings = settings or PlanSettings()
+            estimate = estimate_file(
+                path,
+                settings.limits,
+                hyrel=settings.hyrel,
+                first=settings.first,
+                on_time=timeline.add,
+            )
         except ArithmeticError:  # numbers past a float's range: the rest of it stands
             return found
         if estimate.moves and math.isfinite(estimate.seconds):  # JSON has no infinity
@@ -292,6 +321,8 @@ def analyse(
                 planned_seconds=estimate.seconds,
                 planned_limits_from=estimate.limits_from,
                 planned_points=few_points(timeline),
+                planned_heating=estimate.heating,
+                planned_tool_changes=estimate.tool_change_seconds,
             )
     return found
 

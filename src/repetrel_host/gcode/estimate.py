@@ -671,6 +671,17 @@ def file_limits(path: Path, machine: Limits | None = None) -> Limits:
     return slicer_limits(comments, base) or base
 
 
+@dataclass(frozen=True, slots=True)
+class PlanSettings:
+    """How a file is planned: the machine's limits (None: the defaults), Hyrel's code chart
+    or not, and the commands that run before it (a job's header). One printer plans a file
+    the same way for its list, its check and its job; only where its heaters start differs."""
+
+    limits: Limits | None = None
+    hyrel: bool = False
+    first: tuple[str, ...] = ()
+
+
 def estimate_file(
     path: Path,
     machine: Limits | None = None,

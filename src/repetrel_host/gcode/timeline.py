@@ -40,6 +40,14 @@ RISE_SECONDS = 5.0
 RISE_SHARE = 0.02
 
 
+def no_small_rise(shown: float | None, left: float) -> float:
+    """The time left to give now: ``left``, or ``shown`` (the one given last) when ``left``
+    is above it by less than :data:`RISE_SECONDS` or :data:`RISE_SHARE` of it."""
+    if shown is not None and shown < left < shown + max(RISE_SECONDS, RISE_SHARE * left):
+        return shown
+    return left
+
+
 @dataclass(frozen=True, slots=True)
 class PlannedTime:
     """A job's planned time, split: its moves (and dwells), its heat waits, its tool
@@ -303,10 +311,7 @@ class TimeLeft:
         else:
             self._drained = None
             left = self._remainder(line, now, moving, heaters)
-        shown = self._shown
-        if shown is not None and shown < left < shown + max(RISE_SECONDS, RISE_SHARE * left):
-            left = shown
-        self._shown = left
+        left = self._shown = no_small_rise(self._shown, left)
         return left
 
     @property

@@ -22,12 +22,14 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from repetrel_host.errors import HostError
 from repetrel_host.gcode.analysis import Analysis, FileSummary, analyse
+from repetrel_host.gcode.estimate import PlanSettings
 from repetrel_host.session.workers import in_worker
 
 log = logging.getLogger("repetrel_host.server")
 
-FORMAT = 3  # of the files kept: another number (a changed analysis) makes them stale
+FORMAT = 4  # of the files kept: another number (a changed analysis) makes them stale
 Stamp = tuple[int, int]  # a file's size and modification time (ns)
 
 
@@ -45,6 +47,9 @@ class Analyses:
         self.folder = folder
         self.root = root
         self.on_made = on_made  # told of each file analysed in the background (its thread)
+        # How a file's print time is planned: as the server's printer plans its jobs (its
+        # machine, header, firmware), so that a list and a job give the same figure.
+        self.plan_as: Callable[[Path], PlanSettings] | None = None
         self._known: dict[Path, tuple[Stamp, FileSummary]] = {}
         self._waiting: queue.SimpleQueue[Path] = queue.SimpleQueue()
         self._queued: set[Path] = set()
@@ -99,10 +104,20 @@ class Analyses:
         start does without: the job plans its own). :class:`OSError` when it cannot be
         read."""
         before = stamp(path)
-        found = in_worker(analyse, path, moves=moves, planned=moves and planned)
+        settings = self._settings(path) if moves and planned else None
+        found = in_worker(analyse, path, moves=moves, planned=moves and planned, settings=settings)
         if found.summary is not None and stamp(path) == before:  # not changed meanwhile
             self.keep(path, found.summary, before)
         return found
+
+    def _settings(self, path: Path) -> PlanSettings | None:
+        if self.plan_as is None:
+            return None
+        try:
+            return self.plan_as(path)
+        except HostError as exc:  # a loadout unreadable now: the defaults, said in the log
+            log.warning("%s is planned with the defaults: %s", path.name, exc)
+            return None
 
     def keep(self, path: Path, summary: FileSummary, made_from: Stamp) -> None:
         """``summary`` is that of ``path`` while its size and time are ``made_from``."""
@@ -176,7 +191,7 @@ def unplanned(summary: FileSummary) -> bool:
     return summary.planned_seconds is None and summary.travel_area is not None
 
 
-def describe(summary: FileSummary | None) -> dict[str, Any] | None:
+def describe(summary: FileSummary | None, pace: float = 1.0) -> dict[str, Any] | None:
     """The native API's ``analysis`` of a file: OctoPrint's, with layers and slicer, and
     both print times always there."""
-    return summary.as_json() if summary is not None else None
+    return summary.as_json(pace) if summary is not None else None

@@ -28,6 +28,7 @@ from fastapi.responses import (
 )
 from pydantic import BaseModel, Field
 
+from repetrel_host.gcode.timeline import PlannedTime
 from repetrel_host.server import folders as shared_folders
 from repetrel_host.server import jobs, store, timelapse, uploads
 from repetrel_host.server.access import OWNER
@@ -101,12 +102,30 @@ def _running_json(service: PrinterService) -> dict[str, Any]:
             for k, v in progress.as_json().items()
             if k not in ("type", "printer", "job", "free_at")  # the printer's, not the job's
         },
-        # The whole job's print time from its moves (None until its file is read), and the
-        # slicer's own figure beside it.
-        "estimated_time": running.planned[0],
+        # The whole job's time (None until its file is read or planned): its plan at the
+        # pace it is given at, the plan split, and the slicer's own figure beside it.
+        **job_time(running.planned[0], running.pace),
         "estimated_time_limits_from": running.planned[1],
         "slicer_estimated_time": running.slicer_seconds,
     }
+
+
+def job_time(planned: PlannedTime | None, pace: float) -> dict[str, Any]:
+    """A job's time as /v1 gives it: ``estimated_time`` (the whole at ``pace``) and the plan
+    split (``estimated_moving``, ``estimated_heating``, ``estimated_tool_changes``: the
+    plan's own seconds), with the pace; None each when not planned."""
+    if planned is None:
+        return dict.fromkeys(TIME_FIELDS) | {"estimated_pace": round(pace, 4)}
+    return {
+        "estimated_time": planned.total(pace),
+        "estimated_moving": planned.moving,
+        "estimated_heating": planned.heating,
+        "estimated_tool_changes": planned.tool_changes,
+        "estimated_pace": round(pace, 4),
+    }
+
+
+TIME_FIELDS = ("estimated_time", "estimated_moving", "estimated_heating", "estimated_tool_changes")
 
 
 async def _jobs_json(server: PrintServer, name: str) -> list[dict[str, Any]]:
@@ -302,12 +321,11 @@ def router() -> APIRouter:
         service = server.service(printer)
         found = await asyncio.to_thread(uploads.layer_json, server, location, number, moves)
         running = service.running
-        job = None
-        if running is not None and server.data_dir / running.record.file == (
+        if running is not None and server.data_dir / running.record.file != (
             uploads.uploaded(server, location)
         ):
-            job = running.job  # the printer prints this file: when it prints the layer
-        return {**found, **layer_times(job, found["first_line"], found["last_line"])}
+            running = None  # it prints another file: this one's layers are not printed now
+        return {**found, **layer_times(running, found["first_line"], found["last_line"])}
 
     @router.get("/files/{location:path}/thumbnail")
     async def file_thumbnail(request: Request, location: str) -> Response:

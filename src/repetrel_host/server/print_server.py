@@ -68,6 +68,9 @@ class PrintServer:
             )
             for name, config in printers.items()
         }
+        first = next(iter(self.services.values()), None)
+        if first is not None:  # files are planned as the first printer plans its jobs
+            self.analyses.plan_as = lambda path: first.checks.plan(path).plan_settings
         for service in self.services.values():
             service.automatic_transition = automatic_transition
             service.start_waits_for_release = start_waits_for_release
@@ -158,6 +161,12 @@ class PrintServer:
             partial.write_text(json.dumps(known, indent=1))
             partial.replace(path)
         return known[name]
+
+    def file_pace(self) -> float:
+        """The pace a file's time is listed at: the first printer's, whose plan the files'
+        analyses are (:attr:`Analyses.plan_as`); 1 without printers."""
+        first = next(iter(self.services.values()), None)
+        return first.pace() if first is not None else 1.0
 
     def service(self, name: str | None) -> PrinterService:
         service = self.services.get(name or self.default)

@@ -381,9 +381,11 @@ class Store:
         report: str | None = None,
         filament: dict[str, dict[str, float]] | None = None,
         pace: float | None = None,
+        ended: float | None = None,
     ) -> None:
-        """A job's new state; an ended one's error, M773 report, filament and pace with it."""
-        now = time.time()
+        """A job's new state; an ended one's error, M773 report, filament and pace with it,
+        and when it ended (``ended``, seconds since the epoch; by default now)."""
+        now = ended or time.time()
         with self._transaction() as db:
             if state in ACTIVE:
                 db.execute(

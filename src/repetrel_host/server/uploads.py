@@ -328,7 +328,7 @@ def file_json(server: PrintServer, path: Path) -> dict[str, Any]:
         "type": "machinecode",
         "size": path.stat().st_size,
         "date": int(path.stat().st_mtime),
-        "analysis": describe(summary),
+        "analysis": describe(summary, server.file_pace()),
         # The slicer's largest preview, as PNG or JPEG (a QOI one made PNG).
         "thumbnail": f"/v1/files/{quote(where)}/thumbnail" if largest is not None else None,
     }

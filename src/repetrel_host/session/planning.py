@@ -26,7 +26,7 @@ from repetrel_host.config import (
 from repetrel_host.errors import ConfigError, JobError, UsageError
 from repetrel_host.gcode import addressing
 from repetrel_host.gcode.analysis import scan_marks
-from repetrel_host.gcode.estimate import Estimate, estimate_file
+from repetrel_host.gcode.estimate import Estimate, PlanSettings, estimate_file
 from repetrel_host.gcode.header import header_commands, safe_stop_commands, safe_stop_for_either
 from repetrel_host.gcode.lint import Finding, Linter, Severity
 from repetrel_host.gcode.timeline import Timeline
@@ -112,19 +112,29 @@ class JobPlan:
         (the machine's limits where the file gives none; Hyrel's code chart on a Hyrel
         machine). ``timeline``: given the time at its lines as they are planned.
         ``temperatures``: each heater's at the start (else the room's)."""
-        machine = self.machine
+        settings = self.plan_settings
         found = estimate_file(
             self.job.path,
-            machine.planner_limits() if machine else None,
-            hyrel=machine is not None and machine.family == "hyrel",
+            settings.limits,
+            hyrel=settings.hyrel,
             temperatures=temperatures,
             on_time=timeline.add if timeline else None,
             on_heat=timeline.heated if timeline else None,
-            first=[line.command for line in self.header],
+            first=settings.first,
         )
         if timeline is not None:
             timeline.finish()
         return found
+
+    @property
+    def plan_settings(self) -> PlanSettings:
+        """How its file is planned: its machine's limits and code chart, its header first."""
+        machine = self.machine
+        return PlanSettings(
+            machine.planner_limits() if machine else None,
+            machine is not None and machine.family == "hyrel",
+            tuple(line.command for line in self.header),
+        )
 
     def timeline(self, temperatures: dict[str, float] | None = None) -> Timeline:
         """The job's planned time at its lines (:meth:`print_time`'s)."""

@@ -522,7 +522,7 @@ class FarmNode:
         ):
             return None
         now = time.time()
-        left, _ = running.time_left(now - (record.started or now))
+        left, _ = running.time_left()
         return now + left if left is not None else None
 
     async def _push_printers(self) -> None:

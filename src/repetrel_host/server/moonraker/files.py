@@ -94,12 +94,15 @@ async def metadata(call: Call) -> dict[str, Any]:
     if not _gcode(path):
         raise RpcError(404, f"Metadata not available for {filename}")
     summary = await asyncio.to_thread(call.server.analyses.summary, path)
-    return file_metadata(path, location, summary)
+    return file_metadata(path, location, summary, call.service.pace())
 
 
-def file_metadata(path: Path, location: str, summary: FileSummary | None) -> dict[str, Any]:
+def file_metadata(
+    path: Path, location: str, summary: FileSummary | None, pace: float = 1.0
+) -> dict[str, Any]:
     """Moonraker's metadata of a file: what the server's analysis knows of it (keys it
-    cannot tell are left out, as Moonraker leaves them out)."""
+    cannot tell are left out, as Moonraker leaves them out); its ``estimated_time`` the
+    plan at ``pace`` (the printer's), else the slicer's figure."""
     stat = path.stat()
     found: dict[str, Any] = {
         "size": stat.st_size,
@@ -116,7 +119,8 @@ def file_metadata(path: Path, location: str, summary: FileSummary | None) -> dic
         return found
     slicer, _, version = (summary.slicer or "Unknown").partition(" ")
     found.update(slicer=slicer, slicer_version=version or "?")
-    estimate = summary.planned_seconds or summary.slicer_seconds
+    planned = summary.planned
+    estimate = planned.total(pace) if planned is not None else summary.slicer_seconds
     if estimate is not None:
         found["estimated_time"] = round(estimate, 1)
     if summary.layers:
@@ -191,6 +195,7 @@ async def get_directory(call: Call) -> dict[str, Any]:
     if not path.is_dir():
         raise RpcError(404, f"Directory does not exist ({location})")
     extended = call.flag("extended")
+    pace = call.service.pace()
 
     def listing() -> dict[str, Any]:
         dirs, files = [], []
@@ -216,7 +221,7 @@ async def get_directory(call: Call) -> dict[str, Any]:
                     "permissions": "rw",
                 }
                 if extended:
-                    found = {**_listed_metadata(server, child), **found}
+                    found = {**_listed_metadata(server, child, pace), **found}
                 files.append(found)
         usage = shutil.disk_usage(server.files)
         return {
@@ -229,13 +234,13 @@ async def get_directory(call: Call) -> dict[str, Any]:
     return await asyncio.to_thread(listing)
 
 
-def _listed_metadata(server: PrintServer, path: Path) -> dict[str, Any]:
+def _listed_metadata(server: PrintServer, path: Path, pace: float) -> dict[str, Any]:
     """A listed file's metadata (``extended=true``), as ``server.files.metadata`` gives it
     but for its ``filename``, which stays the listing's; from the analysis kept on disk,
     one not made yet is made in the background (Moonraker lists a file it has not parsed
     without metadata too)."""
     location = path.relative_to(server.files).as_posix()
-    return file_metadata(path, location, server.analyses.summary(path))
+    return file_metadata(path, location, server.analyses.summary(path), pace)
 
 
 @method("/server/files/directory", "POST", name="server.files.post_directory")

@@ -76,7 +76,7 @@ def _job_metadata(server: PrintServer, path: Path, location: str) -> dict[str, A
     """The file's metadata as Moonraker's history keeps it: without what the job itself
     says (its start, its id, its name); empty once the file is gone."""
     try:
-        found = file_metadata(path, location, server.analyses.cached(path))
+        found = file_metadata(path, location, server.analyses.cached(path), server.file_pace())
     except OSError:
         return {}
     for repeated in ("print_start_time", "job_id", "filename"):

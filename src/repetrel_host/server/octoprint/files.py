@@ -61,7 +61,7 @@ def file_entry(server: PrintServer, path: Path, base: str) -> dict[str, Any]:
     # lists a file whose analysis is still queued.
     summary = server.analyses.summary(path)
     if summary is not None:
-        entry["gcodeAnalysis"] = summary.gcode_analysis()
+        entry["gcodeAnalysis"] = summary.gcode_analysis(server.file_pace())
     return entry
 
 

@@ -103,8 +103,8 @@ def file_entry(service: PrinterService, path: Path | None) -> dict[str, Any]:
 
 
 def job(service: PrinterService) -> dict[str, Any]:
-    """OctoPrint's ``job``: the file, its estimated print time (from its moves, as
-    OctoPrint's own analysis gives it) with the slicer's beside it
+    """OctoPrint's ``job``: the file, its estimated print time (its plan from its moves at
+    the printer's pace: the figure every face gives) with the slicer's beside it
     (``slicerEstimatedPrintTime``, which OctoPrint's clients ignore) and its filament (from
     the file's analysis, None without one), the last print's time."""
     shown = _shown(service)
@@ -113,11 +113,12 @@ def job(service: PrinterService) -> dict[str, Any]:
     if shown is not None and (service.running is not None or path is None):
         path = service.data_dir / shown.record.file
         summary = shown.summary
-        planned, slicer = shown.planned[0], shown.slicer_seconds
+        planned, slicer = shown.expected, shown.slicer_seconds
     else:
         if path is not None:
             summary = service.analyses.known(path)  # read as it was selected
-        planned = summary.planned_seconds if summary is not None else None
+        plan = summary.planned if summary is not None else None
+        planned = plan.total(service.pace()) if plan is not None else None
         slicer = summary.slicer_seconds if summary is not None else None
     filament = None
     if summary is not None and summary.filament:
@@ -144,7 +145,7 @@ _ORIGINS = {"plan": "analysis", "slicer": "analysis"}
 def progress(service: PrinterService) -> dict[str, Any]:
     """OctoPrint's ``progress``: completion (%), file position, print time and time left,
     with its origin in OctoPrint's words: ``estimate`` (the plan at the run's or the
-    printer's pace), ``analysis`` (the plan, or the slicer's figure), ``linear`` (the rate)."""
+    printer's pace), ``analysis`` (the plan, or the slicer's figure)."""
     shown = _shown(service)
     none = {"completion": None, "filepos": None, "printTime": None, "printTimeLeft": None}
     if shown is None or (service.running is None and service.selected is not None):
@@ -158,7 +159,7 @@ def progress(service: PrinterService) -> dict[str, Any]:
     left: float | None = 0.0 if completed else None
     origin: str | None = None
     if ended is None:
-        left, origin = shown.time_left(elapsed)
+        left, origin = shown.time_left()
         origin = _ORIGINS.get(origin, origin) if origin is not None else None
     return {
         "completion": 100.0 * fraction,

@@ -43,16 +43,17 @@ class Forecast:
 
 def job_seconds(summary: FileSummary | None, from_line: int | None, pace: float) -> QueuedTimes:
     """How long a job of the file ``summary`` describes should take at ``pace``: its planned
-    time, or for a job from a line the part after the line before it (the whole file's,
-    said so, when the summary keeps no points to tell); no start or end yet."""
-    planned = summary.planned_seconds if summary is not None else None
-    whole_file = False
-    if summary is not None and planned is not None and from_line is not None:
-        rest = summary.planned_after(from_line - 1)
-        whole_file = rest is None
-        planned = planned if rest is None else rest
-    seconds = planned * pace if planned is not None else None
-    return QueuedTimes(seconds, whole_file, None, None)
+    time (its moving part at the pace, its heat waits as planned), or for a job from a line
+    its share after the line before it (the whole file's, said so, when the summary keeps
+    no points to tell); no start or end yet."""
+    planned = summary.planned if summary is not None else None
+    if summary is None or planned is None or not summary.planned_seconds:
+        return QueuedTimes(None, False, None, None)
+    seconds = planned.total(pace)
+    rest = summary.planned_after(from_line - 1) if from_line is not None else None
+    if rest is not None:
+        seconds *= rest / summary.planned_seconds
+    return QueuedTimes(seconds, from_line is not None and rest is None, None, None)
 
 
 def forecast(

@@ -5,19 +5,19 @@ and the filament it used."""
 from __future__ import annotations
 
 import bisect
-import time
 from dataclasses import dataclass, field
 from datetime import UTC, datetime, timedelta
 
 import repetrel_host as rh
 from repetrel_host.gcode.analysis import FileSummary
 from repetrel_host.gcode.marks import SlicerMarks
+from repetrel_host.gcode.timeline import PlannedTime, no_small_rise
 from repetrel_host.server.events import PrintProgress
 from repetrel_host.server.store import JobRecord
 
 # How a time left was found: the plan at the pace of the run or of the printer's past jobs;
-# the plan as it is; the slicer's figure; the rate so far.
-LEFT_FROM = ("estimate", "plan", "slicer", "linear")
+# the plan as it is; the slicer's figure (a file never planned, in its first seconds).
+LEFT_FROM = ("estimate", "plan", "slicer")
 FILE_END = 1 << 62  # a line past the last of any file
 LAYER_TIMES = ("starts_in", "ends_in", "starts_at", "ends_at")  # when a layer is printed
 
@@ -32,6 +32,8 @@ class Running:
     new_layers: int = 0  # the M790s reached
     marks: SlicerMarks | None = None  # the slicer's (layers, Z, estimates), once read
     summary: FileSummary | None = None  # the file's analysis (filament, boxes), once read
+    prior: float = 1.0  # the printer's pace from its past jobs, as the job started
+    _shown: float | None = None  # the time left given last (no_small_rise)
 
     @property
     def layer(self) -> int:
@@ -47,16 +49,32 @@ class Running:
         return self.marks.at(last.source_line).z
 
     @property
-    def planned(self) -> tuple[float | None, str | None]:
-        """The whole job's print time from its moves, and where its limits came from: its
+    def planned(self) -> tuple[PlannedTime | None, str | None]:
+        """The whole job's plan from its moves, split, and where its limits came from: its
         own plan once made (its machine's limits, its header, the heaters where they were),
-        else the file's analysis' (None until either is known, or for a file without
-        moves)."""
+        else the file's analysis' (planned as this printer plans; None until either is
+        known, or for a file without moves)."""
         following = self.job.following
         if following is not None and following.timeline.total > 0:
-            return following.timeline.total, following.timeline.limits_from
+            return following.timeline.planned, following.timeline.limits_from
         summary = self.summary
-        return (summary.planned_seconds, summary.planned_limits_from) if summary else (None, None)
+        if summary is None:
+            return None, None
+        return summary.planned, summary.planned_limits_from
+
+    @property
+    def pace(self) -> float:
+        """The pace its time is given at: the run's as it was watched, blended in from the
+        printer's past jobs' (:attr:`prior`)."""
+        following = self.job.following
+        return following.pace if following is not None else self.prior
+
+    @property
+    def expected(self) -> float | None:
+        """The whole job's seconds at :attr:`pace`: the one figure every face gives for it
+        (/v1's ``estimated_time``, OctoPrint's ``estimatedPrintTime``, the page)."""
+        planned = self.planned[0]
+        return planned.total(self.pace) if planned is not None else None
 
     @property
     def slicer_seconds(self) -> float | None:
@@ -70,24 +88,57 @@ class Running:
         """The share of the file's bytes the controller acknowledged (0 to 1)."""
         return min(self.job.offset / max(self.job.size, 1), 1.0)
 
-    def time_left(self, elapsed: float) -> tuple[float | None, str | None]:
-        """Seconds left of the job after ``elapsed`` seconds of it, and how they were found
-        (:data:`LEFT_FROM`): the plan's remainder (the job's ``time_left``); until the plan
-        is made, the slicer's estimate where the file has one, else the rate so far (once
-        0.5 % and 5 s went); (None, None) before any can tell. One figure for every face:
-        OctoPrint's printTimeLeft, MQTT's progress, the page, /v1."""
+    def time_left(self) -> tuple[float | None, str | None]:
+        """Seconds left of the job, and how they were found (:data:`LEFT_FROM`): the plan's
+        remainder at the pace (the job's ``time_left``); in the seconds before the job's own
+        plan is made, the file's (its analysis', the same plan from room temperature), else
+        the slicer's remainder, at the printer's pace; (None, None) for a file none can tell
+        of. A rise under :data:`~repetrel_host.gcode.timeline.RISE_SECONDS` is held back, as
+        the job's own figure holds it. One figure for every face: OctoPrint's
+        printTimeLeft, Moonraker's, MQTT's progress, the page, /v1."""
         planned = self.job.time_left()
         following = self.job.following
         if planned is not None and following is not None:
-            return planned, "estimate" if following.corrected else "plan"
-        fraction = self.fraction
+            left: float | None = planned
+            how: str | None = "estimate" if following.corrected else "plan"
+        else:
+            left, how = self._before_plan()
+        if left is not None:
+            left = self._shown = no_small_rise(self._shown, left)
+        return left, how
+
+    def time_until(self, line: int) -> float | None:
+        """Seconds until the file's ``line`` is done (0 once run): the job's plan at its
+        pace; before it is made, the file's plan at the printer's (None: neither known)."""
+        until = self.job.time_until(line)
+        if until is not None or self.job.done:
+            return until
         last = self.job.last
+        now, then = self._file_after(last.source_line if last else 0), self._file_after(line)
+        return max(0.0, now - then) if now is not None and then is not None else None
+
+    def _file_after(self, line: int) -> float | None:
+        """The file's planned seconds after ``line`` at the printer's pace (its analysis'
+        plan, the heat waits' share as planned); None when it keeps no points."""
+        summary = self.summary
+        planned = summary.planned if summary is not None else None
+        if summary is None or planned is None or not summary.planned_seconds:
+            return None
+        rest = summary.planned_after(line)
+        return (
+            rest / summary.planned_seconds * planned.total(self.prior) if rest is not None else None
+        )
+
+    def _before_plan(self) -> tuple[float | None, str | None]:
+        last = self.job.last
+        line = last.source_line if last is not None else 0
+        rest = self._file_after(line)
+        if rest is not None:
+            return rest, "estimate" if self.prior != 1.0 else "plan"
         if self.marks is not None and last is not None:
-            left = self.marks.at(last.source_line, fraction).seconds_left
-            if left is not None:
-                return left, "slicer"
-        if fraction > 0.005 and elapsed > 5:
-            return elapsed * (1 - fraction) / fraction, "linear"
+            said = self.marks.at(line, self.fraction).seconds_left
+            if said is not None:
+                return said * self.prior, "slicer"
         return None, None
 
 
@@ -110,17 +161,18 @@ def _ends(left: float) -> str:
 
 
 def layer_times(
-    job: rh.PrintJob | None, first_line: int, last_line: int | None
+    running: Running | None, first_line: int, last_line: int | None
 ) -> dict[str, int | str | None]:
-    """When ``job`` prints the layer of its file from ``first_line`` to ``last_line`` (None:
-    to the file's end), from its plan at the pace it keeps: ``starts_in`` and ``ends_in``
-    (seconds from now, 0 once there), ``starts_at`` and ``ends_at`` (ISO 8601, UTC). None
-    each without a job, or before its plan is made."""
+    """When the ``running`` job prints the layer of its file from ``first_line`` to
+    ``last_line`` (None: to the file's end), from its plan at its pace
+    (:meth:`Running.time_until`): ``starts_in`` and ``ends_in`` (seconds from now, 0 once
+    there), ``starts_at`` and ``ends_at`` (ISO 8601, UTC). None each without a job, or
+    while its time is not known."""
     unknown: dict[str, int | str | None] = dict.fromkeys(LAYER_TIMES)
-    if job is None:
+    if running is None:
         return unknown
-    starts = job.time_until(first_line - 1)
-    ends = job.time_until(FILE_END if last_line is None else last_line)
+    starts = running.time_until(first_line - 1)
+    ends = running.time_until(FILE_END if last_line is None else last_line)
     if starts is None or ends is None:
         return unknown
     return {
@@ -147,7 +199,7 @@ def progress_event(
     elif running is not None:
         completion = 100.0 * running.fraction
         if not job.done:
-            left, how = running.time_left(time.time() - (record.started or time.time()))
+            left, how = running.time_left()
     return PrintProgress(
         printer=printer,
         job=record.id,

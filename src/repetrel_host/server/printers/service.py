@@ -53,7 +53,6 @@ from repetrel_host.session.workers import in_worker
 
 READING_GRACE = 10.0  # seconds a job's end waits for its file's reading (its filament)
 log = logging.getLogger("repetrel_host.server")
-
 RECONNECT_FIRST = 0.5
 RECONNECT_MAX = 10.0
 _OFFLINE = ("disconnected", "connecting")
@@ -347,7 +346,8 @@ class PrinterService:
             return
         finally:
             self._starting = None
-        running = self.running = Running(record, job)
+        # Its time at the printer's pace from its past jobs, from its first second.
+        running = self.running = Running(record, job, prior=self.pace())
         self._z = None
         self.changed()
         self._held.clear()
@@ -361,8 +361,7 @@ class PrinterService:
         log.info("printer %s: printing job %d (%s%s)", self.name, record.id, record.name, farm)
         self.job_changed(record.id)
         # The plan's time at each line (in a worker process), for the time left and the pace.
-        prior = learned_pace(self.store.paces(self.name))
-        following = asyncio.ensure_future(job.follow_time(prior, in_worker))
+        following = asyncio.ensure_future(job.follow_time(running.prior, in_worker))
         # Its file read while it streams (a big file takes long): its progress goes out
         # from the start, its layers and filament once they are known.
         reading = asyncio.ensure_future(self._read_job(running, path))
@@ -401,14 +400,13 @@ class PrinterService:
             watching.cancel()
             following.cancel()
         # Its filament goes in its record: read by now, but for a big file (whose job ended
-        # soon: it goes without rather than hold the queue up).
+        # soon: it goes without rather than hold the queue up); its end is when it ended.
         await asyncio.wait({reading}, timeout=READING_GRACE)
         reading.cancel()
         report = job.report  # the controller's M773 report, kept with the job
         used = filament_used(running, completed)
-        self.store.set_state(
-            record.id, state, error, report.text if report else None, used, job.pace
-        )
+        text = report.text if report else None
+        self.store.set_state(record.id, state, error, text, used, job.pace, self.finished_at)
         if printer.owed_safe_stop or isinstance(ending.exception(), rh.SafeStopError):
             # Owed to the printer's next contact, whatever the job is recorded as (and
             # after a restart too): the session sends it once the printer answers.
@@ -482,10 +480,7 @@ class PrinterService:
     def running_left(self) -> float | None:
         """The seconds the running job has left (None: no job runs, or none can tell)."""
         running = self.running
-        if running is None or running.job.done:
-            return None
-        started = running.record.started or time.time()
-        return running.time_left(time.time() - started)[0]
+        return running.time_left()[0] if running is not None and not running.job.done else None
 
     def forecast(
         self, left: float | None, summaries: Mapping[int, FileSummary | None] | None = None
@@ -497,8 +492,13 @@ class PrinterService:
         queued = self.store.queued(self.name)
         if summaries is None:
             summaries = {r.id: self.analyses.known(self.data_dir / r.file) for r in queued}
-        pace = learned_pace(self.store.paces(self.name)) if queued else 1.0
+        pace = self.pace() if queued else 1.0
         return forecast(queued, summaries, pace, self._free_from(left), self.held)
+
+    def pace(self) -> float:
+        """This printer's pace from its past jobs (actual over planned moving time; 1: none
+        yet): what its jobs' times are given at before a run shows its own."""
+        return learned_pace(self.store.paces(self.name))
 
     def queued_summaries(self) -> dict[int, FileSummary | None]:
         """The analyses of the queued jobs' files (in a thread: read from the data folder;
