@@ -3,8 +3,10 @@ with fake controllers on ptys whose executed logs tell which printer ran what.""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import signal
+import sqlite3
 import subprocess
 import sys
 import time
@@ -618,3 +620,73 @@ def test_a_job_gets_its_estimate_and_a_printing_printer_its_free_time(
 def _printer(farm: Farm, name: str) -> dict[str, Any]:
     printer: dict[str, Any] = next(p for p in farm.view()["printers"] if p["name"] == name)
     return printer
+
+
+def test_a_jobs_estimate_is_at_the_pace_of_the_printers_that_print_it(
+    farm: Farm, tmp_path: Path
+) -> None:
+    from repetrel_host.gcode.analysis import analyse
+    from repetrel_host.gcode.timeline import learned_pace
+    from repetrel_host.server.store import Store
+
+    # a1 has printed before: one job at half its plan's time. b1 never printed.
+    store = tmp_path / "data-a" / "jobs.sqlite"
+    store.parent.mkdir()
+    Store(store).close()
+    with contextlib.closing(sqlite3.connect(store)) as db:
+        db.execute(
+            "INSERT INTO jobs (printer, name, file, state, position, submitted, started, ended,"
+            " pace) VALUES ('a1', 'old.gcode', 'files/old.gcode', 'completed', 0, 1, 2, 3, 0.5)"
+        )
+        db.commit()
+    pla = loadout(tmp_path, "pla", (1, "MK1-250", "PLA"))
+    a = start_node(farm, "a", {"a1": {"loadout": pla}}, ("--move-time", "0.005"))
+    b = start_node(farm, "b", {"b1": {"loadout": pla}})
+    for node, name in ((a, "a1"), (b, "b1")):  # nothing is claimed until asked
+        farm.wait(lambda name=name: _printer(farm, name)["state"] == "ready", what=name)
+        with node.client() as client:
+            assert client.post(f"/v1/printers/{name}/hold").status_code == 204
+    assert _printer(farm, "a1")["pace"] == 0.5 and _printer(farm, "b1")["pace"] is None
+    source = tmp_path / "long.gcode"
+    source.write_bytes(part("480", moves=4000))
+    summary = analyse(source, planned=True).summary
+    assert summary is not None and summary.planned_seconds
+    plan = summary.planned_seconds
+    ids = {}
+    for requires in ("printer=a1", "printer=b1", "material=PLA"):
+        answer = farm.submit("a", source.read_bytes(), "long.gcode", requires)
+        assert answer.status_code == 201, answer.text
+        ids[requires] = answer.json()["jobs"][0]
+    farm.wait(
+        lambda: all(farm.jobs()[i]["estimated_time"] is not None for i in ids.values()),
+        what="the estimates",
+    )
+    jobs = farm.jobs()
+    # Queued for a1 alone: at its pace; for b1 alone: the plan; for either: their median.
+    for requires, pace, pace_from in (
+        ("printer=a1", 0.5, "printer"),
+        ("printer=b1", 1.0, "plan"),
+        ("material=PLA", 0.75, "printers"),
+    ):
+        job = jobs[ids[requires]]
+        assert job["planned_time"] == pytest.approx(plan), requires
+        assert job["estimated_time"] == pytest.approx(plan * pace), requires
+        assert (job["estimated_pace"], job["estimated_pace_from"]) == (pace, pace_from), requires
+        assert job["time_left"] is None
+    # Printing on a1: at a1's pace, and its time left is a1's own (what its node reports).
+    with a.client() as client:
+        assert client.post("/v1/printers/a1/release").status_code == 204
+    first = ids["printer=a1"]
+    farm.wait(lambda: _printing(farm, first), what="the job to stream")
+    job = farm.wait(lambda: (j := farm.jobs()[first])["time_left"] is not None and j)
+    assert job["estimated_time"] == pytest.approx(plan * 0.5)
+    assert job["estimated_pace_from"] == "printer"
+    assert 0 < job["time_left"] <= round(job["expected_end"] - job["started"])
+    # Once it ends, a1's pace is what its own store learned, this run's with the one before.
+    farm.wait(lambda: farm.jobs()[first]["state"] == "completed", what="the job to end")
+    with contextlib.closing(sqlite3.connect(store)) as db:
+        paces = [p for (p,) in db.execute("SELECT pace FROM jobs WHERE pace IS NOT NULL")]
+    assert len(paces) == 2, "the run was too short to measure its pace"
+    learned = farm.wait(lambda: (p := _printer(farm, "a1")["pace"]) != 0.5 and p)
+    assert learned == pytest.approx(learned_pace(paces))
+    assert farm.jobs()[first]["estimated_pace"] == pytest.approx(learned, abs=1e-4)

@@ -25,7 +25,7 @@ import repetrel_host as rh
 from repetrel_host.config import UserConfig
 from repetrel_host.gcode.lint import Severity
 from repetrel_host.server.auth import user_of
-from repetrel_host.server.farm import needs, states
+from repetrel_host.server.farm import estimates, needs, states
 from repetrel_host.server.farm.node import FILE_TIMEOUT, TIMEOUT, FarmNode
 from repetrel_host.server.print_server import PrintServer, server_of
 from repetrel_host.server.uploads import receive, safe_file_name
@@ -66,14 +66,18 @@ async def _asked(call: Any, timeout: float = TIMEOUT) -> Any:
         ) from None
 
 
-def job_json(job: dict[str, Any], nodes: dict[str, dict[str, Any]], here: str) -> dict[str, Any]:
-    """A farm job as the API shows it (``here``: this node's URL, for its recovery command)."""
+def job_json(
+    job: dict[str, Any], nodes: dict[str, dict[str, Any]], here: str, paces: estimates.Paces
+) -> dict[str, Any]:
+    """A farm job as the API shows it (``here``: this node's URL, for its recovery command;
+    ``paces``: the farm's printers', for its estimate)."""
     node = nodes.get(job["node"] or "")
     # A resumed job is not offered again: its rest is queued (or printed) as resumed_by.
     recoverable = job["state"] in states.RESUMABLE and job["last_line"] > 0
     shown = {key: value for key, value in job.items() if key not in ("fence", "refused")}
     return {
         **shown,
+        **_times(job, paces),
         "requires": needs.describe(job["needs"]),
         "node_name": node["name"] if node else None,
         "node_url": node["url"] if node else None,
@@ -91,6 +95,21 @@ def job_json(job: dict[str, Any], nodes: dict[str, dict[str, Any]], here: str) -
     }
 
 
+def _times(job: dict[str, Any], paces: estimates.Paces) -> dict[str, Any]:
+    """A job's estimate at the pace of the printer that prints it (the database keeps the
+    plan's own seconds), and a printing job's time left as its node last reported it."""
+    pace, pace_from = paces.of(job)
+    planned = job["estimated_time"]
+    end = job["expected_end"]
+    return {
+        "estimated_time": planned * pace if planned is not None else None,
+        "estimated_pace": round(pace, 4),
+        "estimated_pace_from": pace_from,
+        "planned_time": planned,
+        "time_left": round(max(0.0, end - time.time())) if end is not None else None,
+    }
+
+
 async def farm_json(farm: FarmNode) -> dict[str, Any]:
     nodes = await _asked(farm.db.nodes(TIMEOUT))
     printers = await _asked(farm.db.printers(TIMEOUT))
@@ -98,6 +117,7 @@ async def farm_json(farm: FarmNode) -> dict[str, Any]:
     counts = await _asked(farm.db.counts(TIMEOUT))
     by_id = {node["id"]: node for node in nodes}
     by_job = {job["id"]: job for job in jobs}
+    paces = estimates.Paces(printers)
     return {
         "node": {"id": farm.id, "name": farm.settings.name, "ready": farm.ready},
         "nodes": nodes,
@@ -112,12 +132,13 @@ async def farm_json(farm: FarmNode) -> dict[str, Any]:
                 "held": printer["held"],
                 "job": printer["job"],
                 "free_at": free_at(printer, by_job.get(printer["job"])),
+                "pace": printer["pace"],
                 "capabilities": printer["caps"],
             }
             for printer in printers
         ],
         # Queued and streaming jobs, then the last 200 that ended; the counts are of all.
-        "jobs": [job_json(job, by_id, farm.settings.node_url) for job in jobs],
+        "jobs": [job_json(job, by_id, farm.settings.node_url, paces) for job in jobs],
         "counts": counts,
     }
 
@@ -277,8 +298,9 @@ def router() -> APIRouter:
     async def jobs(request: Request) -> list[dict[str, Any]]:
         farm = farm_of(request)
         nodes = {node["id"]: node for node in await _asked(farm.db.nodes(TIMEOUT))}
+        paces = estimates.Paces(await _asked(farm.db.printers(TIMEOUT)))
         here = farm.settings.node_url
-        return [job_json(job, nodes, here) for job in await _asked(farm.db.jobs(TIMEOUT))]
+        return [job_json(job, nodes, here, paces) for job in await _asked(farm.db.jobs(TIMEOUT))]
 
     @router.post("/v1/farm/jobs", status_code=201)
     async def submit_job(
@@ -299,7 +321,8 @@ def router() -> APIRouter:
         if found is None:
             raise HTTPException(404, f"the farm has no job {job_id}")
         nodes = {node["id"]: node for node in await _asked(farm.db.nodes(TIMEOUT))}
-        return job_json(found, nodes, farm.settings.node_url)
+        paces = estimates.Paces(await _asked(farm.db.printers(TIMEOUT)))
+        return job_json(found, nodes, farm.settings.node_url, paces)
 
     @router.post("/v1/farm/jobs/{job_id}/resume", status_code=201)
     async def recover(

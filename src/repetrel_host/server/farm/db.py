@@ -12,9 +12,10 @@ the channel ``farm`` in the same transaction (delivered when it commits): ``{"ki
 was in (two people resuming one job: one wins, the other is refused), and its notification
 carries the new state (``{"kind": "job", "job": 12, "state": "interrupted"}``).
 
-A job's estimate (``estimated_time``: planned seconds) is filled after its submit, once the
-node that received the file has planned it (``{"kind": "job", "jobs": [...], "estimated":
-true}`` tells); a printing job's ``expected_end`` comes with its node's progress reports.
+A job's estimate (``estimated_time``: planned seconds, the plan's own) is filled after its
+submit, once the node that received the file has planned it (``{"kind": "job", "jobs": [...],
+"estimated": true}`` tells); a printing job's ``expected_end`` comes with its node's progress
+reports, a printer's ``pace`` with its state.
 """
 
 from __future__ import annotations
@@ -261,13 +262,22 @@ class FarmDB:
             return interrupted
 
     async def printer_state(
-        self, node: str, name: str, state: str, held: bool, job: int | None, timeout: float
+        self,
+        node: str,
+        name: str,
+        state: str,
+        held: bool,
+        job: int | None,
+        pace: float | None,
+        timeout: float,
     ) -> None:
+        """How the printer stands: its state, its hold, its job, and its pace (actual over
+        planned moving time, learned from its past jobs; None: it has none yet)."""
         async with self._transaction(timeout) as db:
             await db.execute(
-                "UPDATE printers SET state = %s, held = %s, job = %s, updated = now()"
+                "UPDATE printers SET state = %s, held = %s, job = %s, pace = %s, updated = now()"
                 " WHERE node = %s AND name = %s",
-                (state, held, job, node, name),
+                (state, held, job, pace, node, name),
             )
             await self._notify(
                 db, {"kind": "printer", "node": node, "printer": name, "state": state}
@@ -278,7 +288,7 @@ class FarmDB:
         return await self._rows(
             timeout,
             "SELECT p.node::text AS node, n.name AS node_name, n.url, p.name, p.caps,"
-            " p.loadout, p.state, p.held, p.job, n.lost_at IS NOT NULL AS lost,"
+            " p.loadout, p.state, p.held, p.job, p.pace, n.lost_at IS NOT NULL AS lost,"
             " extract(epoch FROM n.lease_until)::float8 AS lease_until"
             " FROM printers p JOIN nodes n ON n.id = p.node ORDER BY n.name, p.name",
         )

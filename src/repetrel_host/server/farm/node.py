@@ -29,6 +29,7 @@ import repetrel_host as rh
 from repetrel_host.config import load_library
 from repetrel_host.errors import ConfigError, HostError
 from repetrel_host.gcode.lint import Severity
+from repetrel_host.gcode.timeline import learned_pace
 from repetrel_host.server.analyses import Analyses
 from repetrel_host.server.events import EventHub, FarmEvent
 from repetrel_host.server.farm import estimates, needs
@@ -114,7 +115,7 @@ class FarmNode:
         self._looked: dict[str, int] = {}
         self._last_check: dict[str, float] = {}
         self._dirty: set[str] = set(services)  # printers whose state the farm has not seen
-        self._shown: dict[str, tuple[str, bool, int | None]] = {}
+        self._shown: dict[str, tuple[str, bool, int | None, float | None]] = {}
         self._tasks: list[asyncio.Task[None]] = []
         self._cancels: set[asyncio.Task[bool]] = set()  # cancels asked by the farm, running
         # Set as the server stops: psycopg may answer a cancelled wait with its own error,
@@ -222,6 +223,7 @@ class FarmNode:
                     back = self.away_since is not None
                     self.ready, self.away_since, delay = True, None, 1.0
                     self._dirty = set(self.services)
+                    self._shown.clear()  # all of it told again, as the node (re)joins
                     self._wake_sync.set()
                     self._look_again()  # notifications may have been missed
                     if back:
@@ -532,17 +534,24 @@ class FarmNode:
             running = service.running
             state = "offline" if service.state in ("disconnected", "connecting") else service.state
             job = running.record.farm_id if running is not None else None
-            shown = (state, service.held, job)
+            pace = self._pace(name)
+            shown = (state, service.held, job, pace)
             if self._shown.get(name) == shown:
                 continue
             try:
                 await self._call(
-                    self.db.printer_state(self.id, name, state, service.held, job, TIMEOUT)
+                    self.db.printer_state(self.id, name, state, service.held, job, pace, TIMEOUT)
                 )
             except FarmAway:
                 self._dirty.add(name)
                 raise
             self._shown[name] = shown
+
+    def _pace(self, printer: str) -> float | None:
+        """The printer's pace as it plans its own jobs with it (learned from its past jobs'
+        and kept in its store: a job's end changes it); None while none of its jobs has one."""
+        paces = self.store.paces(printer)
+        return learned_pace(paces) if paces else None
 
 
 def default_node_name() -> str:

@@ -96,6 +96,10 @@ MIGRATIONS: list[str] = [
         'printing', 'paused', 'completed', 'cancelled', 'failed', 'interrupted', 'resumed'));
     UPDATE jobs SET expected_end = NULL WHERE state <> 'printing';
     """,
+    # 5: each printer's pace, learned from its past jobs: the listed estimates use it.
+    """
+    ALTER TABLE printers ADD COLUMN pace double precision;  -- actual over planned; NULL: none
+    """,
 ]
 
 
