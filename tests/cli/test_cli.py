@@ -71,19 +71,24 @@ def test_check_names_the_profile_from_the_slicer(tmp_path: Path) -> None:
 
 @pytest.mark.timeout(60)
 def test_check_names_the_print_time_from_the_moves_beside_the_slicers(tmp_path: Path) -> None:
-    result = hyrel_send(str(CONE), "--check")
+    no_history = ("--history", str(tmp_path / "history"))  # no past job tells a pace
+    result = hyrel_send(str(CONE), "--check", *no_history)
     assert result.returncode == 0, result.stderr
     # PrusaSlicer wrote 12m 33s; ours is from the moves, with its settings' limits, and its
     # M109 S200's wait (which a slicer does not count) apart.
     assert re.search(
-        r"cone-prusaslicer.gcode: estimated time 13m \d\ds \(12m 3\ds moving, 1m 2\ds "
-        r"heating\), limits from the file's slicer settings; the slicer's: 12m 33s",
+        r"cone-prusaslicer.gcode: estimated time 13m \d\ds as planned \(12m 3\ds moving, "
+        r"1m 2\ds heating\): no past job on port fake with the marlin profile tells its pace; "
+        r"limits from the file's slicer settings; the slicer's: 12m 33s",
         result.stdout,
     ), result.stdout
     plain = tmp_path / "plain.gcode"
     plain.write_text("G28\nG1 X100 F600\n")  # 10 mm/s, below every jerk: 10 s flat
-    result = hyrel_send(str(plain), "--check")
-    assert "plain.gcode: estimated time 10s, limits from Marlin's defaults\n" in result.stdout
+    result = hyrel_send(str(plain), "--check", *no_history)
+    assert (
+        "plain.gcode: estimated time 10s as planned (10s moving, 0.0s heating): no past job "
+        "on port fake with the hyrel profile tells its pace; limits from Marlin's defaults\n"
+    ) in result.stdout
     plain.write_text("M104 S200\n")
     result = hyrel_send(str(plain), "--check")
     assert "plain.gcode: no moves: no print time" in result.stdout
@@ -161,4 +166,9 @@ def test_output_that_is_not_a_terminal_ends_at_100_percent_with_the_slicers_esti
     lines = result.stdout.splitlines()
     bar = next(line for line in lines if line.startswith("part.gcode ━"))
     assert " 100% 301 lines " in bar and "left" not in bar
-    assert "(the slicer estimated 1:02:05); machine profile marlin." in result.stdout
+    # Beside the real duration, the plan's figure (where it was made in time) and the slicer's.
+    assert re.search(
+        r"part.gcode: done: 301 lines in [\d.]+s \((planned [\d.]+s; )?the slicer's "
+        r"1h 02m 05s\), \d+ lines/s, .*; machine profile marlin\.",
+        result.stdout,
+    ), result.stdout

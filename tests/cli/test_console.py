@@ -151,7 +151,7 @@ def test_print_a_job_with_status_then_the_summary(term: Term, tmp_path: Path) ->
     term.type("!status")
     term.expect("machine profile: marlin")
     term.expect("job: ")
-    term.expect(r"square-tube.gcode: done: \d+ lines in [\d.]+ s", regex=True)
+    term.expect(r"square-tube.gcode: done: \d+ lines in [\d.]+s, \d+ lines/s", regex=True)
     term.type("!status")
     term.expect("job: none")
     term.type("!quit")

@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import re
 import signal
 import sqlite3
 import stat
@@ -186,6 +187,8 @@ def test_hyrel_send_submits_to_the_server_follows_lists_and_cancels(
     assert "part.gcode: completed: 301 lines (to line 301)" in again.stdout
     listed = send("--list", "--printer", "bench")
     assert listed.returncode == 0 and listed.stdout.count("completed") == 2
+    # Each ended job's duration and end, in hyrel-send's one format.
+    assert len(re.findall(r"\(took [\d.]+s, ended \d\d:\d\d\)\n", listed.stdout)) == 2
     again = send("--cancel", "1")
     assert again.returncode == 2 and "job 1 is completed: nothing to cancel" in again.stderr
     refused = send(str(job), key="wrong")

@@ -16,6 +16,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Protocol, TextIO
 
+from repetrel_host.cli.times import duration
 from repetrel_host.config import HostSettings
 from repetrel_host.links import FAKE_PORT, SIM_PORT
 from repetrel_host.session.camera import Camera
@@ -203,15 +204,16 @@ class Connecting:
             self.say(event.text)
 
 
-def summary_text(name: str, summary: Summary, where: str) -> str:
+def summary_text(name: str, summary: Summary, where: str, expected: str = "") -> str:
     """How a job ended, as hyrel-send's summary and the console's say it; ``where``: the
-    last line acknowledged, said of a job that stopped."""
+    last line acknowledged, said of a job that stopped; ``expected``: what it was expected
+    to take, said beside what it took (``" (planned 13m 15s)"``)."""
     rate = summary.lines / summary.seconds if summary.seconds > 0 else 0.0
     done = summary.outcome is Outcome.COMPLETED
     verdict = "done" if done else f"stopped ({where})"
     return (
-        f"{name}: {verdict}: {summary.lines} lines in {summary.seconds:.2f} s "
-        f"({rate:.0f} lines/s), {summary.resends} resend requests, "
+        f"{name}: {verdict}: {summary.lines} lines in {duration(summary.seconds)}{expected}, "
+        f"{rate:.0f} lines/s, {summary.resends} resend requests, "
         f"{summary.retransmissions} lines sent again"
     )
 

@@ -384,7 +384,8 @@ def send(
         if check or dry_run or not plan.checked_as_it_streams:
             findings = offline.check_job(plan, errors)
             if check:
-                raise typer.Exit(offline.check_verdict(console, plan, findings))
+                pace = offline.printer_pace(port, history, user, plan.profile.name or "")
+                raise typer.Exit(offline.check_verdict(console, plan, findings, pace))
             if dry_run:  # a preview: shown even when the findings would refuse the job
                 offline.dry_run(errors, plan, framed, _value(protocol))
                 raise typer.Exit(EXIT_OK)

@@ -3,9 +3,10 @@
 Below the bar, a status line: the layer and Z the last acknowledged line belongs to (as
 the slicer marked them, :mod:`repetrel_host.gcode.marks`), M73's percentage, and the
 temperatures the session last heard; the time left (and the clock time of the end) is the
-plan's remainder at the pace the run keeps (:meth:`PrintJob.time_left`), until the plan is
-made the slicer's estimate when the file has one, else the measured rate's. Imported only
-once a job streams (rich is slow to load).
+plan's remainder at the pace the run keeps (:meth:`PrintJob.time_left`): "estimating" in
+the second or two before the plan is made, never a stand-in figure (the slicer's leaves
+out the heat-up; the rate's reads a heat wait as a slow job). Imported only once a job
+streams (rich is slow to load).
 """
 
 from __future__ import annotations
@@ -17,7 +18,6 @@ import sys
 import termios
 import tty
 from collections.abc import Callable, Iterable
-from datetime import datetime, timedelta
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
@@ -25,6 +25,7 @@ from rich.console import RenderableType
 from rich.progress import Progress, ProgressColumn, Task
 from rich.text import Text
 
+from repetrel_host.cli.times import clock_in, duration
 from repetrel_host.gcode.analysis import scan_marks
 from repetrel_host.gcode.marks import Position, SlicerMarks
 from repetrel_host.protocol.reports import format_temperatures
@@ -46,7 +47,7 @@ class JobProgress(Progress):
 
 
 class TimeLeftColumn(ProgressColumn):
-    """The ``left`` field :class:`JobStatus` computes (``12:33 left``)."""
+    """The ``left`` field :class:`JobStatus` computes (``12m 33s left, ends 20:05``)."""
 
     def render(self, task: Task) -> Text:
         return Text(str(task.fields.get("left", "")), style="progress.remaining")
@@ -63,12 +64,10 @@ class JobStatus:
     async def read_marks(self) -> None:
         self.marks = await asyncio.to_thread(scan_marks, self.path)
 
-    def show(self, job: PrintJob, elapsed: float) -> tuple[str, str]:
+    def show(self, job: PrintJob) -> tuple[str, str]:
         """The status line (``layer 12/82 · Z 3.65 · 42 % (M73) · T 200.1/200 · B 60.0/60``)
-        and the time left with the clock time of the end: the plan's (the job's
-        :meth:`~PrintJob.time_left`); until it is made, the slicer's estimate where it gave
-        one (starred), else the measured rate's (bytes acknowledged per second); empty
-        until there is one."""
+        and the time left with the clock time of the end (``12m 33s left, ends 20:05``):
+        the job's :meth:`~PrintJob.time_left`, "estimating" until its plan is made."""
         parts = []
         where = self._where(job)
         if where is not None and self.marks is not None:
@@ -79,41 +78,15 @@ class JobStatus:
             if where.percent is not None:
                 parts.append(f"{where.percent:g} % (M73)")
         parts.extend(format_temperatures(self.printer.temperatures))
-        done = job.offset
-        planned = job.time_left()
-        if planned is not None:
-            ends = (datetime.now() + timedelta(seconds=planned)).strftime("%H:%M")
-            left = f"{clock(planned)} left, ends {ends}"
-        elif where is not None and where.seconds_left is not None:
-            parts.append("*time left: the slicer's estimate")
-            left = f"{clock(where.seconds_left)} left*"
-        elif done > 0 and elapsed > 0:
-            left = f"{clock(elapsed / done * max(job.size - done, 0))} left"
-        else:
-            left = ""
-        return " · ".join(parts), left
+        left = job.time_left()
+        shown = "estimating" if left is None else f"{duration(left)} left, ends {clock_in(left)}"
+        return " · ".join(parts), shown
 
     def _where(self, job: PrintJob) -> Position | None:
         last = job.last
         if self.marks is None or last is None or not last.source_line:
             return None
         return self.marks.at(last.source_line, job.offset / max(job.size, 1))
-
-
-def spoken(seconds: float) -> str:
-    """A duration as a person says it: ``52m 55s``, ``1h 2m 3s``, ``40s``."""
-    minutes, second = divmod(int(seconds + 0.5), 60)
-    hours, minute = divmod(minutes, 60)
-    parts = [f"{hours}h"] if hours else []
-    if hours or minute:
-        parts.append(f"{minute}m")
-    return " ".join([*parts, f"{second}s"])
-
-
-def clock(seconds: float) -> str:
-    minutes, second = divmod(int(seconds + 0.5), 60)
-    hours, minute = divmod(minutes, 60)
-    return f"{hours}:{minute:02d}:{second:02d}" if hours else f"{minute}:{second:02d}"
 
 
 class Keys:

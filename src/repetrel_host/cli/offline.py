@@ -9,18 +9,28 @@ import re
 import shlex
 import sys
 from collections.abc import Iterator
+from dataclasses import dataclass
+from itertools import islice
 from pathlib import Path
 
-from repetrel_host.cli.display import spoken
 from repetrel_host.cli.exit_codes import EXIT_BAD_INPUT, EXIT_OK
 from repetrel_host.cli.out import Out
-from repetrel_host.config import load_user_config
+from repetrel_host.cli.times import duration
+from repetrel_host.config import UserConfig, load_user_config
+from repetrel_host.errors import HostError
 from repetrel_host.gcode.analysis import slicer_estimate
 from repetrel_host.gcode.lint import Finding, Severity
+from repetrel_host.gcode.timeline import PACE_JOBS, PlannedTime, learned_pace
 from repetrel_host.protocol.dialects import create_dialect
 from repetrel_host.session import history as print_history
 from repetrel_host.session.job import HostAction
-from repetrel_host.session.planning import JobPlan, LinkRequest, default_history_dir, link_settings
+from repetrel_host.session.planning import (
+    JobPlan,
+    LinkRequest,
+    choose_port,
+    default_history_dir,
+    link_settings,
+)
 from repetrel_host.session.recovery import RECOVERY_SOURCE, recovery_command
 
 _CONTROL = re.compile(r"[\x00-\x09\x0b-\x1f]")
@@ -34,8 +44,11 @@ def check_job(plan: JobPlan, errors: Out) -> list[Finding]:
     return findings
 
 
-def check_verdict(console: Out, plan: JobPlan, findings: list[Finding]) -> int:
-    """hyrel-send --check: the verdict on the findings, and the exit code that says it."""
+def check_verdict(
+    console: Out, plan: JobPlan, findings: list[Finding], pace: PrinterPace | None = None
+) -> int:
+    """hyrel-send --check: the verdict on the findings, and the exit code that says it.
+    ``pace``: the printer's the job would go to, as its past jobs tell it."""
     refused = [f for f in findings if f.severity is Severity.ERROR]
     verdict = "refused" if refused else "ok"
     console.print(
@@ -43,24 +56,66 @@ def check_verdict(console: Out, plan: JobPlan, findings: list[Finding]) -> int:
         f"profile {plan.profile.describe()}",
         markup=False,
     )
-    console.print(f"{plan.job.name}: {time_sentence(plan)}", markup=False)
+    console.print(f"{plan.job.name}: {time_sentence(plan, pace)}", markup=False)
     return EXIT_BAD_INPUT if refused else EXIT_OK
 
 
-def time_sentence(plan: JobPlan) -> str:
-    """The job's print time from its moves (the heat waits in it), where its limits came
-    from, and the slicer's own figure beside it (never in its place)."""
+@dataclass(frozen=True)
+class PrinterPace:
+    """A printer's pace (actual over planned moving time) from its past jobs, as a job on
+    it starts from; ``pace`` None: no past job of it tells one."""
+
+    pace: float | None
+    port: str  # the printer's port, as its runs' records name it ("" when none resolves)
+    machine: str  # the machine profile its runs were planned with
+
+
+def printer_pace(
+    port: str | None, folder: Path | None, user: UserConfig, machine: str
+) -> PrinterPace:
+    """The pace a job on ``port`` with the ``machine`` profile starts from, as hyrel-send
+    finds it: the runs in the history ``folder`` (the configured one, else the default)."""
+    try:
+        resolved, _ = choose_port(port, user)
+    except HostError:  # "auto" with no single candidate: no printer to ask about
+        return PrinterPace(None, "", machine)
+    folder = folder or user.host.history_dir or default_history_dir()
+    known = list(islice(print_history.paces(folder, resolved, machine), PACE_JOBS))
+    return PrinterPace(learned_pace(known) if known else None, resolved, machine)
+
+
+def time_sentence(plan: JobPlan, pace: PrinterPace | None = None) -> str:
+    """The job's print time as a job on the printer would start from it: the plan at the
+    printer's pace where its past jobs tell one, else the plan's own figure (said so); the
+    plan split into moving, heating and tool changes; where its limits came from; the
+    slicer's own figure beside it (never in its place)."""
     found = plan.print_time()
     if not found.moves:
         return "no moves: no print time"
-    said = slicer_estimate(plan.job.path)
-    slicer = f"; the slicer's: {spoken(said)}" if said is not None else ""
-    heating = ""
-    if found.heating >= 1:
-        heating = f" ({spoken(found.moving)} moving, {spoken(found.heating)} heating)"
-    return (
-        f"estimated time {spoken(found.seconds)}{heating}, limits from {found.limits_from}{slicer}"
+    planned = PlannedTime(
+        found.moving - found.tool_change_seconds, found.heating, found.tool_change_seconds
     )
+    parts = [f"{duration(planned.moving)} moving", f"{duration(planned.heating)} heating"]
+    if found.tool_changes:
+        parts.append(f"{duration(planned.tool_changes)} for {found.tool_changes} tool changes")
+    split = f"{duration(planned.total())} as planned ({', '.join(parts)})"
+    if pace is not None and pace.pace is not None:
+        whole = (
+            f"{duration(planned.total(pace.pace))} at this printer's pace "
+            f"({pace.pace:.2f} of the plan, from its past jobs), {split}"
+        )
+    else:
+        whole = f"{split}: {_no_pace(pace)}"
+    said = slicer_estimate(plan.job.path)
+    slicer = f"; the slicer's: {duration(said)}" if said is not None else ""
+    return f"estimated time {whole}; limits from {found.limits_from}{slicer}"
+
+
+def _no_pace(pace: PrinterPace | None) -> str:
+    """Why the plan's own figure is the estimate."""
+    if pace is None or not pace.port:
+        return "no printer is named whose past jobs tell its pace"
+    return f"no past job on port {pace.port} with the {pace.machine} profile tells its pace"
 
 
 def dry_run(errors: Out, plan: JobPlan, framed: bool, protocol: str | None) -> None:

@@ -114,13 +114,14 @@ def run_with_server(console: Out, url: str, request: ServerRequest) -> int:
         BarColumn(),
         TaskProgressColumn(),
         TextColumn("{task.fields[lines]} lines"),
+        TextColumn("[progress.remaining]{task.fields[left]}"),
         console=console.console,
     )
-    task = progress.add_task(job.name, total=1, lines=0)
+    task = progress.add_task(job.name, total=1, lines=0, left="")
 
-    def update(done: int, size: int, lines: int) -> None:
+    def update(done: int, size: int, lines: int, left: str) -> None:
         progress.start()
-        progress.update(task, completed=done, total=max(size, 1), lines=lines)
+        progress.update(task, completed=done, total=max(size, 1), lines=lines, left=left)
 
     def show(text: str) -> None:
         console.print(text, markup=False)

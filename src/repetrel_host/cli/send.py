@@ -29,6 +29,7 @@ from repetrel_host.cli.heat_ledger import HeatLedger
 from repetrel_host.cli.offline import check_job
 from repetrel_host.cli.out import Out
 from repetrel_host.cli.stop_signals import StopSignals, exit_code_of_stop, stopping_text
+from repetrel_host.cli.times import duration
 from repetrel_host.config import UserConfig
 from repetrel_host.errors import (
     ControllerError,
@@ -141,7 +142,7 @@ async def send_job(
         await printer.close()
         ledger.closed(printer)
     summary = await job.wait()
-    _print_summary(console, summary, plan, job.where(), estimate)
+    _print_summary(console, summary, job, job.where(), estimate)
     if summary.outcome is not Outcome.COMPLETED:
         _print_recovery_hint(console, job, options)
     _print_report(console, job, options.report)
@@ -328,7 +329,6 @@ async def _stream(
         _update(progress, task, job, started, status)
         if completed:  # its last state, as output that is not a terminal keeps it
             progress.update(task, completed=job.size, left="")  # trailing comments too
-            progress.status = progress.status.split(" · *")[0]  # no time left to explain
         with contextlib.suppress(OSError):  # a terminal gone (SIGHUP) takes no last frame
             progress.stop()
         await actions.close()
@@ -394,21 +394,34 @@ def _update(
     progress: JobProgress, task: TaskID, job: PrintJob, started: float, status: JobStatus
 ) -> None:
     elapsed = max(time.monotonic() - started, 1e-6)
-    progress.status, left = status.show(job, elapsed)
+    progress.status, left = status.show(job)
     progress.update(
         task, completed=job.offset, lines=job.lines, rate=job.lines / elapsed, left=left
     )
 
 
 def _print_summary(
-    console: Out, summary: Summary, plan: JobPlan, last: str, estimate: float | None = None
+    console: Out, summary: Summary, job: PrintJob, last: str, slicer: float | None = None
 ) -> None:
-    text = summary_text(plan.job.name, summary, f"interrupted; {last}")
-    if estimate is not None and summary.outcome is Outcome.COMPLETED:
-        from repetrel_host.cli.display import clock  # loaded with the bar already
+    expected = estimates_text(job, slicer) if summary.outcome is Outcome.COMPLETED else ""
+    text = summary_text(job.name, summary, f"interrupted; {last}", expected)
+    console.print(f"{text}; machine profile {job.plan.profile.name}.", markup=False)
 
-        text += f" (the slicer estimated {clock(estimate)})"
-    console.print(f"{text}; machine profile {plan.profile.name}.", markup=False)
+
+def estimates_text(job: PrintJob, slicer: float | None) -> str:
+    """What the job was expected to take, beside what it took: the whole job as the status
+    line started from it (the plan at the printer's pace from its past jobs, or as planned
+    for a printer never seen), and the slicer's figure where the file gives one;
+    ``" (planned 13m 15s at this printer's pace; the slicer's 12m 33s)"``, "" when
+    neither is known (a job over before its plan was made)."""
+    said = []
+    following, planned = job.following, job.planned_time
+    if following is not None and planned is not None:
+        at_pace = " at this printer's pace" if following.prior != 1.0 else ""
+        said.append(f"planned {duration(planned.total(following.prior))}{at_pace}")
+    if slicer is not None:
+        said.append(f"the slicer's {duration(slicer)}")
+    return f" ({'; '.join(said)})" if said else ""
 
 
 def announce_recovery(out: Out, plan: JobPlan, layer: int | None) -> None:

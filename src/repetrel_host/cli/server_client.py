@@ -22,6 +22,7 @@ from repetrel_host.cli.exit_codes import (
     EXIT_NOT_SAFE,
     EXIT_OK,
 )
+from repetrel_host.cli.times import clock_at, duration
 from repetrel_host.errors import JobError, LinkError, UsageError
 
 API_KEY_ENV = "HYREL_API_KEY"
@@ -158,11 +159,12 @@ def follow(
     printer: str,
     path: Path,
     show: Callable[[str], None],
-    progress: Callable[[int, int, int], None],
+    progress: Callable[[int, int, int, str], None],
     release: bool = False,
 ) -> int:
     """Submit ``path`` and follow it to its end; returns hyrel-send's exit code.
-    ``release``: the bed is clear, a held queue may go on."""
+    ``progress``: bytes done, the file's size, lines done, the time left and end (or
+    "estimating"); ``release``: the bed is clear, a held queue may go on."""
     events = client.events(printer)  # subscribed before the job exists: nothing missed
     first = next(events)  # the printer as it stands
     job = client.submit(printer, path)
@@ -193,13 +195,14 @@ def _follow(
     job_id: int,
     path: Path,
     show: Callable[[str], None],
-    progress: Callable[[int, int, int], None],
+    progress: Callable[[int, int, int, str], None],
     url: str,
 ) -> int:
     for event in events:
         kind = event["type"]
         if kind == "progress" and event["job"] == job_id:
-            progress(event["bytes"], event["size"], event["lines"])
+            left = job_times(event) or "estimating"
+            progress(event["bytes"], event["size"], event["lines"], left)
         elif kind == "message":
             show(f"controller: {event['text']}")
         elif kind == "job" and event["job"]["id"] == job_id:
@@ -222,13 +225,38 @@ def _follow(
 
 
 def list_jobs(client: ServerClient, printer: str) -> list[str]:
-    """The printer's queue and history, a line each."""
+    """The printer's queue and history, a line each, with its times (:func:`job_times`)."""
+    running = client.request("GET", f"/v1/printers/{quote(printer)}").get("job") or {}
     lines = []
     for job in client.request("GET", f"/v1/printers/{quote(printer)}/jobs"):
         done = f"{job['lines']}/{job['total_lines']} lines"
         error = f"  {job['error']}" if job["error"] else ""
-        lines.append(f"{job['id']:>5}  {job['state']:<11}  {done:<18}  {job['name']}{error}")
+        times = job_times({**job, **running} if running.get("id") == job["id"] else job)
+        lines.append(
+            f"{job['id']:>5}  {job['state']:<11}  {done:<18}  {job['name']}{error}"
+            + f"  ({times})" * bool(times)
+        )
     return lines
+
+
+def job_times(job: dict[str, Any]) -> str:
+    """A job's times as a listing says them, from what the server gives: a queued one's
+    estimate and when it should start and end, a running one's time left and end, an ended
+    one's duration and end; "" where the server tells none."""
+    if job.get("time_left") is not None:
+        ends = clock_at(job.get("ends") or job.get("expected_end"))
+        return f"{duration(job['time_left'])} left" + f", ends {ends}" * bool(ends)
+    if job.get("expected_end") is not None:  # a farm's printing job: its node's end
+        return f"ends {clock_at(job['expected_end'])}"
+    if job.get("started") is not None and job.get("ended") is not None:
+        return f"took {duration(job['ended'] - job['started'])}, ended {clock_at(job['ended'])}"
+    said = []
+    if job.get("estimated_time") is not None:
+        said.append(f"about {duration(job['estimated_time'])}")
+    start, end = clock_at(job.get("estimated_start")), clock_at(job.get("estimated_end"))
+    if start is not None and end is not None:
+        said.append(f"{start} to {end}")
+    return ", ".join(said)
 
 
 def cancel(client: ServerClient, job_id: int) -> dict[str, Any]:
@@ -255,9 +283,10 @@ def farm_jobs(client: ServerClient) -> list[str]:
         where = f"{job['printer']}@{job['node_name']}" if job["printer"] else "-"
         done = f"{job['lines']}/{job['total_lines']} lines"
         error = f"  {job['error']}" if job["error"] else ""
+        times = job_times(job)
         lines.append(
             f"{job['id']:>5}  {job['state']:<11}  {where:<16}  {done:<18}  {job['name']}"
-            f"  [{job['requires']}]{error}"
+            f"  [{job['requires']}]{error}" + f"  ({times})" * bool(times)
         )
     return lines
 
