@@ -191,9 +191,9 @@ class FileSummary:
         return {
             **self.gcode_analysis(pace),
             "estimatedPrintTime": planned.total(pace) if planned else None,
-            "estimatedMoving": round(planned.moving, 2) if planned else None,
-            "estimatedHeating": round(planned.heating, 2) if planned else None,
-            "estimatedToolChanges": round(planned.tool_changes, 2) if planned else None,
+            "estimatedMoving": planned.moving if planned else None,
+            "estimatedHeating": planned.heating if planned else None,
+            "estimatedToolChanges": planned.tool_changes if planned else None,
             "estimatedPace": round(pace, 4),
             "estimatedPrintTimeLimitsFrom": self.planned_limits_from,
             "slicerEstimatedPrintTime": self.slicer_seconds,

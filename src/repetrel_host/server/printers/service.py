@@ -346,8 +346,10 @@ class PrinterService:
             return
         finally:
             self._starting = None
-        # Its time at the printer's pace from its past jobs, from its first second.
-        running = self.running = Running(record, job, prior=self.pace())
+        # Its time from its first second: its file's plan (its upload's analysis, if in
+        # memory) at the printer's pace from its past jobs.
+        summary, prior = self.analyses.known(path), self.pace()
+        running = self.running = Running(record, job, summary=summary, prior=prior)
         self._z = None
         self.changed()
         self._held.clear()

@@ -1,0 +1,118 @@
+"""One print time on every face, for real (a hyrel-server process, HTTP over loopback, the
+fake controller on a pty): a file's whole time at the printer's learned pace is the same in
+the native list, OctoPrint's, Moonraker's metadata and the queue; a running job has a time
+left from its first look on, and its whole time is one figure on /v1 and OctoPrint's face."""
+
+from __future__ import annotations
+
+import contextlib
+import sqlite3
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+
+from repetrel_host.fakes.fake_controller import BuiltInFake
+from tests.support.server import Server, wait_for
+
+CONE = Path(__file__).parent.parent / "data" / "cone-prusaslicer.gcode"
+pytestmark = pytest.mark.timeout(180)
+
+
+def analysis(client: httpx.Client, path: str) -> dict[str, Any]:
+    """The file's analysis on /v1, once its print time is planned."""
+
+    def found() -> dict[str, Any] | None:
+        for entry in client.get("/v1/files").json():
+            if entry["path"] == path and entry["analysis"]:
+                if entry["analysis"]["estimatedPrintTime"] is not None:
+                    planned: dict[str, Any] = entry["analysis"]
+                    return planned
+        return None
+
+    result: dict[str, Any] = wait_for(found, what=f"the print time of {path}")
+    return result
+
+
+def learned(server: Server, *paces: float) -> None:
+    """Past jobs of the printer that ran at ``paces`` (as the server records them)."""
+    with contextlib.closing(sqlite3.connect(server.data_dir / "jobs.sqlite")) as db:
+        for number, pace in enumerate(paces, 1):
+            db.execute(
+                "INSERT INTO jobs (printer, name, file, state, position, submitted, "
+                "started, ended, pace) VALUES ('bench', ?, 'files/old.gcode', "
+                "'completed', 0, 1, 2, ?, ?)",
+                (f"old{number}.gcode", 2 + number, pace),
+            )
+        db.commit()
+
+
+def test_a_files_whole_time_is_one_figure_at_the_printers_pace_on_every_face(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
+) -> None:
+    server = servers({"bench": bench().port})
+    server.wait_ready("bench")
+    with server.client() as client:
+        assert client.post("/v1/files", files={"file": ("cone.gcode", CONE.read_bytes())}).is_success
+        plan = analysis(client, "cone.gcode")
+        # The plan split: its parts add up to the whole (as planned: pace 1, no history).
+        parts = plan["estimatedMoving"] + plan["estimatedHeating"] + plan["estimatedToolChanges"]
+        assert plan["estimatedPrintTime"] == pytest.approx(parts)
+        assert plan["estimatedHeating"] > 0  # the cone heats its hotend first (M109)
+        assert plan["estimatedPace"] == 1
+
+        learned(server, 0.5, 0.5, 3.0)  # the median: one odd job does not sway it
+        paced = analysis(client, "cone.gcode")
+        whole = paced["estimatedMoving"] * 0.5 + paced["estimatedHeating"]
+        assert paced["estimatedPace"] == 0.5
+        assert paced["estimatedPrintTime"] == pytest.approx(whole)  # heat waits as planned
+
+        octoprint = client.get("/api/files/local/cone.gcode").json()["gcodeAnalysis"]
+        assert octoprint["estimatedPrintTime"] == pytest.approx(whole)
+        metadata = client.get("/server/files/metadata", params={"filename": "cone.gcode"})
+        assert metadata.json()["result"]["estimated_time"] == pytest.approx(whole, abs=0.1)
+        assert client.post("/v1/printers/bench/hold").status_code == 204
+        queued = client.post("/v1/printers/bench/queue", json={"file": "cone.gcode"}).json()
+
+        def estimate() -> float | None:
+            for job in client.get("/v1/printers/bench/jobs").json():
+                if job["id"] == queued["id"] and job["estimated_time"] is not None:
+                    seconds: float = job["estimated_time"]
+                    return seconds
+            return None
+
+        assert wait_for(estimate, what="the queued job's estimate") == pytest.approx(whole, abs=1)
+
+
+def test_a_running_job_has_its_time_left_from_the_first_look_and_one_whole_time(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
+) -> None:
+    fake = bench("--time-scale", "20")  # the cone's 14 planned minutes in some 45 s
+    server = servers({"bench": fake.port})
+    server.wait_ready("bench")
+    with server.client() as client:
+        assert client.post("/v1/files", files={"file": ("cone.gcode", CONE.read_bytes())}).is_success
+        analysis(client, "cone.gcode")  # analysed at its upload, as a sent file is
+        learned(server, 0.05, 0.05)  # the printer runs at 1/20 of the plan, and knows it
+        job = client.post("/v1/printers/bench/queue", json={"file": "cone.gcode"}).json()
+        seen: list[tuple[float, float | None, str | None]] = []
+        started = time.monotonic()
+        while time.monotonic() - started < 8:
+            running = client.get("/v1/printers/bench").json()["job"]
+            if running is not None and running["id"] == job["id"]:
+                seen.append((running["lines"], running["time_left"], running["time_left_from"]))
+                progress = client.get("/api/job").json()
+                whole = running["estimated_time"]
+                assert progress["job"]["estimatedPrintTime"] == pytest.approx(whole, rel=0.05)
+                assert progress["progress"]["printTimeLeft"] is not None
+            time.sleep(0.1)
+        client.delete(f"/v1/jobs/{job['id']}")
+    assert seen, "the job never showed as running"
+    # From the first look, in the heat-up too: a time left, the plan's at the learned pace
+    # (never the rate's, which the heat-up sends sky-high).
+    assert all(left is not None and how == "estimate" for _, left, how in seen), seen[:5]
+    first = seen[0][1]
+    assert first is not None and first < 14 * 60 * 0.2  # the learned pace's, not the plan's
