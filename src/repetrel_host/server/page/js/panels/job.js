@@ -345,7 +345,10 @@ export async function mount(body, ctx) {
     const key = `${job.id}\n${job.path}\n${number}`;
     if (times.key !== key) times = { key, answer: null, asked: 0, pending: false }; // asked at once
     const printed = number < (job.layer || 0);
-    if (!printed && !times.pending && Date.now() - times.asked >= MARK_REFRESH) askTimes(job.path, number, key);
+    // Asked again sooner once the layer's planned end has passed (the job runs late).
+    const late = times.answer && times.answer.ends_at && Date.parse(times.answer.ends_at) < Date.now();
+    const wait = late ? MARK_REFRESH / 5 : MARK_REFRESH;
+    if (!printed && !times.pending && Date.now() - times.asked >= wait) askTimes(job.path, number, key);
     showMark(printed ? "printed" : number === job.layer ? "printing" : "ahead", times.answer);
   }
 
