@@ -1,8 +1,8 @@
 """The printer page's job and camera panels in a real browser: a layered job drawn as it
 prints, paused, resumed and cancelled from the page (the fake controller's log says what
-ran), the resume offer queued from the page, the layer shown marked with when the job
-prints it; the layer snapshots, a snapshot taken now, a time-lapse made by ffmpeg, and the
-plain sentence where ffmpeg is missing."""
+ran), the resume offer queued from the page, the layer shown marked as printed, printing
+or when the job starts it; the layer snapshots, a snapshot taken now, a time-lapse made by
+ffmpeg, and the plain sentence where ffmpeg is missing."""
 
 from __future__ import annotations
 
@@ -221,7 +221,22 @@ def show_layer(browser: Browser, number: int) -> None:
     )
 
 
-def test_the_layer_shown_is_marked_with_when_the_running_job_prints_it(
+def marks(browser: Browser) -> tuple[int, int, str, str]:
+    """Read at once: the job's layer as the panel says it ("Layer 3 of 12"), the layer
+    drawn, and the mark under the view (its words, and which it is: printed, printing,
+    ahead)."""
+    found = browser.driver.execute_script(
+        "const facts = document.querySelector('#panel-job .job-facts').innerText;"
+        "const m = /Layer\\s+(\\d+) of/.exec(facts);"
+        "const mark = document.querySelector('#panel-job .layer-mark');"
+        "return [m ? Number(m[1]) : 0,"
+        " Number(document.querySelector('#panel-job canvas.layer-canvas').dataset.layer),"
+        " mark.hidden ? '' : mark.innerText.trim(), mark.hidden ? '' : mark.dataset.mark]"
+    )
+    return int(found[0]), int(found[1]), str(found[2]), str(found[3])
+
+
+def test_the_layer_shown_is_marked_printed_printing_or_when_the_running_job_prints_it(
     browser: Browser, two_printers: TwoPrinters
 ) -> None:
     client = two_printers.server.client()
@@ -230,18 +245,29 @@ def test_the_layer_shown_is_marked_with_when_the_running_job_prints_it(
     job = client.post("/v1/printers/left/jobs", files={"file": part}).json()
     browser.open(f"{two_printers.url}/printers/left")
     browser.wait(lambda: drawn(browser)["moves"] > 0, "the layer view draws")
-    # Once the job is planned, the layer it prints (the view follows it) is marked.
     mark = "#panel-job .layer-mark"
-    browser.wait(lambda: browser.text(mark).startswith("printing now · done ~"), "marked now")
+    # The view follows the print: the layer it prints is marked as printing, never as
+    # printed, from one layer to the next (once the view drew the job's layer).
+    browser.wait(lambda: browser.text(mark).startswith("printing now"), "marked now")
+    seen: list[tuple[int, int, str, str]] = []
+    while len({layer for layer, drawn_layer, _, _ in seen if layer == drawn_layer}) < 3:
+        seen.append(marks(browser))
+        assert len(seen) < 2000, seen[-5:]
+        time.sleep(0.02)
+    followed = [(words, which) for layer, shown, words, which in seen if layer == shown]
+    assert all(
+        which == "printing" and words.startswith("printing now") for words, which in followed
+    ), followed
     assert browser.all(".layer-mark.now")
+    browser.wait(lambda: browser.text(mark).startswith("printing now · done ~"), "its end")
     running = wait_for(lambda: (j := printer(client)["job"]) and j["layer"] >= 2 and j)
     later = running["layer"] + 4
     assert later <= 12, running
 
-    show_layer(browser, later)  # a layer still to print: when, and in how long
+    show_layer(browser, later)  # a layer still to print: when it starts, and in how long
     browser.wait(lambda: drawn(browser)["layer"] == later, f"layer {later} drawn")
-    browser.wait(lambda: browser.text(mark).startswith("printed at ~"), "marked later")
-    found = re.fullmatch(r"printed at ~.+ \(in (\d+) (s|min)\)", browser.text(mark))
+    browser.wait(lambda: browser.text(mark).startswith("starts ~"), "marked later")
+    found = re.fullmatch(r"starts ~.+ \(in about (\d+) (s|min)\)", browser.text(mark))
     assert found, browser.text(mark)
     seconds = int(found[1]) * (60 if found[2] == "min" else 1)
     times = client.get(f"/v1/files/part.gcode/layers/{later}?printer=left&moves=false").json()
@@ -251,6 +277,7 @@ def test_the_layer_shown_is_marked_with_when_the_running_job_prints_it(
 
     show_layer(browser, 1)  # a layer printed already
     browser.wait(lambda: browser.text(mark) == "printed", "marked printed")
+    assert browser.all(".layer-mark.done") and not browser.all(".layer-mark.now")
     client.delete(f"/v1/jobs/{job['id']}")
     ended = ("cancelled", "completed")
     wait_for(lambda: job_record(client, job["id"])["state"] in ended, what="the job's end")

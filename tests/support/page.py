@@ -184,8 +184,9 @@ def browser() -> Iterator[Browser]:
         driver.quit()
 
 
-def chromium() -> Any:
-    """A headless Chromium driven by Selenium (1400 x 1000, its console kept): quit it."""
+def chromium(locale: str | None = None) -> Any:
+    """A headless Chromium driven by Selenium (1400 x 1000, its console kept), in
+    ``locale`` ("de-DE": its dates, times and numbers) if given: quit it."""
     from selenium import webdriver
     from selenium.webdriver.chrome.service import Service
 
@@ -201,7 +202,10 @@ def chromium() -> Any:
     ):
         options.add_argument(argument)
     options.set_capability("goog:loggingPrefs", {"browser": "ALL"})
-    return webdriver.Chrome(service=Service(str(CHROMEDRIVER)), options=options)
+    driver = webdriver.Chrome(service=Service(str(CHROMEDRIVER)), options=options)
+    if locale is not None:
+        driver.execute_cdp_cmd("Emulation.setLocaleOverride", {"locale": locale})
+    return driver
 
 
 def preview_png(size: int = 96) -> bytes:
@@ -220,6 +224,21 @@ def preview_png(size: int = 96) -> bytes:
     out = io.BytesIO()
     image.save(out, "PNG")
     return out.getvalue()
+
+
+def rough(seconds: float) -> str:
+    """An estimate as the page writes it (api.js's ``duration(s, {rough: true})``): "about
+    40 s", "about 38 min", "about 2 h 05 min"."""
+    import math
+
+    half_up = lambda x: math.floor(x + 0.5)  # noqa: E731 (JavaScript's Math.round)
+    s = max(0, half_up(seconds))
+    if s < 60:
+        return f"about {s} s"
+    minutes = half_up(s / 60)
+    if minutes < 60:
+        return f"about {minutes} min"
+    return f"about {minutes // 60} h {minutes % 60:02d} min"
 
 
 def part_gcode(layers: int = 8, moves: int = 120, thumbnail: bool = True) -> str:

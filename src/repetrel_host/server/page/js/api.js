@@ -170,39 +170,40 @@ export class EventStream {
   }
 }
 
-/** "10:42" (today) or "2 Dec 10:42": when something happened, in the browser's time. */
-export function clock(seconds) {
-  if (seconds == null) return "";
-  const when = new Date(seconds * 1000);
-  const time = when.toLocaleTimeString([], { hour: "2-digit", minute: "2-digit" });
-  if (when.toDateString() === new Date().toDateString()) return time;
-  return `${when.toLocaleDateString([], { day: "numeric", month: "short" })} ${time}`;
+// Every time the page writes goes through these two, in the browser's locale: a clock time
+// ("19:48", "07:48 PM"; the charts' axes too) and a duration ("4 min 10 s", "about 38 min").
+
+const TODAY = () => new Date().toDateString();
+const number = (n, digits = 1) => n.toLocaleString(undefined, { minimumIntegerDigits: digits, useGrouping: false });
+
+/** When something happens, in the browser's locale and time zone: "10:42" (or "10:42 AM")
+ * today, "2 Dec 10:42" another day; ``seconds`` adds them ("10:42:05", for a chart's axis).
+ * ``when``: seconds since the epoch, or the server's ISO 8601 time; "" for none. */
+export function clock(when, { seconds = false } = {}) {
+  if (when == null || when === "") return "";
+  const at = new Date(typeof when === "string" ? Date.parse(when) : when * 1000);
+  if (isNaN(at)) return "";
+  const time = at.toLocaleTimeString([], { hour: "2-digit", minute: "2-digit", second: seconds ? "2-digit" : undefined });
+  if (at.toDateString() === TODAY()) return time;
+  return `${at.toLocaleDateString([], { day: "numeric", month: "short" })} ${time}`;
 }
 
-/** "1 h 05 min", "4 min 10 s", "12 s". */
-export function duration(seconds) {
+/** How long: "1 h 05 min", "4 min 10 s", "12 s"; ``rough`` for an estimate, which is not
+ * to the second: "about 40 s", "about 38 min", "about 2 h 05 min". "" for none. */
+export function duration(seconds, { rough = false } = {}) {
   if (seconds == null || !isFinite(seconds)) return "";
   const s = Math.max(0, Math.round(seconds));
+  if (rough) {
+    if (s < 60) return `about ${number(s)} s`;
+    const minutes = Math.round(s / 60);
+    if (minutes < 60) return `about ${number(minutes)} min`;
+    return `about ${number(Math.floor(minutes / 60))} h ${number(minutes % 60, 2)} min`;
+  }
   const hours = Math.floor(s / 3600);
   const minutes = Math.floor((s % 3600) / 60);
-  if (hours) return `${hours} h ${String(minutes).padStart(2, "0")} min`;
-  if (minutes) return `${minutes} min ${String(s % 60).padStart(2, "0")} s`;
-  return `${s} s`;
-}
-
-/** A time to come, as roughly as it is known (an estimate's): "40 s", "38 min", "2 h 05 min". */
-export function roughly(seconds) {
-  if (seconds == null || !isFinite(seconds)) return "";
-  const s = Math.max(0, Math.round(seconds));
-  if (s < 60) return `${s} s`;
-  const minutes = Math.round(s / 60);
-  if (minutes < 60) return `${minutes} min`;
-  return `${Math.floor(minutes / 60)} h ${String(minutes % 60).padStart(2, "0")} min`;
-}
-
-/** When the server's ISO time ``iso`` is, as ``clock`` says it ("" for none). */
-export function clockOf(iso) {
-  return iso ? clock(Date.parse(iso) / 1000) : "";
+  if (hours) return `${number(hours)} h ${number(minutes, 2)} min`;
+  if (minutes) return `${number(minutes)} min ${number(s % 60, 2)} s`;
+  return `${number(s)} s`;
 }
 
 /** An element: ``h("button", {class: "x", onclick}, "text", child...)``. */

@@ -1,7 +1,7 @@
 // The farm at a glance: every printer as a tile (state, the job's thumbnail, progress,
 // temperatures, the held queue's Release), sorted and filtered; a tile opens the printer.
 
-import { get, post, keyed, h, allow, clockOf, duration } from "./api.js";
+import { get, post, keyed, h, allow, clock, duration } from "./api.js";
 import { category, stateWords, stateClass, whyNot } from "./state.js";
 
 const FILTERS = ["all", "printing", "idle", "held", "offline", "error"];
@@ -174,7 +174,7 @@ export async function mount(main, { stream, say }) {
                   job.layers ? ` · layer ${job.layer} of ${job.layers}` : "",
                   job.time_left != null ? ` · ${duration(job.time_left)} left${job.time_left_from === "slicer" ? " (slicer's estimate)" : ""}` : "",
                   // Its queue counted; a paused job has no end (the badge says why).
-                  printer.free_at && printer.state !== "paused" ? ` · free at ${clockOf(printer.free_at)}` : "",
+                  printer.free_at && printer.state !== "paused" ? ` · free at ${clock(printer.free_at)}` : "",
                 ),
               ]
             : h("div", { class: "file idle" }, printer.error && category(printer) !== "offline" ? printer.error : "no job"),

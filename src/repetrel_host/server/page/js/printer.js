@@ -2,7 +2,7 @@
 // ``mount(body, ctx)``). The printer's JSON is kept here, up to date from the event stream,
 // and handed to the panels through ``ctx``.
 
-import { get, post, del, upload, keyed, h, allow, clock, clockOf } from "./api.js";
+import { get, post, del, upload, keyed, h, allow, clock } from "./api.js";
 import { stateWords, stateClass, whyNot, isOffline } from "./state.js";
 
 // Where each panel goes: the job and the machine on the left, what a person reads on the
@@ -64,7 +64,7 @@ export async function mount(main, { name, stream, say }) {
     // Offline: the badge says since when, this says why; else since when it is so.
     since.textContent = isOffline(printer) ? printer.reason || "" : printer.since ? `since ${clock(printer.since)}` : "";
     // When it should be free, its queue counted: while a job runs (a paused one has no end).
-    const freeAt = printer.job && printer.state !== "paused" ? clockOf(printer.free_at) : "";
+    const freeAt = printer.job && printer.state !== "paused" ? clock(printer.free_at) : "";
     free.textContent = freeAt ? `free at ${freeAt}` : "";
     held.hidden = !printer.held;
     allow(release, whyNot(printer, "release"));
@@ -97,8 +97,10 @@ export async function mount(main, { name, stream, say }) {
   stream.on("progress", (event) => {
     const job = ctx.printer && ctx.printer.job;
     if (!job || job.id !== event.job) return;
+    const replanned = event.time_left_from !== job.time_left_from;
     Object.assign(job, event, { id: event.job });
     if ("free_at" in event) ctx.printer.free_at = event.free_at;
+    if (replanned) refreshFree(); // the job planned: its whole time, which progress omits
     changed();
   });
   stream.on("job", (event) => {
@@ -120,12 +122,15 @@ export async function mount(main, { name, stream, say }) {
   let freeTimer = null;
   function refreshFree() {
     // A job queued, started or ended moves the printer's free time: asked again (once for
-    // several events in a row).
+    // several events in a row), and the running job's whole time with it.
     clearTimeout(freeTimer);
     freeTimer = setTimeout(async () => {
       try {
         const printer = await get(path);
-        if (ctx.printer) ctx.printer.free_at = printer.free_at;
+        if (!ctx.printer) return;
+        ctx.printer.free_at = printer.free_at;
+        const job = ctx.printer.job;
+        if (job && printer.job && printer.job.id === job.id) job.estimated_time = printer.job.estimated_time;
         changed();
       } catch (error) {
         /* the next event or the reconnection tries again */

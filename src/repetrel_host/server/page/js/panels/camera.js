@@ -2,17 +2,19 @@
 // the current or last job as a strip (one clicked is shown large), and the time-lapse
 // videos made of them by ffmpeg on the server.
 
-import { h, allow } from "../api.js";
+import { h, allow, clock } from "../api.js";
 
-const NAME = /^(\d{8})-(\d{2})(\d{2})(\d{2})-\d+(?:-job(\d+)-layer(\d+))?\./;
+const NAME = /^(\d{4})(\d{2})(\d{2})-(\d{2})(\d{2})(\d{2})-\d+(?:-job(\d+)-layer(\d+))?\./;
 
-/** What a snapshot's file name says: its time ("10:15:00"), its job and layer if any. */
+/** What a snapshot's file name says: its time (the server's clock, written as the page
+ * writes every time: "10:15:00"), its job and layer if any. */
 function described(file) {
   const found = NAME.exec(file) || [];
+  const [year, month, day, hour, minute, second] = found.slice(1, 7).map(Number);
   return {
-    time: found[2] ? `${found[2]}:${found[3]}:${found[4]}` : "",
-    job: found[5] ? Number(found[5]) : null,
-    layer: found[6] ? Number(found[6]) : null,
+    time: found[1] ? clock(new Date(year, month - 1, day, hour, minute, second) / 1000, { seconds: true }) : "",
+    job: found[7] ? Number(found[7]) : null,
+    layer: found[8] ? Number(found[8]) : null,
   };
 }
 

@@ -5,7 +5,7 @@
 // printing printer, when it should be free. Kept fresh by the farm's event stream
 // (PostgreSQL's notifications). On a server that is not in a farm, nothing is shown.
 
-import { call, get, del, upload, keyed, h, clock, roughly } from "../api.js";
+import { call, get, del, upload, keyed, h, clock, duration } from "../api.js";
 
 const STATE_CLASS = { ready: "ok", printing: "busy", paused: "paused", offline: "offline", error: "error" };
 const ENDED_SHOWN = 10; // the last jobs that ended, under the queue
@@ -131,7 +131,7 @@ export async function mount(section, { say }) {
     const seconds = planned.reduce((sum, job) => sum + job.estimated_time, 0);
     const waiting = queued.length - planned.length;
     const parts = [`${queued.length} queued`];
-    if (planned.length) parts.push(about(seconds));
+    if (planned.length) parts.push(duration(seconds, { rough: true }));
     if (waiting) parts.push(`${waiting} without an estimate`);
     return h("p", { class: "farm-queue-total muted" }, parts.join(" · "));
   }
@@ -201,12 +201,7 @@ export async function mount(section, { say }) {
 function estimate(job) {
   if (job.estimated_time == null) return "";
   const whole = job.from_line && job.estimate_of === "file";
-  return h("span", { title: whole ? "the whole file's: the rest from its line was not planned" : "planned from the file's moves" }, about(job.estimated_time), whole ? " (whole file)" : "");
-}
-
-/** "about 42 min", "about 3 h 05 min": a plan is not to the second. */
-function about(seconds) {
-  return `about ${roughly(Math.max(60, seconds))}`;
+  return h("span", { title: whole ? "the whole file's: the rest from its line was not planned" : "planned from the file's moves" }, duration(job.estimated_time, { rough: true }), whole ? " (whole file)" : "");
 }
 
 function badge(state) {

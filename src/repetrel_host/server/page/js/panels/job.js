@@ -3,7 +3,7 @@
 // controller acknowledged in blue, and marks when the running job prints the layer shown.
 // After a job stopped part-way, the offer to resume it.
 
-import { h, clock, duration, roughly } from "../api.js";
+import { h, clock, duration } from "../api.js";
 
 const ENDED = new Set(["completed", "failed", "interrupted", "cancelled"]);
 const RESUMABLE = new Set(["failed", "interrupted", "cancelled"]);
@@ -108,11 +108,12 @@ export async function mount(body, ctx) {
     if (running && total) rows.push(fact("Layer", `${Math.max(job.layer, 1)} of ${total}`));
     rows.push(fact("Lines acknowledged", `${count(job.lines)} of ${count(job.total_lines)}`, job.from_line ? `(resumed from line ${count(job.from_line)})` : ""));
     if (running) {
-      if (job.started) rows.push(fact("Elapsed", duration(Date.now() / 1000 - job.started)));
-      if (job.time_left != null) {
-        rows.push(fact("Time left", duration(job.time_left), LEFT_FROM[job.time_left_from] || ""));
-        rows.push(fact("Ends", clock(Date.now() / 1000 + job.time_left)));
-      }
+      // The server's figures as it gives them: the whole job's, the time left, the end.
+      const whole = job.estimated_time != null ? `of ${duration(job.estimated_time, { rough: true })}` : "";
+      if (job.started) rows.push(fact("Elapsed", duration(Date.now() / 1000 - job.started), whole));
+      if (job.time_left != null) rows.push(fact("Time left", duration(job.time_left), LEFT_FROM[job.time_left_from] || ""));
+      else rows.push(fact("Time left", "being planned"));
+      if (job.ends && printer.state !== "paused") rows.push(fact("Ends", clock(job.ends)));
     } else {
       if (job.started && job.ended) rows.push(fact("Ran", duration(job.ended - job.started)));
       if (job.ended) rows.push(fact("Ended", clock(job.ended)));
@@ -335,15 +336,20 @@ export async function mount(body, ctx) {
     markLayer(job, running, data.layer);
   }
 
-  // The layer's mark: when the running job prints the layer drawn, from its plan (asked of
-  // the server with the layer's times only, again as progress comes, at most every
-  // MARK_REFRESH ms). Nothing before the job is planned, nor once it ended.
+  // The layer's mark while a job runs: the layers below the one it prints are printed, the
+  // one it prints is printing (done when its plan says), the ones above start when its plan
+  // says (the layer's times asked of the server, again as progress comes, at most every
+  // MARK_REFRESH ms). Which layer is which follows the job's own layer, as "Layer" above.
   function markLayer(job, running, number) {
     if (!running) return showMark(null);
     const key = `${job.id}\n${job.path}\n${number}`;
     if (times.key !== key) times = { key, answer: null, asked: 0, pending: false }; // asked at once
-    if (!times.pending && Date.now() - times.asked >= MARK_REFRESH) askTimes(job.path, number, key);
-    showMark(times.answer);
+    const printed = number < (job.layer || 0);
+    // Asked again sooner once the layer's planned end has passed (the job runs late).
+    const late = times.answer && times.answer.ends_at && Date.parse(times.answer.ends_at) < Date.now();
+    const wait = late ? MARK_REFRESH / 5 : MARK_REFRESH;
+    if (!printed && !times.pending && Date.now() - times.asked >= wait) askTimes(job.path, number, key);
+    showMark(printed ? "printed" : number === job.layer ? "printing" : "ahead", times.answer);
   }
 
   async function askTimes(path, number, key) {
@@ -354,7 +360,7 @@ export async function mount(body, ctx) {
       const answer = await api.get(`/v1/files/${urlPath(path)}/layers/${number}?printer=${printer}&moves=false`);
       if (times.key === key) {
         times.answer = answer;
-        showMark(answer);
+        redraw(); // marked again, as the job stands now
       }
     } catch (error) {
       // The mark stays as it was: asked again at the next progress.
@@ -363,20 +369,28 @@ export async function mount(body, ctx) {
     }
   }
 
-  /** "printing now · done ~14:32", "printed at ~15:10 (in 38 min)", "printed"; or none. */
-  function showMark(answer) {
-    const words = markWords(answer);
+  /** The mark of a layer ``where`` the job is (printed, printing, ahead; null: none):
+   * "printed", "printing now · done ~14:32", "starts ~15:10 (in about 38 min)". */
+  function showMark(where, answer) {
+    const words = where ? markWords(where, answer) : "";
     layerMark.textContent = words;
     layerMark.hidden = !words;
-    layerMark.classList.toggle("now", words.startsWith("printing now"));
+    layerMark.dataset.mark = words ? where : "";
+    layerMark.classList.toggle("now", where === "printing");
+    layerMark.classList.toggle("done", where === "printed");
   }
 
-  function markWords(answer) {
-    if (!answer || answer.starts_in == null || answer.ends_in == null) return "";
-    if (answer.ends_in <= 0) return "printed";
-    if (answer.starts_in <= 0) return `printing now · done ~${clock(Date.parse(answer.ends_at) / 1000)}`;
+  function markWords(where, answer) {
+    if (where === "printed") return "printed";
+    const planned = answer && answer.starts_at && answer.ends_at;
+    if (where === "printing") {
+      // Done when the plan says, unless that time has passed (the job runs slower).
+      const ends = planned ? Date.parse(answer.ends_at) / 1000 : null;
+      return ends && ends > Date.now() / 1000 ? `printing now · done ~${clock(ends)}` : "printing now";
+    }
+    if (!planned) return "";
     const starts = Date.parse(answer.starts_at) / 1000;
-    return `printed at ~${clock(starts)} (in ${roughly(starts - Date.now() / 1000)})`;
+    return `starts ~${clock(starts)} (in ${duration(Math.max(0, starts - Date.now() / 1000), { rough: true })})`;
   }
 
   ctx.onChange(render);

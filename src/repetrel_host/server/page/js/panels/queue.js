@@ -2,7 +2,7 @@
 // cancelled), the history of its ended jobs (outcome, who, how long, its report; print it
 // again, or resume it from the layer where it stopped) and what its jobs add up to.
 
-import { h, clock, clockOf, duration, roughly } from "../api.js";
+import { h, clock, duration } from "../api.js";
 import { metres } from "./files.js";
 
 const SHOWN = 20; // ended jobs in the history
@@ -118,8 +118,8 @@ export function mount(body, ctx) {
   function estimate(job) {
     if (job.estimated_time == null) return "no estimate yet";
     const whole = job.estimated_time_whole_file ? " (the whole file's)" : "";
-    const ends = job.estimated_end ? ` · ends ~${clockOf(job.estimated_end)}` : "";
-    return `about ${roughly(job.estimated_time)}${whole}${ends}`;
+    const ends = job.estimated_end ? ` · ends ~${clock(job.estimated_end)}` : "";
+    return `${duration(job.estimated_time, { rough: true })}${whole}${ends}`;
   }
 
   function clearMarks() {
@@ -224,9 +224,8 @@ export function mount(body, ctx) {
   function showTotals(sums) {
     const counts = Object.entries(sums.jobs || {}).filter(([, n]) => n);
     const tools = Object.entries(sums.filament || {});
-    const hours = (sums.print_seconds || 0) / 3600;
     totals.replaceChildren(h("dl", {},
-      h("dt", {}, "printing"), h("dd", {}, hours >= 1 ? `${hours.toFixed(1)} h` : duration(sums.print_seconds || 0)),
+      h("dt", {}, "printing"), h("dd", {}, duration(sums.print_seconds || 0)),
       h("dt", {}, "jobs"), h("dd", {}, counts.length ? counts.map(([state, n]) => h("span", { class: `badge ${OUTCOME[state] || "offline"}` }, `${n} ${state}`)) : "none ended yet"),
       h("dt", {}, "filament"), h("dd", {}, tools.length ? tools.map(([tool, used]) => `${tool}: ${metres(used.length)}`).join(" · ") : "none"),
       h("dt", {}, "lines"), h("dd", {}, String(sums.lines || 0))));
@@ -242,7 +241,7 @@ export function mount(body, ctx) {
     // The queued jobs' ends move with the running job's time left: listed again when the
     // printer's free time shows another minute, so that the last end and the header agree
     // (every 10 s at most, not every progress: a drag would be cut off).
-    const free = clockOf(printer.free_at);
+    const free = clock(printer.free_at);
     if (free && free !== shownFree && jobs.some((j) => j.state === "queued") && Date.now() - listedAt > 10000) {
       shownFree = free;
       listedAt = Date.now();

@@ -3,11 +3,12 @@
 // the targets, by hand, off, or from a material preset.
 
 import uPlot from "../../vendor/uPlot.esm.js";
-import { h } from "../api.js";
+import { h, clock } from "../api.js";
 
 const KEPT = 1800; // seconds the chart shows
 const COLOURS = ["#d9480f", "#1d63c9", "#2b8a3e", "#9c36b5", "#c2255c", "#0b7285", "#e67700", "#5c940d"];
 const KINDS = { head: 0, bed: 1, chamber: 2 };
+const TICKS = [1, 2, 5, 10, 15, 30, 60, 120, 300, 600, 900, 1800, 3600]; // s between ticks
 
 export async function mount(body, ctx) {
   let samples = []; // [{time, readings: {sensor: [actual, target]}}], oldest first
@@ -92,7 +93,8 @@ export async function mount(body, ctx) {
         cursor: { drag: { x: false, y: false } },
         scales: { y: { range: (u, min, max) => [0, Math.max(60, Math.ceil(((max ?? 0) + 15) / 20) * 20)] } },
         axes: [
-          { stroke: "#5d6778", grid: { stroke: "#eceff3" }, ticks: { stroke: "#eceff3" }, values: (u, ticks, axis, space, step) => ticks.map((t) => time(t, step < 60)) },
+          // Times as the page writes them all (the browser's locale), a tick a second at most.
+          { stroke: "#5d6778", grid: { stroke: "#eceff3" }, ticks: { stroke: "#eceff3" }, incrs: TICKS, values: (u, ticks, axis, space, step) => ticks.map((t) => clock(t, { seconds: step < 60 })) },
           { stroke: "#5d6778", grid: { stroke: "#eceff3" }, ticks: { stroke: "#eceff3" }, size: 44, values: (u, ticks) => ticks.map((t) => `${t}°`) },
         ],
       },
@@ -103,11 +105,6 @@ export async function mount(body, ctx) {
     for (const [sensor, row] of rows) row.swatch.style.background = colour(sensor);
   }
 
-  const two = (n) => String(n).padStart(2, "0");
-  const time = (t, seconds) => {
-    const at = new Date(t * 1000);
-    return `${two(at.getHours())}:${two(at.getMinutes())}${seconds ? `:${two(at.getSeconds())}` : ""}`;
-  };
   const size = () => ({ width: plot.clientWidth || 600, height: plot.clientWidth < 500 ? 170 : 220 });
   new ResizeObserver(() => chart && plot.clientWidth && chart.setSize(size())).observe(plot);
 
