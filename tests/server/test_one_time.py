@@ -27,10 +27,9 @@ def analysis(client: httpx.Client, path: str) -> dict[str, Any]:
 
     def found() -> dict[str, Any] | None:
         for entry in client.get("/v1/files").json():
-            if entry["path"] == path and entry["analysis"]:
-                if entry["analysis"]["estimatedPrintTime"] is not None:
-                    planned: dict[str, Any] = entry["analysis"]
-                    return planned
+            planned: dict[str, Any] | None = entry["analysis"]
+            if entry["path"] == path and planned and planned["estimatedPrintTime"] is not None:
+                return planned
         return None
 
     result: dict[str, Any] = wait_for(found, what=f"the print time of {path}")
@@ -56,7 +55,8 @@ def test_a_files_whole_time_is_one_figure_at_the_printers_pace_on_every_face(
     server = servers({"bench": bench().port})
     server.wait_ready("bench")
     with server.client() as client:
-        assert client.post("/v1/files", files={"file": ("cone.gcode", CONE.read_bytes())}).is_success
+        upload = {"file": ("cone.gcode", CONE.read_bytes())}
+        assert client.post("/v1/files", files=upload).is_success
         plan = analysis(client, "cone.gcode")
         # The plan split: its parts add up to the whole (as planned: pace 1, no history).
         parts = plan["estimatedMoving"] + plan["estimatedHeating"] + plan["estimatedToolChanges"]
@@ -94,7 +94,8 @@ def test_a_running_job_has_its_time_left_from_the_first_look_and_one_whole_time(
     server = servers({"bench": fake.port})
     server.wait_ready("bench")
     with server.client() as client:
-        assert client.post("/v1/files", files={"file": ("cone.gcode", CONE.read_bytes())}).is_success
+        upload = {"file": ("cone.gcode", CONE.read_bytes())}
+        assert client.post("/v1/files", files=upload).is_success
         analysis(client, "cone.gcode")  # analysed at its upload, as a sent file is
         learned(server, 0.05, 0.05)  # the printer runs at 1/20 of the plan, and knows it
         job = client.post("/v1/printers/bench/queue", json={"file": "cone.gcode"}).json()

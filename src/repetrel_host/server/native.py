@@ -104,24 +104,25 @@ def _running_json(service: PrinterService) -> dict[str, Any]:
         },
         # The whole job's time (None until its file is read or planned): its plan at the
         # pace it is given at, the plan split, and the slicer's own figure beside it.
-        **job_time(running.planned[0], running.pace),
+        **job_time(running.planned[0], running.pace, running.expected),
         "estimated_time_limits_from": running.planned[1],
         "slicer_estimated_time": running.slicer_seconds,
     }
 
 
-def job_time(planned: PlannedTime | None, pace: float) -> dict[str, Any]:
-    """A job's time as /v1 gives it: ``estimated_time`` (the whole at ``pace``) and the plan
-    split (``estimated_moving``, ``estimated_heating``, ``estimated_tool_changes``: the
-    plan's own seconds), with the pace; None each when not planned."""
+def job_time(planned: PlannedTime | None, pace: float, whole: float | None) -> dict[str, Any]:
+    """A running job's time as /v1 gives it: ``estimated_time`` (``whole``: what it ran and
+    has left) and its plan split (``estimated_moving``, ``estimated_heating``,
+    ``estimated_tool_changes``: the plan's own seconds), with the pace its moves are given
+    at; None each when not planned."""
     if planned is None:
-        return dict.fromkeys(TIME_FIELDS) | {"estimated_pace": round(pace, 4)}
+        return dict.fromkeys(TIME_FIELDS) | {"estimated_time": whole, "estimated_pace": pace}
     return {
-        "estimated_time": planned.total(pace),
+        "estimated_time": whole,
         "estimated_moving": planned.moving,
         "estimated_heating": planned.heating,
         "estimated_tool_changes": planned.tool_changes,
-        "estimated_pace": round(pace, 4),
+        "estimated_pace": pace,
     }
 
 

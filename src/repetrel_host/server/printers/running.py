@@ -5,6 +5,7 @@ and the filament it used."""
 from __future__ import annotations
 
 import bisect
+import time
 from dataclasses import dataclass, field
 from datetime import UTC, datetime, timedelta
 
@@ -71,8 +72,14 @@ class Running:
 
     @property
     def expected(self) -> float | None:
-        """The whole job's seconds at :attr:`pace`: the one figure every face gives for it
-        (/v1's ``estimated_time``, OctoPrint's ``estimatedPrintTime``, the page)."""
+        """The whole job's seconds: while it runs, the time it ran and its time left (so
+        that "12 s of about 40 s" and "28 s left" agree); else its plan at :attr:`pace`.
+        The one figure every face gives for it (/v1's ``estimated_time``, OctoPrint's
+        ``estimatedPrintTime``, the page)."""
+        started = self.record.started
+        left = self.time_left()[0] if started is not None and not self.job.done else None
+        if started is not None and left is not None:
+            return time.time() - started + left
         planned = self.planned[0]
         return planned.total(self.pace) if planned is not None else None
 

@@ -348,8 +348,8 @@ class PrinterService:
             self._starting = None
         # Its time from its first second: its file's plan (its upload's analysis, if in
         # memory) at the printer's pace from its past jobs.
-        summary, prior = self.analyses.known(path), self.pace()
-        running = self.running = Running(record, job, summary=summary, prior=prior)
+        analysed, prior = self.analyses.known(path), self.pace()
+        running = self.running = Running(record, job, summary=analysed, prior=prior)
         self._z = None
         self.changed()
         self._held.clear()
