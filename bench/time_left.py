@@ -13,7 +13,7 @@ which the fake cannot be given, so both sides plan with Marlin's defaults). One 
 moves are ``--slower`` than the plan (1.1: 10 % slower): its first job, never seen (the plan's
 pace, 1.0), then its next, which starts from the pace its first taught it (``learned_pace``
 over its history's records, as hyrel-send reads them). Each job starts as hyrel-send starts
-one (``follow_time`` with its default wait), with hyrel-send's temperature polls, and
+one on a terminal (``follow_time`` at once), with hyrel-send's temperature polls, and
 ``time_left()`` is read every 0.1 s while it runs.
 
 Columns: the error of the time left against the real remainder (until the controller's last
@@ -152,7 +152,8 @@ async def run(
     async with connecting as printer:
         job = await printer.print(job_file, history=history)
         start = time.monotonic()
-        following = asyncio.ensure_future(job.follow_time(prior, in_worker))  # as hyrel-send
+        # As hyrel-send starts it when its status line shows: planned at once.
+        following = asyncio.ensure_future(job.follow_time(prior, in_worker, after=0.0))
         readings: list[Reading] = []
         while not job.done:
             left = job.time_left()

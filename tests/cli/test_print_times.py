@@ -89,7 +89,7 @@ def test_check_gives_the_plan_split_and_the_printers_pace_from_its_history(
     for minutes_ago, pace in ((30, 0.8), (60, 0.9), (90, 0.7)):
         past_job(folder, "fake", "marlin", pace, minutes_ago)
     past_job(folder, "/dev/ttyUSB0", "marlin", 2.0, 10)  # another printer's: not this one's
-    past_job(folder, "fake", "hyrel", 2.0, 20)  # another profile's
+    past_job(folder, "fake", "hyrel", 2.0, 120)  # another profile's, before
     result = hyrel_send(str(CONE), *check)
     assert result.returncode == 0, result.stderr
     paced = re.search(
@@ -100,6 +100,12 @@ def test_check_gives_the_plan_split_and_the_printers_pace_from_its_history(
     )
     assert paced, result.stdout
     assert abs(seconds_of(paced.group(1)) - (0.8 * moving + heating)) <= 1
+    assert "machine profile marlin (the last job on this port)" in result.stdout
+    # The port's last job ran as another profile (its firmware said so): planned as that.
+    past_job(folder, "fake", "hyrel", 2.0, 5)
+    result = hyrel_send(str(CONE), *check)
+    assert "machine profile hyrel (the last job on this port)" in result.stdout
+    assert "at this printer's pace (2.00 of the plan" in result.stdout
     # Another port named: its own history (none).
     result = hyrel_send(str(CONE), *check, "--port", "/dev/ttyUSB7")
     assert "as planned (" in result.stdout

@@ -60,3 +60,14 @@ def test_a_listing_matches_alike_jobs_once_and_tells_each_its_own() -> None:
     assert paces.of(job(["material=PLA"])) == (0.8, PRINTERS)
     assert paces.of(job(["material=PLA"], on="fast")) == (0.2, PRINTER)
     assert paces.of(job(["material=PLA"], refused=("n-id/slow",))) == (0.6, PRINTERS)
+
+
+def test_a_listed_estimate_scales_the_moves_and_keeps_the_heat_waits_as_planned() -> None:
+    from repetrel_host.server.farm.api import _times
+
+    queued = {**job([], on="fast"), "estimated_time": 600.0, "expected_end": None}
+    heated = _times({**queued, "estimated_heating": 100.0}, Paces(FARM))
+    assert heated["estimated_time"] == pytest.approx(500 * 0.2 + 100)  # fast's pace: 0.2
+    assert heated["planned_time"] == 600.0
+    unknown = _times({**queued, "estimated_heating": None}, Paces(FARM))  # planned before
+    assert unknown["estimated_time"] == pytest.approx(600 * 0.2)

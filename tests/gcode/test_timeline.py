@@ -11,7 +11,16 @@ import pytest
 import repetrel_host as rh
 from repetrel_host.fakes.settings import ControllerSettings
 from repetrel_host.gcode.estimate import HeatWait
-from repetrel_host.gcode.timeline import MOST_POINTS, TimeLeft, Timeline, learned_pace
+from repetrel_host.gcode.heat_rates import HeatClimbs, kind_of, learned_heat_rates
+from repetrel_host.gcode.timeline import (
+    MOST_POINTS,
+    RISE_SECONDS,
+    Countdown,
+    PlannedTime,
+    TimeLeft,
+    Timeline,
+    learned_pace,
+)
 from tests.support.helpers import job_file, run
 
 
@@ -72,7 +81,10 @@ def test_a_slower_run_is_found_out_and_counts_fully_from_a_tenth_of_the_plan() -
     for line in range(1, 301):
         left = following.left(line, now=line * 1.1)
     assert following.pace == pytest.approx(1.1)
-    assert left == pytest.approx((1000 - 300) * 1.1)
+    # Given as a count down the clock within 5 s of the estimate as the pace was found out.
+    assert left == pytest.approx((1000 - 300) * 1.1, abs=RISE_SECONDS)
+    following.shown = Countdown()  # the estimate itself
+    assert following.left(300, now=300 * 1.1) == pytest.approx((1000 - 300) * 1.1)
     # Earlier, the prior still weighs: 50 s watched (from 30 s settling on), half each.
     early = TimeLeft(timeline, prior=1.0)
     for line in range(1, 82):
@@ -241,3 +253,77 @@ def test_acknowledgements_in_bursts_count_the_whole_stretch_they_end() -> None:
         following.left(int(now // 25) * 25, now=now)
         now += 0.25
     assert following.pace == pytest.approx(1.0, abs=0.02)
+
+
+def test_the_time_left_counts_down_through_noise_and_shows_a_real_rise() -> None:
+    count = Countdown()
+    assert count.show(100.0, 0.0) == 100.0
+    # A little above the clock's count (99): drawn toward it by a tenth a second.
+    assert count.show(100.0, 1.0) == pytest.approx(99.1)
+    assert count.show(90.0, 2.0) == 90.0  # below it: as it is
+    assert count.show(93.0, 2.5) == pytest.approx(89.5 + 0.05 * 3.5)  # 3.5 s over: drawn
+    assert count.show(95.0, 3.0) == 95.0  # 6 s above the count: the run is behind, shown
+    assert count.show(99.0, 9.0, moving=False) == 95.0  # paused: the count stands
+    assert Countdown(1000.0, 0.0).show(1015.0, 0.0) == 1000.0  # under 2 % of it
+    left = TimeLeft(even(100, 1.0))
+    shown = [left.left(line, float(line)) for line in (10, 20, 30)]
+    assert shown == sorted(shown, reverse=True)
+
+
+def test_the_plan_split_adds_up_and_only_its_moving_part_takes_the_pace() -> None:
+    planned = PlannedTime(moving=100.0, heating=60.0, tool_changes=10.0)
+    assert planned.total() == 170.0
+    assert planned.total(0.5) == pytest.approx(55.0 + 60.0)
+    timeline = wait_after_ten_lines()
+    timeline.tool_changes = 1.0
+    assert timeline.planned == PlannedTime(pytest.approx(timeline.total - 51.0), 50.0, 1.0)
+    assert timeline.planned.total(2.0) == pytest.approx(2 * (timeline.total - 50) + 50)
+
+
+def test_on_a_link_that_acknowledges_on_arrival_a_wait_lasts_until_its_heater_says() -> None:
+    """Hyrel's controller takes the wait and the lines after it at once: the wait is not
+    over until its heater reports its target (the plan's time until a report tells)."""
+    timeline = wait_after_ten_lines()
+    left = TimeLeft(timeline, held=0, received_only=True)
+    after_it = timeline.total - 54.2  # from line 15 (the last is counted down by the clock)
+    unreported = left.left(15, 0.0)
+    before_it = 54.2 - 53.0  # the moves between the wait and line 15, not yet run
+    assert unreported == pytest.approx(50.0 + before_it + after_it, abs=0.01)  # as planned
+    climbing = left.left(15, 1.0, heaters={"T0": (150.0, 200.0)})
+    # 50 degrees at 2 a second
+    assert climbing == pytest.approx(25.0 + before_it + after_it, abs=0.01)
+    reached = left.left(15, 2.0, heaters={"T0": (200.0, 200.0)})
+    assert reached < after_it + 0.01  # over: the moves after it are all that is left
+    # Holding moves back to the wait's end (its buffer's), unreported: still the whole wait.
+    held = TimeLeft(timeline, held=4, received_only=True).left(15, 0.0)
+    assert held == pytest.approx(50.0 + before_it + after_it, abs=0.01)
+    # On Marlin's link the same acknowledgements say the wait is over (M109's ok waits).
+    assert TimeLeft(timeline, held=0).left(15, 0.0) <= after_it + 0.01
+
+
+def test_on_a_link_that_acknowledges_in_bursts_the_time_left_counts_down_between_them() -> None:
+    timeline = even(1000, 1.0)  # 1,000 s, a line a second
+    left = TimeLeft(timeline, held=100, received_only=True)
+    first = left.left(500, 0.0)  # the move that runs: 100 lines back, at 400 s
+    assert first == pytest.approx(600.0)
+    later = left.left(500, 30.0)  # no line taken since: the clock counts on
+    assert later == pytest.approx(570.0)
+    # Never past the line taken last (nothing after it has arrived).
+    assert left.left(500, 500.0) == pytest.approx(500.0)
+
+
+def test_a_heaters_climb_is_timed_from_its_reports_and_a_printers_rates_are_the_median() -> None:
+    climbs = HeatClimbs()
+    climbs.observe({"T0": (20.0, 200.0), "B": (20.0, 0.0)}, 0.0)
+    climbs.observe({"T0": (110.0, 200.0), "B": (20.0, 60.0)}, 45.0)
+    climbs.observe({"T0": (199.5, 200.0), "B": (40.0, 60.0)}, 90.0)
+    climbs.observe({"T0": (200.0, 200.0), "B": (59.5, 60.0)}, 125.0)
+    assert climbs.rates == {"hotend": pytest.approx(179.5 / 90), "bed": pytest.approx(39.5 / 80)}
+    changed = HeatClimbs()  # a target changed midway: timed from the report that showed it
+    changed.observe({"T0": (20.0, 200.0)}, 0.0)
+    changed.observe({"T0": (100.0, 150.0)}, 10.0)
+    changed.observe({"T0": (150.0, 150.0)}, 20.0)
+    assert changed.rates == {"hotend": 5.0}
+    assert kind_of("T1") == "hotend" and kind_of("B") == "bed" and kind_of("C") == "chamber"
+    jobs = [{"hotend": 2.0}, {"hotend": 3.0, "bed": 0.4}, None, {"hotend": 9.0}]
+    assert learned_heat_rates(jobs) == {"hotend": 3.0, "bed": 0.4}

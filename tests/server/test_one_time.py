@@ -6,6 +6,7 @@ left from its first look on, and its whole time is one figure on /v1 and OctoPri
 from __future__ import annotations
 
 import contextlib
+import json
 import sqlite3
 import time
 from collections.abc import Callable
@@ -117,3 +118,26 @@ def test_a_running_job_has_its_time_left_from_the_first_look_and_one_whole_time(
     assert all(left is not None and how == "estimate" for _, left, how in seen), seen[:5]
     first = seen[0][1]
     assert first is not None and first < 14 * 60 * 0.2  # the learned pace's, not the plan's
+
+
+def test_a_jobs_heaters_climbs_are_kept_with_it_for_the_printers_next_jobs(
+    bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
+) -> None:
+    fake = bench("--heat-rate", "20")  # ten times the plan's 2 degrees a second
+    server = servers({"bench": fake.port})
+    server.wait_ready("bench")
+    moves = "".join(f"G1 X{i % 50} Y{i % 40} F3000\n" for i in range(200))
+    with server.client() as client:
+        upload = {"file": ("hot.gcode", "M104 S210\nM109 S210\n" + moves)}
+        job = client.post("/v1/printers/bench/jobs", files=upload).json()
+
+        def ended() -> dict[str, Any] | None:
+            found: dict[str, Any] = client.get(f"/v1/jobs/{job['id']}").json()
+            return found if found["state"] == "completed" else None
+
+        record = wait_for(ended, timeout=60, what="the job's end")
+    # Timed from the reports a second or two apart: far above the plan's 2 a second.
+    assert record["heat_rates"] is not None and record["heat_rates"]["hotend"] > 5
+    with contextlib.closing(sqlite3.connect(server.data_dir / "jobs.sqlite")) as db:
+        (kept,) = db.execute("SELECT heat_rates FROM jobs WHERE id = ?", (job["id"],)).fetchone()
+    assert json.loads(kept) == record["heat_rates"]  # kept for the next job's plan

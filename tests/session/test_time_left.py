@@ -6,11 +6,16 @@ from __future__ import annotations
 
 import asyncio
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 import repetrel_host as rh
+from repetrel_host.config import UserConfig
 from repetrel_host.fakes.settings import ControllerSettings
+from repetrel_host.gcode.heat_rates import learned_heat_rates
+from repetrel_host.session.history import heat_rates, read_record
+from repetrel_host.session.planning import JobRequest, plan_job
 from tests.support.helpers import job_file, run
 
 pytestmark = pytest.mark.timeout(60)
@@ -21,16 +26,21 @@ MOVES = [f"G1 X{(i % 2) * 100} Y{i} F6000" for i in range(1, 61)]
 HEAT = ["M109 S100"]
 
 
+def heating_printer(protocol: str) -> Any:
+    """A simulated controller whose hotend climbs 10 degrees a second, its moves 20 times
+    faster than planned, its temperatures asked for every 0.2 s."""
+    settings = ControllerSettings(heat_rate=10.0, time_scale=20.0, rx_buffer=8192, banner=False)
+    return rh.connect(
+        "sim", sim=settings, protocol=protocol, poll_interval=0.2, poll_while_printing=True
+    )
+
+
 @pytest.mark.parametrize("protocol", ["reprap", "hyrel"])
 def test_a_heat_wait_counts_down_with_the_heaters_reports(tmp_path: Path, protocol: str) -> None:
-    settings = ControllerSettings(heat_rate=10.0, time_scale=20.0, rx_buffer=8192, banner=False)
     path = job_file(tmp_path, MOVES + HEAT + MOVES)
 
     async def scenario() -> None:
-        connecting = rh.connect(
-            "sim", sim=settings, protocol=protocol, poll_interval=0.2, poll_while_printing=True
-        )
-        async with connecting as printer:
+        async with heating_printer(protocol) as printer:
             job = await printer.print(path, header=False, history=False)
             following = asyncio.ensure_future(job.follow_time(after=0.0))
             seen: list[tuple[float, float]] = []  # (hotend, time left) while it heats
@@ -59,3 +69,34 @@ def test_a_heat_wait_counts_down_with_the_heaters_reports(tmp_path: Path, protoc
             assert job.following.pace < 0.1
 
     run(scenario)
+
+
+@pytest.mark.parametrize("protocol", ["reprap", "hyrel"])
+def test_a_jobs_heaters_climbs_are_recorded_and_plan_the_next_jobs_waits(
+    tmp_path: Path, protocol: str
+) -> None:
+    """The fake's hotend climbs at 10 degrees a second (the plan's default is 2): the job's
+    record keeps about that rate, and a plan at the learned rates has a five times shorter
+    heat-up."""
+    path = job_file(tmp_path, HEAT + MOVES)
+    history = tmp_path / "history" / "20261206-150000-job.gcode"  # as history_file names it
+
+    async def scenario() -> None:
+        async with heating_printer(protocol) as printer:
+            job = await printer.print(path, header=False, history=history)
+            following = asyncio.ensure_future(job.follow_time(after=0.0))
+            await job.wait()
+            await following
+
+    run(scenario)
+    record = read_record(history)
+    assert record is not None and record.heat_rates is not None
+    # Timed from reports 0.2 s apart: near the fake's 10 a second, never the plan's 2.
+    assert 6.0 < record.heat_rates["hotend"] < 15.0
+    learned = learned_heat_rates(heat_rates(history.parent, record.port, record.machine))
+    assert learned == record.heat_rates
+    plan = plan_job(path, JobRequest(header=False), UserConfig())
+    as_profile = plan.timeline({"T0": 21.0}).total_heating
+    as_learned = plan.timeline({"T0": 21.0}, learned).total_heating
+    assert as_profile == pytest.approx(79 / 2, rel=0.01)  # from 21 to 100 at 2 a second
+    assert as_learned == pytest.approx(79 / learned["hotend"], rel=0.01)

@@ -375,7 +375,8 @@ def send(
         if framed and not dry_run:
             raise UsageError("--framed shows the wire of a dry run: add --dry-run")
         user = load_user_config(config)
-        plan = plan_job(job, JobRequest(loadout, machine, not no_header), user)
+        last = offline.port_machine(port, history, user) if check else None
+        plan = plan_job(job, JobRequest(loadout, machine, not no_header, last), user)
         if from_layer is not None:
             from_line = layer_line(job, from_layer)
         if from_line is not None:

@@ -9,7 +9,7 @@ import re
 import shlex
 import sys
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from itertools import islice
 from pathlib import Path
 
@@ -19,6 +19,7 @@ from repetrel_host.cli.times import duration
 from repetrel_host.config import UserConfig, load_user_config
 from repetrel_host.errors import HostError
 from repetrel_host.gcode.analysis import slicer_estimate
+from repetrel_host.gcode.heat_rates import learned_heat_rates
 from repetrel_host.gcode.lint import Finding, Severity
 from repetrel_host.gcode.timeline import PACE_JOBS, PlannedTime, learned_pace
 from repetrel_host.protocol.dialects import create_dialect
@@ -68,6 +69,7 @@ class PrinterPace:
     pace: float | None
     port: str  # the printer's port, as its runs' records name it ("" when none resolves)
     machine: str  # the machine profile its runs were planned with
+    heat_rates: dict[str, float] = field(default_factory=dict)  # its heaters', learned
 
 
 def printer_pace(
@@ -81,7 +83,19 @@ def printer_pace(
         return PrinterPace(None, "", machine)
     folder = folder or user.host.history_dir or default_history_dir()
     known = list(islice(print_history.paces(folder, resolved, machine), PACE_JOBS))
-    return PrinterPace(learned_pace(known) if known else None, resolved, machine)
+    rates = learned_heat_rates(print_history.heat_rates(folder, resolved, machine))
+    return PrinterPace(learned_pace(known) if known else None, resolved, machine, rates)
+
+
+def port_machine(port: str | None, folder: Path | None, user: UserConfig) -> str | None:
+    """The profile the last job on ``port`` (as hyrel-send resolves it) ran with."""
+    try:
+        resolved, _ = choose_port(port, user)
+    except HostError:
+        return None
+    return print_history.last_machine(
+        folder or user.host.history_dir or default_history_dir(), resolved
+    )
 
 
 def time_sentence(plan: JobPlan, pace: PrinterPace | None = None) -> str:
@@ -89,7 +103,7 @@ def time_sentence(plan: JobPlan, pace: PrinterPace | None = None) -> str:
     printer's pace where its past jobs tell one, else the plan's own figure (said so); the
     plan split into moving, heating and tool changes; where its limits came from; the
     slicer's own figure beside it (never in its place)."""
-    found = plan.print_time()
+    found = plan.print_time(heat_rates=pace.heat_rates if pace is not None else None)
     if not found.moves:
         return "no moves: no print time"
     planned = PlannedTime(

@@ -41,6 +41,7 @@ from repetrel_host.errors import (
     UsageError,
 )
 from repetrel_host.gcode.analysis import scan_marks, slicer_estimate
+from repetrel_host.gcode.heat_rates import learned_heat_rates
 from repetrel_host.gcode.timeline import learned_pace
 from repetrel_host.links import FAKE_PORT, FakeLink
 from repetrel_host.protocol.events import ProbeKind
@@ -54,7 +55,7 @@ from repetrel_host.session.events import (
     State,
     StopDelayed,
 )
-from repetrel_host.session.history import paces
+from repetrel_host.session.history import heat_rates, paces
 from repetrel_host.session.planning import (
     JobPlan,
     LinkRequest,
@@ -63,7 +64,7 @@ from repetrel_host.session.planning import (
     link_settings,
     replan_for_firmware,
 )
-from repetrel_host.session.print_job import PrintJob
+from repetrel_host.session.print_job import PLAN_AFTER, PrintJob
 from repetrel_host.session.printer import Printer
 from repetrel_host.session.pump import Outcome, Summary
 from repetrel_host.session.recovery import recovery_command, recovery_from, recovery_window
@@ -313,8 +314,10 @@ async def _stream(
         tasks.add(loop.create_task(status.read_marks()))
     # The plan's time at each line, in a worker process: the time left, and this run's pace
     # for the printer's next jobs (kept in its record).
-    prior = learned_pace(paces(stream_file.parent, printer.port, plan.profile.name or ""))
-    tasks.add(loop.create_task(job.follow_time(prior, in_worker)))
+    ran = (stream_file.parent, printer.port, plan.profile.name or "")
+    prior, rates = learned_pace(paces(*ran)), learned_heat_rates(heat_rates(*ran))
+    after = 0.0 if console.console.is_terminal else PLAN_AFTER  # a person reads it at once
+    tasks.add(loop.create_task(job.follow_time(prior, in_worker, after, rates)))
     refresher = asyncio.create_task(refresh())
     watcher = asyncio.create_task(_watch(console, printer, job, actions, wait_for_enter, keyboard))
     completed = False

@@ -47,7 +47,7 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, BinaryIO
 
-from repetrel_host.gcode.estimate import PlanSettings, estimate_file
+from repetrel_host.gcode.estimate import PlanSettings
 from repetrel_host.gcode.marks import Layer, SlicerMarks
 from repetrel_host.gcode.thumbnails import Thumbnail
 from repetrel_host.gcode.timeline import PlannedTime, Timeline
@@ -188,12 +188,12 @@ class FileSummary:
             {"format": t.format, "width": t.width, "height": t.height} for t in self.thumbnails
         ]
         planned = self.planned
+        split = (planned.moving, planned.heating, planned.tool_changes) if planned else (None,) * 3
+        names = ("estimatedMoving", "estimatedHeating", "estimatedToolChanges")
         return {
             **self.gcode_analysis(pace),
             "estimatedPrintTime": planned.total(pace) if planned else None,
-            "estimatedMoving": planned.moving if planned else None,
-            "estimatedHeating": planned.heating if planned else None,
-            "estimatedToolChanges": planned.tool_changes if planned else None,
+            **dict(zip(names, split, strict=True)),
             "estimatedPace": round(pace, 4),
             "estimatedPrintTimeLimitsFrom": self.planned_limits_from,
             "slicerEstimatedPrintTime": self.slicer_seconds,
@@ -304,14 +304,7 @@ def analyse(
     if planned and found.summary is not None and until_line is None:
         timeline = Timeline()
         try:
-            settings = settings or PlanSettings()
-            estimate = estimate_file(
-                path,
-                settings.limits,
-                hyrel=settings.hyrel,
-                first=settings.first,
-                on_time=timeline.add,
-            )
+            estimate = (settings or PlanSettings()).estimate(path, on_time=timeline.add)
         except ArithmeticError:  # numbers past a float's range: the rest of it stands
             return found
         if estimate.moves and math.isfinite(estimate.seconds):  # JSON has no infinity
@@ -320,20 +313,11 @@ def analyse(
                 found.summary,
                 planned_seconds=estimate.seconds,
                 planned_limits_from=estimate.limits_from,
-                planned_points=few_points(timeline),
+                planned_points=timeline.few(PLANNED_POINTS),
                 planned_heating=estimate.heating,
                 planned_tool_changes=estimate.tool_change_seconds,
             )
     return found
-
-
-def few_points(timeline: Timeline) -> tuple[tuple[int, float], ...]:
-    """:data:`PLANNED_POINTS` of ``timeline``'s (line, planned seconds), evenly spread
-    over those it kept, its last among them."""
-    count = len(timeline.lines)
-    step = max(1, -(-count // PLANNED_POINTS))  # rounded up: never more than the most
-    kept = [*range(step - 1, count - 1, step), count - 1] if count else []
-    return tuple((timeline.lines[i], round(timeline.seconds[i], 2)) for i in kept)
 
 
 def chunks(handle: BinaryIO) -> Iterator[bytes]:

@@ -153,6 +153,7 @@ class Estimate:
     heating: float = 0.0  # of the seconds, those spent waiting for heaters
     tool_changes: int = 0
     tool_change_seconds: float = 0.0  # of the seconds, the tool changes' own pauses
+    command_bytes: int = 0  # the file's commands' bytes, comments left out (estimate_file's)
 
     @property
     def moving(self) -> float:
@@ -641,7 +642,8 @@ def slicer_limits(comments: Iterable[str], base: Limits = DEFAULT_LIMITS) -> Lim
         return value if value > 0.0 else known
 
     printing = acceleration("machine_max_acceleration_extruding", base.print_acceleration)
-    return Limits(
+    return replace(  # the rest (heat rates, tool changes, rapids) stays the machine's
+        base,
         max_feedrate=per_axis("machine_max_feedrate_", base.max_feedrate),
         max_acceleration=per_axis("machine_max_acceleration_", base.max_acceleration),
         jerk=per_axis("machine_max_jerk_", base.jerk),
@@ -681,6 +683,24 @@ class PlanSettings:
     hyrel: bool = False
     first: tuple[str, ...] = ()
 
+    def estimate(
+        self,
+        path: Path,
+        temperatures: dict[str, float] | None = None,
+        on_time: Callable[[int, float], None] | None = None,
+        on_heat: Callable[[HeatWait], None] | None = None,
+    ) -> Estimate:
+        """:func:`estimate_file` of ``path`` planned so."""
+        return estimate_file(
+            path,
+            self.limits,
+            hyrel=self.hyrel,
+            temperatures=temperatures,
+            on_time=on_time,
+            on_heat=on_heat,
+            first=self.first,
+        )
+
 
 def estimate_file(
     path: Path,
@@ -705,9 +725,11 @@ def estimate_file(
     )
     for command in first:
         estimator.feed(0, command)
+    sent = 0  # the commands' bytes, as they go (without comments, with a line end)
     with path.open(encoding="utf-8", errors="replace") as file:
         for number, line in enumerate(file, 1):
             command = line.split(";", 1)[0]
             if command and not command.isspace():
                 estimator.feed(number, command)
-    return estimator.finish()
+                sent += len(command.strip()) + 1
+    return replace(estimator.finish(), command_bytes=sent)

@@ -27,6 +27,10 @@ from repetrel_host.gcode.estimate import HeatWait
 
 MOST_POINTS = 4096
 BLEND_SHARE = 0.1  # of the planned moving time: the run's own pace counts fully from there
+# ...and, on a link that acknowledges lines as they arrive (Hyrel's), in proportion to what
+# was watched against this many times what its buffer holds ahead of the move it runs: the
+# run's pace is only as sure as where that move is (8 KB: up to minutes of slow moves).
+SPREAD_WEIGHT = 2.0
 PACE_JOBS = 5  # a printer's pace: the median of its last jobs' (one odd job does not sway it)
 # Planned seconds not watched after the run starts or resumes: the controller's buffer fills
 # in a burst, acknowledging lines well ahead of the motion (Hyrel's 8 KB hold up to about 20
@@ -34,18 +38,35 @@ PACE_JOBS = 5  # a printer's pace: the median of its last jobs' (one odd job doe
 SETTLE = 30.0
 # A heater this close below its target has reached it (Marlin's M109 waits within a degree).
 REACHED = 1.0
-# A rise of the time left smaller than this (seconds, or this share of it) is not shown: it
-# holds until the run falls that far behind (a stretch's noise, a plan replaced by a finer one).
+# An estimate of the time left above the clock's count by less than this (seconds, or this
+# share of it) is not shown: the count goes on (a stretch's noise, a plan made finer).
 RISE_SECONDS = 5.0
 RISE_SHARE = 0.02
+SMOOTHING = 10.0  # seconds over which the count is drawn to an estimate a little above it
+UNREPORTED_WAIT = 30.0  # seconds (see TimeLeft._unfinished_wait)
 
 
-def no_small_rise(shown: float | None, left: float) -> float:
-    """The time left to give now: ``left``, or ``shown`` (the one given last) when ``left``
-    is above it by less than :data:`RISE_SECONDS` or :data:`RISE_SHARE` of it."""
-    if shown is not None and shown < left < shown + max(RISE_SECONDS, RISE_SHARE * left):
-        return shown
-    return left
+@dataclass
+class Countdown:
+    """The time left as shown: an estimate below the clock's count from the figure shown
+    last is shown at once; one above it by less than :data:`RISE_SECONDS` (or
+    :data:`RISE_SHARE` of it) draws the count toward it over :data:`SMOOTHING` seconds,
+    never above the figure shown last, so that a stretch's noise neither lifts it nor makes
+    it run ahead; one that far above it is news (a slower printer, a longer heat-up), shown."""
+
+    shown: float | None = None
+    at: float = 0.0  # when it was shown (the caller's clock)
+
+    def show(self, left: float, now: float, moving: bool = True) -> float:
+        """The figure to give for ``left`` at ``now`` (``moving``: the count runs; not while
+        the job is paused)."""
+        if self.shown is not None:
+            counted = max(0.0, self.shown - (now - self.at)) if moving else self.shown
+            if counted < left < counted + max(RISE_SECONDS, RISE_SHARE * left):
+                share = min(1.0, (now - self.at) / SMOOTHING)
+                left = min(self.shown, counted + share * (left - counted))
+        self.shown, self.at = left, now
+        return left
 
 
 @dataclass(frozen=True, slots=True)
@@ -81,6 +102,7 @@ class Timeline:
     total: float = 0.0
     total_heating: float = 0.0
     tool_changes: float = 0.0  # of the total, the tool changes' pauses (the estimate's)
+    command_bytes: int = 0  # the file's commands' bytes as they go (the estimate's)
     limits_from: str = ""  # where the plan's limits came from (the estimate's)
     moves: list[int] = field(default_factory=list)  # moves (and dwells) planned by each point
     total_moves: int = 0
@@ -101,6 +123,24 @@ class Timeline:
         if len(self.waits) < MOST_POINTS:
             self.waits.append(wait)
             self.wait_moves.append(self.total_moves)
+
+    def few(self, most: int) -> tuple[tuple[int, float], ...]:
+        """``most`` of the (line, planned seconds) kept, evenly spread, the last among them."""
+        count = len(self.lines)
+        step = max(1, -(-count // most))  # rounded up: never more than the most
+        kept = [*range(step - 1, count - 1, step), count - 1] if count else []
+        return tuple((self.lines[i], round(self.seconds[i], 2)) for i in kept)
+
+    def heating_at(self, seconds: float) -> float:
+        """The heat waits' planned seconds by ``seconds`` into the plan (at the point kept
+        at or before it)."""
+        index = bisect.bisect_right(self.seconds, seconds) - 1
+        return self.heating[index] if index >= 0 else 0.0
+
+    def last_wait(self, line: int) -> HeatWait | None:
+        """The last heat wait planned at or before ``line``."""
+        index = bisect.bisect_right([wait.line for wait in self.waits], line)
+        return self.waits[index - 1] if index > 0 else None
 
     def waits_at(self, line: int, seconds: float) -> tuple[HeatWait | None, HeatWait | None]:
         """The heat wait the move at ``seconds`` (:meth:`running` at ``line``) may still be
@@ -223,7 +263,13 @@ class TimeLeft:
     # Every line acknowledged: when, and the time left then (the controller runs what it
     # holds, and no acknowledgement says how far it got).
     _drained: tuple[float, float] | None = None
-    _shown: float | None = None  # the time left given last (see RISE_SECONDS)
+    shown: Countdown = field(default_factory=Countdown)  # the time left given last
+    # Acknowledgements say only that a line arrived (Hyrel's link): a heat wait among the
+    # lines taken is over once its heater reports its target, not when lines after it go.
+    received_only: bool = False
+    _waits: dict[int, float | None] = field(default_factory=dict)  # by line: since / over
+    _reckoned: tuple[float, float] | None = None  # the move that runs there, then (_reckon)
+    _spread: float = 0.0  # planned seconds between the move that runs and the line taken last
 
     def observe(self, line: int, now: float, moving: bool = True, waiting: bool = False) -> None:
         """The controller acknowledged up to ``line`` by ``now``. ``moving``: False while the
@@ -257,6 +303,8 @@ class TimeLeft:
         if self.watched_planned <= 0 or moving <= 0:
             return self.prior
         weight = min(1.0, self.watched_planned / (BLEND_SHARE * moving))
+        if self.received_only:  # where the move that runs is: anywhere in the buffer
+            weight *= self.watched_planned / (self.watched_planned + SPREAD_WEIGHT * self._spread)
         run = self.watched_actual / self.watched_planned
         return (1 - weight) * self.prior + weight * run
 
@@ -299,9 +347,9 @@ class TimeLeft:
         the controller's latest reports ({"T0": (current, target)}, as the plan names
         them); the wait at hand then counts from where its heater is, and a wait is not
         watched as motion. Once every line is acknowledged, what the controller holds is
-        counted down by the clock (no line moves then to tell the pace by). A rise smaller
-        than :data:`RISE_SECONDS` (or :data:`RISE_SHARE` of it) is held back: the figure
-        given stays until the run is that far behind."""
+        counted down by the clock (no line moves then to tell the pace by). What is given
+        counts down by the clock within :data:`RISE_SECONDS` of the estimate
+        (:class:`Countdown`)."""
         if self.timeline.lines and line >= self.timeline.lines[-1] and moving:
             if self._drained is None:
                 self._drained = (now, self._remainder(line, now, moving, heaters))
@@ -311,13 +359,7 @@ class TimeLeft:
         else:
             self._drained = None
             left = self._remainder(line, now, moving, heaters)
-        left = self._shown = no_small_rise(self._shown, left)
-        return left
-
-    @property
-    def whole(self) -> float:
-        """The whole job's seconds at :attr:`pace` (its heat waits as planned)."""
-        return self.timeline.planned.total(self.pace)
+        return self.shown.show(left, now, moving)
 
     def _remainder(
         self,
@@ -327,8 +369,14 @@ class TimeLeft:
         heaters: Mapping[str, tuple[float, float | None]] | None,
     ) -> float:
         seconds, heating = self.timeline.running(line, self.held)
+        self._spread = max(0.0, self.timeline.at(line)[0] - seconds)
+        if self.received_only:
+            seconds = self._reckon(line, seconds, now, moving)
+            heating = self.timeline.heating_at(seconds)
         waiting, ahead = self.timeline.waits_at(line, seconds)
         waiting_short = _heating_to(waiting, heaters) if waiting is not None else None
+        if self.received_only and waiting_short is None:  # no report says where it is
+            waiting, waiting_short = self._unfinished_wait(line, now, heaters)
         ahead_short = _heating_to(ahead, heaters) if ahead is not None else None
         # Maybe in a wait: the move that runs is at a wait's end (its line taken, lines after
         # it too), or the wait's line is next, and its heater is not reported there; then no
@@ -342,6 +390,7 @@ class TimeLeft:
             seconds, heating = waiting.starts, waiting.heating - waiting.seconds
             ahead, ahead_short = waiting, waiting_short
             stalled = True
+            self._reckoned = (seconds, now) if self.received_only else None
         self.observe(line, now, moving, waiting=stalled)
         heat_left = self.timeline.total_heating - heating
         moving_left = max(0.0, self.timeline.total - seconds - heat_left) * self.pace
@@ -349,6 +398,41 @@ class TimeLeft:
             before = max(0.0, ahead.starts - seconds) * self.pace  # it heats during those
             heat_left += max(0.0, ahead_short / ahead.rate - before) - ahead.seconds
         return max(0.0, moving_left + heat_left)
+
+    def _reckon(self, line: int, lower: float, now: float, moving: bool) -> float:
+        """On a link that acknowledges lines as they arrive (in bursts, as its buffer frees):
+        the planned seconds of the move that runs, counted on by the clock at the pace since
+        last asked, kept between the move :attr:`held` back from ``line`` (``lower``) and
+        ``line`` itself (nothing after it has arrived)."""
+        last = self._reckoned
+        position = lower
+        if last is not None:
+            position = last[0] + (now - last[1]) / self.pace if moving else last[0]
+        position = min(max(position, lower), self.timeline.at(line)[0])
+        self._reckoned = (position, now)
+        return position
+
+    def _unfinished_wait(
+        self, line: int, now: float, heaters: Mapping[str, tuple[float, float | None]] | None
+    ) -> tuple[HeatWait | None, float | None]:
+        """On a link that acknowledges lines as they arrive: the last heat wait at or before
+        ``line`` while its heater has not reported its target, and the degrees it has still
+        to climb (the plan's, until its report tells). One never reported at its target is
+        over after twice its planned time and :data:`UNREPORTED_WAIT` seconds."""
+        wait = self.timeline.last_wait(line)
+        if wait is None:
+            return None, None
+        since = self._waits.setdefault(wait.line, now)
+        short = _heating_to(wait, heaters)
+        if since is None or short == 0.0:
+            self._waits[wait.line] = None  # over
+            return None, None
+        if short is None:
+            if now - since > 2 * wait.seconds + UNREPORTED_WAIT:
+                self._waits[wait.line] = None
+                return None, None
+            short = wait.seconds * wait.rate
+        return wait, short
 
 
 def _heating_to(

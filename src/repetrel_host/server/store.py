@@ -93,6 +93,8 @@ _ADDED_COLUMNS = {
     # Actual over planned moving time as the job ran (gcode.timeline: TimeLeft.measured):
     # the printer's next jobs expect its pace.
     "pace": "REAL",
+    # Its heaters' climbs (gcode.heat_rates), JSON: degrees a second by kind.
+    "heat_rates": "TEXT",
 }
 OWED, SENT = "owed", "sent"
 
@@ -138,6 +140,7 @@ class JobRecord:
     version: int = 0  # changes made to the record
     synced_version: int = 0  # changes the farm was told
     pace: float | None = None  # actual over planned moving time, as it ran
+    heat_rates: str | None = None  # JSON: its heaters' climbs, degrees a second by kind
 
     @property
     def location(self) -> str:
@@ -165,6 +168,7 @@ class JobRecord:
             "from_line": self.from_line,
             "farm_job": self.farm_id,
             "pace": self.pace,
+            "heat_rates": json.loads(self.heat_rates) if self.heat_rates else None,
         }
 
 
@@ -382,9 +386,11 @@ class Store:
         filament: dict[str, dict[str, float]] | None = None,
         pace: float | None = None,
         ended: float | None = None,
+        heat_rates: dict[str, float] | None = None,
     ) -> None:
-        """A job's new state; an ended one's error, M773 report, filament and pace with it,
-        and when it ended (``ended``, seconds since the epoch; by default now)."""
+        """A job's new state; an ended one's error, M773 report, filament, pace and heat
+        rates with it, and when it ended (``ended``, seconds since the epoch; by default
+        now)."""
         now = ended or time.time()
         with self._transaction() as db:
             if state in ACTIVE:
@@ -395,10 +401,11 @@ class Store:
                 )
             elif state in ENDED:
                 used = json.dumps(filament) if filament is not None else None
+                rates = json.dumps(heat_rates) if heat_rates else None
                 db.execute(
                     "UPDATE jobs SET state = ?, ended = ?, error = ?, report = ?, filament = ?,"
-                    " pace = ?, version = version + 1 WHERE id = ?",
-                    (state.value, now, error, report, used, pace, job_id),
+                    " pace = ?, heat_rates = ?, version = version + 1 WHERE id = ?",
+                    (state.value, now, error, report, used, pace, rates, job_id),
                 )
             else:
                 db.execute(
@@ -436,6 +443,15 @@ class Store:
                 " WHERE id = ? AND (lines != ? OR last_line != ?)",
                 (lines, last_line, job_id, lines, last_line),
             )
+
+    def heat_rates(self, printer: str) -> list[dict[str, float]]:
+        """The heat rates ``printer``'s last jobs timed, newest first."""
+        rows = self._db.execute(
+            "SELECT heat_rates FROM jobs WHERE printer = ? AND heat_rates IS NOT NULL"
+            " ORDER BY ended DESC LIMIT ?",
+            (printer, PACE_JOBS),
+        )
+        return [json.loads(row[0]) for row in rows]
 
     def paces(self, printer: str) -> list[float]:
         """The paces of ``printer``'s last jobs that have one, newest first."""

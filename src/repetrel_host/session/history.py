@@ -68,6 +68,9 @@ class Record:
     # Actual over planned moving time (gcode.timeline's TimeLeft.measured): what the next
     # job on this printer expects; None when too little of the run was watched.
     pace: float | None = None
+    # Its heaters' climbs, degrees a second by kind (gcode.heat_rates): the next job's heat
+    # waits are planned at them.
+    heat_rates: dict[str, float] | None = None
 
     def to_json(self) -> str:
         return json.dumps(asdict(self), indent=1) + "\n"
@@ -96,6 +99,31 @@ def paces(folder: Path, port: str, machine: str) -> Iterable[float]:
             continue
         if (record.port, record.machine) == (port, machine):
             yield record.pace
+
+
+def last_machine(folder: Path, port: str) -> str | None:
+    """The machine profile the newest run in ``folder`` on ``port`` ran with (None: none)."""
+    for run in reversed(runs(folder)):
+        record = read_record(run.stream)
+        if record is not None and record.port == port and record.machine:
+            return record.machine
+    return None
+
+
+def heat_rates(folder: Path, port: str, machine: str) -> Iterable[dict[str, float]]:
+    """The heat rates the runs in ``folder`` on ``port`` with ``machine`` timed, newest first."""
+    for run in reversed(runs(folder)):
+        record = read_record(run.stream)
+        if (
+            record is not None
+            and record.heat_rates
+            and (record.port, record.machine)
+            == (
+                port,
+                machine,
+            )
+        ):
+            yield record.heat_rates
 
 
 def error_kind(error: HostError) -> str:

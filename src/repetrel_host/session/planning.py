@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import os
 import re
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, replace
 from datetime import datetime
 from itertools import chain
@@ -26,7 +26,7 @@ from repetrel_host.config import (
 from repetrel_host.errors import ConfigError, JobError, UsageError
 from repetrel_host.gcode import addressing
 from repetrel_host.gcode.analysis import scan_marks
-from repetrel_host.gcode.estimate import Estimate, PlanSettings, estimate_file
+from repetrel_host.gcode.estimate import DEFAULT_LIMITS, Estimate, PlanSettings
 from repetrel_host.gcode.header import header_commands, safe_stop_commands, safe_stop_for_either
 from repetrel_host.gcode.lint import Finding, Linter, Severity
 from repetrel_host.gcode.timeline import Timeline
@@ -78,6 +78,9 @@ class JobRequest:
     loadout: Path | None = None
     machine: str | None = None
     header: bool = True
+    # The profile the port's last job ran with (its firmware chose it): a file planned
+    # without a printer to ask (--check) is planned as that printer's next job would be.
+    port_machine: str | None = None
 
 
 @dataclass(frozen=True)
@@ -106,21 +109,26 @@ class JobPlan:
         return chain(self.header, restore, self.job.items(check, pause_sync, recovery.line))
 
     def print_time(
-        self, timeline: Timeline | None = None, temperatures: dict[str, float] | None = None
+        self,
+        timeline: Timeline | None = None,
+        temperatures: dict[str, float] | None = None,
+        heat_rates: Mapping[str, float] | None = None,
     ) -> Estimate:
         """The job's print time from its moves, its header's first, as its machine runs them
         (the machine's limits where the file gives none; Hyrel's code chart on a Hyrel
         machine). ``timeline``: given the time at its lines as they are planned.
-        ``temperatures``: each heater's at the start (else the room's)."""
+        ``temperatures``: each heater's at the start (else the room's). ``heat_rates``: the
+        printer's own, by kind (:mod:`~repetrel_host.gcode.heat_rates`), over the machine's."""
         settings = self.plan_settings
-        found = estimate_file(
+        if heat_rates:
+            limits = settings.limits or DEFAULT_LIMITS
+            rates = {**limits.heat_rates, **heat_rates}
+            settings = replace(settings, limits=replace(limits, heat_rates=rates))
+        found = settings.estimate(
             self.job.path,
-            settings.limits,
-            hyrel=settings.hyrel,
-            temperatures=temperatures,
+            temperatures,
             on_time=timeline.add if timeline else None,
             on_heat=timeline.heated if timeline else None,
-            first=settings.first,
         )
         if timeline is not None:
             timeline.finish()
@@ -136,11 +144,16 @@ class JobPlan:
             tuple(line.command for line in self.header),
         )
 
-    def timeline(self, temperatures: dict[str, float] | None = None) -> Timeline:
+    def timeline(
+        self,
+        temperatures: dict[str, float] | None = None,
+        heat_rates: Mapping[str, float] | None = None,
+    ) -> Timeline:
         """The job's planned time at its lines (:meth:`print_time`'s)."""
         timeline = Timeline()
-        found = self.print_time(timeline, temperatures)
+        found = self.print_time(timeline, temperatures, heat_rates)
         timeline.limits_from, timeline.tool_changes = found.limits_from, found.tool_change_seconds
+        timeline.command_bytes = found.command_bytes
         return timeline
 
     def linter(self, streaming: bool = False) -> Linter:
@@ -297,6 +310,9 @@ def _profile(
     request: JobRequest,
 ) -> Profile:
     if machine_name is None and loadout is None and firmware is None:
+        last = request.port_machine
+        if last is not None and last in library.machines:
+            return Profile(last, library.machines[last], "the last job on this port", False)
         slicer = marlin_slicer(job.path)
         if slicer is not None:
             machine = _machine(library, MARLIN_PROFILE)

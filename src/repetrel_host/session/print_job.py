@@ -11,12 +11,13 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import time
-from collections.abc import AsyncIterator, Awaitable, Callable
+from collections.abc import AsyncIterator, Awaitable, Callable, Mapping
 from datetime import datetime
 from pathlib import Path
 from typing import Protocol
 
 from repetrel_host.errors import HostError
+from repetrel_host.gcode.heat_rates import HeatClimbs
 from repetrel_host.gcode.timeline import PlannedTime, TimeLeft, Timeline
 from repetrel_host.protocol.reports import JobReport, ReportReader
 from repetrel_host.session import history as print_history
@@ -34,9 +35,11 @@ PROGRESS_INTERVAL = 0.1
 # layers 7 % short; 19.5 came within 0.2 %). Hyrel's controller holds up to 8 KB.
 MARLIN_HELD_MOVES = 19.5
 HYREL_HELD_BYTES = 8192
-# Seconds a job runs before its time is planned (see PrintJob.follow_time): at once, in a
-# worker, so that its time left is known from its first seconds (its heat-up, mostly).
-PLAN_AFTER = 0.0
+# Seconds a job runs before its time is planned (see PrintJob.follow_time): the planner's
+# CPU would slow the stream's start (bench/run.py: a short job 12-20 % slower). A caller that
+# shows the time left to a person plans at once (hyrel-send's status line); the server has
+# its file's plan from the upload meanwhile.
+PLAN_AFTER = 3.0
 # Seconds between looks at the line acknowledged, for the pace a job keeps.
 PACE_INTERVAL = 0.25
 # Events a late subscriber to a job still gets.
@@ -115,7 +118,8 @@ class PrintJob:
         self.reports = ReportReader()  # the M773 report, read from the messages
         self.started = datetime.now()
         self.following: TimeLeft | None = None  # the planned time, once follow_time made it
-        self._pace_watch: asyncio.Task[None] | None = None
+        self._watch: asyncio.Task[None] | None = None
+        self.climbs = HeatClimbs()  # its heaters' climbs, timed as it runs
         self._keeper: print_history.ProgressKeeper | None = None  # the progress record
 
     @property
@@ -141,10 +145,16 @@ class PrintJob:
         return self._run.last
 
     async def follow_time(
-        self, prior: float = 1.0, run: Runner | None = None, after: float = PLAN_AFTER
+        self,
+        prior: float = 1.0,
+        run: Runner | None = None,
+        after: float = PLAN_AFTER,
+        heat_rates: Mapping[str, float] | None = None,
     ) -> None:
         """Plan the job's time at its lines, so that :meth:`time_left` can say it; its heat
-        waits start where the printer's heaters are. ``prior``: the printer's pace from its
+        waits start where the printer's heaters are, at ``heat_rates`` (the printer's from
+        its past jobs, by kind: :func:`~repetrel_host.gcode.heat_rates.learned_heat_rates`;
+        else its machine's). ``prior``: the printer's pace from its
         past jobs (see :class:`~repetrel_host.gcode.timeline.TimeLeft`). A long file takes
         seconds of CPU: planned in a thread, through ``run`` when given (``hyrel-send`` and
         the server give :func:`~repetrel_host.session.workers.in_worker`, a worker process,
@@ -152,33 +162,42 @@ class PrintJob:
         A file that cannot be planned (gone, unreadable, its worker ended) leaves the job
         without it: :meth:`time_left` stays None. Planning starts once the job has run
         ``after`` seconds: its start keeps the CPU, and a job over by then needs no time
-        left (the slicer's figure, else the rate, serve meanwhile)."""
+        left. The heaters' climbs are timed from the start (:attr:`heat_rates`)."""
+        self._watch = asyncio.get_running_loop().create_task(self._watch_run())
         await asyncio.sleep(after)
         if self.done:
             return
         temperatures = {name: current for name, (current, _) in self._heaters().items()}
+        rates = dict(heat_rates or {})
         try:
             planning = self.plan.timeline
             timeline = await (
-                asyncio.to_thread(run, planning, temperatures)
+                asyncio.to_thread(run, planning, temperatures, rates)
                 if run is not None
-                else asyncio.to_thread(planning, temperatures)
+                else asyncio.to_thread(planning, temperatures, rates)
             )
         except (OSError, HostError):
             return
-        if self.printer.protocol == "hyrel":  # its buffer's bytes, in this job's moves
-            held = HYREL_HELD_BYTES * timeline.total_moves / max(self.size, 1)
+        hyrel = self.printer.protocol == "hyrel"
+        if hyrel:  # its buffer's bytes, in this job's moves (its commands', not comments)
+            held = HYREL_HELD_BYTES * timeline.total_moves / max(timeline.command_bytes, 1)
         else:
             held = MARLIN_HELD_MOVES
-        self.following = TimeLeft(timeline, prior, held)
-        # Watched as it runs, whoever asks for the time left or not: the pace it keeps
-        # goes in its record, for the printer's next jobs.
-        self._pace_watch = asyncio.get_running_loop().create_task(self._watch_pace())
+        self.following = TimeLeft(timeline, prior, held, received_only=hyrel)
 
-    async def _watch_pace(self) -> None:
+    async def _watch_run(self) -> None:
+        """Watched as it runs, whoever asks for the time left or not: the pace it keeps and
+        its heaters' climbs go in its record, for the printer's next jobs."""
         while not self.done:
-            self.time_left()
+            self.climbs.observe(self._heaters(), time.monotonic())
+            if self.following is not None:
+                self.time_left()
             await asyncio.sleep(PACE_INTERVAL)
+
+    @property
+    def heat_rates(self) -> dict[str, float] | None:
+        """The heaters' climbs this run timed, degrees a second by kind (None: none)."""
+        return dict(self.climbs.rates) or None
 
     @property
     def pace(self) -> float | None:
@@ -192,13 +211,6 @@ class PrintJob:
         :meth:`follow_time` made it)."""
         following = self.following
         return following.timeline.planned if following is not None else None
-
-    @property
-    def expected_seconds(self) -> float | None:
-        """The whole job's seconds at the pace it keeps (the printer's past jobs' until it
-        was watched): its plan's moving part at the pace, its heat waits as planned."""
-        following = self.following
-        return following.whole if following is not None else None
 
     def time_left(self, now: float | None = None) -> float | None:
         """Seconds the job has left at the line acknowledged last: the plan's remainder at
@@ -425,4 +437,5 @@ class PrintJob:
             error_kind=print_history.error_kind(error) if error is not None else "",
             machine=self.plan.profile.name or "",
             pace=round(self.pace, 4) if self.pace is not None else None,
+            heat_rates=self.heat_rates,
         )

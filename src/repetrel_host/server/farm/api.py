@@ -100,9 +100,10 @@ def _times(job: dict[str, Any], paces: estimates.Paces) -> dict[str, Any]:
     plan's own seconds), and a printing job's time left as its node last reported it."""
     pace, pace_from = paces.of(job)
     planned = job["estimated_time"]
+    heating = min(job.get("estimated_heating") or 0.0, planned or 0.0)  # not at the pace
     end = job["expected_end"]
     return {
-        "estimated_time": planned * pace if planned is not None else None,
+        "estimated_time": (planned - heating) * pace + heating if planned is not None else None,
         "estimated_pace": round(pace, 4),
         "estimated_pace_from": pace_from,
         "planned_time": planned,

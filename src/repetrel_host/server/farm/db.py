@@ -55,7 +55,7 @@ ACTIVE = states.ACTIVE
 _JOB = """
     id, name, file, needs, priority, state, submitted_by, total_lines, node::text AS node,
     printer, fence, refused, lines, last_line, error, report, filament, safe_stop, local_id,
-    from_line, resumes, resumed_by, estimated_time, estimate_of,
+    from_line, resumes, resumed_by, estimated_time, estimated_heating, estimate_of,
     extract(epoch FROM expected_end)::float8 AS expected_end,
     extract(epoch FROM submitted)::float8 AS submitted,
     extract(epoch FROM claimed)::float8 AS claimed,
@@ -475,13 +475,16 @@ class FarmDB:
         )
         return True
 
-    async def estimated(self, jobs: list[int], seconds: float, of: str, timeout: float) -> None:
+    async def estimated(
+        self, jobs: list[int], seconds: float, of: str, timeout: float, heating: float = 0.0
+    ) -> None:
         """The jobs' planned print time: ``of`` the whole ``file``, or the ``rest`` from
-        their first line (a recovered job's)."""
+        their first line (a recovered job's); ``heating``: of it, the heat waits'."""
         async with self._transaction(timeout) as db:
             await db.execute(
-                "UPDATE jobs SET estimated_time = %s, estimate_of = %s WHERE id = ANY(%s)",
-                (seconds, of, jobs),
+                "UPDATE jobs SET estimated_time = %s, estimated_heating = %s, estimate_of = %s"
+                " WHERE id = ANY(%s)",
+                (seconds, heating, of, jobs),
             )
             await self._notify(db, {"kind": "job", "jobs": jobs, "estimated": True})
 
@@ -510,8 +513,8 @@ class FarmDB:
             whole = row["estimated_time"] if row["estimate_of"] == "file" else None
             cursor = await db.execute(
                 "INSERT INTO jobs (name, file, needs, priority, total_lines, submitted_by,"
-                " from_line, resumes, estimated_time, estimate_of)"
-                " VALUES (%s, %s, %s, %s, %s, %s, %s, %s, %s, %s) RETURNING id",
+                " from_line, resumes, estimated_time, estimated_heating, estimate_of)"
+                " VALUES (%s, %s, %s, %s, %s, %s, %s, %s, %s, %s, %s) RETURNING id",
                 (
                     row["name"],
                     row["file"],
@@ -522,6 +525,7 @@ class FarmDB:
                     from_line,
                     job,
                     whole,
+                    row["estimated_heating"] if whole is not None else None,
                     "file" if whole is not None else None,
                 ),
             )

@@ -29,10 +29,13 @@ WHOLE = "file"  # the estimate is of the whole file
 REST = "rest"  # of the file from the job's first line on
 
 
-def planned(analyses: Analyses, path: Path, from_line: int | None) -> tuple[float, str] | None:
+def planned(
+    analyses: Analyses, path: Path, from_line: int | None
+) -> tuple[float, float, str] | None:
     """The planned seconds of the job that prints ``path`` (from ``from_line`` on, when
-    given) and what they are of (:data:`WHOLE` or :data:`REST`); None for a file without
-    moves. Any thread but the event loop's; :class:`OSError` when the file cannot be read."""
+    given), the heat waits' share of them, and what they are of (:data:`WHOLE` or
+    :data:`REST`); None for a file without moves. Any thread but the event loop's;
+    :class:`OSError` when the file cannot be read."""
     summary = analyses.cached(path)
     if summary is None or unplanned(summary):
         summary = analyses.analyse(path).summary
@@ -40,7 +43,9 @@ def planned(analyses: Analyses, path: Path, from_line: int | None) -> tuple[floa
     if estimate.seconds is None:
         return None
     rest = from_line is not None and from_line > 1 and not estimate.whole_file
-    return estimate.seconds, REST if rest else WHOLE
+    share = estimate.seconds / summary.planned_seconds if summary and summary.planned_seconds else 1
+    heating = summary.planned_heating * share if summary is not None else 0.0
+    return estimate.seconds, heating, REST if rest else WHOLE
 
 
 # Where a job's listed pace comes from.

@@ -450,11 +450,11 @@ class FarmNode:
                 continue
             if found is None:
                 continue  # a file without moves has no planned time
-            seconds, of = found
+            seconds, heating, of = found
             delay = 1.0
             while not self._stopping:
                 try:
-                    await self._call(self.db.estimated(jobs, seconds, of, TIMEOUT))
+                    await self._call(self.db.estimated(jobs, seconds, of, TIMEOUT, heating))
                     break
                 except FarmAway:
                     await asyncio.sleep(delay)

@@ -100,6 +100,10 @@ MIGRATIONS: list[str] = [
     """
     ALTER TABLE printers ADD COLUMN pace double precision;  -- actual over planned; NULL: none
     """,
+    # 6: of a job's planned seconds, its heat waits' (a pace scales the rest, not them).
+    """
+    ALTER TABLE jobs ADD COLUMN estimated_heating double precision;
+    """,
 ]
 
 

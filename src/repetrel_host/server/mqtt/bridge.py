@@ -3,8 +3,8 @@
 - ``state`` (retained): ``{"state": "ready", "held": false}``
 - ``job`` (retained): the printer's current or last job (with its M773 ``report``, if any)
 - ``progress`` (retained): lines, the file line, bytes of the running job, its
-  ``completion`` (%) and ``time_left`` (seconds: the plan's remainder at the run's pace;
-  until the plan is made, the slicer's estimate, else the rate)
+  ``completion`` (%), ``time_left`` (seconds: the plan's remainder at the run's pace, the
+  one figure every face gives) and ``ends``
 - ``temperatures`` (retained): ``{"readings": {"T": [actual, target], "B": [...]}}``
 - ``snapshot`` (retained): the camera's newest image, ``{"file": ..., "url": "/v1/..."}``
 - ``message``: the controller's messages

@@ -4,21 +4,26 @@ and the filament it used."""
 
 from __future__ import annotations
 
+import asyncio
 import bisect
+import logging
 import time
 from dataclasses import dataclass, field
 from datetime import UTC, datetime, timedelta
+from pathlib import Path
 
 import repetrel_host as rh
 from repetrel_host.gcode.analysis import FileSummary
 from repetrel_host.gcode.marks import SlicerMarks
-from repetrel_host.gcode.timeline import PlannedTime, no_small_rise
+from repetrel_host.gcode.timeline import Countdown, PlannedTime
+from repetrel_host.server.analyses import Analyses
 from repetrel_host.server.events import PrintProgress
 from repetrel_host.server.store import JobRecord
 
 # How a time left was found: the plan at the pace of the run or of the printer's past jobs;
 # the plan as it is; the slicer's figure (a file never planned, in its first seconds).
 LEFT_FROM = ("estimate", "plan", "slicer")
+log = logging.getLogger("repetrel_host.server")
 FILE_END = 1 << 62  # a line past the last of any file
 LAYER_TIMES = ("starts_in", "ends_in", "starts_at", "ends_at")  # when a layer is printed
 
@@ -34,7 +39,7 @@ class Running:
     marks: SlicerMarks | None = None  # the slicer's (layers, Z, estimates), once read
     summary: FileSummary | None = None  # the file's analysis (filament, boxes), once read
     prior: float = 1.0  # the printer's pace from its past jobs, as the job started
-    _shown: float | None = None  # the time left given last (no_small_rise)
+    shown: Countdown = field(default_factory=Countdown)  # the time left given last
 
     @property
     def layer(self) -> int:
@@ -100,9 +105,9 @@ class Running:
         remainder at the pace (the job's ``time_left``); in the seconds before the job's own
         plan is made, the file's (its analysis', the same plan from room temperature), else
         the slicer's remainder, at the printer's pace; (None, None) for a file none can tell
-        of. A rise under :data:`~repetrel_host.gcode.timeline.RISE_SECONDS` is held back, as
-        the job's own figure holds it. One figure for every face: OctoPrint's
-        printTimeLeft, Moonraker's, MQTT's progress, the page, /v1."""
+        of. Given as a :class:`~repetrel_host.gcode.timeline.Countdown`, as the job's own
+        figure is (across the change from the one to the other too). One figure for every
+        face: OctoPrint's printTimeLeft, Moonraker's, MQTT's progress, the page, /v1."""
         planned = self.job.time_left()
         following = self.job.following
         if planned is not None and following is not None:
@@ -111,7 +116,8 @@ class Running:
         else:
             left, how = self._before_plan()
         if left is not None:
-            left = self._shown = no_small_rise(self._shown, left)
+            paused = self.job.printer.state is rh.State.PAUSED
+            left = self.shown.show(left, time.monotonic(), not paused)
         return left, how
 
     def time_until(self, line: int) -> float | None:
@@ -147,6 +153,25 @@ class Running:
             if said is not None:
                 return said * self.prior, "slicer"
         return None, None
+
+
+async def read_file(running: Running, analyses: Analyses, path: Path, printer: str) -> None:
+    """The ``running`` job's file, read once (in a thread): its layers' marks and offsets,
+    and its summary (kept since its upload; else made now, and kept)."""
+
+    def read() -> None:
+        summary = analyses.cached(path)
+        # Its print time is the job's own plan (follow_time): not planned twice.
+        found = analyses.analyse(path, moves=summary is None, planned=False)
+        running.marks, running.layers = found.marks, found.layer_offsets
+        running.summary = summary or found.summary
+
+    try:
+        await asyncio.to_thread(read)
+    except OSError:
+        pass  # gone or unreadable: the job streams what it opened, without layers
+    except Exception:  # a bug: the job is followed all the same
+        log.exception("printer %s: job %d's file was not analysed", printer, running.record.id)
 
 
 def filament_used(running: Running, completed: bool) -> dict[str, dict[str, float]] | None:

@@ -23,6 +23,7 @@ import repetrel_host as rh
 from repetrel_host.config import Loadout, UserConfig
 from repetrel_host.gcode.analysis import FileSummary
 from repetrel_host.gcode.commands import command_word
+from repetrel_host.gcode.heat_rates import learned_heat_rates
 from repetrel_host.gcode.lint import Finding
 from repetrel_host.gcode.timeline import learned_pace
 from repetrel_host.server.analyses import Analyses
@@ -39,7 +40,12 @@ from repetrel_host.server.printers.checks import JobChecks
 from repetrel_host.server.printers.config import PrinterConfig
 from repetrel_host.server.printers.forecast import Forecast, forecast, iso
 from repetrel_host.server.printers.host_actions import HostActions, snapshot_name
-from repetrel_host.server.printers.running import Running, filament_used, progress_event
+from repetrel_host.server.printers.running import (
+    Running,
+    filament_used,
+    progress_event,
+    read_file,
+)
 from repetrel_host.server.store import PROGRESS_INTERVAL, JobQueue, JobRecord, JobState, Store
 from repetrel_host.session.camera import SnapshotFailed
 from repetrel_host.session.events import PrinterEvent
@@ -363,10 +369,13 @@ class PrinterService:
         log.info("printer %s: printing job %d (%s%s)", self.name, record.id, record.name, farm)
         self.job_changed(record.id)
         # The plan's time at each line (in a worker process), for the time left and the pace.
-        following = asyncio.ensure_future(job.follow_time(running.prior, in_worker))
+        rates = learned_heat_rates(self.store.heat_rates(self.name))
+        following = asyncio.ensure_future(
+            job.follow_time(running.prior, in_worker, heat_rates=rates)
+        )
         # Its file read while it streams (a big file takes long): its progress goes out
         # from the start, its layers and filament once they are known.
-        reading = asyncio.ensure_future(self._read_job(running, path))
+        reading = asyncio.ensure_future(read_file(running, self.analyses, path, self.name))
         state, error = JobState.COMPLETED, None
         ending = asyncio.ensure_future(job.wait())
         try:
@@ -408,7 +417,9 @@ class PrinterService:
         report = job.report  # the controller's M773 report, kept with the job
         used = filament_used(running, completed)
         text = report.text if report else None
-        self.store.set_state(record.id, state, error, text, used, job.pace, self.finished_at)
+        self.store.set_state(
+            record.id, state, error, text, used, job.pace, self.finished_at, job.heat_rates
+        )
         if printer.owed_safe_stop or isinstance(ending.exception(), rh.SafeStopError):
             # Owed to the printer's next contact, whatever the job is recorded as (and
             # after a restart too): the session sends it once the printer answers.
@@ -424,26 +435,6 @@ class PrinterService:
         self.job_changed(record.id)
         self._state_changed()
         self._ended.set()
-
-    async def _read_job(self, running: Running, path: Path) -> None:
-        """The job's file, read once (in a thread): its layers' marks and offsets, and its
-        summary (kept since its upload; else made now, and kept)."""
-
-        def read() -> None:
-            summary = self.analyses.cached(path)
-            # Its print time is the job's own plan (follow_time): not planned twice.
-            found = self.analyses.analyse(path, moves=summary is None, planned=False)
-            running.marks, running.layers = found.marks, found.layer_offsets
-            running.summary = summary or found.summary
-
-        try:
-            await asyncio.to_thread(read)
-        except OSError:
-            pass  # gone or unreadable: the job streams what it opened, without layers
-        except Exception:  # a bug: the job is followed all the same
-            log.exception(
-                "printer %s: job %d's file was not analysed", self.name, running.record.id
-            )
 
     async def _watch(self, job: rh.PrintJob) -> None:
         """The job's word that its safe stop is held up: logged, told, and remembered."""
