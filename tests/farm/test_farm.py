@@ -651,7 +651,7 @@ def test_a_jobs_estimate_is_at_the_pace_of_the_printers_that_print_it(
     source.write_bytes(part("480", moves=4000))
     summary = analyse(source, planned=True).summary
     assert summary is not None and summary.planned_seconds
-    plan = summary.planned_seconds
+    plan = summary.planned_seconds  # the nodes plan it with a1's header first: 1 ms more
     ids = {}
     for requires in ("printer=a1", "printer=b1", "material=PLA"):
         answer = farm.submit("a", source.read_bytes(), "long.gcode", requires)
@@ -669,8 +669,8 @@ def test_a_jobs_estimate_is_at_the_pace_of_the_printers_that_print_it(
         ("material=PLA", 0.75, "printers"),
     ):
         job = jobs[ids[requires]]
-        assert job["planned_time"] == pytest.approx(plan), requires
-        assert job["estimated_time"] == pytest.approx(plan * pace), requires
+        assert job["planned_time"] == pytest.approx(plan, abs=0.01), requires
+        assert job["estimated_time"] == pytest.approx(plan * pace, abs=0.01), requires
         assert (job["estimated_pace"], job["estimated_pace_from"]) == (pace, pace_from), requires
         assert job["time_left"] is None
     # Printing on a1: at a1's pace, and its time left is a1's own (what its node reports).
@@ -679,7 +679,7 @@ def test_a_jobs_estimate_is_at_the_pace_of_the_printers_that_print_it(
     first = ids["printer=a1"]
     farm.wait(lambda: _printing(farm, first), what="the job to stream")
     job = farm.wait(lambda: (j := farm.jobs()[first])["time_left"] is not None and j)
-    assert job["estimated_time"] == pytest.approx(plan * 0.5)
+    assert job["estimated_time"] == pytest.approx(plan * 0.5, abs=0.01)
     assert job["estimated_pace_from"] == "printer"
     assert 0 < job["time_left"] <= round(job["expected_end"] - job["started"])
     # Once it ends, a1's pace is what its own store learned, this run's with the one before.

@@ -484,3 +484,12 @@ def test_a_planned_file_keeps_its_time_at_a_few_lines_for_a_job_from_a_line() ->
     older = FileSummary.from_dict(json.loads(json.dumps(kept)))
     assert older.planned_points == () and older.planned_after(middle) is None
     assert FileSummary.from_dict(json.loads(json.dumps(cone.as_dict()))) == cone
+
+
+def test_a_files_rest_at_a_pace_keeps_the_heat_waits_still_ahead_as_planned() -> None:
+    summary = analysis.FileSummary(
+        planned_seconds=100.0, planned_heating=20.0, planned_points=((10, 30.0), (20, 100.0))
+    )
+    assert summary.planned_after(0, 0.5) == pytest.approx(80 * 0.5 + 20)  # the heat-up first
+    assert summary.planned_after(10, 0.5) == pytest.approx(70 * 0.5)  # past it: moves only
+    assert summary.planned_after(10) == pytest.approx(70.0)

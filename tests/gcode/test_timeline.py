@@ -319,6 +319,12 @@ def test_a_heaters_climb_is_timed_from_its_reports_and_a_printers_rates_are_the_
     climbs.observe({"T0": (199.5, 200.0), "B": (40.0, 60.0)}, 90.0)
     climbs.observe({"T0": (200.0, 200.0), "B": (59.5, 60.0)}, 125.0)
     assert climbs.rates == {"hotend": pytest.approx(179.5 / 90), "bed": pytest.approx(39.5 / 80)}
+    step = HeatClimbs()  # a later step of a few degrees does not replace the heat-up's rate
+    step.observe({"T0": (20.0, 200.0)}, 0.0)
+    step.observe({"T0": (200.0, 200.0)}, 90.0)
+    step.observe({"T0": (200.0, 215.0)}, 100.0)
+    step.observe({"T0": (215.0, 215.0)}, 101.0)
+    assert step.rates == {"hotend": 2.0}
     changed = HeatClimbs()  # a target changed midway: timed from the report that showed it
     changed.observe({"T0": (20.0, 200.0)}, 0.0)
     changed.observe({"T0": (100.0, 150.0)}, 10.0)
@@ -327,3 +333,21 @@ def test_a_heaters_climb_is_timed_from_its_reports_and_a_printers_rates_are_the_
     assert kind_of("T1") == "hotend" and kind_of("B") == "bed" and kind_of("C") == "chamber"
     jobs = [{"hotend": 2.0}, {"hotend": 3.0, "bed": 0.4}, None, {"hotend": 9.0}]
     assert learned_heat_rates(jobs) == {"hotend": 3.0, "bed": 0.4}
+
+
+def test_on_a_link_that_acknowledges_on_arrival_the_bed_wait_comes_before_the_hotends() -> None:
+    """M190 then M109, both taken at once: the bed's wait is the one at hand until the bed
+    reports its target, though the hotend is there already."""
+    timeline = Timeline()
+    timeline.heated(HeatWait(1, "B", 60.0, 0.5, 0.0, 78.0, 78.0))  # 21 to 60 at 0.5 a second
+    timeline.add(1, 78.0)
+    timeline.heated(HeatWait(2, "T0", 200.0, 2.0, 78.0, 89.5, 167.5))
+    timeline.add(2, 167.5)
+    for line in range(3, 203):
+        timeline.add(line, 167.5 + (line - 2) * 1.0)  # 200 s of moves
+    timeline.finish()
+    left = TimeLeft(timeline, held=0, received_only=True)
+    heaters = {"B": (40.0, 60.0), "T0": (200.0, 200.0)}
+    assert left.left(100, 0.0, heaters=heaters) == pytest.approx(40.0 + 200.0, abs=0.5)
+    heaters = {"B": (60.0, 60.0), "T0": (200.0, 200.0)}  # both there: the moves after 100
+    assert left.left(100, 1.0, heaters=heaters) == pytest.approx(200.0 - 98.0, abs=0.5)

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from repetrel_host.gcode.estimate import estimate_file
+from repetrel_host.gcode.estimate import PlanSettings, estimate_file
 from repetrel_host.server.analyses import Analyses
 from repetrel_host.session.workers import stop_workers
 from tests.support.paths import DATA
@@ -51,5 +51,43 @@ def test_a_kept_analysis_carries_both_times_and_an_older_one_is_made_again(
         older["format"] = 2
         entry.write_text(json.dumps(older))
         assert Analyses(kept, root).cached(cone) is None
+    finally:
+        stop_workers()
+
+
+@pytest.mark.timeout(120)
+def test_a_print_time_planned_for_another_printer_setting_is_planned_again(
+    tmp_path: Path,
+) -> None:
+    """Planned before the printer's firmware answered (its profile a guess), or with another
+    machine: the rest of the analysis stands, its print time is made again, as the printer
+    plans now (and kept so across a restart)."""
+    root = tmp_path / "files"
+    root.mkdir()
+    cone = root / "cone.gcode"
+    shutil.copy(DATA / "cone-prusaslicer.gcode", cone)
+    key = ["no firmware yet"]
+    settings = {"no firmware yet": PlanSettings(), "hyrel": PlanSettings(hyrel=True)}
+
+    def analyses() -> Analyses:
+        made = Analyses(tmp_path / "analysis", root)
+        made.plan_as, made.plan_key = (lambda path: settings[key[0]]), (lambda: key[0])
+        return made
+
+    try:
+        first = analyses()
+        guessed = first.analyse(cone).summary
+        assert guessed is not None and guessed.planned_seconds is not None
+        key[0] = "hyrel"  # the firmware answered: another plan
+        stale = first.cached(cone)
+        assert stale is not None and stale.planned_seconds is None and stale.layers > 0
+        assert first.known(cone) == stale
+        replanned = first.analyse(cone).summary  # as summary() has it made in the background
+        assert replanned is not None and replanned.planned_seconds is not None
+        assert replanned.planned_seconds != guessed.planned_seconds  # Hyrel's code chart
+        assert analyses().cached(cone) == replanned  # kept for this setting
+        key[0] = "no firmware yet"
+        again = analyses().cached(cone)
+        assert again is not None and again.planned_seconds is None
     finally:
         stop_workers()

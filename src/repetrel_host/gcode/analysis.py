@@ -210,10 +210,11 @@ class FileSummary:
         heating, changes = self.planned_heating, self.planned_tool_changes
         return PlannedTime(max(0.0, self.planned_seconds - heating - changes), heating, changes)
 
-    def planned_after(self, line: int) -> float | None:
+    def planned_after(self, line: int, pace: float = 1.0) -> float | None:
         """The planned seconds after ``line`` (what a job that starts at the next line
-        takes), between the points kept in proportion; None when the file was not planned or
-        its summary keeps no points."""
+        takes), between the points kept in proportion, its moves at ``pace`` and the heat
+        waits still ahead as planned (a file heats first); None when the file was not
+        planned or its summary keeps no points."""
         points = self.planned_points
         if self.planned_seconds is None or not points:
             return None
@@ -223,7 +224,9 @@ class FileSummary:
         after_line, after = points[index]
         before_line, before = points[index - 1] if index > 0 else (0, 0.0)
         share = (line - before_line) / (after_line - before_line) if after_line > before_line else 1
-        return max(0.0, self.planned_seconds - (before + share * (after - before)))
+        rest = max(0.0, self.planned_seconds - (before + share * (after - before)))
+        heat_left = max(0.0, self.planned_heating - (self.planned_seconds - rest))
+        return (rest - heat_left) * pace + heat_left
 
     def largest_thumbnail(self) -> Thumbnail | None:
         """The embedded image with the most pixels (the one a page shows), if any."""

@@ -5,9 +5,9 @@ A climb is timed from the first report that shows a heater set :data:`CLIMB` deg
 more above where it is, to the first that shows it within a degree of that target (or the
 last before the job ended, once it rose :data:`CLIMB` degrees): the degrees it rose over the
 seconds it took (the straight line the plan draws; reports come a second or two apart, so a
-heater that reaches its target at once reads as that fast). A job
-keeps each kind of heater's last climb; a printer's rates are the median of its last jobs'
-(as its pace is). The clock is the caller's.
+heater that reaches its target at once reads as that fast). A job keeps each kind of
+heater's largest climb (its heat-up, not a later step of a few degrees); a printer's rates
+are the median of its last jobs' (as its pace is). The clock is the caller's.
 """
 
 from __future__ import annotations
@@ -31,7 +31,8 @@ class HeatClimbs:
     """The climbs of a printer's heaters, timed from its reports (see the module)."""
 
     def __init__(self) -> None:
-        self.rates: dict[str, float] = {}  # degrees a second, by kind: the last climb's
+        self.rates: dict[str, float] = {}  # degrees a second, by kind: the largest climb's
+        self._degrees: dict[str, float] = {}  # by kind: how far that climb rose
         self._climbing: dict[str, tuple[float, float, float]] = {}  # since, from, target
 
     def observe(self, heaters: Mapping[str, tuple[float, float | None]], now: float) -> None:
@@ -46,8 +47,11 @@ class HeatClimbs:
                     self._climbing[name] = (now, current, target)
                 continue
             since, start, goal = climb
-            if current - start >= CLIMB and now > since:  # so far (a job may end before)
-                self.rates[kind_of(name)] = (current - start) / (now - since)
+            kind, rose = kind_of(name), current - start
+            # So far (a job may end before), unless a larger climb of its kind said more (a
+            # heat-up, not a later step of a few degrees).
+            if rose >= max(CLIMB, self._degrees.get(kind, 0.0)) and now > since:
+                self.rates[kind], self._degrees[kind] = rose / (now - since), rose
             if current >= goal - REACHED:
                 del self._climbing[name]
 

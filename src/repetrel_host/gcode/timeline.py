@@ -137,10 +137,10 @@ class Timeline:
         index = bisect.bisect_right(self.seconds, seconds) - 1
         return self.heating[index] if index >= 0 else 0.0
 
-    def last_wait(self, line: int) -> HeatWait | None:
-        """The last heat wait planned at or before ``line``."""
-        index = bisect.bisect_right([wait.line for wait in self.waits], line)
-        return self.waits[index - 1] if index > 0 else None
+    @property
+    def wait_lines(self) -> list[int]:
+        """The lines of the heat waits kept, in order."""
+        return [wait.line for wait in self.waits]
 
     def waits_at(self, line: int, seconds: float) -> tuple[HeatWait | None, HeatWait | None]:
         """The heat wait the move at ``seconds`` (:meth:`running` at ``line``) may still be
@@ -270,6 +270,7 @@ class TimeLeft:
     _waits: dict[int, float | None] = field(default_factory=dict)  # by line: since / over
     _reckoned: tuple[float, float] | None = None  # the move that runs there, then (_reckon)
     _spread: float = 0.0  # planned seconds between the move that runs and the line taken last
+    _spared: float = 0.0  # planned heat waits taken whose heaters are there already
 
     def observe(self, line: int, now: float, moving: bool = True, waiting: bool = False) -> None:
         """The controller acknowledged up to ``line`` by ``now``. ``moving``: False while the
@@ -375,6 +376,7 @@ class TimeLeft:
             heating = self.timeline.heating_at(seconds)
         waiting, ahead = self.timeline.waits_at(line, seconds)
         waiting_short = _heating_to(waiting, heaters) if waiting is not None else None
+        self._spared = 0.0
         if self.received_only and waiting_short is None:  # no report says where it is
             waiting, waiting_short = self._unfinished_wait(line, now, heaters)
         ahead_short = _heating_to(ahead, heaters) if ahead is not None else None
@@ -394,6 +396,7 @@ class TimeLeft:
         self.observe(line, now, moving, waiting=stalled)
         heat_left = self.timeline.total_heating - heating
         moving_left = max(0.0, self.timeline.total - seconds - heat_left) * self.pace
+        heat_left -= self._spared
         if ahead is not None and ahead_short is not None:  # counted from the heater's report
             before = max(0.0, ahead.starts - seconds) * self.pace  # it heats during those
             heat_left += max(0.0, ahead_short / ahead.rate - before) - ahead.seconds
@@ -415,24 +418,27 @@ class TimeLeft:
     def _unfinished_wait(
         self, line: int, now: float, heaters: Mapping[str, tuple[float, float | None]] | None
     ) -> tuple[HeatWait | None, float | None]:
-        """On a link that acknowledges lines as they arrive: the last heat wait at or before
-        ``line`` while its heater has not reported its target, and the degrees it has still
-        to climb (the plan's, until its report tells). One never reported at its target is
-        over after twice its planned time and :data:`UNREPORTED_WAIT` seconds."""
-        wait = self.timeline.last_wait(line)
-        if wait is None:
-            return None, None
-        since = self._waits.setdefault(wait.line, now)
-        short = _heating_to(wait, heaters)
-        if since is None or short == 0.0:
-            self._waits[wait.line] = None  # over
-            return None, None
-        if short is None:
-            if now - since > 2 * wait.seconds + UNREPORTED_WAIT:
+        """On a link that acknowledges lines as they arrive: the first heat wait at or before
+        ``line`` whose heater has not reported its target (a bed's before a hotend's), and
+        the degrees it has still to climb (the plan's, until its report tells). One never
+        reported at its target is over after twice its planned time and
+        :data:`UNREPORTED_WAIT` seconds from when it was the one at hand. The waits taken
+        after it whose heaters are there already will not wait (:attr:`_spared`)."""
+        at_hand: tuple[HeatWait | None, float | None] = (None, None)
+        self._spared = 0.0
+        for wait in self.timeline.waits[: bisect.bisect_right(self.timeline.wait_lines, line)]:
+            if at_hand[0] is not None:
+                self._spared += wait.seconds if _heating_to(wait, heaters) == 0.0 else 0.0
+                continue
+            since = self._waits.setdefault(wait.line, now)
+            if since is None:
+                continue  # over
+            short = _heating_to(wait, heaters)
+            if short == 0.0 or (short is None and now - since > 2 * wait.seconds + UNREPORTED_WAIT):
                 self._waits[wait.line] = None
-                return None, None
-            short = wait.seconds * wait.rate
-        return wait, short
+                continue
+            at_hand = wait, short if short is not None else wait.seconds * wait.rate
+        return at_hand
 
 
 def _heating_to(

@@ -19,6 +19,7 @@ import logging
 import queue
 import threading
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -50,7 +51,10 @@ class Analyses:
         # How a file's print time is planned: as the server's printer plans its jobs (its
         # machine, header, firmware), so that a list and a job give the same figure.
         self.plan_as: Callable[[Path], PlanSettings] | None = None
-        self._known: dict[Path, tuple[Stamp, FileSummary]] = {}
+        # What that plan depends on besides the file (the printer's machine, loadout and
+        # firmware): a print time planned for another is planned again.
+        self.plan_key: Callable[[], str] | None = None
+        self._known: dict[Path, tuple[Stamp, FileSummary, str]] = {}  # and planned_for
         self._waiting: queue.SimpleQueue[Path] = queue.SimpleQueue()
         self._queued: set[Path] = set()
         self._lock = threading.Lock()
@@ -62,9 +66,10 @@ class Analyses:
         """The summary of ``path`` as it is now, if it is in memory (for the event loop)."""
         found = self._known.get(path)
         try:
-            return found[1] if found is not None and found[0] == stamp(path) else None
+            current = found is not None and found[0] == stamp(path)
         except OSError:
             return None
+        return self._as_planned(found[1], found[2]) if found is not None and current else None
 
     def cached(self, path: Path) -> FileSummary | None:
         """The summary of ``path`` as it is now, from memory or the folder; None when there
@@ -75,7 +80,7 @@ class Analyses:
             return None
         found = self._known.get(path)
         if found is not None and found[0] == now:
-            return found[1]
+            return self._as_planned(found[1], found[2])
         try:
             kept = json.loads(self._entry(path).read_text())
             if kept["format"] != FORMAT or kept["file"] != self._name(path):
@@ -83,10 +88,20 @@ class Analyses:
             if (kept["size"], kept["mtime_ns"]) != now:
                 return None
             summary = FileSummary.from_dict(kept["analysis"])
+            planned_for = str(kept.get("planned_for", ""))
         except (OSError, ValueError, KeyError, TypeError):
             return None  # none yet, or unreadable: made again
-        self._known[path] = (now, summary)
-        return summary
+        self._known[path] = (now, summary, planned_for)
+        return self._as_planned(summary, planned_for)
+
+    def _as_planned(self, summary: FileSummary, planned_for: str) -> FileSummary:
+        """``summary``, without its print time when that was planned for another printer
+        setting than the one now (:attr:`plan_key`): it is planned again."""
+        if self.plan_key is None or summary.planned_seconds is None:
+            return summary
+        if planned_for == self.plan_key():
+            return summary
+        return replace(summary, planned_seconds=None, planned_points=(), planned_heating=0.0)
 
     def summary(self, path: Path) -> FileSummary | None:
         """:meth:`cached`, or None and the file analysed in the background (and one whose
@@ -104,10 +119,11 @@ class Analyses:
         start does without: the job plans its own). :class:`OSError` when it cannot be
         read."""
         before = stamp(path)
+        planned_for = self.plan_key() if self.plan_key is not None else ""
         settings = self._settings(path) if moves and planned else None
         found = in_worker(analyse, path, moves=moves, planned=moves and planned, settings=settings)
         if found.summary is not None and stamp(path) == before:  # not changed meanwhile
-            self.keep(path, found.summary, before)
+            self.keep(path, found.summary, before, planned_for)
         return found
 
     def _settings(self, path: Path) -> PlanSettings | None:
@@ -119,11 +135,17 @@ class Analyses:
             log.warning("%s is planned with the defaults: %s", path.name, exc)
             return None
 
-    def keep(self, path: Path, summary: FileSummary, made_from: Stamp) -> None:
-        """``summary`` is that of ``path`` while its size and time are ``made_from``."""
-        self._known[path] = (made_from, summary)
+    def keep(
+        self, path: Path, summary: FileSummary, made_from: Stamp, planned_for: str | None = None
+    ) -> None:
+        """``summary`` is that of ``path`` while its size and time are ``made_from``; its
+        print time planned for ``planned_for`` (:attr:`plan_key`; by default the one now)."""
+        if planned_for is None:
+            planned_for = self.plan_key() if self.plan_key is not None else ""
+        self._known[path] = (made_from, summary, planned_for)
         entry = {
             "format": FORMAT,
+            "planned_for": planned_for,
             "file": self._name(path),
             "size": made_from[0],
             "mtime_ns": made_from[1],

@@ -81,7 +81,7 @@ class PrintProgress:
     layers: int
     completion: float | None
     time_left: int | None  # seconds
-    time_left_from: str | None  # printers.running.LEFT_FROM: estimate, plan, slicer, linear
+    time_left_from: str | None  # printers.running.LEFT_FROM: estimate, plan, slicer
     ends: str | None = None  # when it should end: ISO 8601, UTC
     free_at: str | None = None  # when the printer should be free (its queue too): ISO, UTC
 

@@ -71,6 +71,7 @@ class PrintServer:
         first = next(iter(self.services.values()), None)
         if first is not None:  # files are planned as the first printer plans its jobs
             self.analyses.plan_as = lambda path: first.checks.plan(path).plan_settings
+            self.analyses.plan_key = first.plan_key
         for service in self.services.values():
             service.automatic_transition = automatic_transition
             service.start_waits_for_release = start_waits_for_release

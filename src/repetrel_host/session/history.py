@@ -114,15 +114,8 @@ def heat_rates(folder: Path, port: str, machine: str) -> Iterable[dict[str, floa
     """The heat rates the runs in ``folder`` on ``port`` with ``machine`` timed, newest first."""
     for run in reversed(runs(folder)):
         record = read_record(run.stream)
-        if (
-            record is not None
-            and record.heat_rates
-            and (record.port, record.machine)
-            == (
-                port,
-                machine,
-            )
-        ):
+        found = record is not None and (record.port, record.machine) == (port, machine)
+        if found and record is not None and record.heat_rates:
             yield record.heat_rates
 
 

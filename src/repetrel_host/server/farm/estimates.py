@@ -43,8 +43,10 @@ def planned(
     if estimate.seconds is None:
         return None
     rest = from_line is not None and from_line > 1 and not estimate.whole_file
-    share = estimate.seconds / summary.planned_seconds if summary and summary.planned_seconds else 1
-    heating = summary.planned_heating * share if summary is not None else 0.0
+    # The heat waits still ahead of its first line (a file heats first): not at a pace.
+    heating = summary.planned_heating if summary is not None else 0.0
+    if rest and summary is not None and summary.planned_seconds:
+        heating = max(0.0, heating - (summary.planned_seconds - estimate.seconds))
     return estimate.seconds, heating, REST if rest else WHOLE
 
 

@@ -47,12 +47,10 @@ def job_seconds(summary: FileSummary | None, from_line: int | None, pace: float)
     its share after the line before it (the whole file's, said so, when the summary keeps
     no points to tell); no start or end yet."""
     planned = summary.planned if summary is not None else None
-    if summary is None or planned is None or not summary.planned_seconds:
+    if summary is None or planned is None:
         return QueuedTimes(None, False, None, None)
-    seconds = planned.total(pace)
-    rest = summary.planned_after(from_line - 1) if from_line is not None else None
-    if rest is not None:
-        seconds *= rest / summary.planned_seconds
+    rest = summary.planned_after(from_line - 1, pace) if from_line is not None else None
+    seconds = rest if rest is not None else planned.total(pace)
     return QueuedTimes(seconds, from_line is not None and rest is None, None, None)
 
 

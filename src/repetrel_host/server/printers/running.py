@@ -134,13 +134,7 @@ class Running:
         """The file's planned seconds after ``line`` at the printer's pace (its analysis'
         plan, the heat waits' share as planned); None when it keeps no points."""
         summary = self.summary
-        planned = summary.planned if summary is not None else None
-        if summary is None or planned is None or not summary.planned_seconds:
-            return None
-        rest = summary.planned_after(line)
-        return (
-            rest / summary.planned_seconds * planned.total(self.prior) if rest is not None else None
-        )
+        return summary.planned_after(line, self.prior) if summary is not None else None
 
     def _before_plan(self) -> tuple[float | None, str | None]:
         last = self.job.last

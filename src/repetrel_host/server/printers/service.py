@@ -55,6 +55,7 @@ from repetrel_host.session.planning import (
     JobRequest,
     recovery_plan,
 )
+from repetrel_host.session.print_job import PLAN_AFTER
 from repetrel_host.session.workers import in_worker
 
 READING_GRACE = 10.0  # seconds a job's end waits for its file's reading (its filament)
@@ -368,11 +369,11 @@ class PrinterService:
         farm = f", farm job {record.farm_id}" if record.farm_id is not None else ""
         log.info("printer %s: printing job %d (%s%s)", self.name, record.id, record.name, farm)
         self.job_changed(record.id)
-        # The plan's time at each line (in a worker process), for the time left and the pace.
+        # The plan's time at each line (in a worker process), for the time left and the pace;
+        # at once when its file's plan is not there to tell it meanwhile (an upload printed).
         rates = learned_heat_rates(self.store.heat_rates(self.name))
-        following = asyncio.ensure_future(
-            job.follow_time(running.prior, in_worker, heat_rates=rates)
-        )
+        after = PLAN_AFTER if analysed is not None and analysed.planned_seconds else 0.0
+        following = asyncio.ensure_future(job.follow_time(prior, in_worker, after, rates))
         # Its file read while it streams (a big file takes long): its progress goes out
         # from the start, its layers and filament once they are known.
         reading = asyncio.ensure_future(read_file(running, self.analyses, path, self.name))
@@ -511,6 +512,12 @@ class PrinterService:
         return now if self.state == "ready" and not self.held else None
 
     # --- checks (checks.py) ------------------------------------------------------------
+
+    def plan_key(self) -> str:
+        """What its jobs' plans depend on besides their file: its machine, its loadout and
+        the firmware that answered (another key: a file's print time is planned again)."""
+        firmware = self._firmware()
+        return f"{self.checks.request}|{firmware.identity if firmware is not None else ''}"
 
     def _firmware(self) -> rh.Firmware | None:
         printer = self.printer
