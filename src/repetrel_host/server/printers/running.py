@@ -142,11 +142,10 @@ class Running:
         rest = self._file_after(line)
         if rest is not None:
             return rest, "estimate" if self.prior != 1.0 else "plan"
-        if self.marks is not None and last is not None:
-            said = self.marks.at(line, self.fraction).seconds_left
-            if said is not None:
-                return said * self.prior, "slicer"
-        return None, None
+        said = self.marks.at(line, self.fraction).seconds_left if self.marks else None
+        if said is None and self.summary is not None and self.summary.slicer_seconds:
+            said = self.summary.slicer_seconds * (1 - self.fraction)  # its marks not read yet
+        return (said * self.prior, "slicer") if said is not None else (None, None)
 
 
 async def read_file(running: Running, analyses: Analyses, path: Path, printer: str) -> None:
