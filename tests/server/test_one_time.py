@@ -17,7 +17,7 @@ import httpx
 import pytest
 
 from repetrel_host.fakes.fake_controller import BuiltInFake
-from tests.support.server import Server, wait_for
+from tests.support.server import Server, past_paces, wait_for
 
 CONE = Path(__file__).parent.parent / "data" / "cone-prusaslicer.gcode"
 pytestmark = pytest.mark.timeout(180)
@@ -37,19 +37,6 @@ def analysis(client: httpx.Client, path: str) -> dict[str, Any]:
     return result
 
 
-def learned(server: Server, *paces: float) -> None:
-    """Past jobs of the printer that ran at ``paces`` (as the server records them)."""
-    with contextlib.closing(sqlite3.connect(server.data_dir / "jobs.sqlite")) as db:
-        for number, pace in enumerate(paces, 1):
-            db.execute(
-                "INSERT INTO jobs (printer, name, file, state, position, submitted, "
-                "started, ended, pace) VALUES ('bench', ?, 'files/old.gcode', "
-                "'completed', 0, 1, 2, ?, ?)",
-                (f"old{number}.gcode", 2 + number, pace),
-            )
-        db.commit()
-
-
 def test_a_files_whole_time_is_one_figure_at_the_printers_pace_on_every_face(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
 ) -> None:
@@ -65,7 +52,7 @@ def test_a_files_whole_time_is_one_figure_at_the_printers_pace_on_every_face(
         assert plan["estimatedHeating"] > 0  # the cone heats its hotend first (M109)
         assert plan["estimatedPace"] == 1
 
-        learned(server, 0.5, 0.5, 3.0)  # the median: one odd job does not sway it
+        past_paces(server, 0.5, 0.5, 3.0)  # the median: one odd job does not sway it
         paced = analysis(client, "cone.gcode")
         whole = paced["estimatedMoving"] * 0.5 + paced["estimatedHeating"]
         assert paced["estimatedPace"] == 0.5
@@ -98,7 +85,7 @@ def test_a_running_job_has_its_time_left_from_the_first_look_and_one_whole_time(
         upload = {"file": ("cone.gcode", CONE.read_bytes())}
         assert client.post("/v1/files", files=upload).is_success
         analysis(client, "cone.gcode")  # analysed at its upload, as a sent file is
-        learned(server, 0.05, 0.05)  # the printer runs at 1/20 of the plan, and knows it
+        past_paces(server, 0.05, 0.05)  # the printer runs at 1/20 of the plan, and knows it
         job = client.post("/v1/printers/bench/queue", json={"file": "cone.gcode"}).json()
         seen: list[tuple[float, float | None, str | None]] = []
         started = time.monotonic()

@@ -4,9 +4,7 @@ learned pace), when it should start and end, and when the printer should be free
 
 from __future__ import annotations
 
-import contextlib
 import json
-import sqlite3
 import time
 from collections.abc import Callable
 from datetime import datetime
@@ -16,7 +14,7 @@ import httpx
 import pytest
 
 from repetrel_host.fakes.fake_controller import BuiltInFake
-from tests.support.server import Server, gcode, wait_for
+from tests.support.server import Server, gcode, past_paces, wait_for
 
 
 def at(iso: str) -> float:
@@ -114,15 +112,7 @@ def test_the_printers_learned_pace_scales_the_estimate_and_a_recovery_takes_the_
 
         # The printer's past jobs took twice their plans (their median: one odd job does
         # not sway it).
-        with contextlib.closing(sqlite3.connect(server.data_dir / "jobs.sqlite")) as db:
-            for number, pace in enumerate((2.0, 2.0, 5.0), 1):
-                db.execute(
-                    "INSERT INTO jobs (printer, name, file, state, position, submitted, "
-                    "started, ended, pace) VALUES ('bench', ?, 'files/old.gcode', "
-                    "'completed', 0, 1, 2, ?, ?)",
-                    (f"old{number}.gcode", 2 + number, pace),
-                )
-            db.commit()
+        past_paces(server, 2.0, 2.0, 5.0)
         assert queued(client)[0]["estimated_time"] == pytest.approx(2 * whole, abs=1)
 
         # From line 1001 of 2001: the planned time after line 1000, at the same pace.

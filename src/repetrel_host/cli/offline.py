@@ -29,7 +29,7 @@ from repetrel_host.session.planning import (
     JobPlan,
     LinkRequest,
     choose_port,
-    default_history_dir,
+    history_folder,
     link_settings,
 )
 from repetrel_host.session.recovery import RECOVERY_SOURCE, recovery_command
@@ -77,11 +77,10 @@ def printer_pace(
 ) -> PrinterPace:
     """The pace a job on ``port`` with the ``machine`` profile starts from, as hyrel-send
     finds it: the runs in the history ``folder`` (the configured one, else the default)."""
-    try:
-        resolved, _ = choose_port(port, user)
-    except HostError:  # "auto" with no single candidate: no printer to ask about
+    found = _printer_history(port, folder, user)
+    if found is None:
         return PrinterPace(None, "", machine)
-    folder = folder or user.host.history_dir or default_history_dir()
+    folder, resolved = found
     known = list(islice(print_history.paces(folder, resolved, machine), PACE_JOBS))
     rates = learned_heat_rates(print_history.heat_rates(folder, resolved, machine))
     return PrinterPace(learned_pace(known) if known else None, resolved, machine, rates)
@@ -89,13 +88,19 @@ def printer_pace(
 
 def port_machine(port: str | None, folder: Path | None, user: UserConfig) -> str | None:
     """The profile the last job on ``port`` (as hyrel-send resolves it) ran with."""
+    found = _printer_history(port, folder, user)
+    return print_history.last_machine(*found) if found is not None else None
+
+
+def _printer_history(
+    port: str | None, folder: Path | None, user: UserConfig
+) -> tuple[Path, str] | None:
+    """The history folder and the port as hyrel-send resolves them; None when ``auto``
+    finds no single candidate (no printer to ask about)."""
     try:
-        resolved, _ = choose_port(port, user)
+        return history_folder(folder, user), choose_port(port, user)[0]
     except HostError:
         return None
-    return print_history.last_machine(
-        folder or user.host.history_dir or default_history_dir(), resolved
-    )
 
 
 def time_sentence(plan: JobPlan, pace: PrinterPace | None = None) -> str:
@@ -106,9 +111,7 @@ def time_sentence(plan: JobPlan, pace: PrinterPace | None = None) -> str:
     found = plan.print_time(heat_rates=pace.heat_rates if pace is not None else None)
     if not found.moves:
         return "no moves: no print time"
-    planned = PlannedTime(
-        found.moving - found.tool_change_seconds, found.heating, found.tool_change_seconds
-    )
+    planned = PlannedTime.of(found.seconds, found.heating, found.tool_change_seconds)
     parts = [f"{duration(planned.moving)} moving", f"{duration(planned.heating)} heating"]
     if found.tool_changes:
         parts.append(f"{duration(planned.tool_changes)} for {found.tool_changes} tool changes")
@@ -185,8 +188,7 @@ def list_serial_ports(console: Out) -> None:
 
 def history_list(console: Out, folder: Path | None, config: Path | None) -> None:
     """hyrel-send --history-list: the newest runs, how each ended."""
-    user = load_user_config(config)
-    folder = folder or user.host.history_dir or default_history_dir()
+    folder = history_folder(folder, load_user_config(config))
     entries = print_history.entries(folder)
     if not entries:
         console.print(f"no prints in {folder} yet", markup=False)

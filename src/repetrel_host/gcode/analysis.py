@@ -43,7 +43,7 @@ import math
 import re
 from bisect import bisect_right
 from collections.abc import Iterable, Iterator
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, astuple, dataclass, field, replace
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -188,7 +188,7 @@ class FileSummary:
             {"format": t.format, "width": t.width, "height": t.height} for t in self.thumbnails
         ]
         planned = self.planned
-        split = (planned.moving, planned.heating, planned.tool_changes) if planned else (None,) * 3
+        split = astuple(planned) if planned is not None else (None, None, None)
         names = ("estimatedMoving", "estimatedHeating", "estimatedToolChanges")
         return {
             **self.gcode_analysis(pace),
@@ -207,8 +207,7 @@ class FileSummary:
         """The planned time, split (None: not planned)."""
         if self.planned_seconds is None:
             return None
-        heating, changes = self.planned_heating, self.planned_tool_changes
-        return PlannedTime(max(0.0, self.planned_seconds - heating - changes), heating, changes)
+        return PlannedTime.of(self.planned_seconds, self.planned_heating, self.planned_tool_changes)
 
     def planned_after(self, line: int, pace: float = 1.0) -> float | None:
         """The planned seconds after ``line`` (what a job that starts at the next line

@@ -78,6 +78,11 @@ class PlannedTime:
     heating: float
     tool_changes: float = 0.0
 
+    @classmethod
+    def of(cls, total: float, heating: float, tool_changes: float) -> PlannedTime:
+        """The split of a plan of ``total`` seconds, ``heating`` and ``tool_changes`` of them."""
+        return cls(max(0.0, total - heating - tool_changes), heating, tool_changes)
+
     def total(self, pace: float = 1.0) -> float:
         """The whole job at ``pace`` (actual over planned moving time; heat waits as
         planned)."""
@@ -114,8 +119,7 @@ class Timeline:
     @property
     def planned(self) -> PlannedTime:
         """The whole plan, split."""
-        moving = self.total - self.total_heating - self.tool_changes
-        return PlannedTime(max(0.0, moving), self.total_heating, self.tool_changes)
+        return PlannedTime.of(self.total, self.total_heating, self.tool_changes)
 
     def heated(self, wait: HeatWait) -> None:
         """A heat wait is planned (the estimator's ``on_heat``)."""
@@ -146,7 +150,7 @@ class Timeline:
         """The heat wait the move at ``seconds`` (:meth:`running` at ``line``) may still be
         in (the last at or before ``line``, when it ends where that move is: a controller
         that acknowledges lines as it takes them keeps waiting after), and the next one."""
-        index = bisect.bisect_right([wait.line for wait in self.waits], line)
+        index = bisect.bisect_right(self.wait_lines, line)
         last = self.waits[index - 1] if index > 0 else None
         if last is not None and seconds > last.starts + last.seconds + 1e-6:
             last = None
@@ -370,9 +374,10 @@ class TimeLeft:
         heaters: Mapping[str, tuple[float, float | None]] | None,
     ) -> float:
         seconds, heating = self.timeline.running(line, self.held)
-        self._spread = max(0.0, self.timeline.at(line)[0] - seconds)
         if self.received_only:
-            seconds = self._reckon(line, seconds, now, moving)
+            taken = self.timeline.at(line)[0]  # nothing after the line taken has arrived
+            self._spread = max(0.0, taken - seconds)
+            seconds = self._reckon(seconds, taken, now, moving)
             heating = self.timeline.heating_at(seconds)
         waiting, ahead = self.timeline.waits_at(line, seconds)
         waiting_short = _heating_to(waiting, heaters) if waiting is not None else None
@@ -402,16 +407,16 @@ class TimeLeft:
             heat_left += max(0.0, ahead_short / ahead.rate - before) - ahead.seconds
         return max(0.0, moving_left + heat_left)
 
-    def _reckon(self, line: int, lower: float, now: float, moving: bool) -> float:
+    def _reckon(self, lower: float, upper: float, now: float, moving: bool) -> float:
         """On a link that acknowledges lines as they arrive (in bursts, as its buffer frees):
         the planned seconds of the move that runs, counted on by the clock at the pace since
-        last asked, kept between the move :attr:`held` back from ``line`` (``lower``) and
-        ``line`` itself (nothing after it has arrived)."""
+        last asked, kept between the move :attr:`held` back from the line taken last
+        (``lower``) and that line's end (``upper``)."""
         last = self._reckoned
         position = lower
         if last is not None:
             position = last[0] + (now - last[1]) / self.pace if moving else last[0]
-        position = min(max(position, lower), self.timeline.at(line)[0])
+        position = min(max(position, lower), upper)
         self._reckoned = (position, now)
         return position
 
@@ -425,7 +430,6 @@ class TimeLeft:
         :data:`UNREPORTED_WAIT` seconds from when it was the one at hand. The waits taken
         after it whose heaters are there already will not wait (:attr:`_spared`)."""
         at_hand: tuple[HeatWait | None, float | None] = (None, None)
-        self._spared = 0.0
         for wait in self.timeline.waits[: bisect.bisect_right(self.timeline.wait_lines, line)]:
             if at_hand[0] is not None:
                 self._spared += wait.seconds if _heating_to(wait, heaters) == 0.0 else 0.0

@@ -8,6 +8,7 @@ import json
 import re
 import time
 from collections.abc import AsyncIterator, Mapping
+from dataclasses import astuple
 from typing import Annotated, Any
 
 from fastapi import (
@@ -28,7 +29,6 @@ from fastapi.responses import (
 )
 from pydantic import BaseModel, Field
 
-from repetrel_host.gcode.timeline import PlannedTime
 from repetrel_host.server import folders as shared_folders
 from repetrel_host.server import jobs, store, timelapse, uploads
 from repetrel_host.server.access import OWNER
@@ -91,6 +91,8 @@ def _running_json(service: PrinterService) -> dict[str, Any]:
     running = service.running
     assert running is not None
     progress = progress_event(service.name, running.record, running.job, running, False)
+    planned, limits_from = running.planned
+    split = astuple(planned) if planned is not None else (None, None, None)
     return {
         **running.record.as_json(),
         "state": "paused" if service.state == "paused" else "printing",
@@ -102,31 +104,18 @@ def _running_json(service: PrinterService) -> dict[str, Any]:
             for k, v in progress.as_json().items()
             if k not in ("type", "printer", "job", "free_at")  # the printer's, not the job's
         },
-        # The whole job's time (None until its file is read or planned): its plan at the
-        # pace it is given at, the plan split, and the slicer's own figure beside it.
-        **job_time(running.planned[0], running.pace, running.expected),
-        "estimated_time_limits_from": running.planned[1],
+        # The whole job's time, what it ran and has left (None until its file is read or
+        # planned); its plan split (the plan's own seconds), the pace its moves are given
+        # at, and the slicer's own figure beside it.
+        "estimated_time": running.expected,
+        **dict(zip(SPLIT_FIELDS, split, strict=True)),
+        "estimated_pace": running.pace,
+        "estimated_time_limits_from": limits_from,
         "slicer_estimated_time": running.slicer_seconds,
     }
 
 
-def job_time(planned: PlannedTime | None, pace: float, whole: float | None) -> dict[str, Any]:
-    """A running job's time as /v1 gives it: ``estimated_time`` (``whole``: what it ran and
-    has left) and its plan split (``estimated_moving``, ``estimated_heating``,
-    ``estimated_tool_changes``: the plan's own seconds), with the pace its moves are given
-    at; None each when not planned."""
-    if planned is None:
-        return dict.fromkeys(TIME_FIELDS) | {"estimated_time": whole, "estimated_pace": pace}
-    return {
-        "estimated_time": whole,
-        "estimated_moving": planned.moving,
-        "estimated_heating": planned.heating,
-        "estimated_tool_changes": planned.tool_changes,
-        "estimated_pace": pace,
-    }
-
-
-TIME_FIELDS = ("estimated_time", "estimated_moving", "estimated_heating", "estimated_tool_changes")
+SPLIT_FIELDS = ("estimated_moving", "estimated_heating", "estimated_tool_changes")
 
 
 async def _jobs_json(server: PrintServer, name: str) -> list[dict[str, Any]]:

@@ -21,7 +21,7 @@ import re
 import shutil
 import socket
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import asdict, dataclass, fields
 from datetime import datetime
 from pathlib import Path
@@ -91,32 +91,28 @@ class Record:
             return None
 
 
-def paces(folder: Path, port: str, machine: str) -> Iterable[float]:
-    """The paces of the runs in ``folder`` on ``port`` with ``machine``, newest first."""
+def records(folder: Path, port: str, machine: str | None = None) -> Iterator[Record]:
+    """The records of the runs in ``folder`` on ``port`` (with ``machine``, when given),
+    newest first, read as they are asked for."""
     for run in reversed(runs(folder)):
         record = read_record(run.stream)
-        if record is None or record.pace is None:
-            continue
-        if (record.port, record.machine) == (port, machine):
-            yield record.pace
+        if record is not None and record.port == port and machine in (None, record.machine):
+            yield record
+
+
+def paces(folder: Path, port: str, machine: str) -> Iterable[float]:
+    """The paces of the runs in ``folder`` on ``port`` with ``machine``, newest first."""
+    return (r.pace for r in records(folder, port, machine) if r.pace is not None)
 
 
 def last_machine(folder: Path, port: str) -> str | None:
     """The machine profile the newest run in ``folder`` on ``port`` ran with (None: none)."""
-    for run in reversed(runs(folder)):
-        record = read_record(run.stream)
-        if record is not None and record.port == port and record.machine:
-            return record.machine
-    return None
+    return next((r.machine for r in records(folder, port) if r.machine), None)
 
 
 def heat_rates(folder: Path, port: str, machine: str) -> Iterable[dict[str, float]]:
     """The heat rates the runs in ``folder`` on ``port`` with ``machine`` timed, newest first."""
-    for run in reversed(runs(folder)):
-        record = read_record(run.stream)
-        found = record is not None and (record.port, record.machine) == (port, machine)
-        if found and record is not None and record.heat_rates:
-            yield record.heat_rates
+    return (r.heat_rates for r in records(folder, port, machine) if r.heat_rates)
 
 
 def error_kind(error: HostError) -> str:

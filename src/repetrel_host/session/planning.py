@@ -469,7 +469,11 @@ def default_history_dir() -> Path:
     return Path(base) / "repetrel-host" / "history"
 
 
+def history_folder(folder: Path | None, user: UserConfig) -> Path:
+    """The print history's folder: as given, else the configuration's, else the default."""
+    return folder or user.host.history_dir or default_history_dir()
+
+
 def history_file(folder: Path | None, user: UserConfig, job: Job) -> Path:
     """Where this run's history goes: ``<folder>/<date>-<time>-<job>.gcode``."""
-    folder = folder or user.host.history_dir or default_history_dir()
-    return folder / f"{datetime.now():%Y%m%d-%H%M%S}-{job.path.stem}.gcode"
+    return history_folder(folder, user) / f"{datetime.now():%Y%m%d-%H%M%S}-{job.path.stem}.gcode"
