@@ -60,6 +60,14 @@ def test_not_a_serial_port(tmp_path: Path) -> None:
     assert_one_clear_line(result.stderr, "not a serial port")
 
 
+def test_a_folder_for_a_port(tmp_path: Path) -> None:
+    job = tmp_path / "job.gcode"
+    job.write_text("G28\n")
+    result = hyrel_send(str(job), "--port", str(tmp_path))
+    assert result.returncode == 3
+    assert_one_clear_line(result.stderr, f"cannot open {tmp_path}: it is a folder, not a serial")
+
+
 def test_busy_port(tmp_path: Path) -> None:
     job = tmp_path / "job.gcode"
     job.write_text("G28\n")

@@ -8,6 +8,7 @@ import contextlib
 import json
 import re
 import signal
+import socket
 import sqlite3
 import stat
 import subprocess
@@ -677,6 +678,32 @@ def test_a_second_server_on_the_same_data_folder_is_refused(
     )
     assert second.returncode == 2
     assert f"another hyrel-server uses the data folder {first.data_dir}" in second.stderr
+    # On the first one's port too: the folder is what it says, not the port it holds.
+    again = run_server_cli(
+        *("--data-dir", str(first.data_dir), "--printer", "demo=fake"),
+        *("--bind", f"127.0.0.1:{first.port}"),
+        timeout=30,
+    )
+    assert again.returncode == 2
+    said = f"hyrel-server: another hyrel-server uses the data folder {first.data_dir}\n"
+    assert again.stderr == said
+
+
+def test_a_first_start_on_a_port_in_use_writes_nothing(tmp_path: Path) -> None:
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        data = tmp_path / "data"
+        result = run_server_cli(
+            *("--data-dir", str(data), "--printer", "demo=fake", "--bind", f"127.0.0.1:{port}"),
+            timeout=30,
+        )
+    assert result.returncode == 2
+    assert result.stderr == (
+        f"hyrel-server: cannot listen on 127.0.0.1:{port} (--bind): Address already in use\n"
+    )
+    assert not data.exists()  # no folder, no database, no key
 
 
 def test_a_new_server_makes_a_key_kept_private_and_an_upload_limit(
@@ -711,6 +738,10 @@ def test_bad_server_settings_get_one_sentence(tmp_path: Path) -> None:
         (["--data-dir", str(tmp_path), "--printer", "afake"], "--printer afake: give NAME=PORT"),
         (["--data-dir", str(tmp_path), "--printer", "a/b=fake"], "printer name 'a/b'"),
         (["--data-dir", str(tmp_path), "--printer", "a=fake", "--bind", "nowhere"], "HOST:PORT"),
+        (
+            ["--data-dir", str(tmp_path / "data"), "--printer", f"a={tmp_path}"],
+            f"printer a: cannot open {tmp_path}: it is a folder, not a serial port",
+        ),
     ):
         result = run_server_cli(*args, timeout=30)
         assert result.returncode == 2, result.stderr

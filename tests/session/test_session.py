@@ -181,6 +181,9 @@ def test_a_port_that_cannot_open_fails_connect_with_one_sentence(tmp_path: Path)
     async def scenario() -> None:
         with pytest.raises(rh.LinkError, match="no such port"):
             await rh.connect(str(tmp_path / "ttyUSB9"))
+        with pytest.raises(rh.LinkError) as folder:
+            await rh.connect(str(tmp_path))
+        assert str(folder.value) == f"cannot open {tmp_path}: it is a folder, not a serial port"
 
     run(scenario)
 

@@ -14,9 +14,13 @@ value, a port here is one of:
 from __future__ import annotations
 
 import asyncio
+import os
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
+
+from repetrel_host.errors import LinkError
+from repetrel_host.links.ports import AUTO_PORT
 
 if TYPE_CHECKING:
     from repetrel_host.fakes.settings import ControllerSettings
@@ -50,6 +54,9 @@ class SerialLink:
     async def open(self, factory: ProtocolFactory) -> tuple[asyncio.Transport, asyncio.Protocol]:
         from repetrel_host.links.serial import open_serial
 
+        folder = not_a_port(self.device)
+        if folder is not None:  # pyserial's words: "[Errno 21] ...: [Errno 21] Is a directory"
+            raise LinkError(folder)
         return await open_serial(self.device, self.baudrate, factory)
 
     def close(self) -> None:
@@ -128,3 +135,12 @@ def make_link(
     if port == SIM_PORT:
         return SimLink(sim, protocol)
     return SerialLink(port, baudrate)
+
+
+def not_a_port(port: str) -> str | None:
+    """Why ``port`` can never open, in one sentence: it names a folder (``/dev/serial/by-id``
+    rather than a device in it). None for any other port: a device not there yet may be
+    plugged in later, and opening says what else is wrong."""
+    if port in (FAKE_PORT, SIM_PORT, AUTO_PORT) or "://" in port or not os.path.isdir(port):
+        return None
+    return f"cannot open {port}: it is a folder, not a serial port"

@@ -5,12 +5,18 @@ The server has one user, its owner (:data:`OWNER`): the server's key and every a
 act as that user, as a user's own key does on OctoPrint (a farm manager takes OctoPrint's
 ``_api`` user for "not logged in"). App keys live in the data folder (``appkeys.json``,
 0600), so ``hyrel-server keys list|revoke`` works beside a running server: the server
-reads the file again whenever it changed."""
+reads the file again whenever it changed.
+
+A one-time link (``hyrel-server link``) is an app key's request that a person allowed in
+advance: whoever can write the data folder makes one (``links.json``, beside the keys), and
+the first browser that opens it within its time gets the app key, once. The file keeps a
+link's SHA-256 only: the link itself is in nobody's files."""
 
 from __future__ import annotations
 
 import contextlib
 import fcntl
+import hashlib
 import hmac
 import json
 import os
@@ -18,9 +24,10 @@ import secrets
 import time
 from collections import OrderedDict
 from collections.abc import Iterator, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from ipaddress import IPv4Network, IPv6Network, ip_address
 from pathlib import Path
+from typing import Any, TypeVar
 
 OWNER = "admin"
 GROUPS = ("admins", "users")
@@ -32,6 +39,20 @@ PERMISSIONS = (
     "TIMELAPSE_ADMIN SETTINGS_READ SETTINGS PLUGIN_APPKEYS_GRANT PLUGIN_APPKEYS_ADMIN"
 ).split()
 KEYS_FILE = "appkeys.json"
+LINKS_FILE = "links.json"
+LINK_SECONDS = 600.0  # a one-time link stays good this long unless told otherwise
+LINK_LONGEST = 24 * 3600.0  # and this long at most
+# A link used or expired is remembered this long after its end, to say which it was.
+LINK_REMEMBERED = 24 * 3600.0
+LINK_UNKNOWN = (
+    "this link is not one the server made, or it ended over a day ago: make a new one "
+    "(hyrel-server link)"
+)
+LINK_USED = (
+    "this link was used already: a one-time link opens the page once; make a new one "
+    "(hyrel-server link)"
+)
+LINK_EXPIRED = "this link has expired: make a new one (hyrel-server link) and open it in time"
 # OctoPrint's appkeys: a request not polled for 5 s is dropped (the app gave up), and
 # none lives longer than 10 minutes.
 POLL_TIMEOUT = 5.0
@@ -49,6 +70,22 @@ class AppKey:
     key: str
     user: str = OWNER
     created: float = field(default_factory=time.time)
+
+
+@dataclass(frozen=True)
+class PageLink:
+    """A one-time link to the page, as the data folder keeps it: its token's SHA-256, the
+    app key's name it grants, and its times (seconds since the epoch: it crosses processes)."""
+
+    digest: str
+    app: str
+    expires: float
+    made: float = field(default_factory=time.time)
+    used: float | None = None
+
+
+class LinkRefused(Exception):
+    """A one-time link that opens nothing (unknown, used or expired): the sentence says which."""
 
 
 @dataclass
@@ -132,10 +169,7 @@ class Access:
 
     def grant(self, app: str, user: str = OWNER) -> AppKey:
         """A new key for ``app`` (its earlier key, if any, is replaced)."""
-        granted = AppKey(app, secrets.token_urlsafe(32), user)
-        with _locked(self.path) as keys:
-            keys[:] = [k for k in keys if (k.app, k.user) != (app, user)] + [granted]
-        return granted
+        return grant(self.path, app, user)
 
     def revoke(self, app: str) -> bool:
         """Forget the keys of ``app``; False when it had none."""
@@ -219,32 +253,93 @@ class Access:
 
 def read_keys(path: Path) -> list[AppKey]:
     """The app keys kept in ``path`` (none when it is missing)."""
-    try:
-        entries = json.loads(path.read_text())
-    except FileNotFoundError:
-        return []
-    return [AppKey(**entry) for entry in entries]
+    return _read(path, AppKey)
+
+
+def grant(path: Path, app: str, user: str = OWNER) -> AppKey:
+    """A new key for ``app``, kept in ``path`` (its earlier key, if any, is replaced)."""
+    granted = AppKey(app, secrets.token_urlsafe(32), user)
+    with _locked(path, AppKey) as keys:
+        keys[:] = [k for k in keys if (k.app, k.user) != (app, user)] + [granted]
+    return granted
 
 
 def revoke(path: Path, app: str) -> bool:
     """Remove the keys of ``app`` from ``path``; False when it had none."""
-    with _locked(path) as keys:
+    with _locked(path, AppKey) as keys:
         kept = [k for k in keys if k.app != app]
         found = len(kept) != len(keys)
         keys[:] = kept
     return found
 
 
+def make_page_link(
+    data_dir: Path, app: str | None = None, seconds: float = LINK_SECONDS
+) -> tuple[str, PageLink]:
+    """A one-time link for the data folder ``data_dir`` (its token, and the link as kept):
+    good for ``seconds``, it grants the app key ``app`` (default: "page link" and the time)
+    to the first browser that opens it."""
+    token = secrets.token_urlsafe(16)
+    named = app or f"page link {time.strftime('%Y-%m-%d %H:%M:%S')}"
+    made = PageLink(_digest(token), named, time.time() + seconds)
+    with _locked(data_dir / LINKS_FILE, PageLink) as links:
+        links[:] = [*_remembered(links), made]
+    return token, made
+
+
+def redeem_page_link(data_dir: Path, token: str) -> AppKey:
+    """The app key that the one-time link ``token`` grants, granted now; the link is spent.
+    :class:`LinkRefused` says why not (unknown, used, expired)."""
+    digest = _digest(token)
+    with _locked(data_dir / LINKS_FILE, PageLink) as links:
+        links[:] = _remembered(links)
+        found = next(
+            (n for n, link in enumerate(links) if hmac.compare_digest(link.digest, digest)), None
+        )
+        if found is None:
+            raise LinkRefused(LINK_UNKNOWN)
+        link = links[found]
+        if link.used is not None:
+            raise LinkRefused(LINK_USED)
+        if link.expires <= time.time():
+            raise LinkRefused(LINK_EXPIRED)
+        links[found] = replace(link, used=time.time())
+        # Within the links' lock: a link is spent if and only if its key was granted.
+        return grant(data_dir / KEYS_FILE, link.app)
+
+
+def _digest(token: str) -> str:
+    return hashlib.sha256(token.encode()).hexdigest()
+
+
+def _remembered(links: list[PageLink]) -> list[PageLink]:
+    """The links still good, or ended (used, expired) less than a day ago."""
+    now = time.time()
+    return [n for n in links if now - (n.expires if n.used is None else n.used) < LINK_REMEMBERED]
+
+
+Kept = TypeVar("Kept", AppKey, PageLink)
+
+
+def _read(path: Path, kind: type[Kept]) -> list[Kept]:
+    try:
+        entries: list[dict[str, Any]] = json.loads(path.read_text())
+    except FileNotFoundError:
+        return []
+    return [kind(**entry) for entry in entries]
+
+
 @contextlib.contextmanager
-def _locked(path: Path) -> Iterator[list[AppKey]]:
-    """The keys in ``path`` to change, written back atomically (0600) under a lock, so that
-    the server and ``hyrel-server keys`` never lose each other's change."""
+def _locked(path: Path, kind: type[Kept]) -> Iterator[list[Kept]]:
+    """The entries in ``path`` to change, written back atomically (0600) under a lock, so
+    that the server and ``hyrel-server keys`` or ``link`` never lose each other's change.
+    An exception in the block leaves the file as it was."""
     with open(path.with_suffix(".lock"), "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
-        keys = read_keys(path)
-        yield keys
+        entries = _read(path, kind)
+        yield entries
         partial = path.with_suffix(".part")
         descriptor = os.open(partial, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
         with os.fdopen(descriptor, "w") as out:
-            json.dump([asdict(k) for k in keys], out, indent=1)
+            json.dump([asdict(entry) for entry in entries], out, indent=1)
         partial.replace(path)

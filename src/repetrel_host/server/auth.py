@@ -20,14 +20,15 @@ SESSION_COOKIE = "hyrel_session"
 CSRF_COOKIE = "hyrel_csrf"
 NO_KEY = "a valid API key is needed (the X-Api-Key header)"
 # Open to anyone: the page and its files (it asks for the key), asking for an app key (OctoPrint's
-# appkeys plugin: an app has no key yet), logging in, the push socket's SockJS requests
-# (the socket takes its own auth message, as OctoPrint's), the API's own description, and
-# Moonraker's face (it answers as Moonraker does: 401, or a one-shot token's way in).
+# appkeys plugin: an app has no key yet), opening a one-time link (the link lets in),
+# logging in, the push socket's SockJS requests (the socket takes its own auth message, as
+# OctoPrint's), the API's own description, and Moonraker's face (it answers as Moonraker
+# does: 401, or a one-shot token's way in).
 _OPEN = re.compile(
     r"/printers/[^/]+|/static/.*|(/printers/[^/]+)?/(printer|server|machine|access)/.*"
     r"|(/printers/[^/]+)?(/|/favicon\.ico|/api/login|/api/logout"
     r"|/plugin/appkeys/(probe|request|request/[^/]+)|/sockjs(/.*)?)"
-    r"|/openapi\.json|/docs|/docs/oauth2-redirect|/redoc"
+    r"|/v1/links/redeem|/openapi\.json|/docs|/docs/oauth2-redirect|/redoc"
 )
 _READS = ("GET", "HEAD", "OPTIONS")
 # Moonraker's OctoPrint-compatible endpoints (its components/octoprint_compat.py, with the

@@ -1,10 +1,11 @@
 """How much of a request's body the server reads: each route's need, decided from its path
 before a byte of the body is read, with a key or without. An upload may be as big as the
-server's upload limit; a route open to anyone (a login, an app asking for a key, the push
-socket's messages) takes a few KB; every other body (JSON, a form's fields, a Moonraker
-database value, a G-code script) takes 2 MB. A body announced bigger is refused at once; a
-body sent without its length (chunked) is cut where it passes its bound, and the rest is
-never read: the refusal (413, in the face's own shape) closes the connection."""
+server's upload limit; a route open to anyone (a login, an app asking for a key, a
+one-time link, the push socket's messages) takes a few KB; every other body (JSON, a
+form's fields, a Moonraker database value, a G-code script) takes 2 MB. A body announced
+bigger is refused at once; a body sent without its length (chunked) is cut where it passes
+its bound, and the rest is never read: the refusal (413, in the face's own shape) closes
+the connection."""
 
 from __future__ import annotations
 
@@ -34,6 +35,7 @@ _UPLOADS = re.compile(
 )
 _OPEN = re.compile(
     _PRINTER + r"/(?:api/login|api/logout|plugin/appkeys/(?:probe|request(?:/[^/]+)?)|sockjs/.*)"
+    r"|/v1/links/redeem"
 )
 
 

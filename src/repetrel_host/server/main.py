@@ -6,6 +6,8 @@ the same in a TOML file (``--config server.toml``: ``data_dir``, ``bind``, ``api
 ``name = "port"``, or of ``[printers.NAME]`` tables: ``port``, ``machine``, ``protocol``,
 ``report``...). Logs go to stderr, one line each, without times (journald adds them).
 SIGTERM, SIGHUP or Ctrl-C stops feeding, runs the safe stop on a printing machine, and exits.
+Beside it, on its data folder: ``hyrel-server keys list|revoke`` (the app keys) and
+``hyrel-server link`` (a one-time link to the page).
 """
 
 from __future__ import annotations
@@ -13,11 +15,13 @@ from __future__ import annotations
 import fcntl
 import logging
 import os
+import re
 import signal
 import socket
 import sys
+import time
 from pathlib import Path
-from typing import Annotated
+from typing import IO, Annotated
 
 import typer
 
@@ -35,6 +39,7 @@ from repetrel_host.server.settings import (
     moonraker_ports,
     mqtt_settings,
     parse_address,
+    served_url,
 )
 
 # A stop that left a printer's safe stop owed (EX_TEMPFAIL: start it again to send it).
@@ -179,23 +184,22 @@ def serve(
     logging.basicConfig(
         stream=sys.stderr, level=logging.INFO, format="%(levelname)s %(name)s: %(message)s"
     )
+    # A second server on a running one's data folder says so, not that the port is taken.
+    lock = data_lock(settings.data_dir, make=False)
+    # Bound before anything is written or started: a port in use is one sentence, and
+    # leaves neither a data folder nor a key behind, nor a server half up.
+    ports = moonraker_ports(settings)
+    sockets = [bound(host, port, "--bind")] + [
+        bound(host, own, f"printer {name}'s moonraker_port") for own, name in ports.items()
+    ]
     try:
         settings.data_dir.mkdir(parents=True, exist_ok=True)
-        lock = (settings.data_dir / "lock").open("w")
-        try:  # held until the process ends
-            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            fail(f"another hyrel-server uses the data folder {settings.data_dir}")
+        lock = lock or data_lock(settings.data_dir, make=True)
         key = load_api_key(settings)
     except OSError as exc:
         fail(f"cannot use the data folder {settings.data_dir}: {exc.strerror}")
         raise  # not reached
     farm_settings = farm_to_join(settings, host, port)
-    # Bound before anything starts: a port in use is one sentence, not a server half up.
-    ports = moonraker_ports(settings)
-    sockets = [bound(host, port, "--bind")] + [
-        bound(host, own, f"printer {name}'s moonraker_port") for own, name in ports.items()
-    ]
     where = logging.getLogger("repetrel_host.server")
     where.info("listening on http://%s:%d", host, port)
     for own, name in ports.items():
@@ -296,6 +300,23 @@ def served_names(url: str | None) -> list[str]:
     return [name] if name else []
 
 
+def data_lock(folder: Path, make: bool) -> IO[str] | None:
+    """The data folder's lock, held until the process ends; one sentence and exit 2 when
+    another hyrel-server holds it. Without ``make``, None where there is no lock yet (no
+    server ever ran there) or it cannot be opened (the start says why once it makes it)."""
+    try:
+        lock = (folder / "lock").open("w" if make else "r")
+    except OSError:
+        if make:
+            raise
+        return None
+    try:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        fail(f"another hyrel-server uses the data folder {folder}")
+    return lock
+
+
 def bound(host: str, port: int, what: str) -> socket.socket:
     """A socket bound to ``host``:``port``, not listening yet: a client is refused until the
     server serves (as before it was bound here), not kept waiting. One sentence and exit 2
@@ -326,13 +347,22 @@ DataDir = Annotated[Path | None, typer.Option(help="The server's data folder (or
 ConfigFile = Annotated[Path | None, typer.Option(help="The server's TOML file.")]
 
 
+def _configured(config: Path | None, name: str) -> str | None:
+    """The setting ``name`` of the TOML file ``config``, if it gives one."""
+    if config is None:
+        return None
+    try:
+        found = read_toml(config).get(name)
+    except ConfigError as exc:
+        fail(str(exc))
+        raise  # not reached
+    return found if isinstance(found, str) else None
+
+
 def _data_dir(data_dir: Path | None, config: Path | None) -> Path:
-    if data_dir is None and config is not None:
-        try:
-            found = read_toml(config).get("data_dir")
-        except ConfigError as exc:
-            fail(str(exc))
-        data_dir = Path(found) if isinstance(found, str) else None
+    if data_dir is None:
+        found = _configured(config, "data_dir")
+        data_dir = Path(found) if found is not None else None
     if data_dir is None:
         fail("give --data-dir DIR (or --config FILE), the server's data folder")
         raise  # not reached
@@ -372,9 +402,71 @@ def revoke_key(
     typer.echo(f"revoked the key of {app}")
 
 
+link = typer.Typer(add_completion=False, pretty_exceptions_enable=False, rich_markup_mode=None)
+_UNITS = {"s": 1, "m": 60, "h": 3600}
+
+
+@link.command()
+def one_time_link(
+    data_dir: DataDir = None,
+    config: ConfigFile = None,
+    valid_for: Annotated[
+        str, typer.Option("--for", metavar="TIME", help="How long it stays good: 90s, 10m, 2h.")
+    ] = "10m",
+    name: Annotated[
+        str | None,
+        typer.Option(
+            help="The name of the app key it gives (default: 'page link' and the time); a "
+            "key of that name already given is replaced when the link is opened."
+        ),
+    ] = None,
+    url: Annotated[
+        str | None,
+        typer.Option(
+            help="The page's address as the browser reaches it (default: the --config's "
+            f"node_url, else its bind, else http://{DEFAULT_BIND})."
+        ),
+    ] = None,
+) -> None:
+    """Print a one-time link to the page: the first browser that opens it in time gets an
+    app key of its own, kept in the browser as a typed key is; the link is spent then."""
+    from repetrel_host.server.access import LINK_LONGEST, make_page_link
+
+    folder = _data_dir(data_dir, config)
+    if not (folder / "lock").exists():  # made at a server's first start
+        fail(f"no hyrel-server has run on the data folder {folder} (give its --data-dir)")
+    amount = re.fullmatch(r"(\d+(?:\.\d+)?)([smh])", valid_for.strip())
+    seconds = float(amount[1]) * _UNITS[amount[2]] if amount else 0.0
+    if not 0 < seconds <= LINK_LONGEST:
+        fail(f"--for {valid_for}: give a time with its unit, at most 24h (90s, 10m, 2h)")
+    if name is not None and not 0 < len(name.strip()) <= 200:
+        fail("--name: give a name of 1 to 200 characters")
+    base = url or _configured(config, "node_url")
+    if base is None:
+        bind = _configured(config, "bind") or DEFAULT_BIND
+        base = served_url(*parse_address(bind, "bind", example=DEFAULT_BIND))
+    if not re.match(r"https?://[^/?#\s]+", base):
+        fail(f"--url {base}: give the page's address, http(s)://HOST[:PORT]")
+    try:
+        token, made = make_page_link(folder, name.strip() if name else None, seconds)
+    except OSError as exc:
+        fail(f"cannot make a link in {folder}: {exc.strerror}")
+        raise  # not reached
+    typer.echo(f"{base.rstrip('/')}/#token={token}")
+    until = time.strftime("%H:%M", time.localtime(made.expires))
+    typer.echo(
+        f"hyrel-server: opens the page once, until {until}, giving the browser the app key "
+        f"'{made.app}' (hyrel-server keys revoke takes it back)",
+        err=True,
+    )
+
+
 def main() -> None:
-    if sys.argv[1:2] == ["keys"]:  # the server itself takes no command name
+    # The server itself takes no command name: these are its tools beside it.
+    if sys.argv[1:2] == ["keys"]:
         keys(sys.argv[2:], prog_name="hyrel-server keys")
+    elif sys.argv[1:2] == ["link"]:
+        link(sys.argv[2:], prog_name="hyrel-server link")
     else:
         app()
 

@@ -31,7 +31,14 @@ from pydantic import BaseModel, Field
 
 from repetrel_host.server import folders as shared_folders
 from repetrel_host.server import jobs, store, timelapse, uploads
-from repetrel_host.server.access import OWNER
+from repetrel_host.server.access import (
+    LINK_LONGEST,
+    LINK_SECONDS,
+    OWNER,
+    LinkRefused,
+    make_page_link,
+    redeem_page_link,
+)
 from repetrel_host.server.auth import user_of
 from repetrel_host.server.events import AppKeyEvent
 from repetrel_host.server.octoprint import appkeys
@@ -146,6 +153,15 @@ class GcodeCommand(BaseModel):
 
 class Decision(BaseModel):
     allow: bool
+
+
+class LinkToken(BaseModel):
+    token: str = Field(max_length=200)  # a one-time link's (its #token=)
+
+
+class LinkWanted(BaseModel):
+    app: str | None = Field(default=None, min_length=1, max_length=200)  # its app key's name
+    seconds: float = Field(default=LINK_SECONDS, gt=0, le=LINK_LONGEST)  # how long it is good
 
 
 class Folder(BaseModel):
@@ -385,6 +401,30 @@ def router() -> APIRouter:
             raise HTTPException(404, f"no key for app '{app}'")
         server.events.publish(AppKeyEvent("revoked", app))
         return Response(status_code=204)
+
+    @router.post("/links", status_code=201)
+    async def new_link(request: Request, wanted: LinkWanted) -> dict[str, Any]:
+        """A one-time link to the page, as ``hyrel-server link`` makes one: for another
+        screen, which gets an app key of its own when it opens it."""
+        appkeys.user_needed(request)
+        server = server_of(request)
+        token, made = await asyncio.to_thread(
+            make_page_link, server.data_dir, wanted.app and wanted.app.strip(), wanted.seconds
+        )
+        url = f"{str(request.base_url).rstrip('/')}/#token={token}"
+        return {"url": url, "app_id": made.app, "expires": iso(made.expires)}
+
+    @router.post("/links/redeem")
+    async def redeem(request: Request, link: LinkToken) -> dict[str, str]:
+        """The app key a one-time link grants (``hyrel-server link``), once: open to anyone,
+        the link is what lets in. 403 with why for a link unknown, used or expired."""
+        server = server_of(request)
+        try:  # under the files' locks: off the event loop
+            granted = await asyncio.to_thread(redeem_page_link, server.data_dir, link.token)
+        except LinkRefused as refused:
+            raise HTTPException(403, str(refused)) from None
+        server.events.publish(AppKeyEvent("granted", granted.app))
+        return {"api_key": granted.key, "app_id": granted.app}
 
     @router.get("/jobs/{job_id}")
     async def job(request: Request, job_id: JobId) -> dict[str, Any]:

@@ -8,6 +8,7 @@ from __future__ import annotations
 import os
 import re
 import secrets
+import socket
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Literal
@@ -24,6 +25,7 @@ from pydantic import (
 
 from repetrel_host.config import CameraCommand, read_toml
 from repetrel_host.errors import ConfigError
+from repetrel_host.links import not_a_port
 from repetrel_host.server.mqtt.bridge import MqttSettings
 from repetrel_host.server.mqtt.homeassistant import DEFAULT_PREFIX as DEFAULT_DISCOVERY_PREFIX
 
@@ -220,9 +222,13 @@ def load_settings(
         )
         fail(f"{where}{problems}")
         raise  # not reached
-    for name in settings.printers:
+    for name, chosen in settings.printers.items():
         if not _NAME.match(name):
             fail(f"printer name '{name}': use letters, digits, '-' and '_'")
+        # A folder never becomes a port (a device not there yet may be plugged in later).
+        folder = not_a_port(chosen if isinstance(chosen, str) else chosen.port)
+        if folder is not None:
+            fail(f"printer {name}: {folder}")
     if settings.farm is not None:
         _check_farm_url(settings.farm)
     _check_moonraker_ports(settings)
@@ -286,13 +292,12 @@ def farm_to_join(settings: ServerSettings, host: str, port: int) -> FarmSettings
     import asyncio
 
     from repetrel_host.server.farm.db import FarmDB
-    from repetrel_host.server.farm.node import FarmSettings, default_node_name, shown_url
+    from repetrel_host.server.farm.node import FarmSettings, shown_url
 
-    shown_host = host if host not in ("0.0.0.0", "::", "") else default_node_name()
     farm = FarmSettings(
         settings.farm,
         settings.node_name or default_node_name(),
-        (settings.node_url or f"http://{shown_host}:{port}").rstrip("/"),
+        (settings.node_url or served_url(host, port)).rstrip("/"),
         settings.farm_lease,
     )
 
@@ -314,6 +319,18 @@ def farm_to_join(settings: ServerSettings, host: str, port: int) -> FarmSettings
             flush=True,
         )
     return farm
+
+
+def default_node_name() -> str:
+    """This machine's name (its host name's first part)."""
+    return socket.gethostname().split(".")[0] or "node"
+
+
+def served_url(host: str, port: int) -> str:
+    """Where others reach a server listening on ``host``:``port``: the machine's name when
+    it listens on every address."""
+    shown = host if host not in ("0.0.0.0", "::", "") else default_node_name()
+    return f"http://[{shown}]:{port}" if ":" in shown else f"http://{shown}:{port}"
 
 
 def load_api_key(settings: ServerSettings) -> str:

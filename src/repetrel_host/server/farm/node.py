@@ -15,7 +15,6 @@ import contextlib
 import functools
 import json
 import logging
-import socket
 import time
 import uuid
 from dataclasses import dataclass
@@ -552,7 +551,3 @@ class FarmNode:
         and kept in its store: a job's end changes it); None while none of its jobs has one."""
         paces = self.store.paces(printer)
         return learned_pace(paces) if paces else None
-
-
-def default_node_name() -> str:
-    return socket.gethostname().split(".")[0] or "node"

@@ -23,7 +23,7 @@ export class ApiError extends Error {
 
 export const NO_KEY =
   "Enter the server's API key (hyrel-server printed it at its first start; it is kept in the " +
-  "data folder's api-key file), or ask for access.";
+  "data folder's api-key file), open a one-time link (hyrel-server link), or ask for access.";
 
 function sentence(status, body, fallback) {
   if (status === 403) return NO_KEY;

@@ -1,18 +1,45 @@
 // Access: applications asking for a key (OctoPrint's appkeys flow: a slicer, a phone app)
-// allowed or denied here, and the keys granted, revocable. Page-wide, below the view.
+// allowed or denied here, the keys granted, revocable, and one-time links for other screens.
+// Page-wide, below the view.
 
 import { get, post, del, h, clock } from "../api.js";
 
 export async function mount(section, { stream, say }) {
   const requests = h("div", { id: "requests" });
   const keys = h("ul", { id: "appkeys" });
+  const made = h("div", { id: "one-time-link" });
   section.replaceChildren(
     h("h2", {}, "Access"),
     requests,
     h("h3", {}, "App keys"),
     h("p", { class: "muted hint" }, "Applications that were allowed a key. Revoking one refuses its next request."),
     keys,
+    h("h3", {}, "One-time link"),
+    h(
+      "p",
+      { class: "muted hint" },
+      "For another screen (a kiosk, a wall display): the link opens this page there once, until the time it shows, " +
+        "and that browser gets a key of its own, listed above. No key goes into its address or history.",
+    ),
+    h("button", { type: "button", id: "make-link", onclick: () => makeLink() }, "Make a link"),
+    made,
   );
+
+  async function makeLink() {
+    let answer;
+    try {
+      answer = await post("/v1/links", {});
+    } catch (error) {
+      say(error.message);
+      return;
+    }
+    const field = h("input", { type: "text", readonly: true, size: 48, value: answer.url, "aria-label": "the one-time link" });
+    made.replaceChildren(
+      field,
+      h("span", { class: "muted" }, ` once, until ${clock(answer.expires)}; it gives "${answer.app_id}".`),
+    );
+    field.select();
+  }
 
   async function decide(token, allow) {
     try {
