@@ -90,7 +90,7 @@ async function takeLink() {
 
 const KEY_IN_ADDRESS =
   "A key in the page's address is not taken: the browser's history keeps the address. " +
-  "Enter the key below, or open a one-time link (hyrel-server link).";
+  "Enter the key with the API key button, or open a one-time link (hyrel-server link).";
 
 const LINK_WORDS = { live: "live", reconnecting: "reconnecting…", connecting: "connecting…", "no key": "no key" };
 
