@@ -566,5 +566,5 @@ def test_without_pytest_timeout_a_printer_test_fails_in_one_sentence(
     result.assert_outcomes(passed=1, errors=1)
     assert (
         "hyrel: the plugin needs pytest-timeout, so that a printer that stops answering fails "
-        "its test instead of hanging the run: pip install 'repetrel-host[hil]'"
+        "its test instead of hanging the run: pip install -e '.[hil]' in repetrel-host's clone"
     ) in one_line(result.stdout.str())

@@ -32,7 +32,7 @@ try:
     import pytest  # noqa: F401  (what every module here needs)
 except ModuleNotFoundError:  # the plugin without its extra, imported by hand
     raise ModuleNotFoundError(
-        "repetrel_host.pytest_plugin needs pytest: pip install 'repetrel-host[hil]'"
+        "repetrel_host.pytest_plugin needs pytest: pip install -e '.[hil]' in repetrel-host's clone"
     ) from None
 
 from repetrel_host.pytest_plugin.facade import (

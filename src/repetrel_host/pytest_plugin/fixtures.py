@@ -104,7 +104,8 @@ def hyrel_controller(
     if not request.config.pluginmanager.hasplugin("timeout"):
         pytest.fail(
             "hyrel: the plugin needs pytest-timeout, so that a printer that stops answering "
-            "fails its test instead of hanging the run: pip install 'repetrel-host[hil]'",
+            "fails its test instead of hanging the run: pip install -e '.[hil]' in "
+            "repetrel-host's clone",
             pytrace=False,
         )
     if hyrel_options.hardware:

@@ -266,7 +266,7 @@ def _check_farm_url(url: str) -> None:
     try:
         from psycopg.conninfo import conninfo_to_dict
     except ImportError:
-        fail("--farm needs PostgreSQL's client: pip install 'repetrel-host[farm]'")
+        fail("--farm needs PostgreSQL's client: pip install -e '.[farm]' in repetrel-host's clone")
         raise  # not reached
     try:
         info = conninfo_to_dict(url)
