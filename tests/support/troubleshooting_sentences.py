@@ -58,8 +58,10 @@ SINK_CALLS: dict[str, int | None] = {
 SINK_FUNCTIONS = {
     ("server/settings.py", "fail", 0),  # "hyrel-server: ..." on stderr, exit 2
     ("server/main.py", "fail", 0),  # the same, imported
-    # The RepRap dialect's failure, defined with the reading of replies (reprap_replies).
+    # The dialects' failure, defined with the reading of replies (reprap_replies,
+    # hyrel_replies).
     ("protocol/dialects/reprap.py", "_fail", 1),
+    ("protocol/dialects/hyrel.py", "_fail", 1),
 }
 # Methods whose argument goes into a user's sentence, called on an object that other
 # modules hold (the calls followed are a module's own or its imports'): the session's parts
