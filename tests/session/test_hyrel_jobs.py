@@ -13,7 +13,7 @@ import pytest
 
 from repetrel_host.config import shipped_config_dir
 from repetrel_host.fakes.fake_controller import BuiltInFake
-from repetrel_host.gcode.header import safe_stop_commands
+from repetrel_host.gcode.heaters import safe_stop_commands
 from repetrel_host.session.planning import PRECHECK_LIMIT
 from tests.support.helpers import EXAMPLE, executed, hyrel_send, job_commands, start_streaming
 from tests.support.paths import SUPPORT

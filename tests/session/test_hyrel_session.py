@@ -126,7 +126,7 @@ def test_a_cancel_ends_the_pause_should_the_abort_not(
             await printer.pause()
             await asyncio.wait_for(printer.cancel(), 5)  # not the 30 s of a drain timeout
             assert (await running.wait()).outcome is rh.Outcome.CANCELLED
-            assert simulator(printer).heaters["T"][1] == 0.0  # the safe stop ran
+            assert simulator(printer).heaters.target("T") == 0.0  # the safe stop ran
             assert ran(printer)[-len(HYREL_SAFE_STOP) :] == HYREL_SAFE_STOP
 
     run(scenario)

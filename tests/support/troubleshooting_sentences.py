@@ -16,7 +16,8 @@ What counts (a *sink* is a call whose text reaches a user):
   starting with a refusal's words (``no snapshot``, ``refused``), or printed in an
   ``except`` block (an error path: "interrupted before streaming began.");
 - a function of the package whose parameter goes into a sink is a sink too (found by
-  following the calls within a module), and a message held in a name (a local variable,
+  following the calls within a module; ``SINK_METHODS`` names the few called through an
+  object that another module holds), and a message held in a name (a local variable,
   a module's constant) or returned by a helper of the package (``describe_open_error``)
   is followed to its strings. What a function found to be a sink is given, and the text
   of a variable put into a message, are *fragments*: the page quotes them inside the
@@ -57,9 +58,15 @@ SINK_CALLS: dict[str, int | None] = {
 SINK_FUNCTIONS = {
     ("server/settings.py", "fail", 0),  # "hyrel-server: ..." on stderr, exit 2
     ("server/main.py", "fail", 0),  # the same, imported
-    # The RepRap dialect's failure, defined with the reading of replies (reprap_replies).
+    # The dialects' failure, defined with the reading of replies (reprap_replies,
+    # hyrel_replies).
     ("protocol/dialects/reprap.py", "_fail", 1),
+    ("protocol/dialects/hyrel.py", "_fail", 1),
 }
+# Methods whose argument goes into a user's sentence, called on an object that other
+# modules hold (the calls followed are a module's own or its imports'): the session's parts
+# give up on the owed safe stop through the part that owns it (owed.py), for a reason.
+SINK_METHODS = {("session/owed.py", "give_up", 0)}
 # Third-party exception classes whose message a user reads.
 FOREIGN_ERRORS = {"HTTPException": 1, "UsageError": 0, "BadParameter": 0}
 # Calls that print a line: those printed with an error prefix of their own count.
@@ -73,7 +80,7 @@ BODY_KEYS = {"error", "detail"}
 
 # Built with a message, but no user reads it: (file, the message's start, why).
 EXCLUDED: list[tuple[str, str, str]] = [
-    ("gcode/header.py", "not a number", "an invariant: the models hold numbers only"),
+    ("session/header.py", "not a number", "an invariant: the models hold numbers only"),
     ("protocol/flow.py", "rx_buffer must", "the CLI (min=2) and the models (ge=2) check first"),
     ("protocol/flow.py", "max_lines must", "the CLI (min=1) and the models (ge=1) check first"),
     ("protocol/dialects/reprap.py", "line_number_limit", "a library argument, never a user's"),
@@ -358,7 +365,7 @@ def collect(root: Path = SRC) -> list[Sentence]:
     modules = _modules(root)
     reader = _Reader(modules)
     errors = _exception_classes(modules) - set(EXCLUDED_CLASSES)
-    sinks = set(SINK_FUNCTIONS)
+    sinks = SINK_FUNCTIONS | SINK_METHODS
     calls = [found for module in modules for found in _calls(module)]
     while True:  # a function whose parameter goes into a sink is one: until none is new
         found: list[Sentence] = []
@@ -447,10 +454,16 @@ def _message_args(
         return _body([*call.args, *keywords.values()]), False
     # Every parameter of the function that is a sink (not the first one a set's order
     # gives: which one that is changed with the hash seed).
+    method = isinstance(call.func, ast.Attribute)
     matched = sorted(
         sink
         for sink in sinks
-        if sink[1] == name and (sink[0] == module.name or module.imported.get(name) == sink[0])
+        if sink[1] == name
+        and (
+            sink[0] == module.name
+            or module.imported.get(name) == sink[0]
+            or (method and sink in SINK_METHODS)
+        )
     )
     if matched:
         args = [arg for _, _, index in matched for arg in call.args[index : index + 1]]

@@ -283,10 +283,10 @@ class HyrelControllerSimulator(ControllerSimulator):
             self._reply(PING_REPLY, now)
         elif control is Control.ABORT:
             self._queue.clear()
-            self._drop_moves()
+            self._planner.drop()
             self._rx.clear()
             self._line.clear()
-            self._planner_end = self._busy_until = now
+            self._planner.end = self._busy_until = now
             self._held = False
             self._reply(b">IN: aborted: every queued command dropped\n", now)
         elif control in (Control.PAUSE_AT_MOVE_END, Control.PAUSE_AT_LAYER_END):
@@ -326,7 +326,7 @@ class HyrelControllerSimulator(ControllerSimulator):
         match = T_WORD.search(command.text[len(command.word) :])
         if command.word == "M104" and match and int(match.group(1)) in ALL_HEADS:
             for index in range(1, self.settings.extruders):
-                self._set_target(f"T{index}", command.text, now)
+                self.heaters.set_target(f"T{index}", command.text, now)
 
     def _process_head(self, now: float) -> bool:
         if self._held:
@@ -353,7 +353,7 @@ class HyrelControllerSimulator(ControllerSimulator):
             # host may count on. It drops what it holds and goes on answering, its heaters
             # as they were (a host must turn them off itself).
             self._queue.clear()
-            self._drop_moves()
+            self._planner.drop()
             self._rx.clear()
             self._reply(b">ER: M112: emergency stop: queued lines and moves dropped\n", now)
         elif word == "M105":
@@ -403,7 +403,7 @@ class HyrelControllerSimulator(ControllerSimulator):
         if due is not None and now >= due:
             self._heard_at = None  # tripped: armed again by the host's next byte
             self.watchdog_trips += 1
-            self.heaters["T"][1] = 0.0  # the heads; the bed stays as it was
+            self.heaters.turn_off("T")  # the heads; the bed stays as it was
             self._reply(
                 f">ER: host watchdog: no byte for {self.watchdog:g} s; "
                 "every extruder stopped\n".encode(),

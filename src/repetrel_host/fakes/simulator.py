@@ -7,7 +7,8 @@ or pushing back like USB), the command slots, the planner, and how long each
 command takes: a fixed time per move, or (``time_scale``) the time the firmware's
 planner would give it, scaled. It acknowledges a buffered command once it is planned, an
 unbuffered one once it finished (G4, G28, M400 once the planner drained; a heat wait
-while the moves before it still run, as Marlin's M109 does).
+while the moves before it still run, as Marlin's M109 does). The planner's moves are
+:mod:`.planned`'s, the heaters' temperatures :mod:`.heating`'s.
 
 What it writes is Marlin 2.1's (docs/fake-controller.md): its error and ``Resend:``
 strings, every line error answered by emptying the receive buffer, ``echo:busy:
@@ -30,7 +31,8 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 
-from repetrel_host.fakes.planned import PlannedTimes
+from repetrel_host.fakes.heating import S_WORD, SimulatedHeaters
+from repetrel_host.fakes.planned import MovePlanner
 from repetrel_host.fakes.settings import (
     ControllerSettings,
     FaultCounts,
@@ -39,12 +41,10 @@ from repetrel_host.fakes.settings import (
     Overflow,
 )
 from repetrel_host.gcode.commands import command_word, is_unbuffered
-from repetrel_host.gcode.estimate import DEFAULT_LIMITS
 from repetrel_host.protocol.controller import Accepted, ControllerProtocol, Rejected
 
 _MOVES = frozenset({"G0", "G1", "G2", "G3", "G5"})
 _DWELL = re.compile(r"\b([PS])\s*(\d+(?:\.\d*)?)", re.IGNORECASE)
-_S_VALUE = re.compile(r"\bS\s*(-?\d+(?:\.\d*)?)", re.IGNORECASE)
 # What each temperature command sets: a hotend (T), the bed (B) or the chamber (C), and
 # whether it waits for it.
 _HEATERS = {
@@ -54,7 +54,6 @@ _HEATERS = {
 }  # fmt: skip
 # A tool (T) word in a command: which head or heater it addresses.
 T_WORD = re.compile(r"\bT\s*(\d+)", re.IGNORECASE)
-AMBIENT = 21.0
 # Marlin's M115: the identity line (its EXTRUDER_COUNT filled in), then its capabilities.
 M115_REPLY = (
     "FIRMWARE_NAME:repetrel-host fake controller (Marlin replies) "
@@ -117,19 +116,7 @@ class ControllerSimulator:
         self._rx = bytearray()
         self._line = bytearray()  # the line being read out of the receive buffer
         self._queue: deque[QueuedCommand] = deque()
-        self._planner: deque[float] = deque()  # finish time of each planned move
-        # With time_scale: planned moves waiting for their time (numbers in self._planned).
-        self._untimed: deque[int] = deque()
-        self._planned = (
-            PlannedTimes(
-                self.settings.limits or DEFAULT_LIMITS,
-                planner_lookahead(self.settings),
-                hyrel=self.HYREL_CODE_CHART,
-            )
-            if self.settings.time_scale is not None
-            else None
-        )
-        self._planner_end = now
+        self._planner = MovePlanner(self.settings, now, hyrel=self.HYREL_CODE_CHART)
         self._busy_until = now
         self._last_step = now
         self._keepalive = self.settings.keepalive  # M113 S<n> changes it
@@ -145,12 +132,10 @@ class ControllerSimulator:
         )
         self._idle_from = now  # when the last piece of work finished
         self.link = LinkCounters()
-        # Heater: [current, target, when current was last moved toward target]. The first
-        # hotend is T (as a one-hotend Marlin reports it), the others T1, T2...
-        names = ["T", *(f"T{i}" for i in range(1, self.settings.extruders)), "B"]
-        self.heaters = {name: [AMBIENT, 0.0, now] for name in names}
-        if self.settings.chamber:
-            self.heaters["C"] = [AMBIENT, 0.0, now]
+        settings = self.settings
+        self.heaters = SimulatedHeaters(
+            settings.extruders, settings.chamber, settings.heat_rate, now
+        )
         self.tool = 0  # the active hotend (T0, T1...)
         self._report_every: float | None = None  # M155 S<n>
         self._next_report = now
@@ -242,20 +227,17 @@ class ControllerSimulator:
             head = self._queue[0]
             if self._busy_until > self._last_step:
                 times.append(self._busy_until)
-            elif head.word in _MOVES and self._planner_full() and self._planner:
-                times.append(self._planner[0])
-            elif is_unbuffered(head.text) and not head.started and self._planner:
-                times.append(self._planner_end)
+            elif head.word in _MOVES and self._planner.full and self._planner.finishes:
+                times.append(self._planner.finishes[0])
+            elif is_unbuffered(head.text) and not head.started and self._planner.finishes:
+                times.append(self._planner.end)
             if self._next_busy is not None:
                 times.append(self._next_busy)
             if self.WAIT_REPORTS and self._heat_waiting():
                 times.append(self._next_wait_report)
-        if self._untimed:
-            times.append(self._planner_end)  # idle then: the moves waiting get their times
+        if self._planner.untimed:
+            times.append(self._planner.end)  # idle then: the moves waiting get their times
         return min(times) if times else None
-
-    def _planner_full(self) -> bool:
-        return len(self._planner) + len(self._untimed) >= self.settings.planner
 
     def _holding(self) -> bool:
         """The queue waits whatever it holds (a Hyrel pause byte); never on Marlin."""
@@ -271,8 +253,8 @@ class ControllerSimulator:
         if head.started:
             return self._busy_until > self._last_step and not self._heat_waiting()
         if head.word in _MOVES:
-            return self._planner_full()
-        return is_unbuffered(head.text) and bool(self._planner or self._untimed)
+            return self._planner.full
+        return is_unbuffered(head.text) and self._planner.holds
 
     def _heat_waiting(self) -> bool:
         """The oldest command is a heat wait under way (M109, M190, M191)."""
@@ -285,16 +267,13 @@ class ControllerSimulator:
         self._last_step = now
         while not self.hung:
             self._fill_slots(now)
-            self._time_moves(now)
+            self._planner.time_moves(now)
             if self._process_head(now):
                 continue
             if self._inbound and self._inbound[0][0] <= now and self._rx_free() > 0:
                 self._deliver(now)
                 continue
-            if self._untimed and self._planner_end <= now and self._planned is not None:
-                # The planner ran dry and nothing more came: the moves in it run now, as
-                # a firmware runs what it has, planned without the moves still to come.
-                self._planned.settle()
+            if self._planner.settle(now):  # it ran dry and nothing more came
                 continue
             break
         if self._report_every is not None and now >= self._next_report:
@@ -411,7 +390,7 @@ class ControllerSimulator:
     def _count_command(self, word: str, now: float) -> None:
         link = self.link
         if not self._queue and link.commands:
-            idle_from = max(self._idle_from, self._planner_end, self._busy_until)
+            idle_from = max(self._idle_from, self._planner.end, self._busy_until)
             if now > idle_from:
                 link.starved += now - idle_from
         if link.first_command_at is None:
@@ -428,8 +407,7 @@ class ControllerSimulator:
         """Work on the oldest command; True when it finished and the next may start."""
         if not self._queue or self._busy_until > now:
             return False
-        while self._planner and self._planner[0] <= now:
-            self._planner.popleft()
+        self._planner.ran(now)
         command = self._queue[0]
         if command.text.startswith(DEBUG_PREFIX):
             self._queue.popleft()
@@ -443,18 +421,12 @@ class ControllerSimulator:
             self._ok(b"ok\n", now)
             return True
         if command.word in _MOVES:
-            if self._planner_full():
+            if self._planner.full:
                 return False
-            if command.planned is not None:
-                self._untimed.append(command.planned)
-                self._time_moves(now)
-            else:
-                start = max(now, self._planner_end)
-                self._planner_end = start + self.settings.move_time
-                self._planner.append(self._planner_end)
+            self._planner.add(command.planned, now)
         elif is_unbuffered(command.text) and not command.started:
             heat_wait = _HEATERS.get(command.word, ("", False))[1]
-            if (self._planner or self._untimed) and not (heat_wait and self.HEAT_WAIT_AT_ONCE):
+            if self._planner.holds and not (heat_wait and self.HEAT_WAIT_AT_ONCE):
                 return False  # wait until every planned move is done
             command.started = True
             self._reached_at = None
@@ -485,33 +457,13 @@ class ControllerSimulator:
             self.executed_numbers.append(number)
 
     def _plan(self, command: QueuedCommand) -> None:
-        """With time_scale: a command entering the queue goes to the planned times (its
-        number kept). Before a command that waits for the moves to finish, every move
-        before it gets its time: the firmware stops there, whatever follows."""
-        planned = self._planned
-        if planned is None or command.text.startswith(DEBUG_PREFIX):
-            return
-        command.planned = planned.queued(command.text, command.word in _MOVES)
-        if is_unbuffered(command.text):
-            planned.settle()
-
-    def _time_moves(self, now: float) -> None:
-        """The moves in the planner whose planned time is known run, in order, each
-        after the one before (its time divided by time_scale)."""
-        planned, scale = self._planned, self.settings.time_scale
-        if planned is None or scale is None:
-            return
-        while self._untimed and planned.known(self._untimed[0]):
-            seconds = planned.take(self._untimed.popleft()) / scale
-            self._planner_end = max(now, self._planner_end) + seconds
-            self._planner.append(self._planner_end)
-
-    def _drop_moves(self) -> None:
-        """The planner is emptied (a kill, a reset, an abort): its moves never run."""
-        self._planner.clear()
-        self._untimed.clear()
-        if self._planned is not None:
-            self._planned.reset()
+        """A command entering the queue goes to the planner's planned times (its number
+        kept: :meth:`MovePlanner.queued`)."""
+        if not command.text.startswith(DEBUG_PREFIX):
+            text = command.text
+            command.planned = self._planner.queued(
+                text, command.word in _MOVES, is_unbuffered(text)
+            )
 
     def _duration(self, command: QueuedCommand) -> float:
         heater = _HEATERS.get(command.word)
@@ -520,7 +472,7 @@ class ControllerSimulator:
             if name is None:
                 return 0.0
             now = self._last_step
-            return self._wait_for(self._set_target(name, command.text, now), now)
+            return self._wait_for(self.heaters.set_target(name, command.text, now), now)
         if command.word == "G4":
             match = _DWELL.search(command.text[2:])
             if match is not None:
@@ -543,7 +495,7 @@ class ControllerSimulator:
         if heater is not None and not heater[1]:
             name = self._heater_for(heater[0], command, now)
             if name is not None:
-                self._set_target(name, command.text, now)
+                self.heaters.set_target(name, command.text, now)
 
     def _heater_for(self, kind: str, command: QueuedCommand, now: float) -> str | None:
         """The heater a temperature command sets, as Marlin reads it: a hotend by its T word
@@ -586,12 +538,12 @@ class ControllerSimulator:
         elif word == "M155" and not self.settings.autoreport:
             self._reply(f'echo:Unknown command: "{command.text}"\n'.encode(), now)
         elif word == "M155":
-            match = _S_VALUE.search(command.text)
+            match = S_WORD.search(command.text)
             seconds = float(match.group(1)) if match else 0.0
             self._report_every = seconds if seconds > 0 else None
             self._next_report = now + seconds
         elif word == "M113" and self.settings.keepalive is not None:
-            match = _S_VALUE.search(command.text)
+            match = S_WORD.search(command.text)
             if match is not None:  # the busy lines' interval; 0: none
                 self._keepalive = float(match.group(1)) or None
         if command.number is not None and self._chance(self.faults.spurious_resend):
@@ -624,16 +576,15 @@ class ControllerSimulator:
         elif verb == "link_drop":
             self.link_drop_requested = _number(argument or "1", "link_drop")
         elif verb == "heat_rate":
-            for name in self.heaters:
-                self._heat(name, now)  # up to now at the old rate
             rate = None if argument.strip() in ("", "none") else _number(argument, "heat_rate")
+            self.heaters.set_rate(rate, now)
             self.settings = replace(self.settings, heat_rate=rate)
             head = self._queue[0] if self._queue else None
             heater = _HEATERS.get(head.word) if head is not None else None
             if head is not None and head.started and heater is not None and heater[1]:
                 # The wait under way lasts as long as the new rate takes to its target.
                 waited = self._heater_for(heater[0], head, now)
-                left = self._set_target(waited, head.text, now) if waited else 0.0
+                left = self.heaters.set_target(waited, head.text, now) if waited else 0.0
                 self._busy_until = now + self._wait_for(left, now)
         else:
             raise ValueError(
@@ -642,7 +593,7 @@ class ControllerSimulator:
 
     def temperatures(self, now: float) -> dict[str, tuple[float, float]]:
         """Each heater's (current, target) at ``now``."""
-        return {name: (self._heat(name, now)[0], self.heaters[name][1]) for name in self.heaters}
+        return self.heaters.readings(now)
 
     def _new_protocol(self) -> ControllerProtocol:
         faults = self.faults
@@ -650,50 +601,9 @@ class ControllerSimulator:
 
     # --- heaters -------------------------------------------------------------
 
-    def _heat(self, name: str, now: float) -> list[float]:
-        """The heater's state at ``now``, moved toward its target since last asked."""
-        heater = self.heaters[name]
-        current, target, since = heater
-        rate = self.settings.heat_rate
-        goal = max(target, AMBIENT)
-        if rate is None:
-            current = goal
-        else:
-            step = rate * max(0.0, now - since)
-            current = min(goal, current + step) if current < goal else max(goal, current - step)
-        heater[0], heater[2] = current, now
-        return heater
-
-    def _set_target(self, name: str, command: str, now: float) -> float:
-        """Set a heater's target; return how long until it is reached (for M109/M190)."""
-        match = _S_VALUE.search(command)
-        heater = self._heat(name, now)
-        if match is not None:
-            heater[1] = float(match.group(1))
-        rate = self.settings.heat_rate
-        if rate is None or heater[1] <= heater[0]:
-            self._heat(name, now)
-            return 0.0
-        return (heater[1] - heater[0]) / rate
-
     def _temperatures(self, now: float) -> str:
-        """As Marlin reports them: the active hotend as T, the bed, the chamber, then each
-        hotend by its index where there are several."""
-        active = "T" if self.tool == 0 else f"T{self.tool}"
-        hotend, bed = self._heat(active, now), self._heat("B", now)
-        places = self.TEMPERATURE_DECIMALS
-
-        def reading(name: str, current: float, target: float) -> str:
-            return f"{name}:{current:.{places}f} /{target:.{places}f}"
-
-        text = f"{reading('T', *hotend[:2])} {reading('B', *bed[:2])}"
-        if "C" in self.heaters:
-            text += " " + reading("C", *self._heat("C", now)[:2])
-        if self.settings.extruders > 1:
-            for index in range(self.settings.extruders):
-                current, target, _ = self._heat("T" if index == 0 else f"T{index}", now)
-                text += " " + reading(f"T{index}", current, target)
-        return text + " @:0 B@:0"
+        """The temperature report, as this firmware writes it (:meth:`SimulatedHeaters.report`)."""
+        return self.heaters.report(now, self.tool, self.TEMPERATURE_DECIMALS)
 
     def _break_heat_wait(self, now: float) -> None:
         """M108: an M109, M190 or M191 waiting for its heater stops waiting (its ok goes now)."""
@@ -703,16 +613,15 @@ class ControllerSimulator:
 
     def _quick_stop(self, now: float) -> None:
         """M410: the moves in the planner are dropped, the motion stops where it is."""
-        self._drop_moves()
-        self._planner_end = now
+        self._planner.drop()
+        self._planner.end = now
 
     def _kill(self, now: float) -> None:
         """M112: Marlin's kill(): heaters off, nothing more until a reset."""
         self._log_execution("M112", None)
-        for heater in self.heaters.values():
-            heater[1] = 0.0
+        self.heaters.turn_off()
         self._queue.clear()
-        self._drop_moves()
+        self._planner.drop()
         self._rx.clear()
         self._reply(KILLED, now)
         self.hung = True
@@ -720,14 +629,13 @@ class ControllerSimulator:
     def _reboot(self, now: float) -> None:
         self.hung = False  # a halt (M112's kill) lasts until a reset
         self.protocol = self._new_protocol()
-        for heater in self.heaters.values():  # a reset turns every heater off
-            heater[1] = 0.0
+        self.heaters.turn_off()  # a reset turns every heater off
         self.tool = 0
         self._queue.clear()
-        self._drop_moves()
+        self._planner.drop()
         self._rx.clear()
         self._line.clear()
-        self._planner_end = self._busy_until = now
+        self._planner.end = self._busy_until = now
         self._identify_slowly = self.settings.identify_time > 0
         self._reply(self._boot_banner(), now)
 
@@ -741,7 +649,7 @@ class ControllerSimulator:
             self.counts.dropped_oks += 1
             return
         if self.settings.advanced_ok and line == b"ok\n":
-            planner_free = self.settings.planner - len(self._planner) - len(self._untimed)
+            planner_free = self._planner.free
             slots_free = self.settings.slots - len(self._queue)
             last = self.protocol.last_line
             line = f"ok N{last} P{planner_free} B{slots_free}\n".encode()
@@ -782,15 +690,6 @@ class ControllerSimulator:
     def _wire_time(self, size: int) -> float:
         bandwidth = self.settings.bandwidth
         return 0.0 if bandwidth is None else size / bandwidth
-
-
-def planner_lookahead(settings: ControllerSettings) -> int:
-    """The lookahead the planned times use: half the planner. The estimator settles its
-    blocks in batches, keeping ``lookahead`` behind the newest once twice that many wait;
-    this fake holds at most its planner and command slots, so with half the planner a move
-    is settled (with between half and all the planner's blocks behind it, as the firmware
-    looks ahead over what its planner holds) before the planner runs dry."""
-    return max(1, settings.planner // 2)
 
 
 def _number(text: str, name: str) -> float:

@@ -1,4 +1,4 @@
-"""Pure G-code knowledge: command classes (later: T addressing, headers, lint)."""
+"""Pure G-code knowledge: command classes (later: T addressing, lint)."""
 
 from repetrel_host.gcode.commands import UNBUFFERED, command_word, is_unbuffered
 

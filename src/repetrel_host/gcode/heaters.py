@@ -7,7 +7,9 @@ and T word (a hotend without one is the active tool's), the tool changes, and th
 :func:`complete_safe_stop` is the one place a safe stop is made whole, for every path that
 sends one (a stop, a link lost and found, a restart): it names every hotend in place of a
 bare ``M104 S0``, turns off a bed, a chamber and each numbered fan that was turned on.
-:func:`turns_off` tells the lines that may run in any order. Pure: no I/O.
+:func:`safe_stop_commands` is the safe stop of Hyrel's reference footer (a profile's own,
+unless it names one), :func:`turns_off` tells the lines that may run in any order. Pure: no
+I/O.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import re
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
+from repetrel_host.gcode import addressing
 from repetrel_host.gcode.commands import command_word
 
 # What each temperature command sets, and whether it waits for it.
@@ -178,6 +181,39 @@ def complete_safe_stop(commands: list[str], log: HeaterLog, hotends: int = 1) ->
         at = heating[-1] + 1 if heating else _first_move(done)
         done[at:at] = offs
     return done
+
+
+def safe_stop_commands(firmware: addressing.Firmware) -> list[str]:
+    """The safe part of the reference's standard footer, with this firmware's group addresses:
+    fans, lasers, heaters and spindles off, lift, motors off."""
+    heads = addressing.all_heads_variable(firmware)
+    beds = addressing.all_beds_variable(firmware)
+    return [
+        f"M107 T{heads}",  # fans, diodes: off
+        f"M620 T{heads} E0",  # CO2 lasers: off
+        f"M104 T{heads} S0",  # head temperatures: off
+        f"M140 T{beds} S0",  # bed temperatures: off
+        "M5",  # spindles: off
+        "G91",  # relative coordinates
+        "G0 Z10",  # drop the bed (lift the head) 10 mm
+        "G90",  # absolute coordinates
+        "M84",  # motors: off
+    ]
+
+
+def safe_stop_for_either() -> list[str]:
+    """A safe stop for a controller whose firmware is not known: Hyrel's (v5 group
+    addresses) with Marlin's heater lines beside its own. Each firmware takes the other's
+    lines harmlessly: Marlin refuses ``M104 T47`` (no such hotend) and ignores the unknown
+    ``M620`` and ``M5``; Hyrel's ``M104 S0`` and ``M140 S0`` turn off the current head and
+    the primary bed. (A bare ``M104 S0`` names every hotend once Marlin says how many.)"""
+    hyrel = safe_stop_commands("v5")
+    either: list[str] = []
+    for command in hyrel:
+        either.append(command)
+        if command.startswith(("M104 ", "M140 ")):
+            either.append(command.split()[0] + " S0")
+    return either
 
 
 def turns_off(command: str) -> bool:

@@ -1,7 +1,7 @@
 """A command on its way to the controller: the check of what a caller may send, the
 command waiting for its reply, and the reply (its lines, then its ok).
 
-The session (``repetrel_host.session.printer``) sends them; the pump's listener
+The session's command queue (:mod:`.command_queue`) sends them; the pump's listener
 (``repetrel_host.session.listener``) hands each its lines and its ok.
 """
 

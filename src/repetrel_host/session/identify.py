@@ -2,8 +2,8 @@
 as it is greeted, and taken whenever it comes (a slow controller's answer still decides the
 profile, and so its safe stop).
 
-The session (``repetrel_host.session.printer``) keeps one :class:`Identity` and hands it
-every line that may say who the controller is.
+The session's greeting (:mod:`.greeting`) keeps one :class:`Identity` and hands it every
+line that may say who the controller is.
 """
 
 from __future__ import annotations

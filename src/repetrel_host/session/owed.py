@@ -2,8 +2,8 @@
 gone quiet) could not get confirmed, or a whole safe stop owed from before the session (a
 server's restart); and the job that waits for it to go after a reconnect before it ends.
 
-The session (``repetrel_host.session.printer``) sends it first once the controller answers
-again.
+:class:`OwedStopSender` sends it first once the controller answers again (at each greeting,
+after what the controller still holds is released), and ends the job that waits for it.
 """
 
 from __future__ import annotations
@@ -11,11 +11,20 @@ from __future__ import annotations
 import asyncio
 import contextlib
 from collections.abc import Callable
+from typing import Protocol
 
 from repetrel_host.errors import HostError, SafeStopError
 from repetrel_host.gcode.heaters import off_lines
+from repetrel_host.protocol.dialects import release_bytes
+from repetrel_host.session.command_queue import CommandQueue
+from repetrel_host.session.events import Notice, PrinterEvent
 from repetrel_host.session.print_job import PrintJob
 from repetrel_host.session.pump import JobRun, Outcome, Summary
+from repetrel_host.session.settings import SessionSettings
+from repetrel_host.session.wire import Wire
+
+# How long each line of an owed safe stop may take to be answered after a reconnect.
+SAFE_STOP_TIMEOUT = 30.0
 
 
 class OwedSafeStop:
@@ -104,3 +113,110 @@ def delivered(run: JobRun, now: float) -> tuple[HostError | None, Summary | None
     assert run.error is not None
     went = "the safe stop went once the controller answered again"
     return type(run.error)(f"{run.error}; {went}"), None
+
+
+class OwingSession(Protocol):
+    """What sending the owed safe stop needs of the session."""
+
+    @property
+    def settings(self) -> SessionSettings: ...
+
+    @property
+    def safe_stop(self) -> list[str]:
+        """The profile's safe stop, for every heater the session set."""
+        ...
+
+    def heaters_on(self) -> list[str]:
+        """The heaters that may be on."""
+        ...
+
+    def publish(self, event: PrinterEvent) -> None:
+        """To the session's subscribers."""
+
+
+class OwedStopSender:
+    """Sends the safe stop still owed (:attr:`owed`) once the controller answers, and ends
+    the job that waits for it, or gives up on it."""
+
+    def __init__(self, session: OwingSession, commands: CommandQueue, wire: Wire) -> None:
+        self._session = session
+        self._commands = commands
+        self._wire = wire
+        self.owed = OwedSafeStop()
+
+    def release(self) -> bool:
+        """With a safe stop owed, before the greeting: what the controller still holds or
+        waits for must not hold the safe stop (nor the greeting) up (:func:`release_bytes`).
+        True when it wrote."""
+        if not self.owed.any:
+            return False
+        self.tell(Notice("a safe stop is owed: ending what the controller holds first"))
+        self._wire.write(release_bytes(self._session.settings.protocol))
+        return True
+
+    async def send(self) -> None:
+        """What a failed job could not send: heaters off before anything else. Each line
+        is owed until the controller confirms it; the job that waits for them ends then."""
+        owed = self.owed
+        if owed.whole:  # the profile is known now: made whole once
+            owed.make_whole(self._session.safe_stop)
+        commands = list(owed.commands)
+        if not commands:
+            return
+        self.tell(Notice(f"sending the safe stop the interrupted job missed: {commands}"))
+        for command in commands:
+            try:
+                await self._commands.ask(command, SAFE_STOP_TIMEOUT)
+            except (HostError, TimeoutError):
+                return  # the rest goes at the next greeting
+            owed.confirmed(command)
+        if owed.waiting is not None:
+            job, run = owed.waiting
+            ended = self._delivered(run)
+            owed.stop_waiting()
+            job.finish(run, *ended)
+
+    def after_emergency(self) -> None:
+        """An emergency stop went: where a heater may be on, the safe stop's heater-off
+        lines are owed (:meth:`OwedSafeStop.after_emergency`)."""
+        session = self._session
+        self.owed.after_emergency(session.safe_stop if session.heaters_on() else [])
+
+    def tell(self, event: Notice) -> None:
+        """To the session's subscribers and the job that waits for the safe stop."""
+        self._session.publish(event)
+        if self.owed.waiting is not None:
+            self.owed.waiting[0].publish(event)
+
+    def wait_for(self, job: PrintJob, run: JobRun) -> None:
+        """The job's link failed before its safe stop was confirmed: it ends once the safe
+        stop went after a reconnect, or after ``reconnect_wait`` seconds without one."""
+        wait = self._session.settings.reconnect_wait
+        timer = self._wire.loop.call_later(
+            wait, self.give_up, f"the controller did not answer again within {wait:g} s"
+        )
+        self.owed.wait(job, run, timer)
+        self.tell(
+            Notice(
+                f"{run.error}. The safe stop did not go: trying to reach the controller again "
+                f"to send it (for up to {wait:g} s)"
+            )
+        )
+
+    def give_up(self, why: str) -> None:
+        """The job waiting for its safe stop ends without it (it stays owed: it goes at
+        the session's next greeting, should there be one)."""
+        if self.owed.waiting is None:
+            return
+        job, run = self.owed.waiting
+        self.owed.stop_waiting()
+        error = unsafe_stop_error(
+            f"{run.error}; the safe stop could not be sent ({why})", self._session.heaters_on()
+        )
+        job.finish(run, error, None)
+
+    def _delivered(self, run: JobRun) -> tuple[HostError | None, Summary | None]:
+        """How a job whose safe stop went after a reconnect ended (:func:`delivered`), told."""
+        if run.cancelled_stop:
+            self.tell(Notice("the safe stop completed once the controller answered again"))
+        return delivered(run, self._wire.loop.time())

@@ -27,7 +27,7 @@ from repetrel_host.errors import ConfigError, JobError, UsageError
 from repetrel_host.gcode import addressing
 from repetrel_host.gcode.analysis import scan_marks
 from repetrel_host.gcode.estimate import DEFAULT_LIMITS, Estimate, PlanSettings
-from repetrel_host.gcode.header import header_commands, safe_stop_commands, safe_stop_for_either
+from repetrel_host.gcode.heaters import safe_stop_commands, safe_stop_for_either
 from repetrel_host.gcode.lint import Finding, Linter, Severity
 from repetrel_host.gcode.timeline import Timeline
 from repetrel_host.links import FAKE_PORT
@@ -35,6 +35,7 @@ from repetrel_host.links.ports import AUTO_PORT
 from repetrel_host.protocol.flow import HYREL_WINDOW, FlowControl, FlowMode
 from repetrel_host.protocol.framing import clean_line
 from repetrel_host.protocol.reports import Firmware
+from repetrel_host.session.header import header_commands
 from repetrel_host.session.job import Job, JobItem, JobLine
 from repetrel_host.session.machine_state import HomeAxes, MachineState, preamble
 from repetrel_host.session.recovery import RECOVERY_SOURCE, RecoveryPoint

@@ -2,7 +2,7 @@
 its events, its end (what :meth:`PrintJob.wait` returns or raises), and the record of it
 beside the print history.
 
-The session (``repetrel_host.session.printer``) starts it and tells it how it went; the job
+The session's job control (:mod:`.job_control`) starts it and tells it how it went; the job
 reaches the session only through :class:`JobPrinter` and :class:`JobSession`.
 """
 

@@ -1,5 +1,6 @@
 """A heater's target as the controller took it: the readings the session keeps, with the
-target a temperature command set, once the controller acknowledged that command.
+target a temperature command set, once the controller acknowledged that command; and the
+heaters that may be on, from the commands and the readings (:func:`heaters_on`).
 
 A controller tells its targets only in its next temperature report (a second or more
 later); a caller that sets one and reads it back at once (Klipper has set it by the time
@@ -13,7 +14,7 @@ from __future__ import annotations
 import re
 
 from repetrel_host.gcode import addressing
-from repetrel_host.gcode.heaters import is_group, target_set
+from repetrel_host.gcode.heaters import HeaterLog, is_group, target_set
 
 Readings = dict[str, tuple[float, float | None]]
 
@@ -46,6 +47,26 @@ def with_target(
     for sensor in read:
         changed[sensor] = (readings[sensor][0], found.target)
     return changed
+
+
+def heaters_on(log: HeaterLog, readings: Readings) -> list[str]:
+    """The heaters that may be on: set above zero by a command in ``log`` (and not turned
+    off since, as far as the controller confirmed), or read with a target above zero."""
+    named = {_heater_name(h.kind, h.index): h.describe() for h in log.on()}
+    for sensor, (current, target) in readings.items():
+        kind = {"T": "hotend", "B": "bed", "C": "chamber"}.get(sensor[:1])
+        if not target or kind is None:
+            continue
+        index = int(sensor[1:]) if sensor[1:].isdigit() else None
+        if kind == "hotend" and index is None:
+            index = log.tool
+        name = _heater_name(kind, index)
+        named.setdefault(name, f"{name} (reported {current:g} °C, target {target:g} °C)")
+    return list(named.values())
+
+
+def _heater_name(kind: str, index: int | None) -> str:
+    return kind if index is None else f"{kind} T{index}"
 
 
 def _hotends(

@@ -1,7 +1,8 @@
 """How a session keeps the controller's temperatures coming: the firmware's own reports
 (``M155``, asked once a connection where it says it can) or, failing that, a poll every
-``poll_interval`` seconds (Hyrel's status request where the link has one, else ``M105``).
-What a report says is read by the listener (:mod:`.listener`); this only makes them come."""
+``poll_interval`` seconds (Hyrel's status request where the link has one, else ``M105``);
+and a first report at once, where none came yet to read a target set back in. What a report
+says is read by the listener (:mod:`.listener`); this only makes them come."""
 
 from __future__ import annotations
 
@@ -13,10 +14,13 @@ from typing import Any, Protocol
 
 from repetrel_host.errors import HostError
 from repetrel_host.protocol.reports import Firmware, parse_temperatures
-from repetrel_host.session.commands import PendingCommand, Reply
+from repetrel_host.session.command_queue import CommandQueue
+from repetrel_host.session.commands import Reply
 from repetrel_host.session.events import Message, State
 from repetrel_host.session.pump import Pump
 from repetrel_host.session.settings import SessionSettings
+
+FIRST_REPORT_WAIT = 2.0  # s: for the answer to Hyrel's status request (it comes at once)
 
 
 class WatchedSession(Protocol):
@@ -32,17 +36,15 @@ class WatchedSession(Protocol):
     def firmware(self) -> Firmware | None: ...
 
     @property
+    def temperatures(self) -> dict[str, tuple[float, float | None]]:
+        """The latest readings, by sensor."""
+        ...
+
+    @property
     def pump(self) -> Pump | None: ...
 
     def drive_pump(self) -> None:
         """Let the pump write what it can now."""
-
-    def send_own_command(self, command: str) -> PendingCommand:
-        """Send ``command`` as the host's own (not the caller's): its reply's future."""
-
-    async def poll_command(self, command: str, timeout: float) -> Reply | None:
-        """``command`` as the host's own, unless a caller's command is sent or waits to be
-        (then None: the poll stands aside)."""
 
     def broadcast(self, event: Message) -> None:
         """To the session's subscribers and the running job's."""
@@ -51,8 +53,9 @@ class WatchedSession(Protocol):
 class TemperatureWatch:
     """M155 where the firmware reports temperatures itself, else a poll (see the module)."""
 
-    def __init__(self, session: WatchedSession) -> None:
+    def __init__(self, session: WatchedSession, commands: CommandQueue) -> None:
         self._session = session
+        self._commands = commands
         self.autoreport = False  # the controller reports temperatures itself (M155 took)
         self._asked: asyncio.Future[Reply] | None = None  # this connection's M155
         self._polling: asyncio.Task[None] | None = None
@@ -77,7 +80,7 @@ class TemperatureWatch:
             or session.pump is None
         ):
             return self._asked
-        pending = session.send_own_command(f"M155 S{max(1, math.ceil(interval))}")
+        pending = self._commands.send(f"M155 S{max(1, math.ceil(interval))}", own=True)
         pending.future.add_done_callback(self._autoreporting)
         self._asked = pending.future
         return pending.future
@@ -99,6 +102,21 @@ class TemperatureWatch:
             for line in future.result().lines:
                 if not parse_temperatures(line):
                     self._session.broadcast(Message(line))
+
+    async def first_report(self, timeout: float | None) -> None:
+        """Nothing reported yet to set a target in: a report now (Hyrel's status request,
+        else M105), so that the target reads back as its command returns, as it does once
+        there are readings."""
+        session = self._session
+        pump = session.pump
+        wait = min(timeout or FIRST_REPORT_WAIT, FIRST_REPORT_WAIT)
+        if pump is None or not pump.dialect.request_status():
+            await self._commands.ask("M105", wait, own=True)
+            return
+        session.drive_pump()
+        async with asyncio.timeout(wait):
+            while not session.temperatures:
+                await asyncio.sleep(0.02)
 
     def start_polling(
         self, spawn: Callable[[Coroutine[Any, Any, None]], asyncio.Task[None]]
@@ -128,7 +146,7 @@ class TemperatureWatch:
             if pump.controller_holds:
                 continue
             with contextlib.suppress(HostError, TimeoutError):
-                reply = await session.poll_command("M105", interval * 2)
+                reply = await self._commands.poll("M105", interval * 2)
                 if reply is None:
                     continue
                 # What came while it waited is the job's (messages), not the poll's.

@@ -1,8 +1,9 @@
 """The bytes between a printer's pump and its link: what goes out (to the port, to the running
-job's wire log in the history, to the taps and the tail), what comes in (to the pump), and
-the pump's timer. A :class:`~repetrel_host.session.printer.Printer` holds one; it decides
-when the connection and the pump change (a greeting, a reconnect, a failure), and the wire
-carries bytes between them meanwhile."""
+job's wire log in the history, to the taps and the tail; each line, as it first goes, to the
+line taps), what comes in (to the pump), and the pump's timer. A
+:class:`~repetrel_host.session.printer.Printer` holds one; its parts decide when the
+connection and the pump change (a greeting, a reconnect, a failure: :mod:`.reconnect`), and
+the wire carries bytes between them meanwhile."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ from collections import deque
 from collections.abc import Callable
 from typing import BinaryIO
 
+from repetrel_host.session.commands import PendingCommand
 from repetrel_host.session.connection import LinkConnection
 from repetrel_host.session.pump import Pump
 
@@ -27,6 +29,7 @@ class Wire:
         self.pump: Pump | None = None  # none between a failure and the next greeting
         self.log: BinaryIO | None = None  # the running job's stream in the history
         self.taps: list[Callable[[bool, bytes], None]] = []
+        self._line_taps: list[Callable[[str, bool], None]] = []
         # The wire's latest pieces, (sent, data), while a log reads them now and then (the
         # push socket's terminal): one append a write or read, nothing more, and nothing at
         # all while it is None. Bounded: a reader that falls behind loses the oldest.
@@ -38,6 +41,8 @@ class Wire:
     def start(self, pump: Pump) -> None:
         """Make ``pump`` the connection's: its greeting goes out, its timer is armed."""
         self.pump = pump
+        if self._line_taps:
+            pump.dialect.on_first_send = self._first_send
         self.write(pump.start(self.loop.time()))
         self._arm_timer(pump.deadline)
 
@@ -48,6 +53,20 @@ class Wire:
             self._timer.cancel()
             self._timer = self._timer_at = None
         return pump
+
+    def tap_lines(self, callback: Callable[[str, bool], None]) -> Callable[[], None]:
+        """Call ``callback(command, own)`` for each line as it first goes (see
+        :meth:`Printer.tap_lines <repetrel_host.session.printer.Printer.tap_lines>`);
+        returns what removes the tap."""
+        self._line_taps.append(callback)
+        if self.pump is not None:
+            self.pump.dialect.on_first_send = self._first_send
+        return lambda: self._line_taps.remove(callback)
+
+    def _first_send(self, command: str, tag: object, own: bool, _number: int | None) -> None:
+        own = own or (isinstance(tag, PendingCommand) and tag.own)
+        for tap in self._line_taps:
+            tap(command, own)
 
     def drop_connection(self) -> None:
         """Close the connection of the moment (the link itself stays the printer's)."""

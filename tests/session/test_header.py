@@ -5,7 +5,7 @@ from pathlib import Path
 import pytest
 
 from repetrel_host.config import UserConfig, load_library, load_loadout, shipped_config_dir
-from repetrel_host.gcode.header import format_number, header_commands, safe_stop_commands
+from repetrel_host.session.header import format_number, header_commands
 from tests.support.helpers import hyrel_send
 
 # Copied by hand from "One Head Loaded" and "Two Heads Loaded".
@@ -92,10 +92,3 @@ def test_header_origins_name_the_head() -> None:
 )
 def test_numbers_print_as_the_reference_writes_them(value: float, text: str) -> None:
     assert format_number(value) == text
-
-
-def test_safe_stop_uses_the_firmwares_groups() -> None:
-    v4 = safe_stop_commands("v4")
-    assert v4[:4] == ["M107 T100", "M620 T100 E0", "M104 T100 S0", "M140 T90 S0"]
-    assert v4[-1] == "M84"
-    assert "M104 T47 S0" in safe_stop_commands("v5")

@@ -4,12 +4,14 @@ Repetrel sends, for every loaded head in slot order, M6 (offsets), M721
 (unprime), M722 (prime), M221 (flow) and M728 (motor current boost) (T
 addressing v5 page, "Default Mode"), and the reference asks for a ``G4 P1``
 after changing flow, prime or unprime values.
+
+It is made from a loadout the configuration resolved, so it sits above ``config`` (which
+imports ``gcode``), beside the planning (:mod:`.planning`) that puts it before a job.
 """
 
 from __future__ import annotations
 
 from repetrel_host.config import Loadout, ResolvedHead
-from repetrel_host.gcode import addressing
 
 PAUSE_AFTER_FLOW_CHANGES = "G4 P1"
 
@@ -57,36 +59,3 @@ def header_commands(loadout: Loadout) -> list[tuple[str, str]]:
     if lines:
         lines.append((PAUSE_AFTER_FLOW_CHANGES, "header"))
     return lines
-
-
-def safe_stop_commands(firmware: addressing.Firmware) -> list[str]:
-    """The safe part of the reference's standard footer, with this firmware's group addresses:
-    fans, lasers, heaters and spindles off, lift, motors off."""
-    heads = addressing.all_heads_variable(firmware)
-    beds = addressing.all_beds_variable(firmware)
-    return [
-        f"M107 T{heads}",  # fans, diodes: off
-        f"M620 T{heads} E0",  # CO2 lasers: off
-        f"M104 T{heads} S0",  # head temperatures: off
-        f"M140 T{beds} S0",  # bed temperatures: off
-        "M5",  # spindles: off
-        "G91",  # relative coordinates
-        "G0 Z10",  # drop the bed (lift the head) 10 mm
-        "G90",  # absolute coordinates
-        "M84",  # motors: off
-    ]
-
-
-def safe_stop_for_either() -> list[str]:
-    """A safe stop for a controller whose firmware is not known: Hyrel's (v5 group
-    addresses) with Marlin's heater lines beside its own. Each firmware takes the other's
-    lines harmlessly: Marlin refuses ``M104 T47`` (no such hotend) and ignores the unknown
-    ``M620`` and ``M5``; Hyrel's ``M104 S0`` and ``M140 S0`` turn off the current head and
-    the primary bed. (A bare ``M104 S0`` names every hotend once Marlin says how many.)"""
-    hyrel = safe_stop_commands("v5")
-    either: list[str] = []
-    for command in hyrel:
-        either.append(command)
-        if command.startswith(("M104 ", "M140 ")):
-            either.append(command.split()[0] + " S0")
-    return either
