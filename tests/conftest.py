@@ -1,4 +1,5 @@
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -13,6 +14,65 @@ pytest_plugins = [
     "tests.support.pg",
     "tests.support.farm",
 ]
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption(
+        "--slow",
+        action="store_true",
+        help="also run the tests marked slow (a plain `pytest` leaves them out; naming a path "
+        "or giving -m runs what they select)",
+    )
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line(
+        "markers",
+        "slow: a test of minutes or of a heavy real peer (a soak, a long bench, a real browser "
+        "or client, PostgreSQL, a package build): left out of a plain `pytest`, run by "
+        "`pytest --slow`, `pytest -m slow` and CI",
+    )
+    # The controller decides: pytest-xdist's workers see other arguments, and get its choice.
+    workerinput = getattr(config, "workerinput", None)
+    if workerinput is not None:
+        config.option.quick_only = workerinput["quick_only"]
+    else:
+        config.option.quick_only = (
+            not config.option.slow
+            and not config.option.markexpr
+            and config.args_source == pytest.Config.ArgsSource.TESTPATHS
+        )
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_configure_node(node: Any) -> None:
+    """pytest-xdist's hook: a worker's input carries the controller's choice."""
+    node.workerinput["quick_only"] = node.config.option.quick_only
+
+
+# A test that drives a real browser (tests/page, the browser fixture) or starts a PostgreSQL
+# cluster is slow by what it uses.
+SLOW_FIXTURES = {"browser", "postgres"}
+PAGE = Path(__file__).parent / "page"
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    for item in items:
+        if SLOW_FIXTURES & set(getattr(item, "fixturenames", ())) or item.path.is_relative_to(PAGE):
+            item.add_marker(pytest.mark.slow)
+    if not getattr(config.option, "quick_only", False):
+        return
+    slow = [item for item in items if item.get_closest_marker("slow")]
+    if slow:
+        config.hook.pytest_deselected(items=slow)
+        items[:] = [item for item in items if not item.get_closest_marker("slow")]
+
+
+def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:
+    if getattr(terminalreporter.config.option, "quick_only", False):
+        terminalreporter.write_line(
+            "the tests marked slow were left out: `pytest --slow` runs them too (CI does)"
+        )
 
 
 @pytest.fixture(scope="session")

@@ -41,6 +41,7 @@ def quick_table(script: Path, timeout: float) -> tuple[str, list[str], list[list
 
 
 @pytest.mark.timeout(240)
+@pytest.mark.slow
 def test_speed_bench_prints_every_figure_against_printcore() -> None:
     output, header, table = quick_table(RUN, 230)
     assert header[:4] == ["host", "link", "lines", "lines/s"]
@@ -67,6 +68,7 @@ SERVER = Path(__file__).parent.parent / "bench" / "server.py"
 
 
 @pytest.mark.timeout(180)
+@pytest.mark.slow
 def test_server_bench_streams_to_four_printers_and_reports_each() -> None:
     _, header, table = quick_table(SERVER, 170)
     assert header[:5] == ["link", "printers", "printer", "lines", "lines/s"]
@@ -83,6 +85,7 @@ ANALYSIS = Path(__file__).parent.parent / "bench" / "analysis.py"
 
 
 @pytest.mark.timeout(90)
+@pytest.mark.slow
 def test_analysis_bench_memory_grows_with_the_layers_not_the_file() -> None:
     """The whole pass over 2 and 40 MB files, each in its own process: the bigger file's peak
     RSS grows by a few MB, as the smaller's does (a pass that read the file whole would grow
@@ -111,6 +114,7 @@ FARM = Path(__file__).parent.parent / "bench" / "farm.py"
 
 @pytest.mark.timeout(300)
 @needs_postgres
+@pytest.mark.slow
 def test_farm_bench_reports_latency_throughput_and_claims() -> None:
     done = subprocess.run(
         [sys.executable, str(FARM), "--quick"], capture_output=True, text=True, timeout=280
@@ -130,6 +134,7 @@ OCTOPRINT_PYTHON = Path(os.environ.get("OCTOPRINT_PYTHON", "/tmp/octo-venv/bin/p
 
 @pytest.mark.timeout(300)
 @pytest.mark.skipif(not OCTOPRINT_PYTHON.exists(), reason="no OctoPrint virtualenv")
+@pytest.mark.slow
 def test_the_octoprint_bench_runs_every_host_exactly_once(tmp_path: Path) -> None:
     options = ["--runs", "1", "--lines", "300", "--keep", str(tmp_path)]
     result = subprocess.run(
@@ -148,6 +153,7 @@ LOOP_DELAY = Path(__file__).parent.parent / "bench" / "loop_delay.py"
 
 
 @pytest.mark.timeout(120)
+@pytest.mark.slow
 def test_loop_delay_bench_reports_each_step_and_every_line_once() -> None:
     result = subprocess.run(
         [sys.executable, str(LOOP_DELAY), "--size-mb", "5"],
@@ -180,6 +186,7 @@ TIME_LEFT = Path(__file__).parent.parent / "bench" / "time_left.py"
 
 
 @pytest.mark.timeout(200)
+@pytest.mark.slow
 def test_time_left_bench_reports_each_point_of_a_job_and_each_printers_pace() -> None:
     """The time left against the fake whose moves and heat-up take their planned time (the
     cone's first two layers and its heat-up, at x16), on both links: a row for a printer's

@@ -48,6 +48,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import httpx
 import pytest
@@ -74,6 +75,14 @@ MKDOCS_BUILD = [sys.executable, "-m", "mkdocs", "build", "--strict"]
 KINDS = {"python", "shell", "script", "daemon", "farm", "pytest", "loadout", "config", "install"}
 EXAMPLES = [example for path in markdown_files() for example in examples_in(path)]
 RUN_HERE = [example for example in EXAMPLES if example.kind != "install"]  # test_wheel's
+# A pytest run, a PostgreSQL farm or a long-running program take seconds each: run with --slow.
+HEAVY_KINDS = {"pytest", "farm", "daemon"}
+
+
+def slow_if_heavy(example: Fence) -> Any:
+    """The example as a test case, marked slow when its kind is heavy (or it runs pytest)."""
+    heavy = example.kind in HEAVY_KINDS or "pytest" in example.code
+    return pytest.param(example, marks=pytest.mark.slow) if heavy else example
 
 
 def test_every_marker_is_an_example_of_a_known_kind() -> None:
@@ -115,6 +124,7 @@ def site(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 @pytest.mark.timeout(450)
+@pytest.mark.slow
 def test_the_site_builds_strict(site: Path):
     assert (site / "index.html").is_file()
     assert (site / "search" / "search_index.json").is_file()  # Material's search
@@ -382,7 +392,7 @@ def run_example(
 
 
 @pytest.mark.timeout(300)
-@pytest.mark.parametrize("example", RUN_HERE, ids=str)
+@pytest.mark.parametrize("example", [slow_if_heavy(example) for example in RUN_HERE], ids=str)
 def test_the_example_runs(
     example: Fence, tmp_path: Path, environment: dict[str, str], request: pytest.FixtureRequest
 ) -> None:
@@ -403,10 +413,11 @@ def test_the_example_runs(
         ("daemon", "echo ready && sleep 600\n", True),  # killed by Ctrl-C: no clean exit
         ("daemon", "echo ready\n", True),  # it does not run until stopped
         ("daemon", "hyrel-server --data-dir data --printer a=fake\n", False),
-        (
+        pytest.param(
             "pytest",
             "def test_it(hyrel_printer):\n    assert not hyrel_printer.command('M105').ok\n",
             True,
+            marks=pytest.mark.slow,
         ),
         ("loadout", 'machine = "hydra-16a"\n[[heads]]\nslot = 2\nhead = "NO-SUCH-HEAD"\n', True),
         ("config", "[printer]\nno_such_key = 1\n", True),

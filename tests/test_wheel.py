@@ -60,6 +60,7 @@ def the_install_command() -> str:
 
 
 @pytest.mark.timeout(900)
+@pytest.mark.slow
 def test_the_install_from_the_clone_runs_in_a_fresh_venv(tmp_path: Path) -> None:
     folder, env = clone(tmp_path), fresh_shell(tmp_path)
     env.pop("PYTHONPATH", None)  # a user's shell: nothing but the install finds the package

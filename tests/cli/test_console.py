@@ -116,6 +116,7 @@ def test_host_owned_words_are_refused_with_the_apis_sentences(term: Term) -> Non
 
 
 @pytest.mark.timeout(60)
+@pytest.mark.slow
 def test_the_up_arrow_recalls_the_last_command_in_this_and_the_next_session(
     tmp_path: Path,
 ) -> None:
@@ -205,6 +206,7 @@ def printing(tmp_path: Path, fake: BuiltInFake) -> Iterator[Term]:
 
 
 @pytest.mark.timeout(60)
+@pytest.mark.slow
 def test_pause_resume_and_commands_while_printing(tmp_path: Path, slow_fake: BuiltInFake) -> None:
     with printing(tmp_path, slow_fake) as term:
         term.type("M105")

@@ -44,6 +44,7 @@ def test_readme_command_streams_the_example_to_the_built_in_fake(tmp_path: Path)
 
 
 @pytest.mark.parametrize("flow", ["buffered", "unbuffered"])
+@pytest.mark.slow
 def test_slicer_job_over_a_pty_executes_every_line_once(flow: str, fake: BuiltInFake) -> None:
     result = hyrel_send(str(CONE), "--port", fake.port, "--flow", flow)
     assert result.returncode == 0, result.stderr

@@ -42,6 +42,7 @@ def test_the_readme_job_streams_to_the_built_in_fake_on_hyrels_link(tmp_path: Pa
     assert ran(log) == job_commands(EXAMPLE)
 
 
+@pytest.mark.slow
 def test_hyrel_send_returns_only_once_the_controller_ran_the_jobs_end(tmp_path: Path) -> None:
     job = tmp_path / "dwell.gcode"
     moves = [f"G1 X{i % 100} Y{i % 30}" for i in range(300)]
@@ -113,6 +114,7 @@ MOVE_TIME = 0.02  # 50 moves a second: a slow job, as a fake can run it
 
 @pytest.mark.parametrize("progress", [False, True], ids=["as-sliced", "m73-first"])
 @pytest.mark.timeout(90)
+@pytest.mark.slow
 def test_ctrl_c_names_a_resume_line_close_behind_what_ran_and_never_past_it(
     tmp_path: Path, progress: bool
 ) -> None:

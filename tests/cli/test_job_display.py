@@ -52,6 +52,7 @@ def settled(log: Path) -> int:
 
 @pytest.mark.timeout(90)
 @pytest.mark.parametrize("protocol", ["reprap", "hyrel"])
+@pytest.mark.slow
 def test_the_status_line_and_p_pausing_and_resuming(
     tmp_path: Path, screens: list, protocol: str
 ) -> None:
@@ -83,6 +84,7 @@ def test_the_status_line_and_p_pausing_and_resuming(
 
 
 @pytest.mark.timeout(60)
+@pytest.mark.slow
 def test_the_time_left_is_the_plans_or_estimating_never_a_stand_in(
     tmp_path: Path, screens: list
 ) -> None:
@@ -118,6 +120,7 @@ def test_an_m0_waits_for_enter_at_the_terminal(tmp_path: Path, screens: list) ->
 
 
 @pytest.mark.timeout(90)
+@pytest.mark.slow
 def test_ctrl_c_at_the_terminal_sends_the_safe_stop(tmp_path: Path, screens: list) -> None:
     log = tmp_path / "fake.log"
     screen = Screen(str(CONE), "--fake-log", str(log), "--no-history", home=tmp_path)

@@ -47,6 +47,7 @@ def killed_mid_job(fake: BuiltInFake, tmp_path: Path, protocol: str, console: bo
 
 @pytest.mark.parametrize("protocol", ["reprap", "hyrel"])
 @pytest.mark.parametrize("killed", ["hyrel-send", "console"])
+@pytest.mark.slow
 def test_the_next_run_on_the_port_sends_the_safe_stop_a_killed_run_owed(
     tmp_path: Path, protocol: str, killed: str
 ) -> None:

@@ -67,6 +67,7 @@ def test_duration_and_clock_time_have_one_format_each() -> None:
     assert clock_at(None) is None
 
 
+@pytest.mark.slow
 def test_check_gives_the_plan_split_and_the_printers_pace_from_its_history(
     tmp_path: Path,
 ) -> None:
@@ -112,6 +113,7 @@ def test_check_gives_the_plan_split_and_the_printers_pace_from_its_history(
     assert "no past job on port /dev/ttyUSB7 with the marlin profile" in result.stdout
 
 
+@pytest.mark.slow
 def test_the_summary_gives_the_planned_time_beside_the_real_one(tmp_path: Path) -> None:
     job = tmp_path / "part.gcode"
     moves = "".join(f"G1 X{10 if i % 2 == 0 else 0} F3000\n" for i in range(40))

@@ -91,6 +91,7 @@ def test_a_signal_stops_hyrel_send_with_its_safe_stop(
     assert done[-1] == "M84"
 
 
+@pytest.mark.slow
 def test_a_second_signal_abandons_the_safe_stop_and_says_so(tmp_path: Path) -> None:
     job, log = tmp_path / "two.gcode", tmp_path / "fake.log"
     job.write_text(JOB)
@@ -147,6 +148,7 @@ def test_a_closed_terminal_still_gets_the_safe_stop_and_the_history_says_how_it_
     assert json.loads(record.read_text())["outcome"] == "cancelled"
 
 
+@pytest.mark.slow
 def test_with_the_terminal_gone_an_abandoned_safe_stop_is_told_by_the_history_and_exit_5(
     tmp_path: Path,
 ) -> None:
@@ -230,6 +232,7 @@ def test_a_signal_stops_the_consoles_job_with_its_safe_stop(
     assert heaters == ALL_OFF
 
 
+@pytest.mark.slow
 def test_a_signal_at_the_interactive_console_stops_its_job_and_leaves(tmp_path: Path) -> None:
     job, log = tmp_path / "two.gcode", tmp_path / "fake.log"
     job.write_text(JOB)
@@ -244,6 +247,7 @@ def test_a_signal_at_the_interactive_console_stops_its_job_and_leaves(tmp_path: 
     assert heaters == ALL_OFF
 
 
+@pytest.mark.slow
 def test_a_second_signal_at_the_console_abandons_the_safe_stop_and_exits_5(
     tmp_path: Path,
 ) -> None:
@@ -267,6 +271,7 @@ def test_a_second_signal_at_the_console_abandons_the_safe_stop_and_exits_5(
     assert heaters != ALL_OFF
 
 
+@pytest.mark.slow
 def test_a_closed_terminal_at_the_interactive_console_stops_its_job_safely(
     tmp_path: Path,
 ) -> None:
@@ -293,6 +298,7 @@ def test_a_closed_terminal_at_the_interactive_console_stops_its_job_safely(
 
 
 @pytest.mark.parametrize("leave", ["!quit", "Ctrl-D"])
+@pytest.mark.slow
 def test_leaving_the_console_while_a_job_heats_turns_every_heater_off(
     tmp_path: Path, leave: str
 ) -> None:

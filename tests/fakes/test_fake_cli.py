@@ -58,6 +58,7 @@ def test_fake_controller_help_shows_every_default() -> None:
 
 
 @pytest.mark.timeout(60)
+@pytest.mark.slow
 def test_the_builtin_fake_leaves_no_temporary_log(tmp_path: Path) -> None:
     temporary = tmp_path / "tmp"
     temporary.mkdir()

@@ -285,6 +285,7 @@ def layered_job(layers: int = 3, moves: int = 300) -> str:
 
 
 @pytest.mark.timeout(180)
+@pytest.mark.slow
 def test_the_servers_files_and_job_carry_the_analysis_kept_across_a_restart(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
 ) -> None:

@@ -35,6 +35,7 @@ def one_line(text: str) -> str:
     return " ".join(text.split())
 
 
+@pytest.mark.slow
 def test_help_lists_the_options_in_a_hyrel_group_with_their_defaults(
     pytester: pytest.Pytester,
 ) -> None:
@@ -50,6 +51,7 @@ def test_help_lists_the_options_in_a_hyrel_group_with_their_defaults(
     assert "default: the machine profile's (115200)" in group
 
 
+@pytest.mark.slow
 def test_options_come_from_the_command_line_then_the_environment_then_the_ini_file(
     pytester: pytest.Pytester, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -90,6 +92,7 @@ def test_options_come_from_the_command_line_then_the_environment_then_the_ini_fi
     assert run(pytester, "--help").ret == 0  # help whatever the options say
 
 
+@pytest.mark.slow
 def test_a_port_given_after_a_space_is_warned_about(pytester: pytest.Pytester) -> None:
     pytester.makepyfile("def test_nothing():\n    pass\n")
     result = run(pytester, "--hyrel-port", "/dev/null")
@@ -100,6 +103,7 @@ def test_a_port_given_after_a_space_is_warned_about(pytester: pytest.Pytester) -
     )
 
 
+@pytest.mark.slow
 def test_markers_are_registered_and_skip_with_their_reasons(pytester: pytest.Pytester) -> None:
     pytester.makepyfile(
         """
@@ -175,6 +179,7 @@ def test_markers_are_registered_and_skip_with_their_reasons(pytester: pytest.Pyt
     assert "hyrel_machine: this test's machine is known from --hyrel-machine" in report
 
 
+@pytest.mark.slow
 def test_sync_fixtures_command_print_and_drive_the_fake(pytester: pytest.Pytester) -> None:
     pytester.makepyfile(
         """
@@ -255,6 +260,7 @@ def test_sync_fixtures_command_print_and_drive_the_fake(pytester: pytest.Pyteste
     run(pytester).assert_outcomes(passed=7)
 
 
+@pytest.mark.slow
 def test_async_fixture_from_pytest_asyncio_and_from_asyncio_run(pytester: pytest.Pytester) -> None:
     pytester.makepyfile(
         """
@@ -291,6 +297,7 @@ def ran_but_probes(where: Path) -> list[str]:
     return [c for c in Path(where.read_text()).read_text().splitlines() if c != "M105"]
 
 
+@pytest.mark.slow
 def test_a_failing_test_reports_the_wire_and_leaves_the_fake_safe(
     pytester: pytest.Pytester,
 ) -> None:
@@ -356,6 +363,7 @@ def test_a_failing_test_reports_the_wire_and_leaves_the_fake_safe(
     )
 
 
+@pytest.mark.slow
 def test_an_interrupted_run_stops_the_job_safely(pytester: pytest.Pytester) -> None:
     pytester.makepyfile(
         """
@@ -379,6 +387,7 @@ def test_an_interrupted_run_stops_the_job_safely(pytester: pytest.Pytester) -> N
     assert executed.count("G1 X1") < 250
 
 
+@pytest.mark.slow
 def test_a_pty_given_as_the_port_stands_for_the_bench(
     pytester: pytest.Pytester, tmp_path: Path
 ) -> None:
@@ -418,6 +427,7 @@ def test_a_pty_given_as_the_port_stands_for_the_bench(
 
 
 @pytest.mark.parametrize("protocol", ["reprap", "hyrel"])
+@pytest.mark.slow
 def test_the_hil_examples_pass_on_the_fake(protocol: str) -> None:
     result = subprocess.run(
         [
@@ -439,6 +449,7 @@ def test_the_hil_examples_pass_on_the_fake(protocol: str) -> None:
     assert " passed" in result.stdout and "failed" not in result.stdout
 
 
+@pytest.mark.slow
 def test_each_test_gets_a_fresh_fake(pytester: pytest.Pytester) -> None:
     pytester.makepyfile(
         """
@@ -472,6 +483,7 @@ def test_the_wire_recorder_joins_lines_split_across_reads_and_caps_noise() -> No
 
 
 @pytest.mark.parametrize("protocol", ["reprap", "hyrel"])
+@pytest.mark.slow
 def test_executed_holds_what_the_test_sent_on_either_link(
     pytester: pytest.Pytester, protocol: str
 ) -> None:
@@ -495,6 +507,7 @@ def test_executed_holds_what_the_test_sent_on_either_link(
     run(pytester, f"--hyrel-protocol={protocol}").assert_outcomes(passed=1)
 
 
+@pytest.mark.slow
 def test_hyrel_protocol_runs_the_same_tests_over_hyrels_link(pytester: pytest.Pytester) -> None:
     pytester.makepyfile(
         """
@@ -528,6 +541,7 @@ def test_hyrel_protocol_runs_the_same_tests_over_hyrels_link(pytester: pytest.Py
     assert "--hyrel-protocol: 'marlin' is not reprap or hyrel" in result.stderr.str()
 
 
+@pytest.mark.slow
 def test_an_async_test_runs_without_pytest_asyncios_warning(pytester: pytest.Pytester) -> None:
     # A lab's first async test, with no pytest-asyncio settings of its own.
     pytester.makepyfile(
@@ -548,6 +562,7 @@ def test_an_async_test_runs_without_pytest_asyncios_warning(pytester: pytest.Pyt
     assert "asyncio_default_fixture_loop_scope=module" in result.stdout.str()
 
 
+@pytest.mark.slow
 def test_without_pytest_timeout_a_printer_test_fails_in_one_sentence(
     pytester: pytest.Pytester,
 ) -> None:

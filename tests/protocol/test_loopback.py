@@ -38,6 +38,7 @@ def test_slicer_job_is_executed_exactly_once(mode: FlowMode, cone_commands: list
 
 @pytest.mark.parametrize("mode", list(FlowMode))
 @pytest.mark.parametrize(("faults", "seed"), [(NOISE, 1), (NOISE, 2), (NOISE + MARLIN, 3)])
+@pytest.mark.slow
 def test_noise_never_loses_or_repeats_a_line(
     mode: FlowMode, faults: str, seed: int, cone_commands: list[str]
 ) -> None:

@@ -36,6 +36,7 @@ OCTOPRINT = "counted_resend=1 spurious_resend=0.005 drop_with_error=0.005"
         ("unbuffered", f"{NOISE} {OLD_MARLIN} seed=4"),
     ],
 )
+@pytest.mark.slow
 def test_noisy_link_executes_every_line_exactly_once(
     flow: str, faults: str, tmp_path: Path
 ) -> None:
@@ -50,6 +51,7 @@ def test_noisy_link_executes_every_line_exactly_once(
 
 @pytest.mark.timeout(180)
 @pytest.mark.parametrize("flow", ["buffered", "unbuffered"])
+@pytest.mark.slow
 def test_a_controller_counting_lines_its_own_way_runs_every_line_once(
     flow: str, tmp_path: Path
 ) -> None:

@@ -78,6 +78,7 @@ def test_a_command_too_long_is_never_sent_and_the_job_stops_before_it(tmp_path: 
     assert done[-1] == "M84"  # then the safe stop
 
 
+@pytest.mark.slow
 def test_the_server_answers_and_another_printer_streams_on_while_long_lines_are_uploaded(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
 ) -> None:
@@ -188,6 +189,7 @@ def _gone(pid: int) -> bool:
         return True
 
 
+@pytest.mark.slow
 def test_the_servers_file_workers_are_replaced_when_killed_and_end_with_it(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
 ) -> None:

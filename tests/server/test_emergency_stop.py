@@ -42,6 +42,7 @@ def emergency(client: httpx.Client, how: str) -> None:
 
 @pytest.mark.parametrize("protocol", ["reprap", "hyrel"])
 @pytest.mark.parametrize("how", ["moonraker", "moonraker script", "octoprint commands"])
+@pytest.mark.slow
 def test_an_emergency_stop_goes_and_the_heater_off_lines_follow_it(
     bench: Callable[..., BuiltInFake],
     servers: Callable[..., Server],

@@ -29,8 +29,9 @@ import httpx
 import pytest
 
 from repetrel_host.fakes.fake_controller import BuiltInFake
-from tests.server.test_moonraker_reference import CACHE, reference  # noqa: F401 (a fixture)
+from tests.server.test_moonraker_reference import reference  # noqa: F401 (a fixture)
 from tests.support.helpers import MARLIN_SAFE_STOP, executed
+from tests.support.paths import CACHE, install_once
 from tests.support.server import KEY, Server, free_port, gcode, wait_for
 
 pytestmark = pytest.mark.timeout(420)  # the first run installs FDM Monster (some 90 s)
@@ -61,17 +62,9 @@ def fdm_monster() -> Path:
     if not (folder / "installed").exists():
         folder.mkdir(parents=True, exist_ok=True)
         (folder / "package.json").write_text(json.dumps(PACKAGE, indent=2))
-        try:  # it asks for Node 22; it runs on 20 (better-sqlite3 12 builds for it)
-            subprocess.run(
-                [npm, "install", "--engine-strict=false", *QUIET],
-                cwd=folder,
-                check=True,
-                capture_output=True,
-                timeout=400,
-            )
-        except (subprocess.SubprocessError, OSError) as exc:
-            pytest.skip(f"FDM Monster {VERSION} could not be installed here: {exc}")
-        (folder / "installed").touch()
+    # It asks for Node 22; it runs on 20 (better-sqlite3 12 builds for it).
+    install = [npm, "install", "--engine-strict=false", *QUIET]
+    install_once(folder, f"FDM Monster {VERSION}", install, cwd=folder, timeout=400)
     return entry
 
 
@@ -283,6 +276,7 @@ def verdict(checks: Checks) -> None:
     assert not checks.failed, f"passed:\n  {passed}\nfailed:\n  {failed}"
 
 
+@pytest.mark.slow
 def test_fdm_monster_drives_a_hyrel_printer_as_a_klipper_printer(
     manager: Manager,
     bench: Callable[..., BuiltInFake],
@@ -313,6 +307,7 @@ def test_fdm_monster_drives_a_hyrel_printer_as_a_klipper_printer(
     verdict(checks)
 
 
+@pytest.mark.slow
 def test_fdm_monster_drives_real_moonraker_the_reference(
     manager: Manager,
     reference: str,  # noqa: F811 (the fixture)

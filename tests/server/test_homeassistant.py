@@ -94,6 +94,7 @@ def start(
     return server
 
 
+@pytest.mark.slow
 def test_each_printer_is_a_home_assistant_device_whose_sensors_read_real_messages(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server], broker: int, tmp_path: Path
 ) -> None:

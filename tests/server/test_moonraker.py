@@ -466,6 +466,7 @@ def test_a_port_closed_on_purpose_is_klippy_disconnected_until_a_firmware_restar
     asyncio.run(run())
 
 
+@pytest.mark.slow
 def test_a_lost_link_is_klippy_shutdown_with_the_reason_then_ready_again(
     printer: tuple[Server, BuiltInFake],
 ) -> None:

@@ -85,6 +85,7 @@ def test_klippers_m104_t_is_its_extruder_set_by_the_heads_own_command(
         assert targets(fake)["T"] == 185 and targets(fake)["T1"] == 60
 
 
+@pytest.mark.slow
 def test_sdcard_reset_file_clears_a_print_that_ended_and_not_one_running(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
 ) -> None:
@@ -111,6 +112,7 @@ def test_sdcard_reset_file_clears_a_print_that_ended_and_not_one_running(
     assert not [line for line in executed(fake.log_path) if "SDCARD" in line.upper()]
 
 
+@pytest.mark.slow
 def test_an_extended_command_the_server_does_not_do_is_unknown_as_in_klipper(
     printer: tuple[Server, BuiltInFake],
 ) -> None:

@@ -91,6 +91,7 @@ def streaming(
     return server.wait_ready("busy"), fake
 
 
+@pytest.mark.slow
 def test_a_flood_of_writes_over_the_websocket_costs_each_its_own_size(
     streaming: tuple[Server, BuiltInFake],
 ) -> None:
@@ -113,6 +114,7 @@ def test_a_flood_of_writes_over_the_websocket_costs_each_its_own_size(
     assert len(kept["result"]["value"]["items"]) == FLOOD
 
 
+@pytest.mark.slow
 def test_a_flood_of_writes_over_http_json_rpc_costs_each_its_own_size(
     streaming: tuple[Server, BuiltInFake],
 ) -> None:
@@ -136,6 +138,7 @@ def test_a_flood_of_writes_over_http_json_rpc_costs_each_its_own_size(
     each_costs_its_own_size(costs)
 
 
+@pytest.mark.slow
 def test_a_batch_past_its_bounds_is_refused_or_cut_in_a_sentence(
     streaming: tuple[Server, BuiltInFake],
 ) -> None:
@@ -348,6 +351,7 @@ def test_a_data_folder_of_an_earlier_version_keeps_its_namespaces(
     assert "left out" in server.stderr.read_text()
 
 
+@pytest.mark.slow
 def test_a_websocket_that_reads_none_of_its_big_answers_is_closed(server: Server) -> None:
     """Its answers are kept unsent up to 32 MB, not without end: past that it is closed."""
     big = "r" * 900_000

@@ -41,6 +41,7 @@ def print_state(server: Server) -> str:
     return state
 
 
+@pytest.mark.slow
 def test_a_file_uploaded_listed_described_and_downloaded(
     slow: tuple[Server, BuiltInFake], tmp_path: Path
 ) -> None:
@@ -83,6 +84,7 @@ def test_a_file_uploaded_listed_described_and_downloaded(
         assert http.get("/v1/files").json() == []
 
 
+@pytest.mark.slow
 def test_an_upload_answers_as_moonraker_and_print_true_starts_it(
     slow: tuple[Server, BuiltInFake],
 ) -> None:
@@ -136,6 +138,7 @@ def test_an_upload_answers_as_moonraker_and_print_true_starts_it(
         assert http.get("/server/history/job", params={"uid": "FFFFFF"}).status_code == 404
 
 
+@pytest.mark.slow
 def test_the_job_queue_is_the_servers_queue(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server], tmp_path: Path
 ) -> None:
@@ -189,6 +192,7 @@ def test_the_job_queue_is_the_servers_queue(
     assert ended == [("b.gcode", "completed"), ("a.gcode", "completed")]  # by id, newest first
 
 
+@pytest.mark.slow
 def test_a_websocket_is_told_of_files_added_and_removed(
     slow: tuple[Server, BuiltInFake],
 ) -> None:
@@ -217,6 +221,7 @@ def test_a_websocket_is_told_of_files_added_and_removed(
     ]
 
 
+@pytest.mark.slow
 def test_a_move_from_either_face_is_one_move_with_where_it_was(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
 ) -> None:
@@ -296,6 +301,7 @@ def test_a_move_from_either_face_is_one_move_with_where_it_was(
     assert moves == [("a.gcode", "b.gcode"), ("b.gcode", "c.gcode")]
 
 
+@pytest.mark.slow
 def test_print_true_while_a_job_runs_queues_the_upload(
     slow: tuple[Server, BuiltInFake], tmp_path: Path
 ) -> None:

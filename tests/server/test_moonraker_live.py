@@ -43,6 +43,7 @@ def printer(
     return server
 
 
+@pytest.mark.slow
 def test_an_idle_printers_subscription_hears_klippers_clock_four_times_a_second(
     printer: Server,
 ) -> None:
@@ -68,6 +69,7 @@ def test_an_idle_printers_subscription_hears_klippers_clock_four_times_a_second(
     asyncio.run(run())
 
 
+@pytest.mark.slow
 def test_gcode_answers_as_klipper_does_no_ok_and_m105_in_its_words(printer: Server) -> None:
     heard = Heard()
 
@@ -91,6 +93,7 @@ def responses(heard: Heard) -> list[str]:
     return [d[0] for m, d in heard.notifications if m == "notify_gcode_response"]
 
 
+@pytest.mark.slow
 def test_a_target_reads_back_as_the_call_returns_on_every_face(printer: Server) -> None:
     heard = Heard()
 
@@ -133,6 +136,7 @@ def test_a_target_reads_back_as_the_call_returns_on_every_face(printer: Server) 
         assert readings["B"]["target"] == 0
 
 
+@pytest.mark.slow
 def test_homed_axes_and_factors_read_back_as_the_commands_ran(
     printer: Server, request: pytest.FixtureRequest
 ) -> None:

@@ -80,6 +80,7 @@ def printer(bench: Callable[..., BuiltInFake], servers: Callable[..., Server]) -
     return server
 
 
+@pytest.mark.slow
 def test_mainsails_load_sequence_and_its_settings_outlive_a_restart(
     printer: Server, bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
 ) -> None:
@@ -192,6 +193,7 @@ def test_fluidds_settings_over_http(printer: Server) -> None:
         assert listed == ["fluidd"]
 
 
+@pytest.mark.slow
 def test_klipperscreens_load_with_token_false_and_its_header(printer: Server) -> None:
     ws = printer.url.replace("http", "ws") + "/websocket?token=False"
 

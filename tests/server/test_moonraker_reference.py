@@ -26,13 +26,12 @@ from moonraker_api import MoonrakerClient
 
 from repetrel_host.fakes.fake_controller import BuiltInFake
 from tests.server.test_moonraker import Heard, connected, until
-from tests.support.paths import TESTS
+from tests.support.paths import CACHE, TESTS, install_once
 from tests.support.server import KEY, Server, free_port, gcode, wait_for
 
 pytestmark = pytest.mark.timeout(300)  # the first run installs Moonraker (some 15 s)
 
 VERSION = "0.11.0"
-CACHE = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "repetrel-host"
 FAKE_KLIPPY = TESTS / "support" / "fake_klippy.py"
 
 # What both are asked: (method, HTTP verb, path, arguments).
@@ -96,18 +95,13 @@ def moonraker_python() -> Path:
         return Path(given)
     venv = CACHE / f"moonraker-{VERSION}"
     python = venv / "bin" / "python"
-    if not (venv / "installed").exists():
-        try:
-            subprocess.run([sys.executable, "-m", "venv", "--clear", str(venv)], check=True)
-            subprocess.run(
-                [str(python), "-m", "pip", "install", "-q", f"moonraker=={VERSION}"],
-                check=True,
-                capture_output=True,
-                timeout=240,
-            )
-        except (subprocess.SubprocessError, OSError) as exc:
-            pytest.skip(f"Moonraker {VERSION} could not be installed here: {exc}")
-        (venv / "installed").touch()
+    install_once(
+        venv,
+        f"Moonraker {VERSION}",
+        [sys.executable, "-m", "venv", "--clear", str(venv)],
+        [str(python), "-m", "pip", "install", "-q", f"moonraker=={VERSION}"],
+        timeout=240,
+    )
     return python
 
 
@@ -209,6 +203,7 @@ def ours(bench: Callable[..., BuiltInFake], servers: Callable[..., Server]) -> S
     return server
 
 
+@pytest.mark.slow
 def test_the_same_calls_answer_in_moonrakers_shapes(reference: str, ours: Server) -> None:
     cube = gcode(200)
     for url, key in ((reference, None), (ours.url, KEY)):
@@ -357,6 +352,7 @@ def ours_trusting(
     return server
 
 
+@pytest.mark.slow
 def test_the_ways_in_and_argument_forms_answer_as_moonrakers(
     reference: str, ours_trusting: Server
 ) -> None:
@@ -380,6 +376,7 @@ COMMANDS = [
 ]
 
 
+@pytest.mark.slow
 def test_klippers_commands_answer_and_respond_as_klipper(reference: str, ours: Server) -> None:
     found: list[str] = []
 
@@ -452,6 +449,7 @@ def file_changes(url: str, key: str | None) -> tuple[list[dict[str, Any]], dict[
     return changes(), again
 
 
+@pytest.mark.slow
 def test_file_changes_are_told_as_moonraker_tells_them(reference: str, ours: Server) -> None:
     """A move is one ``move_file`` with its ``source_item``, an upload over a file of the
     same name is ``create_file``, and a listing with ``extended`` has each file's metadata."""
@@ -541,6 +539,7 @@ async def live(url: str, key: str | None) -> dict[str, Any]:
     }
 
 
+@pytest.mark.slow
 def test_live_status_and_gcode_replies_as_moonraker_on_klipper(
     reference: str, ours: Server
 ) -> None:

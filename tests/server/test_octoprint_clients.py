@@ -55,6 +55,7 @@ def heater_targets(fake: BuiltInFake) -> dict[str, Any]:
     return readings
 
 
+@pytest.mark.slow
 def test_octoprint_cli_status_files_print_temp_and_connection(
     tmp_path: Path, bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
 ) -> None:
@@ -149,6 +150,7 @@ def test_octoprint_cli_status_files_print_temp_and_connection(
         wait_for(lambda: client.get("/api/printer").status_code == 200, what="connected again")
 
 
+@pytest.mark.slow
 def test_octorest_calls_as_against_octoprint(
     tmp_path: Path, bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
 ) -> None:

@@ -170,6 +170,7 @@ def test_the_wire_reads_as_octoprints_terminal_across_reads_and_ticks() -> None:
 # --- octorest ----------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_octorest_websocket_event_handler_gets_currents_and_print_done(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
 ) -> None:
@@ -214,6 +215,7 @@ def test_octorest_websocket_event_handler_gets_currents_and_print_done(
 # --- a farm manager's raw websocket --------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_a_farm_managers_raw_websocket_follows_a_print_its_events_and_the_wire(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
 ) -> None:
@@ -342,6 +344,7 @@ def _in_order(wanted: list[str], seen: list[str]) -> bool:
 # --- without auth -----------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_without_auth_a_socket_gets_only_connected_and_a_wrong_session_is_refused(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
 ) -> None:
@@ -439,6 +442,7 @@ def page_server(tmp_path: Path) -> Iterator[Callable[[str], str]]:
     reason="needs Debian's chromium and chromium-driver (.ci/run installs them)",
 )
 @pytest.mark.parametrize("transport", ["websocket", "xhr-streaming"])
+@pytest.mark.slow
 def test_octoprints_sockjs_client_in_a_browser_follows_a_print(
     transport: str,
     bench: Callable[..., BuiltInFake],
@@ -530,6 +534,7 @@ def stuck_client(server: Server, auth: str) -> socket.socket:
 
 
 @pytest.mark.timeout(150)
+@pytest.mark.slow
 def test_a_client_that_never_reads_is_dropped_and_slows_nothing(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
 ) -> None:
@@ -598,6 +603,7 @@ def test_sockjs_info_greeting_and_bad_requests_answer_as_sockjs(
 # --- a cancel held up by a heat wait ---------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_a_cancel_behind_a_heat_wait_reads_cancelling_to_clients_and_the_socket(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
 ) -> None:

@@ -120,6 +120,7 @@ def deep_json_everywhere(server: Server) -> None:
 
 
 @pytest.mark.parametrize("protocol", ["reprap", "hyrel"])
+@pytest.mark.slow
 def test_json_nested_too_deep_is_one_sentence_everywhere_and_costs_the_printer_nothing(
     bench: Callable[..., BuiltInFake],
     servers: Callable[..., Server],

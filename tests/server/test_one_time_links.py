@@ -143,6 +143,7 @@ def test_a_link_names_the_address_the_configuration_listens_on(
     assert redeem(server, made.stdout.strip().partition("#token=")[2]).status_code == 200
 
 
+@pytest.mark.slow
 def test_bad_link_commands_get_one_sentence(servers: Callable[..., Server], tmp_path: Path) -> None:
     nowhere = link_command(tmp_path / "nowhere")
     assert nowhere.returncode == 2

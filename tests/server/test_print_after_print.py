@@ -104,6 +104,7 @@ def first_job_held(http: httpx.Client, server: Server, start: str) -> None:
 
 
 @pytest.mark.parametrize("start", list(STARTS))
+@pytest.mark.slow
 def test_a_start_after_a_print_releases_the_hold_and_goes_first(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server], start: str
 ) -> None:
@@ -152,6 +153,7 @@ MOONRAKER_REFUSAL = (
 
 
 @pytest.mark.parametrize("start", list(STARTS))
+@pytest.mark.slow
 def test_where_every_start_waits_for_a_release_a_start_is_refused_with_why(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server], start: str
 ) -> None:
@@ -188,6 +190,7 @@ def test_where_every_start_waits_for_a_release_a_start_is_refused_with_why(
     assert "released by" not in server.stderr.read_text()
 
 
+@pytest.mark.slow
 def test_a_start_after_an_interrupted_job_sends_the_owed_safe_stop_first(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
 ) -> None:
@@ -219,6 +222,7 @@ def test_a_start_after_an_interrupted_job_sends_the_owed_safe_stop_first(
     )
 
 
+@pytest.mark.slow
 def test_a_start_while_the_queue_is_held_on_request_prints_and_the_queue_stays_held(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
 ) -> None:

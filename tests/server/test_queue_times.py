@@ -42,6 +42,7 @@ def planned(client: httpx.Client, path: str) -> float:
 
 
 @pytest.mark.timeout(120)
+@pytest.mark.slow
 def test_queued_jobs_follow_the_running_one_and_the_printer_is_free_after_the_last(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
 ) -> None:

@@ -29,6 +29,7 @@ def ran(fake: BuiltInFake, command: str) -> bool:
 
 @pytest.mark.parametrize("protocol", ["reprap", "hyrel"])
 @pytest.mark.parametrize("phase", ["printing", "heat wait", "paused"])
+@pytest.mark.slow
 def test_a_restart_after_kill_9_turns_off_every_heater_the_job_turned_on(
     bench: Callable[..., BuiltInFake],
     servers: Callable[..., Server],
@@ -79,6 +80,7 @@ def test_a_restart_after_kill_9_turns_off_every_heater_the_job_turned_on(
     ],
     ids=["SIGTERM-reprap", "SIGTERM-hyrel", "SIGHUP-reprap", "SIGQUIT-hyrel"],
 )
+@pytest.mark.slow
 def test_a_stop_signal_stops_the_servers_job_with_every_heater_off(
     bench: Callable[..., BuiltInFake],
     servers: Callable[..., Server],
@@ -99,6 +101,7 @@ def test_a_stop_signal_stops_the_servers_job_with_every_heater_off(
     assert targets(fake) == ALL_OFF
 
 
+@pytest.mark.slow
 def test_a_cancel_held_up_by_a_heat_wait_reads_cancelling_until_it_ends(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
 ) -> None:

@@ -135,6 +135,7 @@ def test_upload_without_print_waits_until_selected_and_started(
     assert executed(fake.log_path).count("G1 X5") == 2
 
 
+@pytest.mark.slow
 def test_the_event_stream_tells_states_jobs_progress_and_temperatures(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
 ) -> None:
@@ -154,8 +155,13 @@ def test_the_event_stream_tells_states_jobs_progress_and_temperatures(
                     seen.append(json.loads(line[len("data: ") :]))
                     event = seen[-1]
                     completed |= event["type"] == "job" and event["job"]["state"] == "completed"
-                    if completed and any(e["type"] == "temperatures" for e in seen):
-                        break  # temperatures come every 2 s
+                    states = [e["state"] for e in seen if e["type"] == "printer"]
+                    if (
+                        completed
+                        and states[-1] == "ready"
+                        and any(e["type"] == "temperatures" for e in seen)
+                    ):
+                        break  # temperatures come every 2 s; ready follows the job's end
     first = seen[0]
     assert first["type"] == "printer" and first["name"] == "bench" and first["state"] == "ready"
     jobs = [e["job"]["state"] for e in seen if e["type"] == "job" and e["job"]["id"] == job_id]
@@ -167,6 +173,7 @@ def test_the_event_stream_tells_states_jobs_progress_and_temperatures(
     assert any(e["type"] == "temperatures" and "T" in e["readings"] for e in seen)
 
 
+@pytest.mark.slow
 def test_hyrel_send_submits_to_the_server_follows_lists_and_cancels(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server], tmp_path: Path
 ) -> None:
@@ -232,6 +239,7 @@ def test_an_m0_pauses_until_resume_and_the_queue_can_be_reordered(
 # --- never losing anything -----------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_kill_9_mid_job_keeps_the_queue_and_marks_the_job_interrupted(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
 ) -> None:
@@ -270,6 +278,7 @@ def test_kill_9_mid_job_keeps_the_queue_and_marks_the_job_interrupted(
     assert executed(fake.log_path)[-6:] == commands_of(gcode(5))
 
 
+@pytest.mark.slow
 def test_sigterm_stops_the_job_with_its_safe_stop_and_exits(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
 ) -> None:
@@ -326,6 +335,7 @@ def test_a_cancel_during_the_heat_up_breaks_the_wait_and_is_answered_when_safe(
         assert ran == commands_of(HEAT)[1 : len(ran) + 1] and record["last_line"] == len(ran) + 1
 
 
+@pytest.mark.slow
 def test_a_stop_nothing_can_break_is_owed_across_a_restart(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
 ) -> None:
@@ -357,6 +367,7 @@ def test_a_stop_nothing_can_break_is_owed_across_a_restart(
     assert heater_targets(fake) == {"T": 0.0, "B": 0.0}
 
 
+@pytest.mark.slow
 def test_a_vanished_link_comes_back_and_the_next_job_runs(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
 ) -> None:
@@ -706,6 +717,7 @@ def test_a_first_start_on_a_port_in_use_writes_nothing(tmp_path: Path) -> None:
     assert not data.exists()  # no folder, no database, no key
 
 
+@pytest.mark.slow
 def test_a_new_server_makes_a_key_kept_private_and_an_upload_limit(
     servers: Callable[..., Server],
 ) -> None:
@@ -731,6 +743,7 @@ def test_a_new_server_makes_a_key_kept_private_and_an_upload_limit(
         assert client.post("/v1/printers/demo/sideways").status_code == 404
 
 
+@pytest.mark.slow
 def test_bad_server_settings_get_one_sentence(tmp_path: Path) -> None:
     for args, message in (
         (["--data-dir", str(tmp_path)], "no printer: give --printer NAME=PORT"),
@@ -784,6 +797,7 @@ async def _mqtt_messages(
     return messages
 
 
+@pytest.mark.slow
 def test_mqtt_publishes_states_jobs_progress_retained_and_takes_commands(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server], broker: int, tmp_path: Path
 ) -> None:

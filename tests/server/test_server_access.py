@@ -132,6 +132,7 @@ def test_a_job_keeps_who_submitted_it(servers: Callable[..., Server]) -> None:
         assert keyed.get("/api/job").json()["job"]["user"] == "admin"
 
 
+@pytest.mark.slow
 def test_home_assistant_sets_up_with_a_key_granted_on_the_page(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server], tmp_path: Path
 ) -> None:
@@ -238,6 +239,7 @@ async def until(octoprint: OctoprintClient, condition: Callable[[Any], bool]) ->
     raise AssertionError("timed out waiting for the job's state")
 
 
+@pytest.mark.slow
 def test_an_app_key_request_not_polled_expires_and_a_key_can_be_revoked_on_the_api(
     servers: Callable[..., Server],
 ) -> None:

@@ -32,6 +32,7 @@ def schemathesis(server: Server, folder: Path, *options: str) -> subprocess.Comp
 
 
 @pytest.mark.timeout(480)
+@pytest.mark.slow
 def test_generated_requests_find_no_server_error_and_no_hang(
     servers: Callable[..., Server], tmp_path: Path
 ) -> None:

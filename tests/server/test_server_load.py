@@ -82,6 +82,7 @@ def octoprint_refused(answer: httpx.Response, status: int) -> str:
 
 
 @pytest.mark.parametrize("protocol", LINKS)
+@pytest.mark.slow
 def test_big_bodies_are_refused_before_they_are_read_with_a_key_or_without(
     tmp_path: Path,
     bench: Callable[..., BuiltInFake],
@@ -203,6 +204,7 @@ def closed_by_server(slow: socket.socket) -> bool:
 
 
 @pytest.mark.parametrize("protocol", LINKS)
+@pytest.mark.slow
 def test_half_sent_requests_are_closed_and_crowd_out_nobody(
     tmp_path: Path,
     bench: Callable[..., BuiltInFake],
@@ -339,6 +341,7 @@ def test_the_servers_connections_send_at_once_without_nagles_algorithm() -> None
 
 
 @pytest.mark.timeout(60)
+@pytest.mark.slow
 def test_refused_websockets_are_logged_once_a_minute_not_each(
     servers: Callable[..., Server],
 ) -> None:

@@ -16,6 +16,7 @@ from tests.support.server import Server, wait_for
 pytestmark = pytest.mark.timeout(90)
 
 
+@pytest.mark.slow
 def test_an_unplugged_printer_says_since_when_and_why(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
 ) -> None:

@@ -24,6 +24,7 @@ from tests.support.server import CAMERA, Server, camera_config, server_config, w
 pytestmark = pytest.mark.timeout(120)
 
 
+@pytest.mark.slow
 def test_presets_are_the_configurations_else_common_ones(
     servers: Callable[..., Server], tmp_path: Path
 ) -> None:
@@ -42,6 +43,7 @@ def test_presets_are_the_configurations_else_common_ones(
     assert defaults["PLA"]["head"] == 210.0 and set(defaults) == {"PLA", "PETG", "ABS"}
 
 
+@pytest.mark.slow
 def test_each_heater_is_named_and_set_by_its_own_command(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server], tmp_path: Path
 ) -> None:
@@ -122,6 +124,7 @@ def test_a_layers_moves_are_read_from_its_place_in_the_file(
         assert client.get("/v1/files/cone.gcode/layers/0").status_code == 400
 
 
+@pytest.mark.slow
 def test_a_layer_of_the_file_a_printer_prints_says_when_it_is_printed(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
 ) -> None:
@@ -155,6 +158,7 @@ def test_a_layer_of_the_file_a_printer_prints_says_when_it_is_printed(
         assert {key: ended[key] for key in unknown} == unknown  # it no longer prints it
 
 
+@pytest.mark.slow
 def test_a_stored_file_is_queued_again_or_resumed_from_a_layer(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server], tmp_path: Path
 ) -> None:
@@ -199,6 +203,7 @@ def test_a_stored_file_is_queued_again_or_resumed_from_a_layer(
 
 
 @pytest.mark.skipif(shutil.which("ffmpeg") is None, reason="needs ffmpeg (.ci/run installs it)")
+@pytest.mark.slow
 def test_a_jobs_layer_snapshots_make_a_timelapse_video(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server], tmp_path: Path
 ) -> None:

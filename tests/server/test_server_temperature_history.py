@@ -16,6 +16,7 @@ from tests.support.server import Server, wait_for
 pytestmark = pytest.mark.timeout(90)
 
 
+@pytest.mark.slow
 def test_the_history_holds_the_reports_oldest_first_and_since_a_time(
     servers: Callable[..., Server],
 ) -> None:
@@ -61,6 +62,7 @@ def test_the_history_holds_the_reports_oldest_first_and_since_a_time(
         client.post("/v1/printers/demo/command", json={"command": "M104 S0"})
 
 
+@pytest.mark.slow
 def test_the_event_streams_reports_carry_their_time(servers: Callable[..., Server]) -> None:
     server = servers({"demo": "fake"})
     with server.client() as client:

@@ -57,6 +57,7 @@ MARLIN = "repetrel-host fake controller (Marlin replies)"
     ],
     ids=["autoreport", "polled", "hyrel"],
 )
+@pytest.mark.slow
 def test_a_heated_job_shows_the_controllers_temperatures_though_it_was_slow_to_say_who_it_is(
     bench: Callable[..., BuiltInFake],
     servers: Callable[..., Server],

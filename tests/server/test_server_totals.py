@@ -17,6 +17,7 @@ SHORT = "G28\nG92 E0\nG1 X1 E4 F3000\nG1 X2 E3\nG1 X3 E10\n"  # 10 mm (a retract
 LONG = "G28\nM83\n" + "".join(f"G1 X{i / 10:.1f} E1 F600\n" for i in range(1, 3001))  # 3000 mm
 
 
+@pytest.mark.slow
 def test_totals_add_up_each_jobs_filament_and_time(servers: Callable[..., Server]) -> None:
     server = servers({"demo": "fake", "other": "fake"})
     with server.client() as client:

@@ -68,6 +68,7 @@ def forwarded(address: str) -> dict[str, str]:
 # --- X-Forwarded-For ---------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_a_forged_forwarded_for_opens_no_trusted_network(
     bench: Callable[..., BuiltInFake],
     servers: Callable[..., Server],

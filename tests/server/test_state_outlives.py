@@ -44,6 +44,7 @@ def printer(client: httpx.Client) -> dict[str, Any]:
 
 
 @pytest.mark.parametrize("protocol", ["reprap", "hyrel"])
+@pytest.mark.slow
 def test_a_connect_asked_for_while_offline_starts_no_second_connect_loop(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server], tmp_path: Path, protocol: str
 ) -> None:
@@ -74,6 +75,7 @@ def test_a_connect_asked_for_while_offline_starts_no_second_connect_loop(
 
 
 @pytest.mark.parametrize("protocol", ["reprap", "hyrel"])
+@pytest.mark.slow
 def test_the_hold_after_a_job_outlives_sigterm_and_kill_9(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server], tmp_path: Path, protocol: str
 ) -> None:
@@ -123,6 +125,7 @@ def in_a_heat_wait(
     return fake, config, server, job
 
 
+@pytest.mark.slow
 def test_a_stop_held_up_by_a_heat_wait_exits_75_and_the_next_start_sends_the_safe_stop(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server], tmp_path: Path
 ) -> None:
@@ -142,6 +145,7 @@ def test_a_stop_held_up_by_a_heat_wait_exits_75_and_the_next_start_sends_the_saf
     assert restarted.stop(signal.SIGTERM) == 0
 
 
+@pytest.mark.slow
 def test_a_stop_timeout_long_enough_finishes_the_safe_stop_behind_a_heat_wait(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server], tmp_path: Path
 ) -> None:
@@ -175,6 +179,7 @@ def put_in(state: str, client: httpx.Client, fake: BuiltInFake) -> int | None:
 
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGKILL], ids=lambda s: s.name)
 @pytest.mark.parametrize("state", ["idle", "held", "printing", "paused", "owing, offline"])
+@pytest.mark.slow
 def test_a_restart_in_every_state_keeps_the_hold_and_the_owed_stop(
     bench: Callable[..., BuiltInFake],
     servers: Callable[..., Server],

@@ -49,6 +49,7 @@ async def errors(printer: rh.Printer) -> int:
 
 @pytest.mark.parametrize("protocol", ["reprap", "hyrel"])
 @pytest.mark.parametrize("kind", ["sim", "fake"])
+@pytest.mark.slow
 def test_a_session_draws_no_error_from_a_healthy_link(
     kind: str, protocol: str, tmp_path: Path
 ) -> None:

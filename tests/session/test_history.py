@@ -279,6 +279,7 @@ def history_list(folder: Path, *args: str) -> list[str]:
 
 
 @pytest.mark.timeout(60)
+@pytest.mark.slow
 def test_history_list_after_a_completed_and_a_failed_run(tmp_path: Path) -> None:
     folder = tmp_path / "history"
     result = hyrel_send("--history-list", "--history", str(folder))
@@ -371,6 +372,7 @@ def start_on_the_builtin_fake(job: Path, folder: Path, log: Path) -> subprocess.
 
 
 @pytest.mark.timeout(60)
+@pytest.mark.slow
 def test_history_list_after_ctrl_c_and_after_a_killed_host(tmp_path: Path) -> None:
     folder = tmp_path / "history"
     process = start_on_the_builtin_fake(CONE, folder, tmp_path / "cancelled.log")
@@ -417,6 +419,7 @@ def drained(fake: BuiltInFake) -> None:
 
 @pytest.mark.timeout(90)
 @pytest.mark.parametrize("protocol", ["reprap", "hyrel"])
+@pytest.mark.slow
 def test_a_killed_host_left_all_it_sent_in_the_stream_and_a_resume_that_skips_nothing(
     tmp_path: Path, protocol: str
 ) -> None:
@@ -478,6 +481,7 @@ def test_a_killed_host_left_all_it_sent_in_the_stream_and_a_resume_that_skips_no
 
 
 @pytest.mark.timeout(90)
+@pytest.mark.slow
 def test_the_oldest_runs_are_pruned_to_the_configured_size(tmp_path: Path) -> None:
     folder = tmp_path / "history"
     config = tmp_path / "config.toml"

@@ -242,6 +242,7 @@ def job_lines(log: Path) -> list[str]:
 
 
 @pytest.mark.timeout(60)
+@pytest.mark.slow
 def test_an_identity_said_twice_does_not_end_a_job_before_its_last_line_ran(
     tmp_path: Path,
 ) -> None:
@@ -258,6 +259,7 @@ def test_an_identity_said_twice_does_not_end_a_job_before_its_last_line_ran(
 
 
 @pytest.mark.timeout(90)
+@pytest.mark.slow
 def test_a_link_cut_during_a_dwell_resumes_at_no_line_past_what_ran(tmp_path: Path) -> None:
     job = tmp_path / "dwell.gcode"
     job.write_text("".join(f"{line}\n" for line in DWELL_JOB))

@@ -151,6 +151,7 @@ def test_a_pause_that_comes_as_the_job_ends_holds_nothing_after_it(tmp_path: Pat
     run(scenario)
 
 
+@pytest.mark.slow
 def test_m108_is_refused_while_the_controller_holds_the_job(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -300,6 +300,7 @@ def two_runs(log: Path, first_line: str) -> tuple[list[str], list[str]]:
     [("reprap", "not acknowledged"), ("hyrel", "not known to have run")],
 )
 @pytest.mark.timeout(120)
+@pytest.mark.slow
 def test_an_interrupted_job_names_the_command_that_resumes_it(
     tmp_path: Path, protocol: str, hint: str
 ) -> None:
@@ -360,6 +361,7 @@ def resume_hint(stdout: str) -> list[str]:
 
 
 @pytest.mark.timeout(60)
+@pytest.mark.slow
 def test_a_controller_error_or_link_failure_gives_the_resume_hint_too(tmp_path: Path) -> None:
     job = tmp_path / "job.gcode"
     job.write_text("".join(f"G1 X{i}\n" for i in range(30)) + "!!DEBUG:reset\nG1 X99\nG1 X100\n")
@@ -381,6 +383,7 @@ def test_a_controller_error_or_link_failure_gives_the_resume_hint_too(tmp_path: 
 
 
 @pytest.mark.timeout(30)
+@pytest.mark.slow
 def test_no_hint_when_nothing_of_the_job_was_acknowledged(tmp_path: Path) -> None:
     job = tmp_path / "job.gcode"
     job.write_text("!!DEBUG:hang\nG1 X2\n")

@@ -110,6 +110,7 @@ def test_without_an_emergency_parser_the_held_stop_is_told_at_once(tmp_path: Pat
 
 
 @pytest.mark.parametrize("protocol", ["reprap", "hyrel"])
+@pytest.mark.slow
 def test_paused_then_unplugged_the_sender_reconnects_and_sends_the_safe_stop(
     tmp_path: Path, protocol: str
 ) -> None:
@@ -150,6 +151,7 @@ def test_paused_then_unplugged_the_sender_reconnects_and_sends_the_safe_stop(
     assert done.count("G1 X399 F600") == 0
 
 
+@pytest.mark.slow
 def test_a_safe_stop_cut_by_a_link_drop_is_finished_not_sent_again(tmp_path: Path) -> None:
     import json
 
@@ -201,6 +203,7 @@ def test_the_marlin_safe_stop_turns_off_every_hotend_the_job_heated(tmp_path: Pa
     assert done[-8:] == ["M107", "M104 T0 S0", "M104 T1 S0", "M140 S0", *MARLIN_SAFE_STOP[3:]]
 
 
+@pytest.mark.slow
 def test_a_marlin_board_slow_to_answer_m115_is_known_as_marlin(tmp_path: Path) -> None:
     with BuiltInFake(tmp_path / "fake.log", ["--command-time", "1.5"]) as fake:
         console = hyrel_send("--console", "--port", fake.port, input="M105\n", timeout=60)
@@ -256,6 +259,7 @@ def test_a_pause_that_comes_as_the_job_ends_says_so(tmp_path: Path) -> None:
     asyncio.run(scenario(path))
 
 
+@pytest.mark.slow
 def test_a_stop_held_up_too_long_offers_the_e_key_for_an_emergency_stop(tmp_path: Path) -> None:
     from tests.support.terminal import Screen
 
@@ -287,6 +291,7 @@ def test_a_stop_held_up_too_long_offers_the_e_key_for_an_emergency_stop(tmp_path
     assert hung and heaters == {"T": 0.0, "B": 0.0}
 
 
+@pytest.mark.slow
 def test_after_a_lost_link_the_resume_hint_says_which_lines_may_have_run(tmp_path: Path) -> None:
     """Lines on their way when the link went lost their oks with it: some of them may have
     run. The hint names that window, and a command that repeats them and one that skips

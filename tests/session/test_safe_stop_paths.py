@@ -73,6 +73,7 @@ async def into_phase(printer: rh.Printer, job: rh.PrintJob, log: Path, phase: st
 @pytest.mark.parametrize("protocol", ["reprap", "hyrel"])
 @pytest.mark.parametrize("phase", PHASES)
 @pytest.mark.parametrize("path", ["cancel", "link lost and found"])
+@pytest.mark.slow
 def test_every_heater_is_off_however_the_run_ends(
     tmp_path: Path, protocol: str, phase: str, path: str
 ) -> None:

@@ -318,6 +318,7 @@ def test_a_jog_and_an_extrusion_while_paused_are_undone_before_the_job_goes_on(
 
 
 @pytest.mark.parametrize("at_layer_end", [False, True])
+@pytest.mark.slow
 def test_a_pause_holds_the_job_in_the_controller_until_resume(
     rig: Rig, tmp_path: Path, at_layer_end: bool
 ) -> None:

@@ -53,6 +53,7 @@ async def targets_seen(printer: rh.Printer, job: rh.PrintJob) -> list[float | No
     return seen
 
 
+@pytest.mark.slow
 def test_a_controller_slow_to_say_who_it_is_gets_its_m155_once_mid_job(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

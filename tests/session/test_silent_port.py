@@ -78,6 +78,7 @@ def assert_told_as_it_went(
 
 
 @pytest.mark.timeout(60)
+@pytest.mark.slow
 def test_hyrel_send_says_where_it_connects_each_retry_and_why_it_gave_up(
     tmp_path: Path, silent_port: str
 ) -> None:
@@ -94,6 +95,7 @@ def test_hyrel_send_says_where_it_connects_each_retry_and_why_it_gave_up(
 
 
 @pytest.mark.timeout(60)
+@pytest.mark.slow
 def test_on_hyrels_link_too(tmp_path: Path, silent_port: str) -> None:
     job = tmp_path / "job.gcode"
     job.write_text("G28\n")
@@ -108,6 +110,7 @@ def test_on_hyrels_link_too(tmp_path: Path, silent_port: str) -> None:
 
 
 @pytest.mark.timeout(60)
+@pytest.mark.slow
 def test_the_console_says_it_as_well(silent_port: str) -> None:
     lines, ended, code, _ = timed_stderr("--console", "--port", silent_port)
     sentence = assert_told_as_it_went(lines, ended, silent_port, reprap_greeting.HELLO_TIMEOUT)
@@ -146,6 +149,7 @@ def test_the_python_api_hears_each_retry_before_connect_returns(
 
 
 @pytest.mark.timeout(60)
+@pytest.mark.slow
 def test_the_servers_printer_log_tells_each_retry(
     silent_port: str, servers: Callable[..., Server]
 ) -> None:

@@ -36,6 +36,7 @@ def heating_printer(protocol: str) -> Any:
 
 
 @pytest.mark.parametrize("protocol", ["reprap", "hyrel"])
+@pytest.mark.slow
 def test_a_heat_wait_counts_down_with_the_heaters_reports(tmp_path: Path, protocol: str) -> None:
     path = job_file(tmp_path, MOVES + HEAT + MOVES)
 
@@ -72,6 +73,7 @@ def test_a_heat_wait_counts_down_with_the_heaters_reports(tmp_path: Path, protoc
 
 
 @pytest.mark.parametrize("protocol", ["reprap", "hyrel"])
+@pytest.mark.slow
 def test_a_jobs_heaters_climbs_are_recorded_and_plan_the_next_jobs_waits(
     tmp_path: Path, protocol: str
 ) -> None:
