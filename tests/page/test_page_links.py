@@ -1,6 +1,6 @@
 """The page and one-time links in a real browser (headless Chromium) against a real server:
 a link gives a browser a key of its own and leaves its address at once; a spent link says
-so; a key in the address is not taken, and the page says why; the Access panel makes links
+so, and a new link opened in the page takes its place; a key in the address is not taken, and the page says why; the Access panel makes links
 for other screens."""
 
 from __future__ import annotations
@@ -60,6 +60,11 @@ def test_a_one_time_link_gives_the_browser_a_key_once_and_leaves_no_token_behind
         assert second.current_url == f"{server.url}/"
         assert second.execute_script(KEY_STORAGE) is None
         other.screenshot(tmp_path / "link-spent.png", 1000, 500)
+        # A new link opened in this page, open already: only the address's hash changes.
+        second.get(link(server))
+        other.wait(lambda: other.text("#link") == "live", "live with the new link's key")
+        assert second.current_url == f"{server.url}/"
+        assert second.execute_script(KEY_STORAGE) not in (None, kept)
     finally:
         second.quit()
 

@@ -94,6 +94,12 @@ const KEY_IN_ADDRESS =
 
 const LINK_WORDS = { live: "live", reconnecting: "reconnecting…", connecting: "connecting…", "no key": "no key" };
 
+// A link opened in a page already open changes only the address's hash: no new load, so
+// the page loads again to take it.
+window.addEventListener("hashchange", () => {
+  if (new URLSearchParams(location.hash.slice(1)).has("token")) location.reload();
+});
+
 async function main() {
   const told = await takeLink();
   if (told && !apiKey()) noKeyWhy = told[0];
