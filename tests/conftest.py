@@ -21,7 +21,7 @@ def pytest_addoption(parser: pytest.Parser) -> None:
         "--slow",
         action="store_true",
         help="also run the tests marked slow (a plain `pytest` leaves them out; naming a path "
-        "or giving -m runs what they select)",
+        "or giving -m or -k runs what they select)",
     )
 
 
@@ -40,6 +40,7 @@ def pytest_configure(config: pytest.Config) -> None:
         config.option.quick_only = (
             not config.option.slow
             and not config.option.markexpr
+            and not config.option.keyword
             and config.args_source == pytest.Config.ArgsSource.TESTPATHS
         )
 

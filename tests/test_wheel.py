@@ -80,6 +80,8 @@ def test_the_install_from_the_clone_runs_in_a_fresh_venv(tmp_path: Path) -> None
         if path.is_file() and "__pycache__" not in path.parts
     }
     assert tree - names == set()
+    modules = {name for name in names if name.endswith(".py")}
+    assert modules - tree == set()  # and no module that the tree no longer has
     shipped = {  # the repository's config/, inside the package
         f"repetrel_host/shipped_config/{path.relative_to(ROOT / 'config')}"
         for path in (ROOT / "config").rglob("*.toml")

@@ -1,7 +1,7 @@
 """The page and one-time links in a real browser (headless Chromium) against a real server:
 a link gives a browser a key of its own and leaves its address at once; a spent link says
-so, and a new link opened in the page takes its place; a key in the address is not taken, and the page says why; the Access panel makes links
-for other screens."""
+so, and a new link opened in the page takes its place; a key in the address is not taken,
+and the page says why; the Access panel makes links for other screens."""
 
 from __future__ import annotations
 

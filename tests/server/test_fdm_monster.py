@@ -59,12 +59,14 @@ def fdm_monster() -> Path:
     npm = shutil.which("npm")
     if not shutil.which("node") or not npm:
         pytest.skip("FDM Monster needs Node.js and npm, and this machine has not both")
-    if not (folder / "installed").exists():
+
+    def package() -> None:
         folder.mkdir(parents=True, exist_ok=True)
         (folder / "package.json").write_text(json.dumps(PACKAGE, indent=2))
+
     # It asks for Node 22; it runs on 20 (better-sqlite3 12 builds for it).
     install = [npm, "install", "--engine-strict=false", *QUIET]
-    install_once(folder, f"FDM Monster {VERSION}", install, cwd=folder, timeout=400)
+    install_once(folder, f"FDM Monster {VERSION}", install, first=package, cwd=folder, timeout=400)
     return entry
 
 

@@ -5,6 +5,7 @@ data folder keeps no link itself."""
 
 from __future__ import annotations
 
+import os
 import socket
 import stat
 import subprocess
@@ -107,6 +108,28 @@ def test_a_link_expires_and_opens_for_one_of_many_at_once(servers: Callable[...,
     assert sorted(a.status_code for a in answers) == [200] + [403] * 7
     names = [a.json()["app_id"] for a in answers if a.status_code == 200]
     assert names[0].startswith("page link ")  # the default name: when it was made
+
+    # Two links made in the same second: two names, two keys, neither replaces the other.
+    first, second = (redeem(server, made_token(server)).json() for _ in range(2))
+    assert first["app_id"] != second["app_id"]
+    for opened in (first, second):
+        with server.client(opened["api_key"]) as browser:
+            assert browser.get("/api/job").status_code == 200
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="making a link as root needs root")
+def test_a_link_made_as_root_leaves_its_files_to_the_servers_user(
+    servers: Callable[..., Server],
+) -> None:
+    """``sudo hyrel-server link`` beside a service: the server's user can still open the
+    links' files, as the data folder's owner it owns them."""
+    server = servers({"demo": "fake"})
+    nobody = 65534
+    os.chown(server.data_dir, nobody, nobody)
+    made_token(server)
+    for name in ("links.json", "links.lock"):
+        owner = (server.data_dir / name).stat()
+        assert (owner.st_uid, owner.st_gid) == (nobody, nobody), name
 
 
 def test_a_link_from_the_api_needs_the_key(servers: Callable[..., Server]) -> None:

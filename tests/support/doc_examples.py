@@ -131,7 +131,7 @@ def clone(tmp: Path) -> Path:
     folder = tmp / "clone"
     folder.mkdir()
     for entry in ROOT.iterdir():
-        if entry.name != ".venv":
+        if entry.name not in (".venv", "build"):  # a fresh clone has no build's leftovers
             (folder / entry.name).symlink_to(entry)
     (folder / ".venv").symlink_to(VENV)
     return folder

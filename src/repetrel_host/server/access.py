@@ -277,10 +277,11 @@ def make_page_link(
     data_dir: Path, app: str | None = None, seconds: float = LINK_SECONDS
 ) -> tuple[str, PageLink]:
     """A one-time link for the data folder ``data_dir`` (its token, and the link as kept):
-    good for ``seconds``, it grants the app key ``app`` (default: "page link" and the time)
-    to the first browser that opens it."""
+    good for ``seconds``, it grants the app key ``app`` (default: "page link", the time and
+    four hex digits) to the first browser that opens it."""
     token = secrets.token_urlsafe(16)
-    named = app or f"page link {time.strftime('%Y-%m-%d %H:%M:%S')}"
+    # The default name is one of its own: opening a link replaces the key of its name.
+    named = app or f"page link {time.strftime('%Y-%m-%d %H:%M:%S')} #{secrets.token_hex(2)}"
     made = PageLink(_digest(token), named, time.time() + seconds)
     with _locked(data_dir / LINKS_FILE, PageLink) as links:
         links[:] = [*_remembered(links), made]
@@ -335,6 +336,7 @@ def _locked(path: Path, kind: type[Kept]) -> Iterator[list[Kept]]:
     that the server and ``hyrel-server keys`` or ``link`` never lose each other's change.
     An exception in the block leaves the file as it was."""
     with open(path.with_suffix(".lock"), "w") as lock:
+        _as_the_folders(path.with_suffix(".lock"))
         fcntl.flock(lock, fcntl.LOCK_EX)
         entries = _read(path, kind)
         yield entries
@@ -342,4 +344,13 @@ def _locked(path: Path, kind: type[Kept]) -> Iterator[list[Kept]]:
         descriptor = os.open(partial, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
         with os.fdopen(descriptor, "w") as out:
             json.dump([asdict(entry) for entry in entries], out, indent=1)
+        _as_the_folders(partial)
         partial.replace(path)
+
+
+def _as_the_folders(path: Path) -> None:
+    """Give ``path`` to the data folder's owner, the server's user, when root made it
+    (``sudo hyrel-server link`` beside a service): else the server could not open it again."""
+    if os.geteuid() == 0:
+        folder = path.parent.stat()
+        os.chown(path, folder.st_uid, folder.st_gid)

@@ -416,8 +416,8 @@ def one_time_link(
     name: Annotated[
         str | None,
         typer.Option(
-            help="The name of the app key it gives (default: 'page link' and the time); a "
-            "key of that name already given is replaced when the link is opened."
+            help="The name of the app key it gives (default: 'page link', the time and four "
+            "hex digits); a key of that name already given is replaced when the link is opened."
         ),
     ] = None,
     url: Annotated[
