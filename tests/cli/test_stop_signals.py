@@ -85,7 +85,7 @@ def test_a_signal_stops_hyrel_send_with_its_safe_stop(
         stdout, stderr = process.communicate(timeout=60)
         heaters = targets(fake)
     assert process.returncode == 128 + signum, stdout + stderr
-    assert f"{signum.name}: stopping: sending the safe-stop sequence" in stdout
+    assert f"{signum.name}: stopping: sending the safe-stop sequence" in stdout, stderr
     assert heaters == ALL_OFF
     done = [c for c in executed(log) if c != "M115"]
     assert done[-1] == "M84"

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from repetrel_host.cli import stop_signals
 from repetrel_host.cli.actions import (
     Connecting,
     TerminalActions,
@@ -213,15 +214,46 @@ async def _stream(
     reports = stream_file.with_name(f"{stream_file.stem}-reports.log")  # the same run's name
     snapshots = stream_file.with_name(f"{stream_file.stem}-snapshots")
     actions = TerminalActions(console, user.host, reports, snapshots)
-    job = await printer.print(
-        plan,
-        force=options.force,
-        history=history or False,
-        on_action=actions.perform,
-        on_warning=lambda text: errors.print(text, markup=False),
-        report=options.report,
-        command_line=options.command_line,
-    )
+    interrupts = 0
+    begun: list[PrintJob] = []  # the job, once printer.print has started it
+
+    def interrupt(signum: int) -> None:
+        nonlocal interrupts
+        interrupts += 1
+        if not begun:  # still starting: stopped as soon as it has started
+            return
+        if begun[0].reconnecting_for_safe_stop:
+            console.print("giving up: the safe stop will not be sent")
+            begun[0].stop()
+            return
+        if interrupts == 1:
+            begun[0].stop()
+            console.print(stopping_text(signum))
+            return
+        begun[0].stop()  # abandoned (or the wait for a reconnect given up): the end says what
+
+    # The run's own handling from before the job starts: a signal that came while its first
+    # lines went out (or that the default handling lost inside an import) stops it safely.
+    early = bool(stop_signals.received)
+    signals = StopSignals(interrupt)
+    signals.install()
+    try:
+        job = await printer.print(
+            plan,
+            force=options.force,
+            history=history or False,
+            on_action=actions.perform,
+            on_warning=lambda text: errors.print(text, markup=False),
+            report=options.report,
+            command_line=options.command_line,
+        )
+    except BaseException:
+        signals.remove()
+        raise
+    begun.append(job)
+    if early or interrupts:
+        interrupts = 0
+        interrupt(stop_signals.received[-1])
     _announce(console, printer, plan)
     from rich.markup import escape
     from rich.progress import BarColumn, TaskProgressColumn, TextColumn
@@ -241,22 +273,8 @@ async def _stream(
     task = progress.add_task(escape(job.name), total=max(job.size, 1), lines=0, rate=0.0)
     status = JobStatus(printer, plan.job.path)
     started = time.monotonic()
-    interrupts = 0
     keys = Keys(sys.stdin)
     enter: asyncio.Future[None] | None = None  # an M0 waiting for Enter (or p)
-
-    def interrupt(signum: int) -> None:
-        nonlocal interrupts
-        interrupts += 1
-        if job.reconnecting_for_safe_stop:
-            console.print("giving up: the safe stop will not be sent")
-            job.stop()
-            return
-        if interrupts == 1:
-            job.stop()
-            console.print(stopping_text(signum))
-            return
-        job.stop()  # abandoned (or the wait for a reconnect given up): the end says what
 
     async def pause_or_resume() -> None:
         with contextlib.suppress(UsageError):  # the job ended meanwhile
@@ -304,8 +322,6 @@ async def _stream(
                 )
 
     tasks: set[asyncio.Task[None]] = set()
-    signals = StopSignals(interrupt)
-    signals.install()
     keyboard = keys.start(key)
     if keyboard:
         console.print("Keys: p pauses and resumes; Ctrl-C stops the job safely.")
