@@ -198,6 +198,7 @@ class _Ids(html.parser.HTMLParser):
 
 
 @pytest.mark.timeout(450)
+@pytest.mark.slow
 def test_readme_links_resolve(site: Path):
     links = readme_links()
     assert links

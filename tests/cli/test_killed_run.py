@@ -83,6 +83,7 @@ def test_a_console_after_a_killed_run_turns_the_heaters_off_before_its_first_com
         assert ran.index("M104 T1 S0") < ran.index("G1 X66 F600")
 
 
+@pytest.mark.slow
 def test_a_run_that_ended_cleanly_or_left_a_heater_on_by_request_owes_nothing(
     tmp_path: Path,
 ) -> None:

@@ -87,6 +87,7 @@ def test_a_damaged_block_is_an_error_not_an_image(
 
 
 @pytest.mark.timeout(60)
+@pytest.mark.slow
 def test_the_server_lists_and_serves_the_largest_thumbnail(
     tmp_path: Path, images: dict[str, tuple[Image.Image, bytes]], servers: Callable[..., Server]
 ) -> None:

@@ -382,6 +382,7 @@ def test_without_auth_a_socket_gets_only_connected_and_a_wrong_session_is_refuse
         assert listener.of("reauthRequired") == [{"reason": "stale"}]
 
 
+@pytest.mark.slow
 def test_with_public_reads_a_socket_needs_no_auth(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
 ) -> None:

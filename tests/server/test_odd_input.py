@@ -254,6 +254,7 @@ def test_hyrel_send_sends_a_marked_files_first_line_without_the_mark(tmp_path: P
 
 
 @pytest.mark.parametrize("protocol", ["reprap", "hyrel"])
+@pytest.mark.slow
 def test_a_marked_upload_is_taken_and_printed_without_the_mark(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server], tmp_path: Path, protocol: str
 ) -> None:

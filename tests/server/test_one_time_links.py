@@ -40,6 +40,7 @@ def redeem(server: Server, token: str) -> httpx.Response:
     return httpx.post(f"{server.url}/v1/links/redeem", json={"token": token}, timeout=30)
 
 
+@pytest.mark.slow
 def test_a_link_made_beside_the_running_server_opens_the_page_once(
     servers: Callable[..., Server],
 ) -> None:
@@ -94,6 +95,7 @@ def test_a_link_made_beside_the_running_server_opens_the_page_once(
         assert browser.get("/api/job").status_code == 403
 
 
+@pytest.mark.slow
 def test_a_link_expires_and_opens_for_one_of_many_at_once(servers: Callable[..., Server]) -> None:
     server = servers({"demo": "fake"})
     short = made_token(server, "--for", "1s")

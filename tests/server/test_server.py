@@ -311,6 +311,7 @@ def heater_targets(fake: BuiltInFake) -> dict[str, float]:
     return {name: float(t) for name, (_, t) in fake.request("status")["temperatures"].items()}
 
 
+@pytest.mark.slow
 def test_a_cancel_during_the_heat_up_breaks_the_wait_and_is_answered_when_safe(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
 ) -> None:
@@ -551,6 +552,7 @@ VALUES ('hyrel', 'old.gcode', 'files/old.gcode', 'completed', 1, 1.0, 2.0, 3.0, 
 """
 
 
+@pytest.mark.slow
 def test_a_hyrel_link_printer_prints_and_keeps_the_m773_report_with_the_job(
     servers: Callable[..., Server], tmp_path: Path
 ) -> None:
@@ -678,6 +680,7 @@ def test_bodies_are_refused_before_they_are_read(servers: Callable[..., Server])
     assert not list((server.data_dir / "files").iterdir())
 
 
+@pytest.mark.slow
 def test_a_second_server_on_the_same_data_folder_is_refused(
     servers: Callable[..., Server],
 ) -> None:

@@ -43,6 +43,7 @@ def approve(server: Server, app: str, allow: bool = True) -> None:
         assert answer.status_code == 204, answer.text
 
 
+@pytest.mark.slow
 def test_every_request_needs_a_key_unless_reads_are_opened(
     servers: Callable[..., Server],
 ) -> None:
@@ -267,6 +268,7 @@ def test_an_app_key_request_not_polled_expires_and_a_key_can_be_revoked_on_the_a
     assert keys.st_mode & 0o077 == 0  # private, as the server's own key
 
 
+@pytest.mark.slow
 def test_names_too_long_for_the_filesystem_are_shortened_or_refused_never_a_500(
     bench: Callable[..., BuiltInFake], servers: Callable[..., Server]
 ) -> None:

@@ -102,6 +102,7 @@ def test_names_that_clean_or_shorten_alike_stay_two_files(
         assert content(client, "a_b.gcode") == "G1 X3\n"
 
 
+@pytest.mark.slow
 def test_a_name_of_5000_characters_is_taken_shortened(servers: Callable[..., Server]) -> None:
     with servers({"demo": "fake"}).client() as client:
         stored = upload(client, "ж" * 5000 + ".gcode", "G1 X1\n")
