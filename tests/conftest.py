@@ -28,9 +28,9 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 def pytest_configure(config: pytest.Config) -> None:
     config.addinivalue_line(
         "markers",
-        "slow: a test of minutes or of a heavy real peer (a soak, a long bench, a real browser "
-        "or client, PostgreSQL, a package build): left out of a plain `pytest`, run by "
-        "`pytest --slow`, `pytest -m slow` and CI",
+        "slow: a test of more than about 3 s here, or of a heavy real peer (a soak, a bench, a "
+        "real browser or client, PostgreSQL, a package build): left out of a plain `pytest`, "
+        "run by `pytest --slow`, `pytest -m slow` and CI",
     )
     # The controller decides: pytest-xdist's workers see other arguments, and get its choice.
     workerinput = getattr(config, "workerinput", None)
