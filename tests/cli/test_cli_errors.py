@@ -88,7 +88,11 @@ def test_link_lost_mid_job_reports_the_last_acknowledged_line(tmp_path: Path) ->
     process = start_streaming(CONE, fake.port, log, "--reconnect-wait", "1")
     try:
         assert fake.process is not None
-        fake.process.kill()  # the controller vanishes, as when a cable is pulled
+        # The controller vanishes, as when a cable is pulled: its port goes with it (as udev
+        # removes /dev/ttyUSB0). The port first: a pty's number is free again once the fake
+        # is gone, and another test's fake could take it while the link still named it.
+        Path(fake.port).unlink()
+        fake.process.kill()
         _, stderr = process.communicate(timeout=30)
     finally:
         fake.stop()
