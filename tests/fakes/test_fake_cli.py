@@ -1,9 +1,10 @@
 """The built-in fake as users meet it: how fast it runs and how to get a slower one (in
 hyrel-send's --help), every setting's default in hyrel-fake-controller's --help, and no
-temporary log left behind unless one was asked for."""
+temporary log left behind unless one was asked for, nor its pty's folder."""
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -11,6 +12,7 @@ from pathlib import Path
 import pytest
 
 from tests.support.helpers import EXAMPLE, executed, hyrel_send, job_commands
+from tests.support.server import wait_for
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -49,7 +51,7 @@ def test_fake_controller_help_shows_every_default() -> None:
         elif line.strip():
             blocks[name] += " " + line.strip()
     del blocks["-h"]
-    assert len(blocks) == 27  # every option of build_parser
+    assert len(blocks) == 28  # every option of build_parser
     missing = [name for name, block in blocks.items() if "(default" not in block]
     assert missing == []
     assert "--move-time SECONDS time a move takes (default: 0, at once)" in blocks["--move-time"]
@@ -75,3 +77,48 @@ def test_the_builtin_fake_leaves_no_temporary_log(tmp_path: Path) -> None:
     assert f"The fake controller's log of executed commands: {log}" in result.stdout
     assert executed(log) == job_commands(EXAMPLE)
     assert list(temporary.iterdir()) == []
+
+
+def test_the_builtin_fakes_pty_folder_goes_when_whoever_started_it_is_killed(
+    tmp_path: Path,
+) -> None:
+    temporary = tmp_path / "tmp"
+    temporary.mkdir()
+    starter = (
+        "import time\n"
+        "from repetrel_host.fakes.fake_controller import BuiltInFake\n"
+        "print(BuiltInFake(control=True).start(), flush=True)\n"
+        "time.sleep(60)\n"
+    )
+    process = subprocess.Popen(
+        [sys.executable, "-c", starter],
+        stdout=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "TMPDIR": str(temporary)},
+    )
+    assert process.stdout is not None
+    port = Path(process.stdout.readline().strip())
+    assert port.parent.parent == temporary and port.is_symlink()
+    process.kill()  # a server or hyrel-send killed with kill -9 never stops its fake
+    process.wait()
+    process.stdout.close()
+    wait_for(lambda: not any(temporary.iterdir()), timeout=10, what="the fake's folder gone")
+
+
+def test_a_fake_whose_starter_is_gone_before_it_is_ready_leaves_nothing(tmp_path: Path) -> None:
+    folder = tmp_path / "own"
+    folder.mkdir()
+    command = [sys.executable, "-m", "repetrel_host.fakes.fake_controller", "--control"]
+    process = subprocess.Popen(
+        [*command, "--link", str(folder / "tty"), "--own-link-folder"],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    assert process.stdout is not None and process.stdin is not None
+    process.stdout.close()  # killed while the fake started: nobody reads its 'ready'
+    process.stdin.close()
+    assert process.wait(timeout=30) == 0
+    assert process.stderr is not None and process.stderr.read() == ""
+    assert not folder.exists()

@@ -286,6 +286,12 @@ def build_parser() -> argparse.ArgumentParser:
         "is printed as 'ready PATH')",
     )
     parser.add_argument(
+        "--own-link-folder",
+        action="store_true",
+        help="the folder --link is in is this fake's own: remove it when the fake ends, "
+        "even when whoever started it was killed (default: the folder stays)",
+    )
+    parser.add_argument(
         "--log",
         type=Path,
         metavar="FILE",
@@ -528,14 +534,19 @@ def main(argv: list[str] | None = None) -> int:
         return 3
     for signum in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
         signal.signal(signum, lambda *_: controller.stop())
-    print(f"ready {controller.link or controller.path}", flush=True)
     try:
+        print(f"ready {controller.link or controller.path}", flush=True)
         controller.run()
+    except BrokenPipeError:  # whoever started us is gone (killed while we started)
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # nothing to flush to
     finally:
         controller.close()
         for stream in (log, received):
             if stream is not None:
                 stream.close()
+        if args.own_link_folder and args.link is not None:
+            with contextlib.suppress(OSError):  # only once it is empty: nothing but ours
+                args.link.parent.rmdir()
         if args.stats is not None:
             counters = dataclasses.asdict(controller.simulator.link)
             args.stats.write_text(json.dumps(counters, indent=1) + "\n")
@@ -570,6 +581,7 @@ class BuiltInFake:
             "repetrel_host.fakes.fake_controller",
             "--link",
             str(link),
+            "--own-link-folder",  # so that it goes even when this process is killed
             *(["--log", str(self.log_path)] if self.log_path is not None else []),
             *self.extra_args,
         ]
