@@ -14,6 +14,7 @@ from typing import Any
 
 import httpx
 import pytest
+import serial
 from octorest import OctoRest
 
 from repetrel_host.fakes.fake_controller import BuiltInFake
@@ -142,6 +143,7 @@ def test_octoprint_cli_status_files_print_temp_and_connection(
     # OctoPrint's disconnect frees the port until connect.
     gone = octoprint_cli(config, "connection", "disconnect")
     assert gone.returncode == 0 and "Printer disconnected" in gone.stdout, gone
+    serial.Serial(fake.port, 115200, exclusive=True).close()  # free once it says so
     with server.client() as client:
         wait_for(lambda: client.get("/api/connection").json()["current"]["state"] == "Offline")
         assert client.get("/api/printer").status_code == 409

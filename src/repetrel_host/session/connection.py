@@ -17,6 +17,9 @@ RECONNECT_MAX = 5.0
 QUIET = 0.3
 QUIET_MAX = 5.0
 LINK_LOST = "the serial link was lost (printer unplugged, or its port closed)"
+# A closed session waits this long at most for its port to be free (what the transport
+# still holds is written first: a controller that takes nothing holds it up).
+PORT_FREE_WAIT = 5.0
 
 
 class LinkConnection(asyncio.Protocol):
@@ -33,6 +36,9 @@ class LinkConnection(asyncio.Protocol):
         self._received = received
         self._lost = lost
         self.transport: asyncio.Transport | None = None
+        # Set once the port's file is closed: a serial transport closes it in the
+        # background, after what it still holds is written.
+        self.closed = asyncio.Event()
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         assert isinstance(transport, asyncio.Transport)
@@ -43,4 +49,5 @@ class LinkConnection(asyncio.Protocol):
         self._received(self, data)
 
     def connection_lost(self, exc: Exception | None) -> None:
+        self.closed.set()
         self._lost(self, exc)

@@ -404,7 +404,7 @@ class Printer:
         for task in list(self._tasks):
             task.cancel()
         self._reconnector.end(LinkError("the session is closed"))
-        self._wire.drop_connection()
+        await self._wire.close_connection()
         await self._loop.run_in_executor(None, self.link.close)
         self._set_state(State.CLOSED, "closed")
         self._hub.close()

@@ -14,7 +14,7 @@ from collections.abc import Callable
 from typing import BinaryIO
 
 from repetrel_host.session.commands import PendingCommand
-from repetrel_host.session.connection import LinkConnection
+from repetrel_host.session.connection import PORT_FREE_WAIT, LinkConnection
 from repetrel_host.session.pump import Pump
 
 log = logging.getLogger("repetrel_host.session.printer")  # the printer's, as before
@@ -68,11 +68,26 @@ class Wire:
         for tap in self._line_taps:
             tap(command, own)
 
-    def drop_connection(self) -> None:
-        """Close the connection of the moment (the link itself stays the printer's)."""
+    def drop_connection(self) -> LinkConnection | None:
+        """Close the connection of the moment (the link itself stays the printer's); returns
+        it, whose ``closed`` is set once the port is free."""
         connection, self.connection = self.connection, None
         if connection is not None and connection.transport is not None:
             connection.transport.close()
+        return connection
+
+    async def close_connection(self) -> None:
+        """Close the connection of the moment and return once its port is free: whoever
+        opens it next (a connect, another program) must not find it busy."""
+        connection = self.drop_connection()
+        if connection is None or connection.transport is None:
+            return
+        try:
+            await asyncio.wait_for(connection.closed.wait(), PORT_FREE_WAIT)
+        except TimeoutError:
+            log.warning(
+                "the port is not closed yet: the controller has not taken what was sent to it"
+            )
 
     def close_log(self) -> None:
         if self.log is not None:
