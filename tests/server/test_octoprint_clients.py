@@ -19,7 +19,7 @@ from octorest import OctoRest
 
 from repetrel_host.fakes.fake_controller import BuiltInFake
 from repetrel_host.gcode.estimate import estimate_file
-from tests.support.helpers import executed
+from tests.support.helpers import executed, wait_for_log
 from tests.support.paths import DATA
 from tests.support.server import KEY, Server, gcode, wait_for
 
@@ -196,6 +196,8 @@ def test_octorest_calls_as_against_octoprint(
     rest.flowrate(0.95)
     rest.extrude(2)
     rest.gcode("M400")
+    assert fake.log_path is not None
+    wait_for_log(fake.log_path, "M400")  # its "ok" can come before the fake's log is written
     ran = executed(fake.log_path)
     for expected in (
         "M104 S210",

@@ -236,8 +236,6 @@ class PtyController:
     def _flush_writes(self) -> None:
         if not self._to_write:
             return
-        if self._unflushed:  # what was executed is in the log before its reply is sent
-            self._flush_logs()
         try:
             written = os.write(self._master, self._to_write)
         except (BlockingIOError, InterruptedError):
