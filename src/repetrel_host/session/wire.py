@@ -68,18 +68,17 @@ class Wire:
         for tap in self._line_taps:
             tap(command, own)
 
-    def drop_connection(self) -> LinkConnection | None:
-        """Close the connection of the moment (the link itself stays the printer's); returns
-        it, whose ``closed`` is set once the port is free."""
+    def drop_connection(self) -> None:
+        """Close the connection of the moment (the link itself stays the printer's)."""
         connection, self.connection = self.connection, None
         if connection is not None and connection.transport is not None:
             connection.transport.close()
-        return connection
 
     async def close_connection(self) -> None:
         """Close the connection of the moment and return once its port is free: whoever
         opens it next (a connect, another program) must not find it busy."""
-        connection = self.drop_connection()
+        connection = self.connection
+        self.drop_connection()
         if connection is None or connection.transport is None:
             return
         try:
